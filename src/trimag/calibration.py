@@ -1,0 +1,353 @@
+"""The :class:`Calibration` result: an affine correction with its provenance, statistics and diagnostics.
+
+Every model in trimag reduces, once identified, to the affine correction
+
+    B_corrected = matrix @ (B_raw - offset)                              (docs/conventions.md)
+
+``matrix`` (3x3) removes soft iron, gains and non-orthogonality; ``offset`` (3,) is the hard iron / zero bias,
+in the data's unit. The named physical parameters of the model that produced it live in ``params``.
+
+A Calibration is immutable. Build it with ``from_*`` constructors, read it with ``as_*`` / ``to_*``.
+Its JSON file is versioned (``format_version``, semver); a file from a newer major version is refused.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._version import __version__
+from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
+from .units import normalise_unit
+
+__all__ = ["FORMAT_VERSION", "Calibration", "atomic_write_text"]
+
+FORMAT_VERSION = "1.0.0"
+_FORMAT_MAJOR = 1
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file in the same folder, then rename.
+
+    A reader never sees a half-written file, and an error leaves any previous file untouched.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return target
+
+
+def _jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays (nested in dicts and lists) to plain JSON types; NaN/inf become None."""
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        value = float(obj)
+        return value if math.isfinite(value) else None
+    return obj
+
+
+def _frozen_array(a: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
+    arr = np.array(a, dtype=np.float64, copy=True)
+    if arr.shape != shape:
+        raise TrimagInputError(f"`{name}` must have shape {shape}; got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise TrimagInputError(f"`{name}` must be finite; got {arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """An identified magnetometer calibration: ``B_corrected = matrix @ (B_raw - offset)``.
+
+    Do not call the constructor directly; use :meth:`from_matrix_offset`, :meth:`from_params`,
+    :meth:`from_json` or :meth:`from_file` (estimators build it for you).
+
+    Attributes
+    ----------
+    matrix : ndarray, shape (3, 3)
+        Correction matrix (dimensionless when input and output share a unit).
+    offset : ndarray, shape (3,)
+        Hard-iron / zero-bias offset, in ``units``.
+    units : str
+        Unit of the raw data this calibration accepts; corrected output is in the same unit.
+    model, method : str
+        Error model and identification method that produced it.
+    params : dict[str, float]
+        Named physical parameters of ``model`` (angles in radians).
+    reference : dict or None
+        Field reference used: ``{"value": float or None, "source": str, "unit": str}``.
+    stats : dict
+        Fit statistics: ``n_samples``, ``n_used``, ``iterations``, ``converged``, ``rms_before``,
+        ``rms_after``, ``max_abs_before``, ``max_abs_after`` and method-specific entries.
+    uncertainty : dict or None
+        Standard deviations (``param_std``), covariance and predicted error when the method gives them.
+    diagnostics : dict
+        Condition number, sphere coverage, warnings, iteration history.
+    """
+
+    matrix: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    units: str = "unknown"
+    model: str = "affine"
+    method: str = "given"
+    params: Mapping[str, float] = field(default_factory=dict)
+    reference: Mapping[str, Any] | None = None
+    stats: Mapping[str, Any] = field(default_factory=dict)
+    uncertainty: Mapping[str, Any] | None = None
+    diagnostics: Mapping[str, Any] = field(default_factory=dict)
+    created: str = ""
+    trimag_version: str = __version__
+    format_version: str = FORMAT_VERSION
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_matrix_offset(
+        cls,
+        matrix: ArrayLike,
+        offset: ArrayLike = (0.0, 0.0, 0.0),
+        *,
+        units: str | None = "unknown",
+        model: str = "affine",
+        method: str = "given",
+        params: Mapping[str, float] | None = None,
+        reference: Mapping[str, Any] | None = None,
+        stats: Mapping[str, Any] | None = None,
+        uncertainty: Mapping[str, Any] | None = None,
+        diagnostics: Mapping[str, Any] | None = None,
+        created: str | None = None,
+    ) -> Calibration:
+        """Build a calibration from its correction matrix (3, 3) and offset (3,) in ``units``."""
+        m = _frozen_array(matrix, (3, 3), "matrix")
+        if abs(np.linalg.det(m)) < 1e-300 or np.linalg.cond(m) > 1e12:
+            raise TrimagInputError("`matrix` is singular: a calibration must be invertible")
+        return cls(
+            matrix=m,
+            offset=_frozen_array(offset, (3,), "offset"),
+            units=normalise_unit(units),
+            model=model,
+            method=method,
+            params=dict(params or {}),
+            reference=None if reference is None else dict(reference),
+            stats=dict(stats or {}),
+            uncertainty=None if uncertainty is None else dict(uncertainty),
+            diagnostics=dict(diagnostics or {}),
+            created=created or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        )
+
+    @classmethod
+    def from_params(
+        cls, model: str, params: Mapping[str, float], *, units: str | None = "unknown", **kwargs: Any
+    ) -> Calibration:
+        """Build a calibration from a model name and its named physical parameters.
+
+        Examples
+        --------
+        >>> cal = Calibration.from_params("ellipsoid", {"hard_iron_x": 1.0, "hard_iron_y": 0.0,
+        ...     "hard_iron_z": 0.0, "w11": 1.0, "w12": 0.0, "w13": 0.0, "w21": 0.0, "w22": 1.0,
+        ...     "w23": 0.0, "w31": 0.0, "w32": 0.0, "w33": 1.0})
+        >>> cal.apply([1.0, 0.0, 0.0]).shape
+        (3,)
+        """
+        from .models import get_model
+
+        instance = get_model(model).from_dict(params)
+        matrix, offset = instance.correction()
+        return cls.from_matrix_offset(
+            matrix, offset, units=units, model=model, params=instance.as_dict(), **kwargs
+        )
+
+    # ------------------------------------------------------------------ algebra
+    def apply(self, B: ArrayLike, *, inverse: bool = False, units: str | None = None) -> NDArray[np.float64]:
+        """Correct raw samples (or, with ``inverse=True``, distort corrected ones back to raw).
+
+        Parameters
+        ----------
+        B : array_like, shape (3,) or (N, 3)
+            Samples in :attr:`units`. Non-finite rows stay non-finite (one row never affects another).
+        inverse : bool
+            Apply the inverse map ``B_raw = inv(matrix) @ B + offset``.
+        units : str, optional
+            Unit of ``B``; if given and different from :attr:`units`, :class:`UnitMismatchError` is raised.
+
+        Returns
+        -------
+        ndarray, shape like ``B``
+        """
+        if units is not None:
+            given = normalise_unit(units)
+            if given != self.units and "unknown" not in (given, self.units):
+                raise UnitMismatchError(
+                    f"this calibration is for data in {self.units!r}; got data in {given!r}. "
+                    "Convert the data, or fit a calibration in that unit"
+                )
+        arr = np.asarray(B, dtype=np.float64)
+        if arr.shape[-1:] != (3,) or arr.ndim > 2:
+            raise TrimagInputError(f"`B` must have shape (3,) or (N, 3); got {arr.shape}")
+        if inverse:
+            return np.linalg.solve(self.matrix, arr.T).T + self.offset
+        return (arr - self.offset) @ self.matrix.T
+
+    def inv(self) -> Calibration:
+        """The inverse map as a Calibration: ``c.inv().apply(c.apply(B)) == B`` (to rounding)."""
+        inv_matrix = np.linalg.inv(self.matrix)
+        return Calibration.from_matrix_offset(
+            inv_matrix, -self.matrix @ self.offset, units=self.units, model="affine",
+            method=f"inverse of {self.method}",
+        )
+
+    def __mul__(self, other: object) -> Calibration:
+        """Composition: ``(a * b).apply(B) == a.apply(b.apply(B))`` (``b`` first, as in scipy's Rotation)."""
+        if not isinstance(other, Calibration):
+            return NotImplemented
+        matrix = self.matrix @ other.matrix
+        offset = other.offset + np.linalg.solve(other.matrix, self.offset)
+        return Calibration.from_matrix_offset(
+            matrix, offset, units=other.units, model="affine", method=f"{self.method} * {other.method}"
+        )
+
+    def approx_equal(self, other: Calibration, atol: float = 1e-9) -> bool:
+        """True when matrix and offset agree within ``atol`` and the units match."""
+        return (
+            self.units == other.units
+            and bool(np.allclose(self.matrix, other.matrix, rtol=0, atol=atol))
+            and bool(np.allclose(self.offset, other.offset, rtol=0, atol=atol))
+        )
+
+    def with_diagnostics(self, **entries: Any) -> Calibration:
+        """A copy with ``entries`` merged into :attr:`diagnostics`."""
+        return replace(self, diagnostics={**self.diagnostics, **entries})
+
+    def with_stats(self, **entries: Any) -> Calibration:
+        """A copy with ``entries`` merged into :attr:`stats`."""
+        return replace(self, stats={**self.stats, **entries})
+
+    # ------------------------------------------------------------------ export
+    def as_dict(self) -> dict[str, Any]:
+        """All content as plain JSON types (the file format; see ``docs/calibration-file.md``)."""
+        return _jsonable(
+            {
+                "format": "trimag-calibration",
+                "format_version": self.format_version,
+                "trimag_version": self.trimag_version,
+                "created": self.created,
+                "model": self.model,
+                "method": self.method,
+                "units": self.units,
+                "input_unit": self.units,
+                "output_unit": self.units,
+                "convention": "B_corrected = matrix @ (B_raw - offset)",
+                "matrix": self.matrix,
+                "offset": self.offset,
+                "params": dict(self.params),
+                "reference": self.reference,
+                "stats": dict(self.stats),
+                "uncertainty": self.uncertainty,
+                "diagnostics": dict(self.diagnostics),
+            }
+        )
+
+    def to_json(self, indent: int | None = 2) -> str:
+        """Serialise to JSON text; floats are written with full precision, so apply() round-trips exactly."""
+        return json.dumps(self.as_dict(), indent=indent, allow_nan=False)
+
+    def to_file(self, path: str | os.PathLike[str]) -> Path:
+        """Write the JSON file atomically (temporary file, then rename)."""
+        return atomic_write_text(path, self.to_json() + "\n")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Calibration:
+        """Rebuild from :meth:`as_dict` output; checks the format and its version."""
+        if not isinstance(data, Mapping) or data.get("format") != "trimag-calibration":
+            raise CalibrationFormatError(
+                "not a trimag calibration file (no \"format\": \"trimag-calibration\" entry)"
+            )
+        version = str(data.get("format_version", ""))
+        try:
+            major = int(version.split(".")[0])
+        except ValueError:
+            raise CalibrationFormatError(f"calibration file has an unreadable format_version {version!r}") from None
+        if major > _FORMAT_MAJOR:
+            raise CalibrationFormatError(
+                f"calibration file has format_version {version}, newer than this trimag understands "
+                f"({FORMAT_VERSION}); upgrade trimag (pip install -U trimag)"
+            )
+        if major < _FORMAT_MAJOR:
+            from .io.legacy import migrate
+
+            data = migrate(data)
+        try:
+            return cls(
+                matrix=_frozen_array(data["matrix"], (3, 3), "matrix"),
+                offset=_frozen_array(data["offset"], (3,), "offset"),
+                units=normalise_unit(data.get("units", "unknown")),
+                model=str(data.get("model", "affine")),
+                method=str(data.get("method", "given")),
+                params=dict(data.get("params") or {}),
+                reference=data.get("reference"),
+                stats=dict(data.get("stats") or {}),
+                uncertainty=data.get("uncertainty"),
+                diagnostics=dict(data.get("diagnostics") or {}),
+                created=str(data.get("created", "")),
+                trimag_version=str(data.get("trimag_version", "")),
+                format_version=FORMAT_VERSION,
+            )
+        except KeyError as exc:
+            raise CalibrationFormatError(f"calibration file lacks the entry {exc.args[0]!r}") from None
+
+    @classmethod
+    def from_json(cls, text: str) -> Calibration:
+        """Parse JSON text written by :meth:`to_json`."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CalibrationFormatError(f"calibration file is not valid JSON: {exc}") from None
+        return cls.from_dict(data)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str]) -> Calibration:
+        """Read a calibration JSON file."""
+        p = Path(path)
+        if not p.is_file():
+            raise TrimagInputError(f"calibration file {str(p)!r} does not exist")
+        return cls.from_json(p.read_text(encoding="utf-8"))
+
+    # ------------------------------------------------------------------ display
+    def __repr__(self) -> str:
+        return (
+            f"Calibration.from_matrix_offset(matrix={self.matrix.tolist()!r}, offset={self.offset.tolist()!r}, "
+            f"units={self.units!r}, model={self.model!r}, method={self.method!r})"
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Calibration):
+            return NotImplemented
+        return self.as_dict() == other.as_dict()
+
+    __hash__ = None  # type: ignore[assignment]

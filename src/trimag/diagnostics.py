@@ -1,0 +1,162 @@
+"""What the data can identify: sphere coverage of field directions and conditioning of a design.
+
+Every estimator reports these in ``Calibration.diagnostics``; ``IdentifiabilityError`` (exit 3) is raised when
+a design is numerically rank deficient, ``IdentifiabilityWarning`` when it is merely ill-conditioned.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import IdentifiabilityError, IdentifiabilityWarning
+
+__all__ = [
+    "CONDITION_ERROR",
+    "CONDITION_WARN",
+    "check_not_degenerate",
+    "design_condition",
+    "fibonacci_sphere",
+    "sphere_coverage",
+    "weak_directions",
+]
+
+#: Column-normalised condition number above which a fit warns (IdentifiabilityWarning).
+CONDITION_WARN = 1e4
+#: Column-normalised condition number above which the design is treated as rank deficient (exit 3).
+CONDITION_ERROR = 1e9
+
+_CHUNK = 200_000
+
+
+def fibonacci_sphere(n: int) -> NDArray[np.float64]:
+    """``n`` nearly equal-area cell centres on the unit sphere, shape (n, 3)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + 5**0.5) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def sphere_coverage(directions: ArrayLike, *, n_cells: int = 100, min_count: int = 1) -> dict[str, Any]:
+    """How much of the sphere of field directions the samples cover.
+
+    Parameters
+    ----------
+    directions : array_like, shape (N, 3)
+        Field vectors (any length; zero rows are ignored), e.g. corrected fields or raw fields minus offset.
+    n_cells : int
+        Number of equal-area cells (Fibonacci lattice).
+    min_count : int
+        Samples a cell needs to count as covered.
+
+    Returns
+    -------
+    dict
+        ``fraction`` (covered cells / n_cells, 0..1), ``isotropy`` (3 x smallest eigenvalue of the mean
+        outer product of unit directions: 1 for an even sphere, 0 for a plane), ``mean_direction_norm``
+        (0 for a balanced sphere, 1 for one direction), ``cell_counts`` (list of n_cells ints).
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    norms = np.linalg.norm(d, axis=1)
+    u = d[norms > 0] / norms[norms > 0, None]
+    centres = fibonacci_sphere(n_cells)
+    counts = np.zeros(n_cells, dtype=np.int64)
+    for start in range(0, len(u), _CHUNK):
+        idx = np.argmax(u[start : start + _CHUNK] @ centres.T, axis=1)
+        counts += np.bincount(idx, minlength=n_cells)
+    if len(u):
+        scatter = (u.T @ u) / len(u)
+        isotropy = float(3.0 * np.linalg.eigvalsh(scatter)[0])
+        mean_norm = float(np.linalg.norm(u.mean(axis=0)))
+    else:
+        isotropy, mean_norm = 0.0, 0.0
+    return {
+        "fraction": float(np.mean(counts >= min_count)),
+        "isotropy": isotropy,
+        "mean_direction_norm": mean_norm,
+        "n_cells": n_cells,
+        "cell_counts": counts.tolist(),
+    }
+
+
+def design_condition(A: ArrayLike) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Condition number of a design matrix after scaling its columns to unit norm.
+
+    Returns
+    -------
+    cond : float
+        Ratio of largest to smallest singular value (``inf`` when rank deficient).
+    singular_values : ndarray, shape (p,)
+    right_vectors : ndarray, shape (p, p)
+        Rows are the right singular vectors (last = weakest direction in scaled parameter space).
+    """
+    a = np.asarray(A, dtype=np.float64)
+    norms = np.linalg.norm(a, axis=0)
+    norms[norms == 0] = 1.0
+    _, s, vt = np.linalg.svd(a / norms, full_matrices=False)
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    return cond, s, vt
+
+
+def weak_directions(
+    vt: NDArray[np.float64], s: NDArray[np.float64], names: Sequence[str], *, threshold: float
+) -> list[str]:
+    """Parameter names that dominate the singular vectors whose singular value is below ``s[0]/threshold``."""
+    weak: list[str] = []
+    for k in np.nonzero(s < s[0] / threshold)[0]:
+        v = np.abs(vt[k])
+        for j in np.nonzero(v > 0.3 * v.max())[0]:
+            if names[j] not in weak:
+                weak.append(names[j])
+    return weak
+
+
+def check_condition(
+    cond: float,
+    *,
+    what: str,
+    hint: str,
+    weak: Sequence[str] = (),
+    warn: float = CONDITION_WARN,
+    error: float = CONDITION_ERROR,
+) -> None:
+    """Raise :class:`IdentifiabilityError` above ``error``; warn above ``warn``."""
+    weak_txt = f" (poorly determined: {', '.join(weak)})" if weak else ""
+    if not np.isfinite(cond) or cond > error:
+        raise IdentifiabilityError(f"the data cannot identify {what}: condition number {cond:.3g}{weak_txt}; {hint}")
+    if cond > warn:
+        warnings.warn(
+            f"{what} is poorly identified: condition number {cond:.3g}{weak_txt}; {hint}",
+            IdentifiabilityWarning,
+            stacklevel=3,
+        )
+
+
+def check_not_degenerate(B: NDArray[np.float64]) -> None:
+    """Refuse data that no 3-D calibration can use: a stuck sensor, or all samples on one line or plane.
+
+    Raises
+    ------
+    IdentifiabilityError
+        With a message saying what to record instead.
+    """
+    centred = B - B.mean(axis=0)
+    scale = float(np.max(np.abs(B))) or 1.0
+    sv = np.linalg.svd(centred / scale, compute_uv=False)
+    if sv[0] <= 1e-12 * np.sqrt(len(B)):
+        raise IdentifiabilityError(
+            "all samples are identical (the sensor appears stuck or the log repeats one value); "
+            "check the sensor, then record it while turning it through many attitudes"
+        )
+    if sv[2] <= 1e-6 * sv[0]:
+        kind = "one line" if sv[1] <= 1e-6 * sv[0] else "one plane"
+        raise IdentifiabilityError(
+            f"all samples lie in {kind} (the sensor turned about a single axis, or not at all): the "
+            "field along the missing direction is never seen; record rotations about at least two "
+            "more axes (or tumble the sensor through all attitudes)"
+        )

@@ -1,0 +1,34 @@
+"""Numerical helpers shared by estimators (not public API)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..reference import ScalarReference, as_scalar_reference
+
+__all__ = ["Normalisation", "normalise", "scalar_reference"]
+
+
+class Normalisation:
+    """Affine normalisation ``u = (x - centre) / scale`` that keeps fits well conditioned in any unit."""
+
+    def __init__(self, B: NDArray[np.float64]) -> None:
+        self.centre = B.mean(axis=0)
+        self.scale = float(np.sqrt(np.mean(np.sum((B - self.centre) ** 2, axis=1)))) or 1.0
+
+    def forward(self, B: NDArray[np.float64]) -> NDArray[np.float64]:
+        return (B - self.centre) / self.scale
+
+
+def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisation]:
+    """Return ``(u, norm)`` with ``u = norm.forward(B)``."""
+    norm = Normalisation(B)
+    return norm.forward(B), norm
+
+
+def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:
+    """Shortcut to :func:`trimag.reference.as_scalar_reference`."""
+    return as_scalar_reference(reference, n, units=units)

@@ -1,0 +1,222 @@
+"""The estimator contract (style guide: scikit-learn) and the shared finishing step of every fit.
+
+* ``__init__`` only stores keyword arguments under their own names; validation waits for ``fit``.
+* ``fit(B, reference=None, *, units=..., attitude=None)`` validates, identifies, and returns ``self``.
+* Fitted state ends in ``_``: ``calibration_``, ``residuals_``, ``cond_``, ``n_samples_``.
+* ``transform(B)`` applies the fit; before ``fit`` it raises :class:`~trimag.errors.NotFittedError`.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from typing import Any, ClassVar, Self
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..calibration import Calibration
+from ..diagnostics import sphere_coverage
+from ..errors import NotFittedError, TrimagInputError
+from ..metrics import magnitude_stats
+from ..models import get_model
+from ..reference import ScalarReference
+from ..units import normalise_unit
+from ..validation import check_field
+
+__all__ = ["Estimator", "build_calibration"]
+
+
+class Estimator:
+    """Base class of all identification methods.
+
+    Class attributes
+    ----------------
+    name : str
+        The ``--method`` name.
+    models : tuple of str
+        Models this method can identify; the first is the default.
+    reference_kind : str
+        ``"scalar"`` (magnitude optional or required, see ``requires_reference``), ``"none"`` (reference-free),
+        or ``"vector"`` (background vector + attitudes, paper C).
+    requires_reference : bool
+        True when a known magnitude (or background vector) is mandatory.
+    """
+
+    name: ClassVar[str] = ""
+    models: ClassVar[tuple[str, ...]] = ()
+    reference_kind: ClassVar[str] = "scalar"
+    requires_reference: ClassVar[bool] = False
+
+    # ---- parameters (scikit-learn style, no dependency on it)
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        names = []
+        for p in sig.parameters.values():
+            if p.name == "self":
+                continue
+            if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+                raise TypeError(f"{cls.__name__}.__init__ must not take *args or **kwargs")
+            names.append(p.name)
+        return names
+
+    def get_params(self) -> dict[str, Any]:
+        """The constructor's keyword arguments and their current values."""
+        return {n: getattr(self, n) for n in self._param_names()}
+
+    def set_params(self, **params: Any) -> Self:
+        """Set constructor parameters; unknown names raise ``TrimagInputError``."""
+        valid = set(self._param_names())
+        for key, value in params.items():
+            if key not in valid:
+                raise TrimagInputError(
+                    f"method {self.name!r} has no option {key!r}; its options are {sorted(valid)}"
+                )
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    # ---- fitting
+    def _resolve_model(self) -> str:
+        model = getattr(self, "model", None) or self.models[0]
+        if model not in self.models:
+            raise TrimagInputError(
+                f"method {self.name!r} identifies the model(s) {', '.join(self.models)}; got model {model!r}"
+            )
+        return str(model)
+
+    def _min_samples(self, model: str) -> int:
+        return int(get_model(model).n_identifiable) + 1
+
+    def fit(
+        self,
+        B: ArrayLike,
+        reference: Any = None,
+        *,
+        units: str | None = "unknown",
+        attitude: Any = None,
+    ) -> Self:
+        """Identify the model from raw samples.
+
+        Parameters
+        ----------
+        B : array_like, shape (N, 3)
+            Raw sensor output in ``units``.
+        reference : float, array_like (N,), "mean", ScalarReference, or None
+            Field magnitude reference in ``units`` (scalar methods); for ``reference_kind == "vector"``
+            the background field vector in the navigation frame, shape (3,).
+        units : str
+            Unit of ``B`` (and of a numeric reference); recorded in the Calibration.
+        attitude : scipy.spatial.transform.Rotation, optional
+            Per-sample attitude (N rotations mapping navigation-frame vectors to the body frame); only for
+            methods with ``reference_kind == "vector"``.
+
+        Returns
+        -------
+        self
+        """
+        model = self._resolve_model()
+        X = check_field(B, min_samples=self._min_samples(model), model=model)
+        unit = normalise_unit(units)
+        cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
+        self.calibration_ = cal
+        self.n_samples_ = int(X.shape[0])
+        corrected = cal.apply(X)
+        ref_value = (cal.reference or {}).get("value")
+        target = self._residual_target(corrected, reference, ref_value)
+        self.residuals_ = np.linalg.norm(corrected, axis=1) - target
+        self.cond_ = float(cal.diagnostics.get("condition_number", np.nan))
+        return self
+
+    def _residual_target(self, corrected: NDArray[np.float64], reference: Any, ref_value: Any) -> Any:
+        if isinstance(reference, ScalarReference) and reference.values is not None:
+            return reference.values
+        if reference is not None and np.ndim(reference) == 1 and len(reference) == len(corrected):
+            return np.asarray(reference, dtype=np.float64)
+        if ref_value is not None:
+            return float(ref_value)
+        return float(np.linalg.norm(corrected, axis=1).mean())
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        raise NotImplementedError
+
+    def transform(self, B: ArrayLike) -> NDArray[np.float64]:
+        """Apply the fitted calibration to raw samples (N, 3)."""
+        if not hasattr(self, "calibration_"):
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(B, reference) first")
+        return self.calibration_.apply(B)
+
+
+def build_calibration(
+    B: NDArray[np.float64],
+    matrix: ArrayLike,
+    offset: ArrayLike,
+    *,
+    model: str,
+    method: str,
+    units: str,
+    reference: ScalarReference,
+    params: Mapping[str, float] | None = None,
+    iterations: int = 0,
+    converged: bool = True,
+    fitted_magnitude: float | None = None,
+    uncertainty: Mapping[str, Any] | None = None,
+    diagnostics: Mapping[str, Any] | None = None,
+    extra_stats: Mapping[str, Any] | None = None,
+) -> Calibration:
+    """Assemble a :class:`Calibration` with before/after statistics and sphere coverage.
+
+    Statistics use ``F`` = the reference magnitude(s), or, when the magnitude is unknown, the mean corrected
+    magnitude (``fitted_magnitude`` if given): ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``.
+    """
+    matrix = np.asarray(matrix, dtype=np.float64)
+    offset = np.asarray(offset, dtype=np.float64)
+    corrected = (B - offset) @ matrix.T
+    if reference.values is not None:
+        F: Any = reference.values
+        ref_info = reference.info()
+    else:
+        F = float(fitted_magnitude) if fitted_magnitude is not None else float(
+            np.linalg.norm(corrected, axis=1).mean()
+        )
+        ref_info = reference.info(fitted_value=F)
+    before = magnitude_stats(B, F)
+    after = magnitude_stats(corrected, F)
+    stats: dict[str, Any] = {
+        "n_samples": int(B.shape[0]),
+        "n_used": int(B.shape[0]),
+        "iterations": int(iterations),
+        "converged": bool(converged),
+        "rms_before": before["rms"],
+        "rms_after": after["rms"],
+        "max_abs_before": before["max_abs"],
+        "max_abs_after": after["max_abs"],
+        "p2p_before": before["peak_to_peak"],
+        "p2p_after": after["peak_to_peak"],
+        "mean_norm_before": before["mean_norm"],
+        "mean_norm_after": after["mean_norm"],
+        "std_norm_before": before["std_norm"],
+        "std_norm_after": after["std_norm"],
+    }
+    stats.update(extra_stats or {})
+    cov = sphere_coverage(corrected)
+    diag = {"coverage": {k: v for k, v in cov.items() if k != "cell_counts"}}
+    diag.update(diagnostics or {})
+    return Calibration.from_matrix_offset(
+        matrix,
+        offset,
+        units=units,
+        model=model,
+        method=method,
+        params=params,
+        reference=ref_info,
+        stats=stats,
+        uncertainty=uncertainty,
+        diagnostics=diag,
+    )

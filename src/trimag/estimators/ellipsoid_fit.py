@@ -1,0 +1,152 @@
+"""``ellipsoid-fit``: the algebraic ellipsoid fit of Li & Griffiths (2004), one pass over the data.
+
+The quadric ``a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2q y + 2r z + d = 0`` is fitted by
+minimising ``v^T S v`` (``S = D^T D``, the 10x10 scatter of the design ``D``) under the constraint
+``4J - I^2 = 1`` (``k = 4``), which guarantees an ellipsoid: Q. Li, J. G. Griffiths, "Least squares ellipsoid
+specific fitting", Proc. Geometric Modeling and Processing, 2004. The scatter matrix is accumulated in chunks,
+so memory does not grow with N.
+
+The centre of the quadric is the hard-iron offset; the upper Cholesky factor of its normalised shape matrix is
+the soft-iron correction ``W`` (upper triangular). This fit is fast and needs no start, but it is biased under
+noise (the scale shrinks by about (sigma/F)^2); ``ml`` refines it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..diagnostics import check_condition, check_not_degenerate, weak_directions
+from ..errors import IdentifiabilityError
+from ..models.ellipsoid import Ellipsoid, to_symmetric
+from ._common import normalise, scalar_reference
+from .base import Estimator, build_calibration
+
+__all__ = ["EllipsoidFit", "algebraic_ellipsoid", "quadric_scatter"]
+
+_TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
+_CHUNK = 250_000
+
+
+def quadric_scatter(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 10x10 scatter ``D^T D`` of the quadric design, accumulated in chunks. ``u``: (N, 3)."""
+    S = np.zeros((10, 10))
+    for start in range(0, len(u), _CHUNK):
+        x, y, z = u[start : start + _CHUNK].T
+        D = np.column_stack(
+            [x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, np.ones_like(x)]
+        )
+        S += D.T @ D
+    return S
+
+
+def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """Fit an ellipsoid to normalised points ``u`` (N, 3).
+
+    Returns
+    -------
+    W : ndarray (3, 3)
+        Upper-triangular map with ``|W (u - c)| = 1`` on the fitted ellipsoid.
+    c : ndarray (3,)
+        Centre.
+    cond : float
+        Column-normalised condition number of the design.
+    """
+    S = quadric_scatter(u)
+    d = np.sqrt(np.diag(S))
+    d[d == 0] = 1.0
+    ev = np.linalg.eigvalsh(S / np.outer(d, d))
+    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+    if np.isfinite(cond) and cond < 1e12:
+        _, s, vt = np.linalg.svd(S / np.outer(d, d))
+        weak = weak_directions(vt, np.sqrt(s), _TERMS, threshold=1e4)
+    else:
+        weak = []
+    check_condition(
+        cond,
+        what="an ellipsoid (hard + soft iron)",
+        hint="record the sensor in more attitudes, turning it about all three axes",
+        weak=weak,
+    )
+    k = 4.0
+    C1 = np.full((3, 3), k / 2 - 1) - (k / 2) * np.eye(3)
+    C = np.zeros((6, 6))
+    C[:3, :3] = C1
+    C[3:, 3:] = -k * np.eye(3)
+    S11, S12, S22 = S[:6, :6], S[:6, 6:], S[6:, 6:]
+    T = np.linalg.solve(S22, S12.T)
+    vals, vecs = np.linalg.eig(np.linalg.solve(C, S11 - S12 @ T))
+    vals = np.real(vals)
+    if not np.any(vals > 0):
+        raise IdentifiabilityError(
+            "the samples do not describe an ellipsoid (no valid algebraic solution); record the sensor "
+            "turning through many more attitudes"
+        )
+    v1 = np.real(vecs[:, int(np.argmax(vals))])
+    v = np.concatenate([v1, -T @ v1])
+    a, b, c_, f, g, h, p, q, r, dd = v
+    M = np.array([[a, h, g], [h, b, f], [g, f, c_]])
+    if np.trace(M) < 0:
+        M, p, q, r, dd = -M, -p, -q, -r, -dd
+    centre = -np.linalg.solve(M, np.array([p, q, r]))
+    scale = float(centre @ M @ centre - dd)
+    A = M / scale if scale > 0 else M
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        raise IdentifiabilityError(
+            "the samples do not describe an ellipsoid (the fitted quadric is not closed); record the "
+            "sensor turning through many more attitudes"
+        ) from None
+    return L.T, centre, cond
+
+
+class EllipsoidFit(Estimator):
+    """Algebraic ellipsoid fit (Li & Griffiths 2004), no iterations.
+
+    Parameters
+    ----------
+    model : str
+        ``"ellipsoid"``.
+    form : {"upper", "symmetric"}
+        Gauge of the returned soft-iron matrix.
+    """
+
+    name = "ellipsoid-fit"
+    models = ("ellipsoid",)
+
+    def __init__(self, model: str = "ellipsoid", form: str = "upper") -> None:
+        self.model = model
+        self.form = form
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        check_not_degenerate(B)
+        ref = scalar_reference(reference, len(B), units)
+        u, norm = normalise(B)
+        W_u, c_u, cond = algebraic_ellipsoid(u)
+        W = W_u / norm.scale
+        offset = norm.centre + norm.scale * c_u
+        W, F_hat = gauge_scale(W, ref.values)
+        if self.form == "symmetric":
+            W = to_symmetric(W)
+        return build_calibration(
+            B, W, offset, model=model, method=self.name, units=units, reference=ref,
+            params=Ellipsoid.from_matrix_offset(W, offset).as_dict(), iterations=0, converged=True,
+            fitted_magnitude=F_hat, diagnostics={"condition_number": cond},
+        )
+
+
+def gauge_scale(
+    W: NDArray[np.float64], reference_values: NDArray[np.float64] | None
+) -> tuple[NDArray[np.float64], float | None]:
+    """Scale a unit-sphere correction ``W`` to the reference (RMS of the per-sample values) or, without one,
+    to ``det(W) = 1`` (volume preserved); returns the scaled ``W`` and the implied magnitude when unknown."""
+    if reference_values is not None:
+        return W * float(np.sqrt(np.mean(reference_values**2))), None
+    c = float(np.linalg.det(W)) ** (-1.0 / 3.0)
+    return W * c, c

@@ -1,0 +1,89 @@
+"""Field units known to trimag and conversions between them.
+
+=========  ==================  =========================================================
+unit       nT per unit         note
+=========  ==================  =========================================================
+``nT``     1                   nanotesla
+``uT``     1e3                 microtesla (also accepted: ``µT``)
+``G``      1e5                 gauss (also accepted: ``gauss``)
+``mG``     1e2                 milligauss
+``1e4nT``  1e4                 the unit of paper A's fluxgate experiment
+``counts`` --                  raw sensor output; no conversion to physical units exists
+``unknown`` --                 not stated by the user; no conversion exists
+=========  ==================  =========================================================
+"""
+
+from __future__ import annotations
+
+from .errors import TrimagInputError
+
+__all__ = ["UNITS", "convert", "nT_per_unit", "normalise_unit"]
+
+UNITS: dict[str, float | None] = {
+    "nT": 1.0,
+    "uT": 1e3,
+    "G": 1e5,
+    "mG": 1e2,
+    "1e4nT": 1e4,
+    "counts": None,
+    "unknown": None,
+}
+
+_ALIASES = {
+    "nt": "nT",
+    "ut": "uT",
+    "µt": "uT",
+    "μt": "uT",
+    "microtesla": "uT",
+    "nanotesla": "nT",
+    "g": "G",
+    "gauss": "G",
+    "mg": "mG",
+    "milligauss": "mG",
+    "1e4nt": "1e4nT",
+    "counts": "counts",
+    "count": "counts",
+    "lsb": "counts",
+    "raw": "counts",
+    "unknown": "unknown",
+}
+
+
+def normalise_unit(unit: str | None) -> str:
+    """Return the canonical spelling of ``unit`` (``None`` gives ``"unknown"``).
+
+    Raises
+    ------
+    TrimagInputError
+        If the unit is not one of :data:`UNITS` or an alias of one.
+    """
+    if unit is None:
+        return "unknown"
+    key = str(unit).strip()
+    if key in UNITS:
+        return key
+    canonical = _ALIASES.get(key.lower())
+    if canonical is None:
+        raise TrimagInputError(
+            f"unknown unit {unit!r}; use one of {', '.join(UNITS)} (e.g. --units uT)"
+        )
+    return canonical
+
+
+def nT_per_unit(unit: str) -> float:
+    """Nanotesla per one ``unit``; raises for ``counts`` and ``unknown``, which have no physical scale."""
+    canonical = normalise_unit(unit)
+    factor = UNITS[canonical]
+    if factor is None:
+        raise TrimagInputError(
+            f"unit {canonical!r} has no conversion to nT; state the data's physical unit with --units "
+            "(nT, uT, G, mG) or give the reference in the data's own unit"
+        )
+    return factor
+
+
+def convert(value: float, from_unit: str, to_unit: str) -> float:
+    """Convert a field value between physical units, e.g. ``convert(48193, "nT", "uT") == 48.193``."""
+    if normalise_unit(from_unit) == normalise_unit(to_unit):
+        return float(value)
+    return float(value) * nT_per_unit(from_unit) / nT_per_unit(to_unit)
