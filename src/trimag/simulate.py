@@ -1,0 +1,152 @@
+"""Synthetic sensors with known truth: attitude generators, noise, and distorted samples.
+
+Convention (``docs/conventions.md``): an attitude is a :class:`scipy.spatial.transform.Rotation` ``R`` giving the
+body's orientation in the navigation frame (body -> navigation). A navigation-frame field ``H_n`` is seen in the
+body frame as ``H_b = R.inv().apply(H_n)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from .errors import TrimagInputError
+from .models.base import ErrorModel
+
+__all__ = [
+    "Simulation",
+    "add_noise",
+    "axis_turns",
+    "body_field",
+    "great_circle_directions",
+    "hemisphere_directions",
+    "random_attitudes",
+    "simulate",
+    "uniform_directions",
+]
+
+
+def random_attitudes(n: int, seed: int | np.random.Generator | None = None) -> Rotation:
+    """``n`` attitudes uniformly distributed over SO(3)."""
+    rng = np.random.default_rng(seed)
+    return Rotation.random(n, random_state=rng)
+
+
+def axis_turns(n_per_axis: int, *, axes: str = "xyz", offset: Rotation | None = None) -> Rotation:
+    """Attitudes sampled uniformly during one full turn about each body axis in ``axes``, in turn.
+
+    Parameters
+    ----------
+    n_per_axis : int
+        Samples per turn (angles ``2 pi k / n_per_axis``).
+    axes : str
+        Which turns, e.g. ``"xyz"`` (paper A's three turns) or ``"z"`` (a single-axis turn).
+    offset : Rotation, optional
+        A fixed starting attitude, applied before each turn (so a turn about body z is not a turn about
+        the field direction).
+
+    Returns
+    -------
+    Rotation of length ``len(axes) * n_per_axis``
+    """
+    angles = 2.0 * np.pi * np.arange(n_per_axis) / n_per_axis
+    basis = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
+    parts = []
+    for ax in axes:
+        if ax not in basis:
+            raise TrimagInputError(f"axes must be made of x, y, z; got {axes!r}")
+        turn = Rotation.from_rotvec(angles[:, None] * basis[ax])
+        parts.append(turn if offset is None else offset * turn)
+    return Rotation.concatenate(parts)
+
+
+def uniform_directions(n: int, seed: int | np.random.Generator | None = None) -> NDArray[np.float64]:
+    """``n`` unit vectors uniform on the sphere, shape (n, 3)."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def hemisphere_directions(n: int, seed: int | np.random.Generator | None = None) -> NDArray[np.float64]:
+    """``n`` unit vectors uniform on the upper (z >= 0) hemisphere, shape (n, 3)."""
+    v = uniform_directions(n, seed)
+    v[:, 2] = np.abs(v[:, 2])
+    return v
+
+
+def great_circle_directions(n: int) -> NDArray[np.float64]:
+    """``n`` unit vectors on the three orthogonal great circles (xy, yz, zx planes), shape (n, 3)."""
+    k = int(np.ceil(n / 3))
+    t = 2.0 * np.pi * np.arange(k) / k
+    c, s, z = np.cos(t), np.sin(t), np.zeros(k)
+    v = np.vstack([np.column_stack([c, s, z]), np.column_stack([z, c, s]), np.column_stack([s, z, c])])
+    return v[:n]
+
+
+def body_field(attitude: Rotation, field_nav: ArrayLike) -> NDArray[np.float64]:
+    """Navigation-frame field (3,) seen in the body frame at each attitude, shape (N, 3)."""
+    return attitude.inv().apply(np.asarray(field_nav, dtype=np.float64))
+
+
+def add_noise(
+    B: ArrayLike, sigma: float, seed: int | np.random.Generator | None = None
+) -> NDArray[np.float64]:
+    """Add independent Gaussian noise of standard deviation ``sigma`` (field units) to each axis."""
+    rng = np.random.default_rng(seed)
+    arr = np.asarray(B, dtype=np.float64)
+    return arr + rng.normal(scale=sigma, size=arr.shape) if sigma > 0 else arr.copy()
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """A simulated log: ``raw`` (N, 3) sensor output, ``true`` (N, 3) true body field, the ``attitude``
+    (N rotations, body -> navigation), the ``truth`` model and the simulation settings."""
+
+    raw: NDArray[np.float64]
+    true: NDArray[np.float64]
+    attitude: Rotation
+    truth: ErrorModel
+    settings: dict[str, Any]
+
+
+def simulate(
+    truth: ErrorModel,
+    *,
+    n: int,
+    field_nav: ArrayLike = (1.0, 0.0, 0.0),
+    noise: float = 0.0,
+    attitudes: str | Rotation = "random",
+    seed: int | None = 0,
+) -> Simulation:
+    """Simulate a sensor with error model ``truth`` turned through ``attitudes`` in a constant field.
+
+    Parameters
+    ----------
+    truth : ErrorModel
+        The sensor's true errors (``truth.distort`` maps true body fields to raw output).
+    n : int
+        Number of samples (for ``"axes"``, rounded down to a multiple of 3).
+    field_nav : array_like, shape (3,)
+        Constant field in the navigation frame, in the output unit.
+    noise : float
+        Standard deviation of white Gaussian noise per axis, same unit.
+    attitudes : "random", "axes", or Rotation
+        Uniform random attitudes, full turns about the three body axes, or given attitudes.
+    seed : int, optional
+    """
+    rng = np.random.default_rng(seed)
+    if isinstance(attitudes, Rotation):
+        att = attitudes
+    elif attitudes == "random":
+        att = random_attitudes(n, rng)
+    elif attitudes == "axes":
+        att = axis_turns(max(n // 3, 1), offset=Rotation.from_euler("zyx", [0.3, 0.2, 0.1]))
+    else:
+        raise TrimagInputError(f"attitudes must be 'random', 'axes' or a Rotation; got {attitudes!r}")
+    true = body_field(att, field_nav)
+    raw = add_noise(truth.distort(true), noise, rng)
+    return Simulation(raw, true, att, truth, {"n": len(raw), "noise": noise, "field_nav": list(map(float, field_nav))})
