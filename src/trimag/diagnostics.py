@@ -42,7 +42,9 @@ def fibonacci_sphere(n: int) -> NDArray[np.float64]:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def sphere_coverage(directions: ArrayLike, *, n_cells: int = 100, min_count: int = 1) -> dict[str, Any]:
+def sphere_coverage(
+    directions: ArrayLike, *, n_cells: int = 100, min_count: int | None = None
+) -> dict[str, Any]:
     """How much of the sphere of field directions the samples cover.
 
     Parameters
@@ -51,8 +53,9 @@ def sphere_coverage(directions: ArrayLike, *, n_cells: int = 100, min_count: int
         Field vectors (any length; zero rows are ignored), e.g. corrected fields or raw fields minus offset.
     n_cells : int
         Number of equal-area cells (Fibonacci lattice).
-    min_count : int
-        Samples a cell needs to count as covered.
+    min_count : int, optional
+        Samples a cell needs to count as covered; default: 10 % of its share under uniform coverage
+        (at least 1), so a few stray samples do not make a cell look covered.
 
     Returns
     -------
@@ -65,6 +68,8 @@ def sphere_coverage(directions: ArrayLike, *, n_cells: int = 100, min_count: int
     norms = np.linalg.norm(d, axis=1)
     u = d[norms > 0] / norms[norms > 0, None]
     centres = fibonacci_sphere(n_cells)
+    if min_count is None:
+        min_count = max(1, int(np.ceil(0.1 * len(u) / n_cells)))
     counts = np.zeros(n_cells, dtype=np.int64)
     for start in range(0, len(u), _CHUNK):
         idx = np.argmax(u[start : start + _CHUNK] @ centres.T, axis=1)
@@ -80,6 +85,7 @@ def sphere_coverage(directions: ArrayLike, *, n_cells: int = 100, min_count: int
         "isotropy": isotropy,
         "mean_direction_norm": mean_norm,
         "n_cells": n_cells,
+        "min_count": int(min_count),
         "cell_counts": counts.tolist(),
     }
 

@@ -173,7 +173,8 @@ def build_calibration(
     """Assemble a :class:`Calibration` with before/after statistics and sphere coverage.
 
     Statistics use ``F`` = the reference magnitude(s), or, when the magnitude is unknown, the mean corrected
-    magnitude (``fitted_magnitude`` if given): ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``.
+    magnitude: ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``. ``fitted_magnitude`` (the radius
+    implied by the method's scale gauge, e.g. det(W) = 1) is recorded as ``reference["fitted_radius"]``.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
@@ -182,10 +183,11 @@ def build_calibration(
         F: Any = reference.values
         ref_info = reference.info()
     else:
-        F = float(fitted_magnitude) if fitted_magnitude is not None else float(
-            np.linalg.norm(corrected, axis=1).mean()
-        )
+        # no reference: the statistics use the mean corrected magnitude (docs/cli.md, "rms_*")
+        F = float(np.linalg.norm(corrected, axis=1).mean())
         ref_info = reference.info(fitted_value=F)
+        if fitted_magnitude is not None:
+            ref_info["fitted_radius"] = float(fitted_magnitude)
     before = magnitude_stats(B, F)
     after = magnitude_stats(corrected, F)
     stats: dict[str, Any] = {

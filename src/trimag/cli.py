@@ -1,0 +1,327 @@
+"""The ``trimag`` command: parsing and printing only; the work is done in :mod:`trimag.workflow`.
+
+Exit codes (docs/cli.md): 0 success; 2 bad input or usage; 3 the data cannot identify the requested model;
+1 internal error. Errors are one line on stderr, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ._version import __version__
+from .errors import IdentifiabilityError, TrimagError, TrimagInputError
+
+__all__ = ["build_parser", "main"]
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_IDENTIFIABILITY = 0, 1, 2, 3
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> Any:  # one line, exit 2
+        sys.stderr.write(f"trimag: error: {message} (see `{self.prog} --help`)\n")
+        raise SystemExit(EXIT_INPUT)
+
+
+def _err(msg: str) -> None:
+    sys.stderr.write(f"trimag: {msg}\n")
+
+
+def _say(msg: str, args: argparse.Namespace) -> None:
+    """Human-readable progress/info goes to stderr when --json reserves stdout for the JSON object."""
+    stream = sys.stderr if getattr(args, "json", False) else sys.stdout
+    if not getattr(args, "quiet", False):
+        stream.write(msg + "\n")
+
+
+def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
+    g = p.add_argument_group("data")
+    g.add_argument("--format", dest="fmt", choices=["csv", "txt", "npz", "mat", "parquet"],
+                   help="file format (default: from the extension)")
+    g.add_argument("--columns", help="x,y,z columns: header names or 0-based indices (default: recognised)")
+    g.add_argument("--var", help="variable name inside an NPZ or MAT file")
+    g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (recorded in every output)")
+    if selection:
+        g.add_argument("--rows", help="use only rows START:STOP (0-based data rows, STOP excluded)")
+        g.add_argument("--where", help="use only rows where COLUMN==VALUE (or COLUMN!=VALUE)")
+    g.add_argument("--strict", action="store_true",
+                   help="refuse rows with missing/non-numeric/NaN values instead of dropping and counting them")
+
+
+def _add_reference_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("field reference (at most one)")
+    g.add_argument("--reference", metavar="F|mean",
+                   help="field magnitude in the data's unit, or 'mean' (unknown; default)")
+    g.add_argument("--igrf", dest="igrf_spec", metavar="LAT,LON,ALT_M,YYYY-MM-DD",
+                   help="IGRF-14 field at this place and date (total field; vector for interference12)")
+    g.add_argument("--reference-column", metavar="NAME", help="per-sample magnitude from this column")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``trimag`` command."""
+    parser = _Parser(prog="trimag", description="Calibrate tri-axial magnetometers.")
+    parser.add_argument("--version", action="version", version=f"trimag {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    p = sub.add_parser("fit", help="fit a calibration to a log", description="Fit a calibration to a log.")
+    p.add_argument("data", metavar="DATA")
+    _add_data_options(p)
+    p.add_argument("--model", default="ellipsoid",
+                   help="error model: ellipsoid, ortho-gain, ortho-gain-bias, scalar9, interference12, zhang-cheng")
+    p.add_argument("--method", help="identification method (default: the model's default)")
+    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    _add_reference_options(p)
+    g = p.add_argument_group("attitudes and background (model interference12)")
+    g.add_argument("--attitude-columns", metavar="YAW,PITCH,ROLL", help="Euler angles in degrees (Z-Y-X, NED)")
+    g.add_argument("--quaternion-columns", metavar="W,X,Y,Z", help="attitude quaternion columns")
+    g.add_argument("--quaternion-order", choices=["wxyz", "xyzw"], default="wxyz",
+                   help="scalar first (wxyz, default) or last (xyzw)")
+    g.add_argument("--quaternion-frame", choices=["ned", "enu"], default="ned",
+                   help="navigation frame the quaternions refer to")
+    g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
+    g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
+    p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
+    p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only errors (and --json output)")
+
+    p = sub.add_parser("apply", help="correct a log with a calibration",
+                       description="Correct every row of a log; all input columns are kept and x/y/z_cal appended.")
+    p.add_argument("calibration", metavar="CAL.json")
+    p.add_argument("data", metavar="DATA")
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output file (.csv, .parquet or .npz)")
+    _add_data_options(p, selection=False)
+    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = sub.add_parser("evaluate", help="statistics of a calibration on a log",
+                       description="RMS and amplitude of |B| - F before and after a calibration.")
+    p.add_argument("calibration", metavar="CAL.json")
+    p.add_argument("data", metavar="DATA")
+    _add_data_options(p)
+    _add_reference_options(p)
+    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = sub.add_parser("simulate", help="simulate a sensor with known errors",
+                       description="Write a simulated log (x,y,z,qw,qx,qy,qz) for a model with given parameters.")
+    p.add_argument("--model", required=True)
+    p.add_argument("--params", required=True, metavar="PARAMS.json", help="JSON object {name: value}")
+    p.add_argument("--n", type=int, required=True, help="number of samples")
+    p.add_argument("--noise", type=float, default=0.0, help="noise standard deviation per axis (field units)")
+    p.add_argument("--field", type=float, default=1.0, help="field magnitude (default 1)")
+    p.add_argument("--units", help="unit of the simulated field (recorded in the truth file)")
+    p.add_argument("--attitudes", choices=["random", "axes"], default="random")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--out", required=True, metavar="OUT.csv")
+    p.add_argument("--truth", metavar="TRUTH.json", help="write the true parameters here")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = sub.add_parser("demo", help="calibrate the bundled real log and write a report",
+                       description="Fit the bundled QMC5883L log and write calibration JSON + report PNG.")
+    p.add_argument("--out", default=".", metavar="DIR", help="output folder (default: current)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    for name, kind, helptext in (("reproduce", "reproduce", "reproduce a paper's figures and tables"),
+                                 ("bench", "bench", "run a benchmark")):
+        p = sub.add_parser(name, help=helptext, description=helptext.capitalize() + ".")
+        p.add_argument("target", metavar="NAME")
+        p.add_argument("--out", default=f"trimag-{kind}", metavar="DIR", help="output folder")
+        p.add_argument("--quick", action="store_true", help="small sizes, for a fast check")
+        p.add_argument("--trials", type=int, help="Monte Carlo trials")
+        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--workers", type=int, default=1, help="parallel workers")
+        p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
+        p.add_argument("-q", "--quiet", action="store_true")
+    return parser
+
+
+def _print_fit(result: Any, args: argparse.Namespace) -> None:
+    from .report import summary_table
+
+    for msg in result.messages:
+        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    if args.json:
+        print(json.dumps(result.summary, allow_nan=False))
+        return
+    cal = result.calibration
+    stats = cal.stats
+    _say(f"model {cal.model}, method {cal.method}: {stats['n_used']} samples, "
+         f"{'converged' if stats.get('converged') else 'NOT converged'} in {stats.get('iterations')} iterations",
+         args)
+    _say(summary_table(cal), args)
+    for what, path in result.written.items():
+        _say(f"wrote {what}: {path}", args)
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from .workflow import fit_file, parse_options
+
+    result = fit_file(
+        args.data, fmt=args.fmt, columns=args.columns, var=args.var, units=args.units, rows=args.rows,
+        where=args.where, strict=args.strict, model=args.model, method=args.method,
+        options=parse_options(args.option), reference=args.reference, igrf_spec=args.igrf_spec,
+        reference_column=args.reference_column, attitude_columns=args.attitude_columns,
+        quaternion_columns=args.quaternion_columns, quaternion_order=args.quaternion_order,
+        quaternion_frame=args.quaternion_frame, background_ned=args.background_ned,
+        background_run=args.background_run, out=args.out, report=args.report,
+    )
+    _print_fit(result, args)
+    return EXIT_OK
+
+
+def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable[[], None]]:
+    """A stderr progress line that appears only once work has taken more than a second."""
+    t0 = time.monotonic()
+    shown = [False]
+
+    def update(n: int) -> None:
+        if getattr(args, "quiet", False):
+            return
+        if time.monotonic() - t0 > 1.0 and sys.stderr.isatty():
+            sys.stderr.write(f"\rtrimag: {n:,} rows ...")
+            sys.stderr.flush()
+            shown[0] = True
+
+    def close() -> None:
+        if shown[0]:
+            sys.stderr.write("\n")
+
+    return update, close
+
+
+def _cmd_apply(args: argparse.Namespace) -> int:
+    from .workflow import apply_to_file
+
+    update, close = _progress(args)
+    try:
+        result = apply_to_file(args.calibration, args.data, args.out, fmt=args.fmt, columns=args.columns,
+                               var=args.var, units=args.units, chunk_rows=args.chunk_rows, progress=update)
+    finally:
+        close()
+    if result["column_note"]:
+        _say(result["column_note"], args)
+    if result["n_uncorrected"]:
+        _err(f"{result['n_uncorrected']} of {result['n_rows']} rows had missing or non-numeric x/y/z; "
+             "they are kept with empty corrected cells")
+    if args.json:
+        print(json.dumps(result))
+    else:
+        _say(f"corrected {result['n_rows'] - result['n_uncorrected']} of {result['n_rows']} rows "
+             f"({result['units']}); appended {', '.join(result['output_columns'])}; wrote {result['out']}", args)
+    return EXIT_OK
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .workflow import evaluate_file
+
+    update, close = _progress(args)
+    try:
+        r = evaluate_file(args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var,
+                          units=args.units, rows=args.rows, where=args.where, reference=args.reference,
+                          igrf_spec=args.igrf_spec, reference_column=args.reference_column,
+                          chunk_rows=args.chunk_rows, progress=update)
+    finally:
+        close()
+    if r["n_dropped"]:
+        _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric x/y/z")
+    if args.json:
+        print(json.dumps(r, allow_nan=False))
+        return EXIT_OK
+    ref = r["reference"]
+    _say(f"{r['n_used']} samples; reference F = {ref['value']:.6g} {r['units']} ({ref['source']})"
+         if ref["value"] is not None else f"{r['n_used']} samples; reference per sample ({ref['source']})", args)
+    _say(f"{'':16}{'before':>14}{'after':>14}   [{r['units']}]", args)
+    for label, key in (("|B| mean", "mean_norm"), ("|B| std", "std_norm"), ("RMS(|B| - F)", "rms"),
+                       ("max ||B| - F|", "max_abs"), ("peak-to-peak", "p2p")):
+        k_b = f"{key}_before"
+        k_a = f"{key}_after"
+        _say(f"{label:16}{r[k_b]:14.6g}{r[k_a]:14.6g}", args)
+    return EXIT_OK
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from .workflow import simulate_to_file
+
+    r = simulate_to_file(model=args.model, params_path=args.params, n=args.n, noise=args.noise, out=args.out,
+                         attitudes=args.attitudes, seed=args.seed, field=args.field, units=args.units,
+                         truth=args.truth)
+    for what, path in r["outputs"].items():
+        _say(f"wrote {what}: {path}", args)
+    return EXIT_OK
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .workflow import DEMO_DATA, run_demo
+
+    _say(f"trimag demo: calibrating the bundled real log {DEMO_DATA} (QMC5883L, raw counts, hand-rotated)", args)
+    result = run_demo(args.out)
+    _print_fit(result, args)
+    return EXIT_OK
+
+
+def _cmd_experiment(args: argparse.Namespace, kind: str) -> int:
+    from .experiments import get_experiment
+
+    module = get_experiment(args.target, kind=kind)
+    t0 = time.monotonic()
+    summary = module.run(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
+                         workers=args.workers, json_mode=args.json)
+    summary.setdefault("runtime_s", time.monotonic() - t0)
+    if args.json:
+        print(json.dumps(summary, allow_nan=False, default=float))
+    else:
+        _say(f"{kind} {args.target}: done in {summary['runtime_s']:.1f} s; outputs in {args.out}", args)
+        text = summary.get("text")
+        if text:
+            _say(str(text), args)
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``trimag`` command; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return EXIT_INPUT
+    handlers: dict[str, Callable[[argparse.Namespace], int]] = {
+        "fit": _cmd_fit,
+        "apply": _cmd_apply,
+        "evaluate": _cmd_evaluate,
+        "simulate": _cmd_simulate,
+        "demo": _cmd_demo,
+        "reproduce": lambda a: _cmd_experiment(a, "reproduce"),
+        "bench": lambda a: _cmd_experiment(a, "bench"),
+    }
+    try:
+        return handlers[args.command](args)
+    except IdentifiabilityError as exc:
+        _err(f"cannot identify the model: {exc}")
+        return EXIT_IDENTIFIABILITY
+    except TrimagInputError as exc:
+        _err(f"error: {exc}")
+        return EXIT_INPUT
+    except TrimagError as exc:
+        _err(f"error: {exc}")
+        return exc.exit_code
+    except KeyboardInterrupt:
+        _err("interrupted")
+        return 130
+    except BrokenPipeError:
+        return EXIT_OK
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, exit 1
+        _err(f"internal error: {type(exc).__name__}: {exc} (please report this with the command you ran)")
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

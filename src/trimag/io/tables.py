@@ -1,0 +1,480 @@
+"""Readers for magnetometer logs: CSV, whitespace text, NPZ, MAT (v5 and v7.3/HDF5), Parquet.
+
+:func:`read_samples` returns the field samples (N, 3) together with the full table (for attitude, reference and
+label columns), which columns were used and why, and how many rows were dropped (non-numeric, NaN or inf in
+the field columns) — rows are never lost silently.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _stdio
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from ..errors import TrimagInputError
+
+__all__ = [
+    "FORMATS",
+    "CsvLayout",
+    "Samples",
+    "detect_csv_layout",
+    "guess_format",
+    "read_samples",
+    "read_table",
+    "resolve_columns",
+    "select_rows",
+]
+
+FORMATS = ("csv", "txt", "npz", "mat", "parquet")
+
+_AXIS_RE = re.compile(
+    r"^(?:(?:imu[\s_\-.]*)?(?:mag(?:netometer|netic)?|compass|field|m|b|h)[\s_\-.]*)?([xyz])(?:[\s_\-.(\[].*)?$"
+)
+_TIME_NAMES = {"t", "time", "timestamp", "ts", "seconds", "sec", "ms", "us"}
+
+
+@dataclass
+class Samples:
+    """Field samples read from a file.
+
+    Attributes
+    ----------
+    field : ndarray, shape (N, 3)
+        Finite field samples (rows with NaN/inf/non-numeric field cells removed).
+    table : pandas.DataFrame
+        The kept rows with all the file's columns (same order as ``field``).
+    columns : tuple of 3 str
+        Names of the x, y, z columns used.
+    column_note : str
+        How the columns were chosen (for the user), empty when given explicitly.
+    n_rows : int
+        Data rows read (after any row selection).
+    n_dropped : int
+        Rows dropped because a field cell was missing, non-numeric, NaN or inf.
+    dropped_index : list of int
+        0-based data-row numbers of the dropped rows (first 1000).
+    n_duplicates : int
+        Rows whose x, y, z repeat an earlier row exactly (kept; reported because a stuck or repeating
+        logger shows up here).
+    selection : str
+        Row selection applied (``--rows`` / ``--where``), empty when none.
+    """
+
+    field: NDArray[np.float64]
+    table: pd.DataFrame
+    columns: tuple[str, str, str]
+    column_note: str = ""
+    n_rows: int = 0
+    n_dropped: int = 0
+    dropped_index: list[int] = field(default_factory=list)
+    n_duplicates: int = 0
+    selection: str = ""
+    source: str = ""
+    n_total_rows: int = 0
+
+
+def guess_format(path: str | Path, fmt: str | None = None) -> str:
+    """The format named by ``fmt`` or, when None, by the file's extension."""
+    if fmt:
+        f = fmt.lower().lstrip(".")
+        if f not in FORMATS:
+            raise TrimagInputError(f"unknown --format {fmt!r}; choose one of {', '.join(FORMATS)}")
+        return f
+    ext = Path(path).suffix.lower().lstrip(".")
+    mapping = {"csv": "csv", "txt": "txt", "dat": "txt", "tsv": "txt", "log": "txt", "npz": "npz",
+               "npy": "npz", "mat": "mat", "parquet": "parquet", "pq": "parquet"}
+    if ext in mapping:
+        return mapping[ext]
+    return "csv"
+
+
+@dataclass(frozen=True)
+class CsvLayout:
+    """Where the data start in a delimited text file: ``skip`` preamble lines, then a header (or not)."""
+
+    skip: int
+    has_header: bool
+    delimiter: str | None  # None = whitespace
+    preamble: tuple[str, ...] = ()
+    n_fields: int = 0
+
+
+def _is_number(tok: str) -> bool:
+    tok = tok.strip()
+    if tok == "":
+        return False
+    try:
+        float(tok)
+    except ValueError:
+        return tok.lower() in {"nan", "inf", "-inf", "+inf"}
+    return True
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    if delimiter is None:
+        return line.split()
+    return next(csv.reader([line], delimiter=delimiter))
+
+
+def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
+    """Find the delimiter, any preamble lines (e.g. ``Fs,50.00``) and whether a header row names the columns.
+
+    The data block starts at the first line with >= 3 fields that is followed by a line with the same number of
+    fields, mostly numeric; the line before the numbers is a header if it is not numeric itself.
+    """
+    p = Path(path)
+    with p.open("r", encoding="utf-8", errors="replace", newline="") as fh:
+        head = [fh.readline() for _ in range(200)]
+    lines = [ln.rstrip("\r\n") for ln in head if ln != ""]
+    if not any(ln.strip() for ln in lines):
+        raise TrimagInputError(f"{p}: the file is empty; it needs a header (optional) and rows of x, y, z values")
+    sample = "\n".join(lines[:50])
+    if fmt == "txt" and "," not in sample and ";" not in sample and "\t" not in sample:
+        delimiter: str | None = None
+    else:
+        counts = {d: sample.count(d) for d in (",", ";", "\t")}
+        best = max(counts, key=lambda d: counts[d])
+        delimiter = best if counts[best] > 0 else None
+    rows = [_split(ln, delimiter) if ln.strip() else [] for ln in lines]
+    for i, fields in enumerate(rows):
+        if len(fields) < 1 or not fields:
+            continue
+        numeric = [_is_number(t) for t in fields]
+        nxt = next((r for r in rows[i + 1 :] if r), None)
+        same_width = nxt is None or len(nxt) == len(fields)
+        if len(fields) >= 3 and sum(numeric) >= max(2, (len(fields) + 1) // 2) and same_width:
+            # first data-like line; is the previous non-empty line a header of the same width?
+            j = i - 1
+            while j >= 0 and not rows[j]:
+                j -= 1
+            if j >= 0 and len(rows[j]) == len(fields) and not any(_is_number(t) for t in rows[j]):
+                return CsvLayout(j, True, delimiter, tuple(lines[:j]), len(fields))
+            return CsvLayout(i, False, delimiter, tuple(lines[:i]), len(fields))
+    # no numeric line found: too few columns, header only, or no numbers at all
+    narrow = [r for r in rows if r and all(_is_number(t) for t in r)]
+    if narrow:
+        raise TrimagInputError(
+            f"{p}: rows have only {max(len(r) for r in narrow)} numeric column(s); a magnetometer log needs "
+            "three (x, y, z)"
+        )
+    widths = [len(r) for r in rows if r]
+    if len(rows) and widths and len([r for r in rows if r]) == 1:
+        raise TrimagInputError(f"{p}: the file has a header but no data rows")
+    raise TrimagInputError(f"{p}: no rows of numbers found; expected columns of x, y, z field values")
+
+
+def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
+    layout = detect_csv_layout(path, fmt=fmt)
+    kwargs: dict[str, Any] = {
+        "skiprows": layout.skip,
+        "header": 0 if layout.has_header else None,
+        "skip_blank_lines": True,
+        "dtype": str,
+        "keep_default_na": False,
+    }
+    if layout.delimiter is None:
+        kwargs["sep"] = r"\s+"
+    else:
+        kwargs["sep"] = layout.delimiter
+    try:
+        df = pd.read_csv(path, **kwargs)
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise TrimagInputError(f"{path}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
+    if not layout.has_header:
+        df.columns = [f"col{i}" for i in range(df.shape[1])]
+    df.columns = [str(c).strip() for c in df.columns]
+    return df, layout
+
+
+def _array_table(arr: Any, name: str, path: Path) -> pd.DataFrame:
+    a = np.asarray(arr)
+    if a.dtype.kind not in "fiub":
+        raise TrimagInputError(f"{path}: variable {name!r} is not numeric (dtype {a.dtype})")
+    a = np.squeeze(a)
+    if a.ndim != 2:
+        raise TrimagInputError(f"{path}: variable {name!r} must be 2-D (N x 3 or 3 x N); got shape {a.shape}")
+    if a.shape[1] > a.shape[0]:
+        a = a.T
+    return pd.DataFrame(a.astype(np.float64), columns=[f"col{i}" for i in range(a.shape[1])])
+
+
+def _pick_variable(candidates: dict[str, Any], var: str | None, path: Path) -> str:
+    if var is not None:
+        if var not in candidates:
+            raise TrimagInputError(
+                f"{path}: no variable {var!r}; variables are {', '.join(sorted(candidates)) or 'none'}"
+            )
+        return var
+    usable = {}
+    for k, v in candidates.items():
+        shape = np.shape(v)
+        squeezed = [s for s in shape if s != 1]
+        if len(squeezed) == 2 and min(squeezed) >= 3 and np.asarray(v).dtype.kind in "fiu":
+            usable[k] = v
+    if not usable:
+        raise TrimagInputError(f"{path}: no 2-D numeric variable with >= 3 columns; name one with --var")
+    preferred = [k for k in usable if re.search(r"mag|compass|field", k, re.I)]
+    if len(preferred) == 1:
+        return preferred[0]
+    if len(usable) == 1:
+        return next(iter(usable))
+    raise TrimagInputError(
+        f"{path}: several arrays could hold the field ({', '.join(sorted(usable))}); choose one with --var"
+    )
+
+
+def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
+    import scipy.io
+
+    try:
+        data = scipy.io.loadmat(path)
+        candidates = {k: v for k, v in data.items() if not k.startswith("__")}
+        name = _pick_variable(candidates, var, path)
+        return _array_table(candidates[name], name, path)
+    except NotImplementedError:
+        pass  # MATLAB v7.3 = HDF5
+    except ValueError as exc:
+        if "Unknown mat file type" not in str(exc) and "Mat file appears to be truncated" not in str(exc):
+            raise TrimagInputError(f"{path}: cannot read MAT file: {exc}") from None
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            candidates = {k: h5[k] for k in h5.keys() if isinstance(h5[k], h5py.Dataset)}
+            name = _pick_variable({k: np.empty(v.shape, dtype=v.dtype) for k, v in candidates.items()}, var, path)
+            return _array_table(np.asarray(candidates[name]), name, path)
+    except OSError as exc:
+        raise TrimagInputError(f"{path}: not a readable MAT file ({exc})") from None
+
+
+def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
+    try:
+        if path.suffix.lower() == ".npy":
+            return _array_table(np.load(path, allow_pickle=False), "array", path)
+        with np.load(path, allow_pickle=False) as data:
+            candidates = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise TrimagInputError(f"{path}: not a readable NPZ file ({exc})") from None
+    name = _pick_variable(candidates, var, path)
+    return _array_table(candidates[name], name, path)
+
+
+def read_table(path: str | Path, *, fmt: str | None = None, var: str | None = None) -> pd.DataFrame:
+    """Read a whole log into a DataFrame (text cells stay strings; see :func:`read_samples`)."""
+    p = Path(path)
+    if not p.exists():
+        raise TrimagInputError(f"{p}: no such file")
+    if p.is_dir():
+        raise TrimagInputError(f"{p}: is a folder; give a data file")
+    kind = guess_format(p, fmt)
+    if kind in ("csv", "txt"):
+        return _read_delimited(p, kind)[0]
+    if kind == "npz":
+        return _read_npz(p, var)
+    if kind == "mat":
+        return _read_mat(p, var)
+    try:
+        return pd.read_parquet(p)
+    except Exception as exc:  # pyarrow raises several types
+        raise TrimagInputError(f"{p}: not a readable Parquet file ({exc})") from None
+
+
+def _numeric(series: pd.Series) -> NDArray[np.float64]:
+    if series.dtype.kind in "fiub":
+        return series.to_numpy(dtype=np.float64)
+    return pd.to_numeric(series.astype(str).str.strip(), errors="coerce").to_numpy(dtype=np.float64)
+
+
+def resolve_columns(
+    df: pd.DataFrame, columns: str | Sequence[str | int] | None
+) -> tuple[tuple[str, str, str], str]:
+    """Choose the x, y, z columns: given names or 0-based indices, else x/y/z-like header names, else the first
+    three numeric non-time columns. Returns the names and a note saying how they were chosen."""
+    names = [str(c) for c in df.columns]
+    if columns is not None:
+        items = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else list(columns)
+        if len(items) != 3:
+            raise TrimagInputError(f"--columns needs exactly three columns (x, y, z); got {len(items)}: {items}")
+        chosen = []
+        for item in items:
+            if isinstance(item, str) and item in names:
+                chosen.append(item)
+            elif isinstance(item, int) or (isinstance(item, str) and item.lstrip("-").isdigit()):
+                idx = int(item)
+                if not 0 <= idx < len(names):
+                    raise TrimagInputError(
+                        f"--columns: index {idx} is out of range; the file has {len(names)} columns (0-{len(names) - 1})"
+                    )
+                chosen.append(names[idx])
+            else:
+                raise TrimagInputError(
+                    f"--columns: no column {item!r}; the columns are {', '.join(names)}"
+                )
+        return (chosen[0], chosen[1], chosen[2]), ""
+    by_axis: dict[str, list[str]] = {"x": [], "y": [], "z": []}
+    for name in names:
+        m = _AXIS_RE.match(name.strip().lower())
+        if m:
+            by_axis[m.group(1)].append(name)
+    if all(len(v) == 1 for v in by_axis.values()):
+        chosen3 = (by_axis["x"][0], by_axis["y"][0], by_axis["z"][0])
+        return chosen3, f"using columns {', '.join(chosen3)} (recognised from the header)"
+    numeric_cols = []
+    skipped = []
+    for name in names:
+        values = _numeric(df[name])
+        finite = values[np.isfinite(values)]
+        if len(finite) < max(1, 0.5 * len(values)):
+            continue
+        if name.strip().lower() in _TIME_NAMES or (
+            len(finite) > 10 and np.all(np.diff(finite) > 0)
+        ):
+            skipped.append(name)
+            continue
+        numeric_cols.append(name)
+    if len(numeric_cols) < 3:
+        raise TrimagInputError(
+            f"found only {len(numeric_cols)} numeric field column(s) ({', '.join(numeric_cols) or 'none'}); "
+            "a magnetometer log needs three (x, y, z); name them with --columns"
+        )
+    chosen3 = (numeric_cols[0], numeric_cols[1], numeric_cols[2])
+    note = f"using columns {', '.join(chosen3)} (the first three numeric columns"
+    note += f"; skipped time-like {', '.join(skipped)})" if skipped else ")"
+    return chosen3, note + "; choose others with --columns"
+
+
+def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = None) -> tuple[pd.DataFrame, str]:
+    """Select data rows by a 0-based half-open range ``"START:STOP"`` and/or ``"COLUMN==VALUE"`` (or ``!=``)."""
+    notes = []
+    if rows:
+        m = re.fullmatch(r"\s*(-?\d*)\s*:\s*(-?\d*)\s*", rows)
+        if not m:
+            raise TrimagInputError(f"--rows takes START:STOP (0-based, STOP excluded), e.g. 0:5000; got {rows!r}")
+        start = int(m.group(1)) if m.group(1) else None
+        stop = int(m.group(2)) if m.group(2) else None
+        df = df.iloc[slice(start, stop)]
+        notes.append(f"rows {rows}")
+    if where:
+        df = df[where_mask(df, where)]
+        notes.append(f"where {where.strip()}")
+    if (rows or where) and len(df) == 0:
+        raise TrimagInputError(f"the row selection ({'; '.join(notes)}) matched no rows")
+    return df, "; ".join(notes)
+
+
+def where_mask(df: pd.DataFrame, where: str) -> NDArray[np.bool_]:
+    """Boolean mask of the rows of ``df`` matching ``"COLUMN==VALUE"`` or ``"COLUMN!=VALUE"``."""
+    m = re.fullmatch(r"\s*([^=!]+?)\s*(==|!=)\s*(.*?)\s*", where)
+    if not m:
+        raise TrimagInputError(f"--where takes COLUMN==VALUE or COLUMN!=VALUE; got {where!r}")
+    col, op, value = m.groups()
+    if col not in df.columns:
+        raise TrimagInputError(f"--where: no column {col!r}; the columns are {', '.join(map(str, df.columns))}")
+    series = df[col]
+    if series.dtype.kind in "fiub":
+        try:
+            mask = np.isclose(series.to_numpy(dtype=float), float(value))
+        except ValueError:
+            mask = np.zeros(len(series), dtype=bool)
+    else:
+        text = series.astype(str).str.strip()
+        mask = (text == value).to_numpy()
+        if not mask.any():
+            try:
+                mask = np.isclose(pd.to_numeric(text, errors="coerce").to_numpy(dtype=float), float(value))
+            except ValueError:
+                pass
+    return ~mask if op == "!=" else mask
+
+
+def read_samples(
+    path: str | Path,
+    *,
+    fmt: str | None = None,
+    columns: str | Sequence[str | int] | None = None,
+    var: str | None = None,
+    rows: str | None = None,
+    where: str | None = None,
+    strict: bool = False,
+) -> Samples:
+    """Read a magnetometer log and return its finite field samples with provenance.
+
+    Parameters
+    ----------
+    path : str or Path
+    fmt : {"csv", "txt", "npz", "mat", "parquet"}, optional
+        By default from the extension.
+    columns : str or sequence, optional
+        ``"X,Y,Z"`` header names or 0-based indices.
+    var : str, optional
+        Variable name inside NPZ / MAT files.
+    rows, where : str, optional
+        Row selection, see :func:`select_rows`.
+    strict : bool
+        Raise instead of dropping rows with missing / non-numeric / non-finite field cells.
+
+    Raises
+    ------
+    TrimagInputError
+        Missing file, empty file, header only, fewer than 3 numeric columns, unknown columns, no valid rows.
+    """
+    p = Path(path)
+    df = read_table(p, fmt=fmt, var=var)
+    n_total = len(df)
+    if n_total == 0:
+        raise TrimagInputError(f"{p}: the file has a header but no data rows")
+    cols, note = resolve_columns(df, columns)
+    df, selection = select_rows(df, rows, where)
+    xyz = np.column_stack([_numeric(df[c]) for c in cols])
+    ok = np.isfinite(xyz).all(axis=1)
+    n_bad = int((~ok).sum())
+    positions = np.nonzero(~ok)[0]
+    if n_bad and strict:
+        raise TrimagInputError(
+            f"{p}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
+            f"{int(df.index[positions[0]])}); fix them, or drop --strict to skip and count them"
+        )
+    if n_bad == len(df):
+        raise TrimagInputError(
+            f"{p}: none of the {len(df)} rows has three numeric, finite values in columns {', '.join(cols)}"
+        )
+    kept = df[ok]
+    field_arr = xyz[ok]
+    n_dup = int(len(field_arr) - len(np.unique(field_arr, axis=0)))
+    return Samples(
+        field=np.ascontiguousarray(field_arr),
+        table=kept.reset_index(drop=True),
+        columns=cols,
+        column_note=note,
+        n_rows=len(df),
+        n_dropped=n_bad,
+        dropped_index=[int(df.index[i]) for i in positions[:1000]],
+        n_duplicates=n_dup,
+        selection=selection,
+        source=str(p),
+        n_total_rows=n_total,
+    )
+
+
+def column_values(samples: Samples, name: str) -> NDArray[np.float64]:
+    """Numeric values (N,) of a column of the kept rows (e.g. a reference or attitude column)."""
+    if name not in samples.table.columns:
+        raise TrimagInputError(f"no column {name!r}; the columns are {', '.join(map(str, samples.table.columns))}")
+    values = _numeric(samples.table[name])
+    if not np.isfinite(values).all():
+        bad = int((~np.isfinite(values)).sum())
+        raise TrimagInputError(f"column {name!r} has {bad} missing or non-numeric value(s) in the rows used")
+    return values
+
+
+def read_csv_text(text: str) -> pd.DataFrame:
+    """Parse CSV text (tests and small inputs)."""
+    return pd.read_csv(_stdio.StringIO(text))

@@ -1,0 +1,156 @@
+"""Figures and the text report of a fit (matplotlib, Agg backend; nothing is shown on screen).
+
+:func:`fit_report` draws one PNG: |B| before and after per sample, the distribution of |B| - F, the coverage of
+the sphere of field directions, and the point cloud before and after in three projections.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .calibration import Calibration
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+__all__ = ["fit_report", "save_figure", "summary_rows", "summary_table"]
+
+_MAX_POINTS = 6000
+
+
+def _figure(figsize: tuple[float, float]) -> Figure:
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize, layout="constrained")
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 110) -> Path:
+    """Save a figure as PNG atomically (temporary file in the same folder, then rename)."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".png", dir=target.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi, format="png")
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return target
+
+
+def summary_rows(cal: Calibration) -> list[tuple[str, float, float]]:
+    """(quantity, before, after) rows of |B| statistics in the calibration's unit."""
+    s = cal.stats
+    return [
+        ("|B| mean", s["mean_norm_before"], s["mean_norm_after"]),
+        ("|B| std", s["std_norm_before"], s["std_norm_after"]),
+        ("RMS(|B| - F)", s["rms_before"], s["rms_after"]),
+        ("max ||B| - F|", s["max_abs_before"], s["max_abs_after"]),
+    ]
+
+
+def summary_table(cal: Calibration) -> str:
+    """A small plain-text before/after table."""
+    unit = cal.units
+    ref = cal.reference or {}
+    value = ref.get("value")
+    head = f"reference F = {value:.6g} {unit} ({ref.get('source', '?')})" if value is not None else ""
+    lines = [head, f"{'':16}{'before':>14}{'after':>14}   [{unit}]"]
+    for name, before, after in summary_rows(cal):
+        lines.append(f"{name:16}{before:14.6g}{after:14.6g}")
+    return "\n".join(line for line in lines if line)
+
+
+def fit_report(
+    raw: ArrayLike,
+    cal: Calibration,
+    *,
+    reference: ArrayLike | float | None = None,
+    title: str = "",
+    notes: Sequence[str] = (),
+) -> Figure:
+    """Draw the fit report.
+
+    Parameters
+    ----------
+    raw : array_like, shape (N, 3)
+        The raw samples the calibration was fitted (or is evaluated) on, in ``cal.units``.
+    cal : Calibration
+    reference : float or array_like (N,), optional
+        Reference magnitude(s); defaults to the calibration's reference value.
+    title : str
+    notes : sequence of str
+        Extra lines printed under the title (e.g. dropped-row counts).
+    """
+    B = np.asarray(raw, dtype=np.float64)
+    corrected = cal.apply(B)
+    n_before = np.linalg.norm(B, axis=1)
+    n_after = np.linalg.norm(corrected, axis=1)
+    if reference is None:
+        ref_value = (cal.reference or {}).get("value")
+        F: Any = float(ref_value) if ref_value is not None else float(n_after.mean())
+    else:
+        F = reference
+    unit = cal.units
+    idx = np.arange(len(B))
+    step = max(1, len(B) // _MAX_POINTS)
+    sub = idx[::step]
+
+    fig = _figure((15, 9))
+    axes = fig.subplots(2, 3)
+    ax = axes[0, 0]
+    ax.plot(sub, n_before[sub], ".", ms=2, color="tab:red", label="before")
+    ax.plot(sub, n_after[sub], ".", ms=2, color="tab:blue", label="after")
+    if np.ndim(F) == 0:
+        ax.axhline(float(F), color="k", lw=1, label=f"F = {float(F):.5g}")
+    else:
+        ax.plot(sub, np.asarray(F)[sub], "k-", lw=1, label="F (per sample)")
+    ax.set(xlabel="sample", ylabel=f"|B| [{unit}]", title="field magnitude per sample")
+    ax.legend(loc="best", fontsize=8)
+
+    ax = axes[0, 1]
+    err_b, err_a = n_before - F, n_after - F
+    lo = float(min(np.percentile(err_b, 0.5), np.percentile(err_a, 0.5)))
+    hi = float(max(np.percentile(err_b, 99.5), np.percentile(err_a, 99.5)))
+    bins = np.linspace(lo, hi, 80) if hi > lo else 40
+    ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {cal.stats.get('rms_before', np.nan):.3g}")
+    ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {cal.stats.get('rms_after', np.nan):.3g}")
+    ax.set(xlabel=f"|B| - F [{unit}]", ylabel="samples", title="magnitude error")
+    ax.legend(fontsize=8)
+
+    ax = axes[0, 2]
+    u = corrected / np.maximum(n_after[:, None], 1e-300)
+    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    sin_el = np.clip(u[:, 2], -1, 1)
+    h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1)
+    fig.colorbar(h[3], ax=ax, label="samples")
+    cov = (cal.diagnostics or {}).get("coverage", {})
+    ax.set(
+        xlabel="azimuth of corrected field [deg]",
+        ylabel="sin(elevation)",
+        title=f"sphere coverage: {100 * cov.get('fraction', np.nan):.0f}% of cells, "
+        f"isotropy {cov.get('isotropy', np.nan):.2f}",
+    )
+    ax.set_facecolor("#eeeeee")
+
+    for k, (i, j, name) in enumerate(((0, 1, "x-y"), (1, 2, "y-z"), (0, 2, "x-z"))):
+        ax = axes[1, k]
+        ax.plot(B[sub, i], B[sub, j], ".", ms=1.5, color="tab:red", alpha=0.5, label="before")
+        ax.plot(corrected[sub, i], corrected[sub, j], ".", ms=1.5, color="tab:blue", alpha=0.5, label="after")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set(xlabel=f"{name[0]} [{unit}]", ylabel=f"{name[2]} [{unit}]", title=f"point cloud, {name} plane")
+        if k == 0:
+            ax.legend(fontsize=8, markerscale=6)
+
+    head = title or f"trimag fit: model {cal.model}, method {cal.method}"
+    sub_title = "; ".join([f"N = {cal.stats.get('n_used', len(B))}", *notes])
+    fig.suptitle(f"{head}\n{sub_title}", fontsize=11)
+    return fig

@@ -1,0 +1,442 @@
+"""File-level operations behind the ``trimag`` command: read -> reference -> fit -> write.
+
+Each function takes plain values (paths, strings), does the work through the public API, writes outputs
+atomically, and returns a result the CLI prints. Keeping this here leaves ``cli.py`` with parsing and printing
+only, and makes every command usable and testable from Python.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .calibration import Calibration, atomic_write_text
+from .errors import TrimagInputError, TrimagWarning
+from .estimators import make_estimator
+from .io import MagnitudeAccumulator, Samples, apply_file, column_values, open_chunks, read_samples
+from .io.tables import where_mask
+from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
+from .units import convert, normalise_unit
+
+__all__ = [
+    "DEMO_DATA",
+    "FitResult",
+    "apply_to_file",
+    "evaluate_file",
+    "fit_file",
+    "fit_summary",
+    "parse_options",
+    "run_demo",
+    "simulate_to_file",
+]
+
+#: The bundled real log used by ``trimag demo`` (see ``trimag/data/README.md`` for its source and licence).
+DEMO_DATA = "qmc5883l_noisy_raw_data.csv"
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit_file` produced."""
+
+    calibration: Calibration
+    samples: Samples
+    summary: dict[str, Any]
+    messages: list[str] = field(default_factory=list)
+    written: dict[str, str] = field(default_factory=dict)
+
+
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """Parse ``KEY=VALUE`` method options; values are JSON when they parse as JSON, else strings."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise TrimagInputError(f"--option takes KEY=VALUE (e.g. --option form=symmetric); got {item!r}")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def _parse_vector(text: str, name: str) -> NDArray[np.float64]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise TrimagInputError(f"{name} takes three numbers N,E,D; got {text!r}") from None
+    if len(values) != 3:
+        raise TrimagInputError(f"{name} takes three numbers N,E,D; got {text!r}")
+    return np.array(values)
+
+
+def scalar_reference_from_options(
+    samples: Samples,
+    *,
+    units: str,
+    reference: str | float | None = None,
+    igrf_spec: str | None = None,
+    reference_column: str | None = None,
+) -> ScalarReference:
+    """Build the magnitude reference from the command-line choices (at most one of them)."""
+    given = [x for x in (reference, igrf_spec, reference_column) if x is not None]
+    if len(given) > 1:
+        raise TrimagInputError("give only one of --reference, --igrf, --reference-column")
+    n = len(samples.field)
+    if igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(igrf_spec)
+        return igrf_reference(lat, lon, alt, date, n=n, units=units)
+    if reference_column is not None:
+        values = column_values(samples, reference_column)
+        ref = as_scalar_reference(values, n, units=units)
+        return ScalarReference(ref.values, f"column {reference_column}", ref.unit)
+    return as_scalar_reference(reference, n, units=units)
+
+
+def vector_reference_from_options(
+    *, units: str, background_ned: str | None = None, igrf_spec: str | None = None,
+    background_run: str | None = None, **read_kwargs: Any,
+) -> tuple[NDArray[np.float64], str]:
+    """The background field vector (N, E, D) in the data's unit and a description of its source."""
+    given = [x for x in (background_ned, igrf_spec, background_run) if x is not None]
+    if len(given) != 1:
+        raise TrimagInputError(
+            "model interference12 needs exactly one background field: --background-ned N,E,D, "
+            "--igrf LAT,LON,ALT_M,DATE, or --background-run FILE"
+        )
+    if background_ned is not None:
+        return _parse_vector(background_ned, "--background-ned"), "given (NED)"
+    if igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(igrf_spec)
+        fld = igrf(lat, lon, alt, date)
+        vec = fld.ned_nT * convert(1.0, "nT", units)
+        return vec, f"igrf {igrf_spec} (IGRF-14, NED {np.round(fld.ned_nT, 1).tolist()} nT)"
+    from . import attitude as _attitude
+
+    return _attitude.background_from_run(background_run, units=units, **read_kwargs)  # type: ignore[attr-defined,no-any-return]
+
+
+def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, Any]:
+    """The JSON object ``trimag fit --json`` prints (see docs/cli.md for the keys)."""
+    d = cal.as_dict()
+    s = d["stats"]
+    out: dict[str, Any] = {
+        "model": cal.model,
+        "method": cal.method,
+        "units": cal.units,
+        "n_samples": samples.n_rows if samples is not None else s.get("n_samples"),
+        "n_used": s.get("n_used"),
+        "n_dropped": samples.n_dropped if samples is not None else 0,
+        "n_duplicates": samples.n_duplicates if samples is not None else None,
+        "reference": d["reference"],
+        "rms_before": s.get("rms_before"),
+        "rms_after": s.get("rms_after"),
+        "max_abs_before": s.get("max_abs_before"),
+        "max_abs_after": s.get("max_abs_after"),
+        "converged": s.get("converged"),
+        "iterations": s.get("iterations"),
+        "params": d["params"],
+        "matrix": d["matrix"],
+        "offset": d["offset"],
+        "uncertainty": d["uncertainty"],
+        "diagnostics": d["diagnostics"],
+    }
+    if samples is not None:
+        out["columns"] = list(samples.columns)
+        out["selection"] = samples.selection
+        out["source"] = samples.source
+    return out
+
+
+def fit_file(
+    path: str | Path,
+    *,
+    fmt: str | None = None,
+    columns: str | None = None,
+    var: str | None = None,
+    units: str | None = None,
+    rows: str | None = None,
+    where: str | None = None,
+    strict: bool = False,
+    model: str = "ellipsoid",
+    method: str | None = None,
+    options: dict[str, Any] | None = None,
+    reference: str | float | None = None,
+    igrf_spec: str | None = None,
+    reference_column: str | None = None,
+    attitude_columns: str | None = None,
+    quaternion_columns: str | None = None,
+    quaternion_order: str = "wxyz",
+    quaternion_frame: str = "ned",
+    background_ned: str | None = None,
+    background_run: str | None = None,
+    out: str | Path | None = None,
+    report: str | Path | None = None,
+) -> FitResult:
+    """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked."""
+    unit = normalise_unit(units)
+    estimator = make_estimator(model, method, options)
+    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=rows, where=where, strict=strict)
+    messages: list[str] = []
+    if samples.column_note:
+        messages.append(samples.column_note)
+    if samples.selection:
+        messages.append(f"selected {samples.n_rows} of {samples.n_total_rows} rows ({samples.selection})")
+    if samples.n_dropped:
+        messages.append(
+            f"dropped {samples.n_dropped} of {samples.n_rows} rows with missing, non-numeric, NaN or inf "
+            f"x/y/z values (first at data row {samples.dropped_index[0]}; use --strict to refuse them)"
+        )
+    if samples.n_duplicates:
+        messages.append(f"{samples.n_duplicates} rows repeat an earlier x/y/z exactly (kept)")
+    attitude = None
+    if estimator.reference_kind == "vector":
+        from . import attitude as _attitude
+
+        attitude = _attitude.attitude_from_table(  # type: ignore[attr-defined]
+            samples.table,
+            euler_columns=attitude_columns,
+            quaternion_columns=quaternion_columns,
+            scalar_first=quaternion_order == "wxyz",
+            frame=quaternion_frame,
+        )
+        ref: Any
+        ref, source = vector_reference_from_options(
+            units=unit, background_ned=background_ned, igrf_spec=igrf_spec, background_run=background_run,
+            fmt=fmt, columns=columns, var=var,
+        )
+        messages.append(f"background field {np.round(ref, 6).tolist()} {unit} ({source})")
+    else:
+        ref = scalar_reference_from_options(
+            samples, units=unit, reference=reference, igrf_spec=igrf_spec, reference_column=reference_column
+        )
+        if ref.source.startswith("igrf"):
+            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")  # type: ignore[index]
+        if estimator.requires_reference and not ref.known:
+            raise TrimagInputError(
+                f"method {estimator.name!r} needs a known field magnitude: give --reference F, --igrf "
+                "LAT,LON,ALT_M,DATE or --reference-column NAME"
+            )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TrimagWarning)
+        estimator.fit(samples.field, ref, units=unit, attitude=attitude)
+    cal = estimator.calibration_
+    warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
+    if warn_texts:
+        cal = cal.with_diagnostics(warnings=warn_texts)
+    summary = fit_summary(cal, samples)
+    summary["warnings"] = warn_texts
+    written: dict[str, str] = {}
+    if out is not None:
+        written["calibration"] = str(cal.to_file(out))
+    if report is not None:
+        from .report import fit_report, save_figure
+
+        notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
+        title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"
+        written["report"] = str(save_figure(fit_report(samples.field, cal, title=title, notes=notes), report))
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
+
+
+def apply_to_file(
+    cal_path: str | Path,
+    data_path: str | Path,
+    out: str | Path,
+    *,
+    fmt: str | None = None,
+    columns: str | None = None,
+    var: str | None = None,
+    units: str | None = None,
+    chunk_rows: int = 200_000,
+    progress: Any = None,
+) -> dict[str, Any]:
+    """Correct a whole file with a calibration (streamed; see :func:`trimag.io.apply_file`)."""
+    cal = Calibration.from_file(cal_path)
+    if units is not None:
+        cal.apply(np.zeros(3), units=units)  # raises UnitMismatchError on a unit clash
+    result = apply_file(
+        cal.apply, data_path, out, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows, progress=progress
+    )
+    result["units"] = cal.units
+    return result
+
+
+def evaluate_file(
+    cal_path: str | Path,
+    data_path: str | Path,
+    *,
+    fmt: str | None = None,
+    columns: str | None = None,
+    var: str | None = None,
+    units: str | None = None,
+    rows: str | None = None,
+    where: str | None = None,
+    reference: str | float | None = None,
+    igrf_spec: str | None = None,
+    reference_column: str | None = None,
+    chunk_rows: int = 200_000,
+    progress: Any = None,
+) -> dict[str, Any]:
+    """Statistics of ``|B| - F`` before and after applying a calibration to a file (streamed, one pass).
+
+    Without a reference, ``F`` is the mean corrected magnitude (as in ``trimag fit``).
+    """
+    cal = Calibration.from_file(cal_path)
+    unit = cal.units if units is None else normalise_unit(units)
+    if units is not None:
+        cal.apply(np.zeros(3), units=unit)
+    given = [x for x in (reference, igrf_spec, reference_column) if x is not None]
+    if len(given) > 1:
+        raise TrimagInputError("give only one of --reference, --igrf, --reference-column")
+    F: float | None = None
+    source = "mean"
+    if igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(igrf_spec)
+        F = convert(igrf(lat, lon, alt, date).total_nT, "nT", unit)
+        source = f"igrf {igrf_spec}"
+    elif reference is not None and str(reference).strip().lower() != "mean":
+        F = float(as_scalar_reference(reference, 1, units=unit).values[0])  # type: ignore[index]
+        source = "given"
+    elif reference_column is not None:
+        source = f"column {reference_column}"
+    src, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
+    start, stop = _row_range(rows)
+    before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
+    n_rows = n_bad = 0
+    for chunk in chunks:
+        mask = np.ones(len(chunk.xyz), dtype=bool)
+        idx = chunk.start + np.arange(len(chunk.xyz))
+        mask &= idx >= start
+        if stop is not None:
+            mask &= idx < stop
+        if where:
+            mask &= where_mask(chunk.table, where)
+        xyz = chunk.xyz[mask]
+        n_rows += len(xyz)
+        ok = np.isfinite(xyz).all(axis=1)
+        n_bad += int((~ok).sum())
+        xyz = xyz[ok]
+        ref_values: Any = F
+        if reference_column is not None:
+            if reference_column not in chunk.table.columns:
+                raise TrimagInputError(f"no column {reference_column!r} in {data_path}")
+            col = chunk.table[reference_column]
+            vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
+            ref_values = np.asarray(vals.astype(float))[mask][ok]
+        before.add(np.linalg.norm(xyz, axis=1), ref_values)
+        after.add(np.linalg.norm(cal.apply(xyz), axis=1), ref_values)
+        if progress:
+            progress(chunk.start + len(chunk.xyz))
+    if after.n == 0:
+        raise TrimagInputError(f"{data_path}: no rows with finite x, y, z values to evaluate")
+    stats_after = after.result()
+    F_used = F if F is not None else (None if reference_column else stats_after["mean_norm"])
+    stats_before = before.result(F_used)
+    return {
+        "calibration": str(cal_path),
+        "data": str(data_path),
+        "model": cal.model,
+        "method": cal.method,
+        "units": cal.units,
+        "columns": list(src.columns),
+        "n_samples": n_rows,
+        "n_used": after.n,
+        "n_dropped": n_bad,
+        "selection": "; ".join(x for x in (f"rows {rows}" if rows else "", f"where {where}" if where else "") if x),
+        "reference": {"value": F_used, "source": source, "unit": cal.units},
+        "rms_before": stats_before["rms"],
+        "rms_after": stats_after["rms"],
+        "max_abs_before": stats_before["max_abs"],
+        "max_abs_after": stats_after["max_abs"],
+        "p2p_before": stats_before["peak_to_peak"],
+        "p2p_after": stats_after["peak_to_peak"],
+        "mean_norm_before": stats_before["mean_norm"],
+        "mean_norm_after": stats_after["mean_norm"],
+        "std_norm_before": stats_before["std_norm"],
+        "std_norm_after": stats_after["std_norm"],
+    }
+
+
+def _row_range(rows: str | None) -> tuple[int, int | None]:
+    from .io.stream import _parse_rows
+
+    return _parse_rows(rows)
+
+
+def simulate_to_file(
+    *,
+    model: str,
+    params_path: str | Path,
+    n: int,
+    noise: float,
+    out: str | Path,
+    attitudes: str = "random",
+    seed: int = 0,
+    field: float = 1.0,
+    units: str | None = None,
+    truth: str | Path | None = None,
+) -> dict[str, Any]:
+    """Simulate a sensor with the parameters in ``params_path`` (JSON ``{name: value}``) and write a CSV log with
+    columns ``x, y, z`` (raw), ``qw, qx, qy, qz`` (attitude, scalar first, body -> navigation NED) and, with
+    ``truth``, a JSON file with the true parameters and settings."""
+    from .models import get_model
+    from .simulate import simulate
+
+    p = Path(params_path)
+    if not p.is_file():
+        raise TrimagInputError(f"{p}: no such parameter file (JSON object of model parameters)")
+    try:
+        params = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise TrimagInputError(f"{p}: not valid JSON ({exc})") from None
+    if isinstance(params, dict) and "params" in params and isinstance(params["params"], dict):
+        params = params["params"]
+    if n < 1:
+        raise TrimagInputError(f"--n must be a positive number of samples; got {n}")
+    if noise < 0 or not np.isfinite(noise):
+        raise TrimagInputError(f"--noise must be a non-negative standard deviation; got {noise}")
+    truth_model = get_model(model).from_dict(params)
+    sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes, seed=seed)
+    q = sim.attitude.as_quat(scalar_first=True)
+    table = np.column_stack([sim.raw, q])
+    header = "x,y,z,qw,qx,qy,qz"
+    import io as _stdio
+
+    buf = _stdio.StringIO()
+    np.savetxt(buf, table, delimiter=",", header=header, comments="", fmt="%.17g")
+    written = {"data": str(atomic_write_text(out, buf.getvalue()))}
+    if truth is not None:
+        doc = {
+            "model": model,
+            "params": truth_model.as_dict(),
+            "n": len(sim.raw),
+            "noise": noise,
+            "seed": seed,
+            "attitudes": attitudes,
+            "field_nav": [field, 0.0, 0.0],
+            "units": normalise_unit(units),
+        }
+        written["truth"] = str(atomic_write_text(truth, json.dumps(doc, indent=2) + "\n"))
+    return {"n": len(sim.raw), "outputs": written}
+
+
+def run_demo(out_dir: str | Path = ".") -> FitResult:
+    """Fit the bundled real log (QMC5883L, raw counts) and write the calibration and report into ``out_dir``."""
+    out = Path(out_dir)
+    data = resources.files("trimag") / "data" / DEMO_DATA
+    with resources.as_file(data) as path:
+        return fit_file(
+            path,
+            units="counts",
+            model="ellipsoid",
+            out=out / "trimag-demo-calibration.json",
+            report=out / "trimag-demo-report.png",
+        )
