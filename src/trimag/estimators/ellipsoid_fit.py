@@ -58,13 +58,11 @@ def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
     S = quadric_scatter(u)
     d = np.sqrt(np.diag(S))
     d[d == 0] = 1.0
-    ev = np.linalg.eigvalsh(S / np.outer(d, d))
-    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-    if np.isfinite(cond) and cond < 1e12:
-        _, s, vt = np.linalg.svd(S / np.outer(d, d))
-        weak = weak_directions(vt, np.sqrt(s), _TERMS, threshold=1e4)
-    else:
-        weak = []
+    # The solution itself is the (near-)null vector of the design, so identifiability is decided by the
+    # second-smallest singular value: a second small one means a family of quadrics fits equally well.
+    _, s2, vt = np.linalg.svd(S / np.outer(d, d))
+    cond = float(np.sqrt(s2[0] / s2[-2])) if s2[-2] > 0 else float("inf")
+    weak = weak_directions(vt[:-1], np.sqrt(s2[:-1]), _TERMS, threshold=1e4) if np.isfinite(cond) else []
     check_condition(
         cond,
         what="an ellipsoid (hard + soft iron)",
@@ -78,14 +76,22 @@ def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
     C[3:, 3:] = -k * np.eye(3)
     S11, S12, S22 = S[:6, :6], S[:6, 6:], S[6:, 6:]
     T = np.linalg.solve(S22, S12.T)
-    vals, vecs = np.linalg.eig(np.linalg.solve(C, S11 - S12 @ T))
-    vals = np.real(vals)
-    if not np.any(vals > 0):
+    Mred = S11 - S12 @ T
+    vals, vecs = np.linalg.eig(np.linalg.solve(C, Mred))
+    vecs = np.real(vecs)
+    # admissible solutions satisfy v^T C v > 0 (4J - I^2 > 0: an ellipsoid); their eigenvalue
+    # lambda = v^T Mred v / v^T C v >= 0 is the algebraic cost, so take the smallest (0 for exact data;
+    # Li & Griffiths' "only positive eigenvalue" when the data are noisy).
+    q = np.einsum("ij,ik,kj->j", vecs, C, vecs)
+    cost = np.einsum("ij,ik,kj->j", vecs, Mred, vecs)
+    ok = q > 1e-12 * np.abs(q).max()
+    if not np.any(ok):
         raise IdentifiabilityError(
             "the samples do not describe an ellipsoid (no valid algebraic solution); record the sensor "
             "turning through many more attitudes"
         )
-    v1 = np.real(vecs[:, int(np.argmax(vals))])
+    candidates = np.nonzero(ok)[0]
+    v1 = vecs[:, candidates[int(np.argmin(cost[ok] / q[ok]))]]
     v = np.concatenate([v1, -T @ v1])
     a, b, c_, f, g, h, p, q, r, dd = v
     M = np.array([[a, h, g], [h, b, f], [g, f, c_]])

@@ -1,0 +1,58 @@
+"""Helpers shared by the tests (import as `from _helpers import ...`)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+if not SHARED_DATA.exists():  # CI clones beside shared/; a developer may point elsewhere
+    SHARED_DATA = Path(os.environ.get("TRIMAG_SHARED_DATA", "/work/shared/data"))
+
+requires_shared = pytest.mark.skipif(
+    not SHARED_DATA.exists(), reason="../shared/data absent (larger real logs are not bundled in the repo)"
+)
+
+
+def trimag_command() -> list[str]:
+    """The installed ``trimag`` command (end-to-end tests run it as a user would)."""
+    exe = shutil.which("trimag")
+    if exe is None:
+        exe_dir = Path(sys.executable).parent
+        candidate = exe_dir / "trimag"
+        if candidate.exists():
+            exe = str(candidate)
+    if exe is None:
+        pytest.fail("the `trimag` command is not installed; run the README's install command first")
+    return [exe]
+
+
+def run_trimag(*args: str, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """Run the installed command; returns the completed process (text mode)."""
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    return subprocess.run(
+        [*trimag_command(), *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout, env=env
+    )
+
+
+def ellipsoid_truth() -> tuple[np.ndarray, np.ndarray]:
+    """A realistic soft-iron correction (upper triangular) and hard iron, for field ~48000 nT."""
+    W = np.array([[0.95, 0.03, -0.02], [0.0, 1.04, 0.05], [0.0, 0.0, 1.01]])
+    b = np.array([1200.0, -850.0, 400.0])
+    return W, b
+
+
+def simulate_ellipsoid(n: int = 2000, noise: float = 0.0, seed: int = 0, F: float = 48000.0) -> np.ndarray:
+    """Raw samples of a sensor with :func:`ellipsoid_truth` errors in a field of magnitude F (uniform sphere)."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    W, b = ellipsoid_truth()
+    raw = np.linalg.solve(W, (F * u).T).T + b
+    return raw + rng.normal(scale=noise, size=raw.shape) if noise else raw

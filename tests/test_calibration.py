@@ -1,0 +1,122 @@
+"""The Calibration result: construction, apply/inverse/composition, JSON round trip, versioning."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from trimag import Calibration
+from trimag.calibration import FORMAT_VERSION
+from trimag.errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
+
+finite = st.floats(min_value=-10, max_value=10, allow_nan=False, allow_infinity=False)
+
+
+def _well_conditioned(m: np.ndarray) -> np.ndarray:
+    return np.eye(3) * 3.0 + m * 0.5
+
+
+@st.composite
+def calibrations(draw: st.DrawFn) -> Calibration:
+    m = draw(arrays(np.float64, (3, 3), elements=finite))
+    b = draw(arrays(np.float64, (3,), elements=st.floats(-1e5, 1e5, allow_nan=False)))
+    return Calibration.from_matrix_offset(_well_conditioned(m), b, units="nT", model="affine")
+
+
+@given(calibrations())
+@settings(max_examples=60, deadline=None)
+def test_json_round_trip_is_exact(cal: Calibration) -> None:
+    back = Calibration.from_json(cal.to_json())
+    assert back == cal
+    B = np.random.default_rng(0).normal(size=(50, 3)) * 1e4
+    assert np.array_equal(back.apply(B), cal.apply(B))
+
+
+@given(calibrations(), arrays(np.float64, (20, 3), elements=st.floats(-1e5, 1e5, allow_nan=False)))
+@settings(max_examples=60, deadline=None)
+def test_inverse_undoes_apply(cal: Calibration, B: np.ndarray) -> None:
+    np.testing.assert_allclose(cal.inv().apply(cal.apply(B)), B, atol=1e-6 * (1 + np.abs(B).max()))
+    np.testing.assert_allclose(cal.apply(cal.apply(B), inverse=True), B, atol=1e-6 * (1 + np.abs(B).max()))
+
+
+@given(calibrations(), calibrations())
+@settings(max_examples=40, deadline=None)
+def test_composition_order(a: Calibration, b: Calibration) -> None:
+    B = np.random.default_rng(1).normal(size=(10, 3)) * 100
+    np.testing.assert_allclose((a * b).apply(B), a.apply(b.apply(B)), rtol=1e-9, atol=1e-6)
+
+
+def test_apply_shapes() -> None:
+    cal = Calibration.from_matrix_offset(np.diag([2.0, 1.0, 0.5]), [1.0, 2.0, 3.0])
+    assert cal.apply([1.0, 2.0, 3.0]).shape == (3,)
+    assert cal.apply(np.ones((1, 3))).shape == (1, 3)
+    assert cal.apply(np.ones((7, 3))).shape == (7, 3)
+    np.testing.assert_allclose(cal.apply([2.0, 3.0, 4.0]), [2.0, 1.0, 0.5])
+    with pytest.raises(TrimagInputError, match="shape"):
+        cal.apply(np.ones((4, 2)))
+
+
+def test_immutable() -> None:
+    cal = Calibration.from_matrix_offset(np.eye(3), [0, 0, 0])
+    with pytest.raises(ValueError):
+        cal.matrix[0, 0] = 5.0
+    with pytest.raises(AttributeError):
+        cal.units = "nT"  # type: ignore[misc]
+
+
+def test_singular_matrix_refused() -> None:
+    with pytest.raises(TrimagInputError, match="singular"):
+        Calibration.from_matrix_offset(np.zeros((3, 3)), [0, 0, 0])
+
+
+def test_unit_mismatch_raises() -> None:
+    cal = Calibration.from_matrix_offset(np.eye(3), [0, 0, 0], units="uT")
+    cal.apply(np.ones(3), units="µT")
+    with pytest.raises(UnitMismatchError, match="'uT'"):
+        cal.apply(np.ones(3), units="nT")
+
+
+def test_file_carries_required_entries(tmp_path) -> None:
+    cal = Calibration.from_matrix_offset(np.eye(3) * 1.1, [1, 2, 3], units="G", model="ellipsoid", method="ml",
+                                         stats={"n_used": 5})
+    path = cal.to_file(tmp_path / "sub" / "cal.json")
+    data = json.loads(path.read_text())
+    for key in ("format_version", "trimag_version", "created", "model", "method", "units", "input_unit",
+                "output_unit", "matrix", "offset", "params", "reference", "stats", "uncertainty", "diagnostics"):
+        assert key in data
+    assert data["format_version"] == FORMAT_VERSION
+    assert not list(tmp_path.glob("sub/.*.tmp"))
+    assert Calibration.from_file(path) == cal
+
+
+def test_newer_major_version_refused() -> None:
+    data = Calibration.from_matrix_offset(np.eye(3), [0, 0, 0]).as_dict()
+    data["format_version"] = "2.0.0"
+    with pytest.raises(CalibrationFormatError, match="newer"):
+        Calibration.from_dict(data)
+
+
+def test_older_major_version_refused_with_reason() -> None:
+    data = Calibration.from_matrix_offset(np.eye(3), [0, 0, 0]).as_dict()
+    data["format_version"] = "0.3.0"
+    with pytest.raises(CalibrationFormatError, match="older"):
+        Calibration.from_dict(data)
+
+
+def test_foreign_json_refused() -> None:
+    with pytest.raises(CalibrationFormatError, match="not a trimag calibration"):
+        Calibration.from_json('{"A": [[1,0,0],[0,1,0],[0,0,1]], "b": [0,0,0]}')
+    with pytest.raises(CalibrationFormatError, match="not valid JSON"):
+        Calibration.from_json("{nope")
+
+
+def test_repr_rebuilds() -> None:
+    cal = Calibration.from_matrix_offset(np.diag([1.5, 1.0, 0.25]), [1.0, -2.0, 0.5], units="nT", model="ellipsoid")
+    rebuilt = eval(repr(cal), {"Calibration": Calibration})
+    assert rebuilt.approx_equal(cal, atol=0)
+    assert rebuilt.model == "ellipsoid"

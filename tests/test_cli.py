@@ -1,0 +1,158 @@
+"""End to end: the installed ``trimag`` command run as a subprocess, as a user would."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from _helpers import run_trimag, simulate_ellipsoid
+
+REQUIRED_KEYS = {
+    "model", "method", "units", "n_samples", "n_used", "reference", "rms_before", "rms_after",
+    "max_abs_before", "max_abs_after", "converged", "iterations", "params", "matrix", "offset",
+}
+
+
+def _one_line_error(proc, code: int, pattern: str) -> None:
+    assert proc.returncode == code, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert "Traceback" not in proc.stderr
+    assert any(pattern in ln for ln in lines), proc.stderr
+
+
+def test_version() -> None:
+    proc = run_trimag("--version")
+    assert proc.returncode == 0 and proc.stdout.startswith("trimag ")
+
+
+def test_demo_writes_outputs(tmp_path: Path) -> None:
+    proc = run_trimag("demo", "--out", tmp_path / "demo")
+    assert proc.returncode == 0, proc.stderr
+    cal = json.loads((tmp_path / "demo" / "trimag-demo-calibration.json").read_text())
+    png = (tmp_path / "demo" / "trimag-demo-report.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 50_000
+    assert cal["units"] == "counts" and cal["model"] == "ellipsoid"
+    # real QMC5883L log: hard iron dominates the raw magnitude; after correction the spread is ~1/9 of before
+    assert cal["stats"]["rms_after"] < 0.02 * cal["stats"]["rms_before"]
+    assert cal["stats"]["std_norm_after"] < 0.15 * cal["stats"]["std_norm_before"]
+    for word in ("before", "after", "RMS", "wrote calibration", "wrote report"):
+        assert word in proc.stdout
+
+
+def test_fit_json_contract(ellipsoid_log: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cal.json"
+    proc = run_trimag("fit", ellipsoid_log, "--units", "nT", "--reference", "48000", "-o", out,
+                      "--report", tmp_path / "r.png", "--json")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)  # exactly one JSON object on stdout
+    assert REQUIRED_KEYS <= set(summary)
+    assert summary["units"] == "nT" and summary["n_used"] == 600
+    assert summary["reference"]["value"] == 48000 and summary["reference"]["source"] == "given"
+    assert summary["rms_after"] < 10 < summary["rms_before"]
+    assert np.array(summary["matrix"]).shape == (3, 3) and len(summary["offset"]) == 3
+    assert json.loads(out.read_text())["units"] == "nT"
+    assert (tmp_path / "r.png").stat().st_size > 10_000
+    assert "bx, by, bz" in proc.stderr  # the column choice is reported
+
+
+def test_fit_igrf_reference(ellipsoid_log: Path) -> None:
+    proc = run_trimag("fit", ellipsoid_log, "--units", "nT", "--igrf", "52.51,13.33,40,2021-01-01", "--json")
+    assert proc.returncode == 0, proc.stderr
+    ref = json.loads(proc.stdout)["reference"]
+    assert ref["source"].startswith("igrf") and 49000 < ref["value"] < 50500
+
+
+def test_apply_keeps_rows_and_columns(ellipsoid_log: Path, tmp_path: Path) -> None:
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", ellipsoid_log, "--units", "nT", "-o", cal, "-q").returncode == 0
+    text = ellipsoid_log.read_text().splitlines()
+    text[5] = "0.08,nan,oops,1"  # a bad row must be kept, with empty corrected cells
+    bad_log = tmp_path / "in.csv"
+    bad_log.write_text("\n".join(text) + "\n")
+    out = tmp_path / "out.csv"
+    proc = run_trimag("apply", cal, bad_log, "-o", out, "--chunk-rows", "100")
+    assert proc.returncode == 0, proc.stderr
+    assert "1 of 600 rows" in proc.stderr
+    df_in = pd.read_csv(bad_log, dtype=str, keep_default_na=False)
+    df_out = pd.read_csv(out, dtype=str, keep_default_na=False)
+    assert list(df_out.columns) == ["t", "bx", "by", "bz", "bx_cal", "by_cal", "bz_cal"]
+    pd.testing.assert_frame_equal(df_out[df_in.columns], df_in)
+    assert df_out.loc[4, "bx_cal"] == "" and df_out.loc[5, "bx_cal"] != ""
+
+
+def test_evaluate(ellipsoid_log: Path, tmp_path: Path) -> None:
+    cal = tmp_path / "cal.json"
+    run_trimag("fit", ellipsoid_log, "--units", "nT", "--reference", "48000", "-o", cal, "-q")
+    proc = run_trimag("evaluate", cal, ellipsoid_log, "--reference", "48000", "--json", "--chunk-rows", "64")
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    fit = json.loads(cal.read_text())["stats"]
+    assert r["n_used"] == 600
+    assert r["rms_after"] == pytest.approx(fit["rms_after"], rel=1e-9)
+    assert r["rms_before"] == pytest.approx(fit["rms_before"], rel=1e-9)
+    sub = json.loads(run_trimag("evaluate", cal, ellipsoid_log, "--rows", "0:100", "--json").stdout)
+    assert sub["n_used"] == 100
+
+
+def test_simulate_then_fit_recovers_truth(tmp_path: Path) -> None:
+    params = {"hard_iron_x": 0.1, "hard_iron_y": -0.05, "hard_iron_z": 0.02, "w11": 1.05, "w12": 0.02,
+              "w13": 0.0, "w21": 0.0, "w22": 0.97, "w23": 0.01, "w31": 0.0, "w32": 0.0, "w33": 1.0}
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    proc = run_trimag("simulate", "--model", "ellipsoid", "--params", tmp_path / "p.json", "--n", "400",
+                      "--noise", "0", "-o", tmp_path / "sim.csv", "--truth", tmp_path / "truth.json")
+    assert proc.returncode == 0, proc.stderr
+    fit = json.loads(run_trimag("fit", tmp_path / "sim.csv", "--reference", "1", "--json").stdout)
+    np.testing.assert_allclose(fit["offset"], [0.1, -0.05, 0.02], atol=1e-9)
+    assert json.loads((tmp_path / "truth.json").read_text())["params"] == params
+
+
+# ---- exit codes and messages --------------------------------------------------------------------------
+def test_missing_file_exit_2(tmp_path: Path) -> None:
+    _one_line_error(run_trimag("fit", tmp_path / "nope.csv"), 2, "no such file")
+
+
+def test_unknown_unit_exit_2(ellipsoid_log: Path) -> None:
+    _one_line_error(run_trimag("fit", ellipsoid_log, "--units", "furlongs"), 2, "unknown unit")
+
+
+def test_wrong_columns_exit_2(ellipsoid_log: Path) -> None:
+    _one_line_error(run_trimag("fit", ellipsoid_log, "--columns", "bx,by,q"), 2, "no column 'q'")
+
+
+def test_usage_error_exit_2() -> None:
+    _one_line_error(run_trimag("fit"), 2, "DATA")
+
+
+def test_planar_data_exit_3(tmp_path: Path) -> None:
+    t = np.linspace(0, 2 * np.pi, 300, endpoint=False)
+    p = tmp_path / "plane.csv"
+    np.savetxt(p, np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]), delimiter=",",
+               header="bx,by,bz", comments="")
+    out = tmp_path / "cal.json"
+    proc = run_trimag("fit", p, "-o", out)
+    _one_line_error(proc, 3, "one plane")
+    assert not out.exists() and not list(tmp_path.glob(".*tmp"))
+
+
+def test_strict_refuses_nan(tmp_path: Path) -> None:
+    raw = simulate_ellipsoid(100, noise=20.0)
+    raw[10, 0] = np.nan
+    p = tmp_path / "n.csv"
+    np.savetxt(p, raw, delimiter=",", header="bx,by,bz", comments="")
+    proc = run_trimag("fit", p, "--json")
+    assert proc.returncode == 0 and json.loads(proc.stdout)["n_dropped"] == 1
+    assert "dropped 1 of 100 rows" in proc.stderr
+    _one_line_error(run_trimag("fit", p, "--strict"), 2, "--strict")
+
+
+def test_calibration_of_other_format_version_exit_2(ellipsoid_log: Path, tmp_path: Path) -> None:
+    cal = tmp_path / "cal.json"
+    run_trimag("fit", ellipsoid_log, "-o", cal, "-q")
+    doc = json.loads(cal.read_text())
+    doc["format_version"] = "9.0.0"
+    cal.write_text(json.dumps(doc))
+    _one_line_error(run_trimag("apply", cal, ellipsoid_log, "-o", tmp_path / "o.csv"), 2, "newer")
+    assert not (tmp_path / "o.csv").exists()

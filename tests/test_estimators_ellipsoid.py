@@ -1,0 +1,121 @@
+"""``ellipsoid-fit`` and ``ml`` on simulated data with known truth, and their failure modes."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import trimag
+from trimag.errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
+from trimag.estimators import DEFAULT_METHOD, get_estimator
+
+from _helpers import ellipsoid_truth, simulate_ellipsoid
+
+F = 48000.0
+
+
+@pytest.mark.parametrize("method", ["ellipsoid-fit", "ml"])
+def test_noise_free_recovery(method: str) -> None:
+    raw = simulate_ellipsoid(500)
+    W, b = ellipsoid_truth()
+    cal = trimag.fit(raw, method=method, reference=F, units="nT")
+    np.testing.assert_allclose(cal.offset, b, atol=1e-6)
+    np.testing.assert_allclose(cal.matrix, W, atol=1e-9)
+    assert cal.stats["rms_after"] < 1e-6
+    assert cal.stats["rms_before"] > 1000
+
+
+def test_ml_with_noise_reaches_noise_floor_and_reports_std() -> None:
+    sigma = 30.0
+    raw = simulate_ellipsoid(3000, noise=sigma, seed=3)
+    cal = trimag.fit(raw, reference=F, units="nT")
+    assert cal.method == DEFAULT_METHOD["ellipsoid"]
+    # the magnitude residual of an isotropic 3-D noise is ~ sigma (its radial component)
+    assert 0.9 * sigma < cal.stats["rms_after"] < 1.1 * sigma
+    W, b = ellipsoid_truth()
+    std = cal.uncertainty["param_std"]
+    for k, axis in enumerate("xyz"):
+        assert abs(cal.offset[k] - b[k]) < 5 * std[f"hard_iron_{axis}"]
+    assert cal.uncertainty["noise_std"] == pytest.approx(sigma, rel=0.1)
+
+
+def test_unknown_magnitude_keeps_shape() -> None:
+    raw = simulate_ellipsoid(800)
+    cal = trimag.fit(raw, units="nT")
+    W, _ = ellipsoid_truth()
+    assert np.linalg.det(cal.matrix) == pytest.approx(1.0)
+    upper = np.triu_indices(3)
+    ratio = cal.matrix[upper] / W[upper]
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-8)
+    assert cal.reference["source"] == "mean"
+    assert cal.stats["rms_after"] < 1e-6
+
+
+def test_symmetric_form() -> None:
+    raw = simulate_ellipsoid(500)
+    cal = trimag.fit(raw, reference=F, units="nT", form="symmetric")
+    assert np.allclose(cal.matrix, cal.matrix.T)
+    assert cal.stats["rms_after"] < 1e-6
+
+
+def test_planar_data_is_unidentifiable() -> None:
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    raw = np.column_stack([F * np.cos(t) + 100, F * np.sin(t), np.full_like(t, 3000.0)])
+    with pytest.raises(IdentifiabilityError, match="one plane"):
+        trimag.fit(raw, reference=F)
+
+
+def test_stuck_sensor_is_unidentifiable() -> None:
+    with pytest.raises(IdentifiabilityError, match="identical"):
+        trimag.fit(np.tile([100.0, 200.0, 300.0], (50, 1)))
+
+
+def test_too_few_samples() -> None:
+    with pytest.raises(IdentifiabilityError, match="too few"):
+        trimag.fit(simulate_ellipsoid(8))
+
+
+def test_small_arc_warns() -> None:
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(500, 3)) * [0.15, 0.15, 1.0] + [0, 0, 4]
+    u /= np.linalg.norm(u, axis=1, keepdims=True)  # a cap of ~10 degrees around +z
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            trimag.fit(F * u + rng.normal(scale=20, size=u.shape), reference=F)
+        except IdentifiabilityError:
+            return  # also acceptable: refused outright
+    assert any(issubclass(w.category, IdentifiabilityWarning) for w in caught)
+
+
+def test_input_validation() -> None:
+    raw = simulate_ellipsoid(100)
+    bad = raw.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(TrimagInputError, match="NaN"):
+        trimag.fit(bad)
+    with pytest.raises(TrimagInputError, match=r"shape \(N, 3\)"):
+        trimag.fit(raw[:, :2])
+    with pytest.raises(TrimagInputError, match="unknown method"):
+        trimag.fit(raw, method="magic")
+    with pytest.raises(TrimagInputError, match="unknown unit"):
+        trimag.fit(raw, units="furlongs")
+    with pytest.raises(TrimagInputError, match="positive"):
+        trimag.fit(raw, reference=-5.0)
+    with pytest.raises(TrimagInputError, match="no option"):
+        trimag.fit(raw, method="ml", bogus=1)
+
+
+def test_estimator_contract_basics() -> None:
+    est = get_estimator("ml")()
+    assert not [k for k in vars(est) if k.endswith("_")]
+    with pytest.raises(trimag.NotFittedError):
+        est.transform(np.ones((2, 3)))
+    raw = simulate_ellipsoid(300)
+    copy = raw.copy()
+    assert est.fit(raw, F) is est
+    assert np.array_equal(raw, copy)
+    assert est.residuals_.shape == (300,) and est.n_samples_ == 300
+    np.testing.assert_allclose(est.transform(raw), est.calibration_.apply(raw))

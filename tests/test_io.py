@@ -1,0 +1,165 @@
+"""Reading logs: formats, column choice, and every bad-input case of the foundation issue."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+import pytest
+import scipy.io
+from _helpers import SHARED_DATA, requires_shared, simulate_ellipsoid
+
+from trimag.errors import TrimagInputError
+from trimag.io import read_samples
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_csv_with_preamble_and_header(tmp_path: Path) -> None:
+    p = _write(tmp_path / "a.csv", "Fs,50.00\nInitialization time,60\nmx,my,mz\n1,2,3\n4,5,6\n7,8,9\n")
+    s = read_samples(p)
+    assert s.columns == ("mx", "my", "mz")
+    np.testing.assert_array_equal(s.field, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    assert "recognised" in s.column_note
+
+
+@pytest.mark.parametrize(
+    "header,expected",
+    [
+        ("ax,ay,az,mx,my,mz", ("mx", "my", "mz")),
+        ("time,mag_x,mag_y,mag_z", ("mag_x", "mag_y", "mag_z")),
+        ("Bx (nT),By (nT),Bz (nT)", ("Bx (nT)", "By (nT)", "Bz (nT)")),
+        ("x,y,z,t", ("x", "y", "z")),
+    ],
+)
+def test_header_recognition(tmp_path: Path, header: str, expected: tuple[str, str, str]) -> None:
+    ncol = len(header.split(","))
+    rows = "\n".join(",".join(str(i * 10 + j) for j in range(ncol)) for i in range(5))
+    s = read_samples(_write(tmp_path / "h.csv", f"{header}\n{rows}\n"))
+    assert s.columns == expected
+
+
+def test_first_three_numeric_columns_skip_time(tmp_path: Path) -> None:
+    data = np.column_stack([np.arange(20) * 0.1, np.random.default_rng(0).normal(size=(20, 4))])
+    p = tmp_path / "n.csv"
+    np.savetxt(p, data, delimiter=",", header="time,a,b,c,d", comments="")
+    s = read_samples(p)
+    assert s.columns == ("a", "b", "c")
+    assert "first three numeric" in s.column_note and "time" in s.column_note
+
+
+def test_columns_by_name_and_index(tmp_path: Path) -> None:
+    p = _write(tmp_path / "c.csv", "t,p,q,r\n0,1,2,3\n1,4,5,6\n2,7,8,9\n")
+    assert read_samples(p, columns="r,q,p").columns == ("r", "q", "p")
+    assert read_samples(p, columns="1,2,3").columns == ("p", "q", "r")
+    with pytest.raises(TrimagInputError, match="no column 'w'"):
+        read_samples(p, columns="p,q,w")
+    with pytest.raises(TrimagInputError, match="out of range"):
+        read_samples(p, columns="1,2,9")
+    with pytest.raises(TrimagInputError, match="exactly three"):
+        read_samples(p, columns="p,q")
+
+
+def test_whitespace_text(tmp_path: Path) -> None:
+    p = _write(tmp_path / "w.txt", "# x y z\n1 2 3\n4 5 6\n7 8 9\n")
+    assert read_samples(p).field.shape == (3, 3)
+
+
+def test_npz_mat_parquet(tmp_path: Path) -> None:
+    raw = simulate_ellipsoid(50)
+    np.savez(tmp_path / "a.npz", mag=raw, other=np.ones(5))
+    np.testing.assert_array_equal(read_samples(tmp_path / "a.npz").field, raw)
+    scipy.io.savemat(tmp_path / "a.mat", {"imu_mag": raw, "imu_acc": raw * 0})
+    np.testing.assert_array_equal(read_samples(tmp_path / "a.mat").field, raw)
+    with pytest.raises(TrimagInputError, match="--var"):
+        scipy.io.savemat(tmp_path / "b.mat", {"a": raw, "b": raw})
+        read_samples(tmp_path / "b.mat")
+    np.testing.assert_array_equal(read_samples(tmp_path / "b.mat", var="b").field, raw)
+    with h5py.File(tmp_path / "c.mat", "w") as h5:  # MATLAB v7.3 layout: 4 x N, rows t, x, y, z
+        h5["compassBuffer"] = np.vstack([np.arange(50.0), raw.T])
+    s = read_samples(tmp_path / "c.mat")
+    np.testing.assert_array_equal(s.field, raw)
+    pd.DataFrame(raw, columns=["bx", "by", "bz"]).to_parquet(tmp_path / "a.parquet")
+    np.testing.assert_array_equal(read_samples(tmp_path / "a.parquet").field, raw)
+
+
+# ---- the bad-input cases of the foundation issue, one test each -------------------------------------------
+def test_empty_file(tmp_path: Path) -> None:
+    with pytest.raises(TrimagInputError, match="empty"):
+        read_samples(_write(tmp_path / "e.csv", ""))
+
+
+def test_header_only(tmp_path: Path) -> None:
+    with pytest.raises(TrimagInputError, match="no data rows"):
+        read_samples(_write(tmp_path / "h.csv", "bx,by,bz\n"))
+
+
+def test_non_numeric_cells_dropped_and_counted(tmp_path: Path) -> None:
+    p = _write(tmp_path / "n.csv", "bx,by,bz\n1,2,3\n4,oops,6\n7,8,9\n10,11,\n13,14,15\n")
+    s = read_samples(p)
+    assert s.n_rows == 5 and s.n_dropped == 2 and s.dropped_index == [1, 3]
+    assert s.field.shape == (3, 3)
+    with pytest.raises(TrimagInputError, match="2 row"):
+        read_samples(p, strict=True)
+
+
+def test_fewer_than_three_numeric_columns(tmp_path: Path) -> None:
+    with pytest.raises(TrimagInputError, match="three"):
+        read_samples(_write(tmp_path / "two.csv", "x,y\n1,2\n3,4\n5,6\n"))
+    with pytest.raises(TrimagInputError, match="three"):
+        read_samples(_write(tmp_path / "txt.csv", "a,b,c\n1,2,x\n3,4,y\n5,6,z\n"))
+
+
+def test_nan_inf_rows_dropped_and_counted(tmp_path: Path) -> None:
+    p = _write(tmp_path / "nan.csv", "bx,by,bz\n1,2,3\nnan,5,6\n7,inf,9\n10,11,12\n13,14,15\n")
+    s = read_samples(p)
+    assert s.n_dropped == 2 and s.field.shape == (3, 3)
+    with pytest.raises(TrimagInputError, match="--strict"):
+        read_samples(p, strict=True)
+
+
+def test_duplicate_rows_counted_and_kept(tmp_path: Path) -> None:
+    s = read_samples(_write(tmp_path / "d.csv", "bx,by,bz\n1,2,3\n1,2,3\n4,5,6\n1,2,3\n"))
+    assert s.n_duplicates == 2 and s.field.shape == (4, 3)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(TrimagInputError, match="no such file"):
+        read_samples(tmp_path / "nope.csv")
+
+
+def test_all_rows_bad(tmp_path: Path) -> None:
+    with pytest.raises(TrimagInputError, match="none of the"):
+        read_samples(_write(tmp_path / "bad.csv", "bx,by,bz\n1,2,nan\nx,5,6\n1,2,3x\n"))
+
+
+def test_row_selection(tmp_path: Path) -> None:
+    p = _write(tmp_path / "s.csv", "axis,bx,by,bz\nx,1,2,3\ny,4,5,6\nx,7,8,9\nz,1,1,1\n")
+    assert read_samples(p, rows="1:3").field.tolist() == [[4, 5, 6], [7, 8, 9]]
+    assert read_samples(p, where="axis==x").field.tolist() == [[1, 2, 3], [7, 8, 9]]
+    assert read_samples(p, where="axis!=x").n_rows == 2
+    with pytest.raises(TrimagInputError, match="matched no rows"):
+        read_samples(p, where="axis==w")
+    with pytest.raises(TrimagInputError, match="START:STOP"):
+        read_samples(p, rows="a-b")
+
+
+@requires_shared
+@pytest.mark.parametrize(
+    "rel,kwargs,n",
+    [
+        ("qmc5883l-suarez/noisy_raw_data.csv", {}, 22743),
+        ("ck-explorer-accmag/acc_mag_log.csv", {}, 12000),
+        ("smartphone-kritiksoman/data_mag.txt", {}, 1266),
+        ("hmc5883l-sunsided/full-sphere_hmc5883l_compass.mat", {}, 8190),
+        ("broad/01_undisturbed_slow_rotation_A.mat", {"var": "imu_mag"}, 56940),
+    ],
+)
+def test_shared_real_logs(rel: str, kwargs: dict[str, str], n: int) -> None:
+    s = read_samples(SHARED_DATA / rel, **kwargs)
+    assert s.field.shape == (n, 3) and s.n_dropped == 0
