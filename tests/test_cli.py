@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+
 from _helpers import run_trimag, simulate_ellipsoid
 
 REQUIRED_KEYS = {

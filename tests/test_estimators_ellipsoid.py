@@ -34,7 +34,7 @@ def test_ml_with_noise_reaches_noise_floor_and_reports_std() -> None:
     assert cal.method == DEFAULT_METHOD["ellipsoid"]
     # the magnitude residual of an isotropic 3-D noise is ~ sigma (its radial component)
     assert 0.9 * sigma < cal.stats["rms_after"] < 1.1 * sigma
-    W, b = ellipsoid_truth()
+    _, b = ellipsoid_truth()
     std = cal.uncertainty["param_std"]
     for k, axis in enumerate("xyz"):
         assert abs(cal.offset[k] - b[k]) < 5 * std[f"hard_iron_{axis}"]

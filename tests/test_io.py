@@ -9,10 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import scipy.io
-from _helpers import SHARED_DATA, requires_shared, simulate_ellipsoid
 
 from trimag.errors import TrimagInputError
 from trimag.io import read_samples
+
+from _helpers import SHARED_DATA, requires_shared, simulate_ellipsoid
 
 
 def _write(path: Path, text: str) -> Path:

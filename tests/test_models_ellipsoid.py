@@ -14,7 +14,10 @@ from trimag.models import available_models, get_model
 from trimag.models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 
 
-@given(arrays(np.float64, (3, 3), elements=st.floats(-0.3, 0.3)), arrays(np.float64, (3,), elements=st.floats(-1e4, 1e4)))
+@given(
+    arrays(np.float64, (3, 3), elements=st.floats(-0.3, 0.3)),
+    arrays(np.float64, (3,), elements=st.floats(-1e4, 1e4)),
+)
 @settings(max_examples=50, deadline=None)
 def test_matrix_offset_round_trip_exact(dm: np.ndarray, b: np.ndarray) -> None:
     W = np.eye(3) + dm

@@ -117,8 +117,8 @@ def weak_directions(
     for k in np.nonzero(s < s[0] / threshold)[0]:
         v = np.abs(vt[k])
         for j in np.nonzero(v > 0.3 * v.max())[0]:
-            if names[j] not in weak:
-                weak.append(names[j])
+            if names[int(j)] not in weak:
+                weak.append(names[int(j)])
     return weak
 
 

@@ -121,8 +121,9 @@ def fit_report(
     lo = float(min(np.percentile(err_b, 0.5), np.percentile(err_a, 0.5)))
     hi = float(max(np.percentile(err_b, 99.5), np.percentile(err_a, 99.5)))
     bins = np.linspace(lo, hi, 80) if hi > lo else 40
-    ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {cal.stats.get('rms_before', np.nan):.3g}")
-    ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {cal.stats.get('rms_after', np.nan):.3g}")
+    rms_b, rms_a = cal.stats.get("rms_before", np.nan), cal.stats.get("rms_after", np.nan)
+    ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {rms_b:.3g}")
+    ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {rms_a:.3g}")
     ax.set(xlabel=f"|B| - F [{unit}]", ylabel="samples", title="magnitude error")
     ax.legend(fontsize=8)
 

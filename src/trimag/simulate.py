@@ -149,4 +149,5 @@ def simulate(
         raise TrimagInputError(f"attitudes must be 'random', 'axes' or a Rotation; got {attitudes!r}")
     true = body_field(att, field_nav)
     raw = add_noise(truth.distort(true), noise, rng)
-    return Simulation(raw, true, att, truth, {"n": len(raw), "noise": noise, "field_nav": list(map(float, field_nav))})
+    settings = {"n": len(raw), "noise": noise, "field_nav": np.asarray(field_nav, dtype=float).tolist()}
+    return Simulation(raw, true, att, truth, settings)

@@ -8,10 +8,11 @@ the field columns) — rows are never lost silently.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io as _stdio
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +75,7 @@ class Samples:
     column_note: str = ""
     n_rows: int = 0
     n_dropped: int = 0
-    dropped_index: list[int] = field(default_factory=list)
+    dropped_index: list[int] = dataclasses.field(default_factory=list)
     n_duplicates: int = 0
     selection: str = ""
     source: str = ""
@@ -311,7 +312,8 @@ def resolve_columns(
                 idx = int(item)
                 if not 0 <= idx < len(names):
                     raise TrimagInputError(
-                        f"--columns: index {idx} is out of range; the file has {len(names)} columns (0-{len(names) - 1})"
+                        f"--columns: index {idx} is out of range; "
+                        f"the file has {len(names)} columns (0-{len(names) - 1})"
                     )
                 chosen.append(names[idx])
             else:

@@ -42,7 +42,7 @@ def get_model(name: str) -> type[ErrorModel]:
         cls = getattr(importlib.import_module(module_name), cls_name)
     except (ImportError, AttributeError):
         raise TrimagInputError(f"model {name!r} is not available in this build of trimag") from None
-    return cls  # type: ignore[no-any-return]
+    return cls
 
 
 def available_models() -> list[str]:

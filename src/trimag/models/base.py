@@ -81,7 +81,7 @@ class ErrorModel:
     def distortion(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Return ``(D (3, 3), offset (3,))`` with ``B_raw = D @ B_true + offset``."""
         matrix, offset = self.correction()
-        return np.linalg.inv(matrix), offset
+        return np.asarray(np.linalg.inv(matrix), dtype=np.float64), offset
 
     def distort(self, B: ArrayLike) -> NDArray[np.float64]:
         """Map true fields (N, 3) or (3,) to what the sensor reports (same shape, same unit)."""
