@@ -130,6 +130,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
+    p = sub.add_parser("batch", help="fit many logs (one calibration each) on Dask",
+                       description="Fit every file matched; write OUT/<name>.json per file and "
+                                   "OUT/summary.csv + OUT/summary.parquet. A bad file is reported, not fatal.")
+    p.add_argument("inputs", nargs="+", metavar="GLOB", help="glob pattern(s) ('logs/**/*.csv') or files")
+    _add_data_options(p, selection=False)
+    p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`)")
+    p.add_argument("--method", help="identification method (default: the model's default)")
+    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    _add_reference_options(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--workers", type=int, default=1, help="parallel workers on Dask's local scheduler")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="dask.distributed scheduler, e.g. tcp://host:8786")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
     for name, kind, helptext in (("reproduce", "reproduce", "reproduce a paper's figures and tables"),
                                  ("bench", "bench", "run a benchmark")):
         p = sub.add_parser(name, help=helptext, description=helptext.capitalize() + ".")
@@ -179,23 +194,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable[[], None]]:
-    """A stderr progress line that appears only once work has taken more than a second."""
-    t0 = time.monotonic()
-    shown = [False]
+    """A rich progress bar on stderr (rows done) that appears only once work has taken more than a second."""
+    from .parallel import ProgressBar
 
-    def update(n: int) -> None:
-        if getattr(args, "quiet", False):
-            return
-        if time.monotonic() - t0 > 1.0 and sys.stderr.isatty():
-            sys.stderr.write(f"\rtrimag: {n:,} rows ...")
-            sys.stderr.flush()
-            shown[0] = True
-
-    def close() -> None:
-        if shown[0]:
-            sys.stderr.write("\n")
-
-    return update, close
+    bar = ProgressBar(f"trimag {args.command}", None, enabled=not getattr(args, "quiet", False), unit="rows")
+    return bar.update, bar.close
 
 
 def _cmd_apply(args: argparse.Namespace) -> int:
@@ -268,13 +271,42 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from .batch import fit_batch
+    from .workflow import parse_options
+
+    result = fit_batch(
+        args.inputs, args.out, model=args.model, method=args.method, options=parse_options(args.option),
+        workers=args.workers, scheduler=args.scheduler, progress=not args.quiet, fmt=args.fmt,
+        columns=args.columns, var=args.var, units=args.units, strict=args.strict, reference=args.reference,
+        igrf_spec=args.igrf_spec, reference_column=args.reference_column,
+    )
+    for file, error in zip(result.table["file"], result.table["error"], strict=True):
+        if error:
+            _err(f"{file}: {error}")
+    if args.json:
+        print(json.dumps(result.summary(), allow_nan=False))
+    else:
+        _say(f"fitted {result.n_files - result.n_failed} of {result.n_files} files in {result.seconds:.1f} s "
+             f"({result.files_per_second:.1f} files/s); wrote {result.written['summary_csv']}, "
+             f"{result.written['summary_parquet']} and one calibration per file in {args.out}", args)
+    return result.exit_code()
+
+
 def _cmd_experiment(args: argparse.Namespace, kind: str) -> int:
     from .experiments import get_experiment
 
     module = get_experiment(args.target, kind=kind)
+    extra: dict[str, Any] = {}
+    if hasattr(module, "add_arguments"):
+        sub = _Parser(prog=f"trimag {kind} {args.target}", description=f"Options of {kind} {args.target}.")
+        module.add_arguments(sub)
+        extra = vars(sub.parse_args(args.extra_args))
+    elif args.extra_args:
+        raise TrimagInputError(f"{kind} {args.target} takes no option {args.extra_args[0]!r}")
     t0 = time.monotonic()
     summary = module.run(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
-                         workers=args.workers, json_mode=args.json)
+                         workers=args.workers, json_mode=args.json, **extra)
     summary.setdefault("runtime_s", time.monotonic() - t0)
     if args.json:
         print(json.dumps(summary, allow_nan=False, default=float))
@@ -289,7 +321,10 @@ def _cmd_experiment(args: argparse.Namespace, kind: str) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown and args.command not in ("reproduce", "bench"):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    args.extra_args = unknown
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_INPUT
@@ -299,6 +334,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "evaluate": _cmd_evaluate,
         "simulate": _cmd_simulate,
         "demo": _cmd_demo,
+        "batch": _cmd_batch,
         "reproduce": lambda a: _cmd_experiment(a, "reproduce"),
         "bench": lambda a: _cmd_experiment(a, "bench"),
     }
@@ -318,7 +354,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return EXIT_OK
-    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, exit 1
+    except Exception as exc:
         _err(f"internal error: {type(exc).__name__}: {exc} (please report this with the command you ran)")
         return EXIT_INTERNAL
 

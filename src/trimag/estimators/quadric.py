@@ -1,0 +1,362 @@
+"""``quadric``: paper D's simple linear method (Zhang & Cheng 2009) and the identifiability report it shares.
+
+With a known field magnitude ``F`` every sample satisfies (methods.md, paper D)::
+
+    |B|^2 = (V - b)^T Q (V - b) = phi(V) . W = F^2,        Q = (KA)^-T (KA)^-1
+
+(``phi`` and ``W`` as in :mod:`trimag.models.zhang_cheng`). Written as ``phi(V) . (W - F^2 e10) = 0`` the
+equation is homogeneous: the data fix the ellipsoid (9 numbers) but a free constant term makes ``W`` itself
+determined only up to scale, so a plain least-squares solve ``phi(V) W = F^2`` with ten unknowns is always
+rank deficient (the null vector is ``W - F^2 e10``). The paper's own equation (5) is lost in the OCR; trimag
+makes the solve linear and well posed the standard way:
+
+1. normalise ``u = (V - c) / s`` (centroid ``c``, RMS radius ``s``) so the design is unit-free;
+2. fix the scale by the trace, ``Q11 + Q22 + Q33 = 1``: nine unknowns
+   ``h = (Q11, Q22, 2Q12, 2Q13, 2Q23, l_x, l_y, l_z, c0)`` from the linear least-squares problem
+   ``G h = -u_z^2``, ``G = [u_x^2 - u_z^2, u_y^2 - u_z^2, u_x u_y, u_x u_z, u_y u_z, u_x, u_y, u_z, 1]`` (N, 9);
+3. ``b_u = -Q^-1 l / 2``; the known magnitude sets the scale: ``Q <- Q (F/s)^2 / (b_u^T Q b_u - c0)``;
+4. back to data units, ``b = c + s b_u`` and ``Q`` unchanged; ``M = cholesky(Q)^T`` (upper triangular) and the
+   physical parameters follow in closed form (:meth:`ZhangCheng.from_quadric`).
+
+With noise-free data this returns the true ``W`` to rounding; its ``rank`` and ``condition_number`` are those of
+``G`` (column-normalised). When ``rank(G) < 9`` the samples lie on more than one quadric and no linear solve can
+pick the ellipsoid: :class:`~trimag.errors.IdentifiabilityError` (exit 3) names the parameters concerned.
+
+Which *physical* parameters the data cannot determine comes from the Jacobian of
+``r_i = |M(theta) (V_i - b)|^2 - F^2`` with respect to the nine parameters ``theta``
+(:func:`identifiability_report`); e.g. a turn about the sensor's Z axis alone leaves ``kz`` and ``bz``
+(and ``alpha``/``bx``, ``beta``/``by``) inseparable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..models.zhang_cheng import ZhangCheng, quadric_terms
+from ..reference import ScalarReference
+from ._common import scalar_reference
+from .base import Estimator, build_calibration
+
+__all__ = [
+    "DESIGN_TERMS",
+    "PARAM_NAMES",
+    "Identifiability",
+    "Quadric",
+    "check_identifiable",
+    "diagnostics_entries",
+    "identifiability_report",
+    "physical_jacobian",
+    "quadric_solve",
+    "require_magnitude",
+]
+
+#: Columns of the trace-normalised linear design ``G``.
+DESIGN_TERMS: tuple[str, ...] = ("xx-zz", "yy-zz", "xy", "xz", "yz", "x", "y", "z", "1")
+#: Physical parameters of the ``zhang-cheng`` model, in model order.
+PARAM_NAMES: tuple[str, ...] = ZhangCheng.param_names()
+
+_HINT = (
+    "record the sensor in more attitudes: a turn about a single axis cannot separate that axis' gain from "
+    "its offset, nor the tilt angles of the other axes from their offsets; add a turn about a second axis"
+)
+
+
+@dataclass
+class _Design:
+    G: NDArray[np.float64]
+    y: NDArray[np.float64]
+    centre: NDArray[np.float64]
+    scale: float
+
+
+def _linear_design(V: NDArray[np.float64]) -> _Design:
+    centre = V.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((V - centre) ** 2, axis=1)))) or 1.0
+    P = quadric_terms((V - centre) / scale)
+    G = np.column_stack([P[:, 0] - P[:, 2], P[:, 1] - P[:, 2], P[:, 3:]])
+    return _Design(G, -P[:, 2], centre, scale)
+
+
+def quadric_solve(
+    V: NDArray[np.float64], F2: float, design: _Design | None = None
+) -> tuple[ZhangCheng, NDArray[np.float64]]:
+    """The linear solve (steps 1-4 of the module docstring).
+
+    Parameters
+    ----------
+    V : ndarray, shape (N, 3)
+        Sensor output, data unit.
+    F2 : float
+        Squared field magnitude, data unit squared.
+
+    Returns
+    -------
+    model : ZhangCheng
+        Physical parameters.
+    h : ndarray, shape (9,)
+        The least-squares solution of ``G h = -u_z^2`` (normalised coordinates, trace gauge).
+
+    Raises
+    ------
+    IdentifiabilityError
+        The fitted quadric is not an ellipsoid (noise too large for the attitude coverage).
+    """
+    d = design if design is not None else _linear_design(V)
+    norms = np.linalg.norm(d.G, axis=0)
+    norms[norms == 0] = 1.0
+    h = np.linalg.lstsq(d.G / norms, d.y, rcond=None)[0] / norms
+    Wu = np.array([h[0], h[1], 1.0 - h[0] - h[1], *h[2:]])
+    Q = np.array(
+        [[Wu[0], Wu[3] / 2, Wu[4] / 2], [Wu[3] / 2, Wu[1], Wu[5] / 2], [Wu[4] / 2, Wu[5] / 2, Wu[2]]]
+    )
+    try:
+        b_u = np.linalg.solve(Q, -0.5 * Wu[6:9])
+    except np.linalg.LinAlgError:
+        raise IdentifiabilityError(
+            "the fitted quadric is degenerate (not an ellipsoid); " + _HINT
+        ) from None
+    level = float(b_u @ Q @ b_u - Wu[9])
+    if not level > 0 or np.any(np.linalg.eigvalsh(Q) <= 0):
+        raise IdentifiabilityError(
+            "the fitted quadric is not an ellipsoid (noise too large for the attitudes covered); " + _HINT
+        )
+    Q = Q * (F2 / d.scale**2) / level
+    b = d.centre + d.scale * b_u
+    try:
+        model = ZhangCheng.from_quadric(Q, b)
+    except TrimagInputError as exc:
+        raise IdentifiabilityError(f"the fitted ellipsoid is outside the zhang-cheng model ({exc}); {_HINT}") from None
+    return model, h
+
+
+def physical_jacobian(V: NDArray[np.float64], model: ZhangCheng) -> NDArray[np.float64]:
+    """Jacobian (N, 9) of ``r_i = |M (V_i - b)|^2`` w.r.t. ``(alpha, beta, gamma, kx, ky, kz, bx, by, bz)``.
+
+    ``M = (K A)^-1``, so ``dM = -M dD M`` for ``D = K A``.
+    """
+    M, b = model.correction()
+    e = V - b
+    y = e @ M.T
+    ca, sa = np.cos(model.alpha), np.sin(model.alpha)
+    cb, sb = np.cos(model.beta), np.sin(model.beta)
+    cg, sg = np.cos(model.gamma), np.sin(model.gamma)
+    kx, ky = model.kx, model.ky
+    A = model.a_matrix()
+    dD = np.zeros((6, 3, 3))
+    dD[0, 0] = [-kx * cg * sa, 0.0, kx * ca]  # alpha
+    dD[1, 1] = [0.0, -ky * sb, ky * cb]  # beta
+    dD[2, 0] = [-kx * sg * ca, kx * cg, 0.0]  # gamma
+    dD[3, 0] = A[0]  # kx
+    dD[4, 1] = A[1]  # ky
+    dD[5, 2] = A[2]  # kz
+    J = np.empty((len(V), 9))
+    for j in range(6):
+        dM = -M @ dD[j] @ M
+        J[:, j] = 2.0 * np.einsum("ij,ij->i", y, e @ dM.T)
+    J[:, 6:] = -2.0 * (y @ M)
+    return J
+
+
+@dataclass
+class Identifiability:
+    """What the samples can determine of the ``zhang-cheng`` model.
+
+    Attributes
+    ----------
+    rank, n_columns, condition_number : int, int, float
+        Of the linear design ``G`` (column-normalised).
+    undetermined_terms : list of str
+        Columns of ``G`` in its numerically null directions.
+    physical_rank, physical_condition_number : int, float
+        Of the Jacobian w.r.t. the nine physical parameters (column-normalised).
+    undetermined : list of str
+        Physical parameters in the Jacobian's null directions (singular value < s_max / CONDITION_ERROR).
+    poorly_determined : list of str
+        Physical parameters in directions with singular value < s_max / CONDITION_WARN.
+    estimate : ZhangCheng or None
+        The linear solution when the design has full rank and gives an ellipsoid.
+    """
+
+    rank: int
+    n_columns: int
+    condition_number: float
+    undetermined_terms: list[str]
+    physical_rank: int
+    physical_condition_number: float
+    undetermined: list[str]
+    poorly_determined: list[str]
+    estimate: ZhangCheng | None = None
+    singular_values: list[float] = field(default_factory=list)
+    estimate_error: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary for ``Calibration.diagnostics``."""
+        return {
+            "design": "quadric, trace-normalised (N, 9): " + ", ".join(DESIGN_TERMS),
+            "rank": self.rank,
+            "n_columns": self.n_columns,
+            "condition_number": self.condition_number,
+            "singular_values": self.singular_values,
+            "undetermined_terms": self.undetermined_terms,
+            "physical_rank": self.physical_rank,
+            "physical_condition_number": self.physical_condition_number,
+            "undetermined": self.undetermined,
+            "poorly_determined": self.poorly_determined,
+            "thresholds": {"undetermined": CONDITION_ERROR, "poorly_determined": CONDITION_WARN},
+        }
+
+    def message(self) -> str:
+        """The sentence an :class:`IdentifiabilityError` carries."""
+        names = self.undetermined or self.undetermined_terms
+        return (
+            f"the data cannot identify the zhang-cheng model: the quadric design has rank {self.rank} of "
+            f"{self.n_columns} (condition number {self.condition_number:.3g}); undetermined: "
+            f"{', '.join(names) if names else 'none named'}; {_HINT}"
+        )
+
+
+def _rank(s: NDArray[np.float64], threshold: float) -> int:
+    return int(np.sum(s > s[0] / threshold)) if s[0] > 0 else 0
+
+
+def _in_subspace(
+    vt: NDArray[np.float64], s: NDArray[np.float64], names: tuple[str, ...], *, threshold: float, share: float
+) -> list[str]:
+    """Names whose unit vector has a component larger than ``share`` in the span of the right singular
+    vectors with singular value below ``s[0] / threshold`` (independent of how that span's basis is chosen)."""
+    weak = vt[s <= s[0] / threshold] if s[0] > 0 else vt
+    if len(weak) == 0:
+        return []
+    proj = np.linalg.norm(weak, axis=0)
+    return [n for n, p in zip(names, proj, strict=True) if p > share]
+
+
+def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability:
+    """Rank, condition number and undetermined parameters of ``zhang-cheng`` for samples ``V`` (N, 3).
+
+    The physical Jacobian is evaluated at the linear solution when there is one, otherwise at the nominal
+    sensor (no angles, equal gains matching the mean magnitude, zero offsets).
+    """
+    design = _linear_design(V)
+    cond, s, vt = design_condition(design.G)
+    rank = _rank(s, CONDITION_ERROR)
+    terms = _in_subspace(vt, s, DESIGN_TERMS, threshold=CONDITION_ERROR, share=0.05)
+    estimate: ZhangCheng | None = None
+    error: str | None = None
+    if rank == len(s):
+        try:
+            estimate, _ = quadric_solve(V, F2, design)
+        except IdentifiabilityError as exc:
+            error = str(exc)
+    at = estimate
+    if at is None:
+        k0 = float(np.sqrt(np.mean(np.sum(V * V, axis=1)) / F2))
+        at = ZhangCheng(kx=k0, ky=k0, kz=k0)
+    pcond, ps, pvt = design_condition(physical_jacobian(V, at))
+    prank = _rank(ps, CONDITION_ERROR)
+    undetermined = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_ERROR, share=0.05)
+    poorly = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_WARN, share=0.3)
+    return Identifiability(
+        rank=rank,
+        n_columns=len(s),
+        condition_number=cond,
+        undetermined_terms=terms,
+        physical_rank=prank,
+        physical_condition_number=pcond,
+        undetermined=undetermined,
+        poorly_determined=[p for p in poorly if p not in undetermined],
+        estimate=estimate,
+        singular_values=s.tolist(),
+        estimate_error=error,
+    )
+
+
+def check_identifiable(report: Identifiability, *, linear: bool) -> None:
+    """Raise :class:`IdentifiabilityError` (exit 3) when the data cannot identify the model; warn when weak.
+
+    ``linear=True`` (the ``quadric`` method) needs the linear design at full rank; the iterative methods need
+    the physical Jacobian at full rank.
+    """
+    if report.physical_rank < 9 or (linear and report.rank < report.n_columns):
+        raise IdentifiabilityError(report.message())
+    cond = report.condition_number if linear else report.physical_condition_number
+    check_condition(
+        cond,
+        what="the zhang-cheng model",
+        hint=_HINT,
+        weak=report.poorly_determined,
+        error=np.inf,
+    )
+
+
+def require_magnitude(reference: Any, n: int, units: str, method: str) -> ScalarReference:
+    """The scalar reference, which paper D's methods require (a known field magnitude)."""
+    ref = scalar_reference(reference, n, units)
+    if ref.values is None:
+        raise TrimagInputError(
+            f"method {method!r} needs the field magnitude: give reference=F (or --reference F, or --igrf ...) "
+            "in the data's unit"
+        )
+    return ref
+
+
+def diagnostics_entries(report: Identifiability, model: ZhangCheng) -> dict[str, Any]:
+    """The identifiability entries every paper-D fit puts in ``Calibration.diagnostics``."""
+    return {
+        "rank": report.rank,
+        "condition_number": report.condition_number,
+        "undetermined": list(report.undetermined),
+        "identifiability": report.as_dict(),
+        "params_display": model.as_report(),
+        "w": model.w_vector().tolist(),
+    }
+
+
+class Quadric(Estimator):
+    """Paper D's linear least-squares method: ``W`` from one linear solve, then ``K``, the angles and ``b``.
+
+    Needs a known field magnitude (``reference``). No options.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from trimag.models.zhang_cheng import ZhangCheng
+    >>> truth = ZhangCheng(*np.radians([0.8, 0.5, 1.1]), 1.02, 0.99, 1.01, 0.03, 0.02, 0.01)
+    >>> rng = np.random.default_rng(0)
+    >>> B = rng.normal(size=(50, 3)); B /= np.linalg.norm(B, axis=1, keepdims=True)
+    >>> est = Quadric().fit(truth.distort(B), 1.0)
+    >>> round(est.calibration_.params["kx"], 9)
+    1.02
+    """
+
+    name = "quadric"
+    models = ("zhang-cheng",)
+    requires_reference = True
+
+    def __init__(self, model: str = "zhang-cheng") -> None:
+        self.model = model
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        ref = require_magnitude(reference, len(B), units, self.name)
+        assert ref.values is not None
+        F2 = float(np.mean(ref.values**2))
+        report = identifiability_report(B, F2)
+        check_identifiable(report, linear=True)
+        if report.estimate is None:
+            raise IdentifiabilityError(report.estimate_error or report.message())
+        est = report.estimate
+        M, offset = est.correction()
+        return build_calibration(
+            B, M, offset, model=model, method=self.name, units=units, reference=ref,
+            params=est.as_dict(), iterations=0, converged=True,
+            diagnostics=diagnostics_entries(report, est),
+        )
