@@ -7,6 +7,7 @@ only, and makes every command usable and testable from Python.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 from dataclasses import dataclass, field
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
 from .calibration import Calibration, atomic_write_text
@@ -119,7 +121,8 @@ def vector_reference_from_options(
         return vec, f"igrf {igrf_spec} (IGRF-14, NED {np.round(fld.ned_nT, 1).tolist()} nT)"
     from . import attitude as _attitude
 
-    return _attitude.background_from_run(background_run, units=units, **read_kwargs)  # type: ignore[attr-defined,no-any-return]
+    assert background_run is not None
+    return _attitude.background_from_run(background_run, units=units, **read_kwargs)
 
 
 def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, Any]:
@@ -152,6 +155,30 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
         out["selection"] = samples.selection
         out["source"] = samples.source
     return out
+
+
+def _drop_rows_without_attitude(
+    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None
+) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose attitude cells are missing or non-finite."""
+    names = [c.strip() for c in (attitude_columns or quaternion_columns or "").split(",") if c.strip()]
+    present = [c for c in names if c in samples.table.columns]
+    if not present:
+        return samples, 0
+    values = np.column_stack([pd.to_numeric(samples.table[c], errors="coerce").to_numpy(dtype=float) for c in present])
+    ok = np.isfinite(values).all(axis=1)
+    n_bad = int((~ok).sum())
+    if n_bad == 0:
+        return samples, 0
+    if n_bad == len(ok):
+        raise TrimagInputError(f"none of the rows has a finite attitude in columns {', '.join(present)}")
+    kept = dataclasses.replace(
+        samples,
+        field=samples.field[ok],
+        table=samples.table[ok].reset_index(drop=True),
+        n_dropped=samples.n_dropped + n_bad,
+    )
+    return kept, n_bad
 
 
 def fit_file(
@@ -199,7 +226,13 @@ def fit_file(
     if estimator.reference_kind == "vector":
         from . import attitude as _attitude
 
-        attitude = _attitude.attitude_from_table(  # type: ignore[attr-defined]
+        samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
+        if n_no_attitude:
+            messages.append(
+                f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
+            )
+
+        attitude = _attitude.attitude_from_table(
             samples.table,
             euler_columns=attitude_columns,
             quaternion_columns=quaternion_columns,
@@ -210,6 +243,9 @@ def fit_file(
         ref, source = vector_reference_from_options(
             units=unit, background_ned=background_ned, igrf_spec=igrf_spec, background_run=background_run,
             fmt=fmt, columns=columns, var=var,
+            **({"attitude": attitude, "attitude_columns": attitude_columns,
+                "quaternion_columns": quaternion_columns, "quaternion_order": quaternion_order,
+                "quaternion_frame": quaternion_frame} if background_run is not None else {}),
         )
         messages.append(f"background field {np.round(ref, 6).tolist()} {unit} ({source})")
     else:
@@ -217,7 +253,8 @@ def fit_file(
             samples, units=unit, reference=reference, igrf_spec=igrf_spec, reference_column=reference_column
         )
         if ref.source.startswith("igrf"):
-            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")  # type: ignore[index]
+            assert ref.values is not None
+            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
         if estimator.requires_reference and not ref.known:
             raise TrimagInputError(
                 f"method {estimator.name!r} needs a known field magnitude: give --reference F, --igrf "

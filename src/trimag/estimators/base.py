@@ -112,7 +112,8 @@ class Estimator:
         units : str
             Unit of ``B`` (and of a numeric reference); recorded in the Calibration.
         attitude : scipy.spatial.transform.Rotation, optional
-            Per-sample attitude (N rotations mapping navigation-frame vectors to the body frame); only for
+            Per-sample attitude: N rotations body -> navigation frame (NED), so that a navigation-frame
+            field is seen in the body frame as ``attitude.inv().apply(H_n)`` (docs/conventions.md); only for
             methods with ``reference_kind == "vector"``.
 
         Returns

@@ -1,0 +1,299 @@
+"""``linear-vector``: paper C's 12 coefficients by three independent 4-unknown least-squares problems.
+
+    H_m = K @ H_b + c,   H_b = C(attitude)^T @ H_n                        (methods.md, paper C)
+
+Row ``a`` of ``K`` and ``c_a`` only enter sensor axis ``a``: ``H_m[:, a] = [H_b, 1] @ (K[a, :], c_a)``, so the
+12 coefficients are three linear least-squares problems sharing one N x 4 design ``A = [H_b, 1]``. ``A`` has
+full rank iff the body-frame background fields ``H_b`` of the attitudes do not lie in one plane (for a
+constant |H_n| they lie on a sphere; a plane cuts it in a circle, e.g. turns about one axis only), which
+needs at least 4 attitudes. The column-normalised condition number of ``A`` is reported; above
+``trimag.diagnostics.CONDITION_ERROR`` the fit stops with :class:`~trimag.errors.IdentifiabilityError`
+(exit 3).
+
+Attitudes follow ``docs/conventions-attitude.md``: ``Rotation`` body -> NED, ``H_b = R.inv().apply(H_n)``.
+
+Background field ``H_n`` (NED, the data's unit) comes from the caller (``--background-ned``, IGRF vector, or
+the mean of an iron-free run, :func:`trimag.attitude.background_from_run`). With
+``estimate_background=True`` it is fitted jointly (:func:`fit_with_background`): ``K`` and ``H_n`` are then
+identified only up to a common scale (``K s``, ``H_n / s``), fixed here by ``|H_n|`` = the magnitude of the
+given background (or the mean measured magnitude when none is given), and the sign by ``det(K) > 0``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..calibration import Calibration
+from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..models.interference12 import Interference12
+from ..reference import ScalarReference, as_vector
+from .base import Estimator, build_calibration
+
+__all__ = ["LinearVector", "fit_with_background", "solve_interference"]
+
+_NAMES_A = ("H_b x", "H_b y", "H_b z", "c")
+_HINT = (
+    "record at least 4 attitudes whose body-frame background fields are not coplanar "
+    "(tilt the vehicle in pitch and roll as well as turning it in heading)"
+)
+
+
+def _check_attitude(attitude: Any, n: int) -> Rotation:
+    if not isinstance(attitude, Rotation):
+        raise TrimagInputError(
+            "linear-vector needs the attitude of every sample as a scipy Rotation (body -> NED); "
+            "on the command line give --attitude-columns yaw,pitch,roll or --quaternion-columns w,x,y,z"
+        )
+    if attitude.single or len(attitude) != n:
+        got = 1 if attitude.single else len(attitude)
+        raise TrimagInputError(f"need one attitude per sample: {n} samples but {got} attitude(s)")
+    return attitude
+
+
+def _distinct_count(H_b: NDArray[np.float64]) -> int:
+    scale = float(np.max(np.abs(H_b))) or 1.0
+    return len(np.unique(np.round(H_b / scale, 9), axis=0))
+
+
+def solve_interference(
+    H_m: NDArray[np.float64], H_b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+    """Solve ``H_m = K H_b + c`` for ``K`` (3, 3) and ``c`` (3,) by three 4-unknown least squares.
+
+    Parameters
+    ----------
+    H_m : ndarray, shape (N, 3)
+        Measured fields (body frame, with interference).
+    H_b : ndarray, shape (N, 3)
+        Background field in the body frame at each sample, same unit.
+
+    Returns
+    -------
+    K, c, info
+        ``info`` holds ``condition_number`` (column-normalised, of ``[H_b, 1]``), ``n_attitudes`` (distinct
+        ``H_b`` rows), ``residual_rms_axis`` (3,), ``param_std`` (per coefficient) and ``singular_values``.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer than 4 distinct attitudes, or ``H_b`` coplanar (condition number above the error limit).
+    """
+    n_att = _distinct_count(H_b)
+    if n_att < 4:
+        raise IdentifiabilityError(
+            f"only {n_att} distinct attitude(s): the 12 interference coefficients need at least 4 attitudes "
+            f"(each sensor axis is a 4-unknown problem); {_HINT}"
+        )
+    A = np.column_stack([H_b, np.ones(len(H_b))])
+    cond, s, vt = design_condition(A)
+    if not np.isfinite(cond) or cond > CONDITION_ERROR:
+        raise IdentifiabilityError(
+            f"the body-frame background fields of the {n_att} attitudes are coplanar (condition number of "
+            f"[H_b, 1] = {cond:.3g}): K is not identifiable; {_HINT}"
+        )
+    check_condition(
+        cond, what="the 12 interference coefficients", hint=_HINT,
+        weak=weak_directions(vt, s, _NAMES_A, threshold=1e4),
+    )
+    X, *_ = np.linalg.lstsq(A, H_m, rcond=None)  # (4, 3): column a = (K[a, :], c_a)
+    K = np.asarray(X[:3].T, dtype=np.float64).copy()
+    c = np.asarray(X[3], dtype=np.float64).copy()
+    resid = H_m - A @ X
+    dof = max(len(A) - 4, 1)
+    s2 = np.sum(resid**2, axis=0) / dof  # (3,) per-axis residual variance
+    inv_ata = np.linalg.pinv(A.T @ A)
+    std = np.sqrt(np.outer(s2, np.diag(inv_ata)))  # (3 axes, 4 unknowns)
+    names = [f"k{a + 1}{b + 1}" for a in range(3) for b in range(3)] + ["c1", "c2", "c3"]
+    stds = np.concatenate([std[:, :3].ravel(), std[:, 3]])
+    info = {
+        "condition_number": cond,
+        "n_attitudes": n_att,
+        "singular_values": s.tolist(),
+        "residual_rms_axis": np.sqrt(np.mean(resid**2, axis=0)).tolist(),
+        "param_std": dict(zip(names, stds.tolist(), strict=True)),
+    }
+    return K, c, info
+
+
+def _orthonormal_complement(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(u, e1)
+
+
+def fit_with_background(
+    H_m: ArrayLike, attitude: Rotation, magnitude: float, *, max_iter: int = 50
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+    """Fit ``K``, ``c`` and the background ``H_n`` (NED) jointly, with ``|H_n| = magnitude``.
+
+    ``K C_i^T H_n`` is linear in the 27 products ``K[a, b] H_n[j]``: a 10-unknown linear least squares per
+    axis on the entries of ``C_i^T`` gives them, and the rank-1 factorisation (SVD) of the 9 x 3 matrix
+    ``vec(K) H_n^T`` gives the start. The direction of ``H_n`` is then refined by variable projection
+    (``K``, ``c`` solved linearly for each trial direction; ``scipy.optimize.least_squares``).
+
+    Parameters
+    ----------
+    H_m : array_like, shape (N, 3)
+        Measured fields, body frame.
+    attitude : Rotation, N rotations (body -> NED)
+    magnitude : float
+        ``|H_n|``, in the unit of ``H_m`` (the scale gauge).
+    max_iter : int
+
+    Returns
+    -------
+    K (3, 3), c (3,), H_n (3,), info
+        ``info``: ``linear_condition_number`` (the 10-column design), ``condition_number`` (final
+        ``[H_b, 1]``), ``iterations``, ``background_start`` and the :func:`solve_interference` entries.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The attitudes cannot separate ``K`` from ``H_n`` (too few or too similar).
+    """
+    B = np.asarray(H_m, dtype=np.float64)
+    M = attitude.inv().as_matrix().reshape(len(B), 9)  # rows (b, j) of C^T
+    D = np.column_stack([M, np.ones(len(B))])
+    cond_lin, _, _ = design_condition(D)
+    if not np.isfinite(cond_lin) or cond_lin > CONDITION_ERROR:
+        raise IdentifiabilityError(
+            f"the attitudes cannot separate K from the background field (condition number {cond_lin:.3g}); "
+            "record the vehicle turning about all three axes, or give the background vector"
+        )
+    X, *_ = np.linalg.lstsq(D, B, rcond=None)  # (10, 3)
+    Z = X[:9].T.reshape(9, 3)  # rows (a, b), columns j: K[a, b] * H_n[j]
+    u, sv, vt = np.linalg.svd(Z, full_matrices=False)
+    h0 = vt[0]
+    K0 = (sv[0] * u[:, 0]).reshape(3, 3)
+    if np.linalg.det(K0) < 0:
+        h0 = -h0
+    e1, e2 = _orthonormal_complement(h0)
+
+    def direction(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        v = h0 + p[0] * e1 + p[1] * e2
+        return v / np.linalg.norm(v)
+
+    def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        H_b = attitude.inv().apply(magnitude * direction(p))
+        A = np.column_stack([H_b, np.ones(len(B))])
+        Xp, *_ = np.linalg.lstsq(A, B, rcond=None)
+        return (B - A @ Xp).ravel()
+
+    res = least_squares(residual, np.zeros(2), method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3)
+    H_n = magnitude * direction(res.x)
+    K, c, info = solve_interference(B, attitude.inv().apply(H_n))
+    if np.linalg.det(K) < 0:  # sign gauge: det(K) > 0
+        H_n = -H_n
+        K, c, info = solve_interference(B, attitude.inv().apply(H_n))
+    info.update(
+        {
+            "linear_condition_number": cond_lin,
+            "iterations": int(res.nfev),
+            "converged": bool(res.success),
+            "background_start": (magnitude * h0).tolist(),
+        }
+    )
+    return K, c, H_n, info
+
+
+class LinearVector(Estimator):
+    """Paper C's 12-coefficient compensation from attitudes and a background field vector.
+
+    ``fit(H_m, reference=H_n, attitude=R)`` with ``H_m`` (N, 3) measured on the vehicle, ``H_n`` (3,) the
+    background field in NED (same unit) and ``R`` the N attitudes (body -> NED). The result's
+    ``matrix = inv(K)`` and ``offset = c``, so ``cal.apply(H_m) = inv(K) (H_m - c)`` is the compensated
+    body-frame field.
+
+    Parameters
+    ----------
+    model : str
+        ``"interference12"``.
+    estimate_background : bool
+        Fit ``H_n`` jointly (only its direction; ``|H_n|`` is fixed to the given background's magnitude,
+        or to the mean measured magnitude when ``reference`` is None). Use when no iron-free run or
+        trustworthy vector exists and the attitudes cover all three axes.
+    max_iter : int
+        Iteration limit of the joint fit.
+    """
+
+    name = "linear-vector"
+    models = ("interference12",)
+    reference_kind = "vector"
+    requires_reference = True
+
+    def __init__(self, model: str = "interference12", estimate_background: bool = False, max_iter: int = 50):
+        self.model = model
+        self.estimate_background = estimate_background
+        self.max_iter = max_iter
+
+    def _min_samples(self, model: str) -> int:
+        return 4
+
+    def _residual_target(self, corrected: NDArray[np.float64], reference: Any, ref_value: Any) -> Any:
+        return float(ref_value)
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        att = _check_attitude(attitude, len(B))
+        if reference is None and not self.estimate_background:
+            raise TrimagInputError(
+                "linear-vector needs the background field vector H_n (N, E, D) in the data's unit: "
+                "--background-ned N,E,D, --igrf LAT,LON,ALT_M,DATE, or --background-run FILE "
+                "(or --option estimate_background=true)"
+            )
+        if isinstance(reference, ScalarReference):
+            raise TrimagInputError("linear-vector needs a background VECTOR (N, E, D), not a magnitude")
+        diag: dict[str, Any] = {}
+        if self.estimate_background:
+            if reference is None:
+                magnitude = float(np.mean(np.linalg.norm(B, axis=1)))
+                scale_src = "mean measured magnitude"
+            else:
+                magnitude = float(np.linalg.norm(as_vector(reference)))
+                scale_src = "magnitude of the given background"
+            K, c, H_n, info = fit_with_background(B, att, magnitude, max_iter=self.max_iter)
+            source = f"fitted background NED {np.round(H_n, 6).tolist()} (|H_n| fixed: {scale_src})"
+            diag["background_given"] = None if reference is None else as_vector(reference).tolist()
+        else:
+            H_n = as_vector(reference)
+            K, c, info = solve_interference(B, att.inv().apply(H_n))
+            source = f"background NED {np.round(H_n, 6).tolist()}"
+        F = float(np.linalg.norm(H_n))
+        H_b = att.inv().apply(H_n)
+        matrix = np.linalg.inv(K)
+        corrected = (B - c) @ matrix.T
+        vec_before = B - H_b
+        vec_after = corrected - H_b
+        diag.update(
+            {
+                "condition_number": info["condition_number"],
+                "n_attitudes": info["n_attitudes"],
+                "background_ned": H_n.tolist(),
+                "residual_rms_axis": info["residual_rms_axis"],
+            }
+        )
+        for key in ("linear_condition_number", "background_start"):
+            if key in info:
+                diag[key] = info[key]
+        extra = {
+            "vector_rms_before_axis": np.sqrt(np.mean(vec_before**2, axis=0)).tolist(),
+            "vector_rms_after_axis": np.sqrt(np.mean(vec_after**2, axis=0)).tolist(),
+            "vector_rms_before": float(np.sqrt(np.mean(np.sum(vec_before**2, axis=1)))),
+            "vector_rms_after": float(np.sqrt(np.mean(np.sum(vec_after**2, axis=1)))),
+        }
+        ref = ScalarReference(np.full(len(B), F), source, units)
+        return build_calibration(
+            B, matrix, c, model=model, method=self.name, units=units, reference=ref,
+            params=Interference12.from_K_c(K, c).as_dict(), iterations=int(info.get("iterations", 1)),
+            converged=bool(info.get("converged", True)),
+            uncertainty={"param_std": info["param_std"], "note": "per-axis least-squares standard errors"},
+            diagnostics=diag, extra_stats=extra,
+        )
