@@ -158,7 +158,7 @@ class Calibration:
             stats=dict(stats or {}),
             uncertainty=None if uncertainty is None else dict(uncertainty),
             diagnostics=dict(diagnostics or {}),
-            created=created or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            created=created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         )
 
     @classmethod

@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _print_fit(result: Any, args: argparse.Namespace) -> None:
-    from .report import summary_table
+    from .report import params_table, summary_table
 
     for msg in result.messages:
         _err(msg) if msg.startswith("warning:") else _say(msg, args)
@@ -173,6 +173,7 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          f"{'converged' if stats.get('converged') else 'NOT converged'} in {stats.get('iterations')} iterations",
          args)
     _say(summary_table(cal), args)
+    _say(params_table(cal), args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
 

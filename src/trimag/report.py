@@ -20,7 +20,7 @@ from .calibration import Calibration
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["fit_report", "save_figure", "summary_rows", "summary_table"]
+__all__ = ["fit_report", "params_table", "save_figure", "summary_rows", "summary_table"]
 
 _MAX_POINTS = 6000
 
@@ -67,6 +67,44 @@ def summary_table(cal: Calibration) -> str:
     for name, before, after in summary_rows(cal):
         lines.append(f"{name:16}{before:14.6g}{after:14.6g}")
     return "\n".join(line for line in lines if line)
+
+
+#: Parameter names that are angles (radians in the API; degrees shown too).
+ANGLE_PARAMS = frozenset({"alpha", "beta", "gamma", "theta", "phi", "psi"})
+#: Parameter names that carry the field unit (offsets, biases, hard iron, constant vehicle field).
+_OFFSET_PREFIXES = ("b", "hard_iron", "c", "offset")
+
+
+def _is_offset(name: str) -> bool:
+    return any(name.startswith(p) for p in _OFFSET_PREFIXES) and name not in ANGLE_PARAMS and name != "beta"
+
+
+def params_table(cal: Calibration) -> str:
+    """The model's named parameters with 1-sigma uncertainties when known, angles also in degrees, and the
+    iteration history when the method recorded one."""
+    import math
+
+    std = (cal.uncertainty or {}).get("param_std", {}) or {}
+    unit = cal.units
+    lines = [f"{cal.model} parameters (value +- 1 sigma):"]
+    for name, value in cal.params.items():
+        s = std.get(name)
+        pm = f" +- {s:.3g}" if s is not None else ""
+        if name in ANGLE_PARAMS:
+            deg = f"  ({math.degrees(value):.5f} deg" + (f" +- {math.degrees(s):.2g}" if s is not None else "") + ")"
+            lines.append(f"  {name:12s} = {value:.6g}{pm} rad{deg}")
+        elif _is_offset(name):
+            lines.append(f"  {name:12s} = {value:.6g}{pm} {unit}")
+        else:
+            lines.append(f"  {name:12s} = {value:.8g}{pm}")
+    hist = (cal.diagnostics or {}).get("history") or []
+    if hist and isinstance(hist, list) and isinstance(hist[0], dict) and "rms" in hist[0]:
+        steps = ", ".join(f"{h.get('iteration', i)}: {h['rms']:.4g}" for i, h in enumerate(hist))
+        lines.append(f"iteration history, RMS(|B| - F) [{unit}]: {steps}")
+    if (cal.diagnostics or {}).get("fallback"):
+        info = cal.diagnostics.get("fallback_info") or {}
+        lines.append(f"note: Levenberg-Marquardt fallback ({info.get('reason', 'see diagnostics')})")
+    return "\n".join(lines)
 
 
 def fit_report(

@@ -1,0 +1,485 @@
+"""``gauss-newton``: paper B's 9-parameter scalar calibration against a reference magnitude.
+
+Each sample gives one nonlinear equation (methods.md, paper B)
+
+    r_i(p) = |T^-1 K^-1 (B_m,i - b)| - F_i = 0,     p = (b1, b2, b3, k1, k2, k3, alpha, beta, gamma)
+
+and the N equations are solved by Gauss-Newton: ``p <- p + delta`` with ``delta = argmin |J delta + r|``
+(solved by SVD, not by forming ``J^T J``), ``J`` the analytic Jacobian (:func:`residual_jacobian`).
+
+* Start: the algebraic (linear least-squares) quadric fit ``u^T A u + v^T u = 1`` (nine unknowns, exact on
+  noise-free data), scaled to the reference (:func:`algebraic_start`), reduced to the scalar9 gauge
+  (:func:`~trimag.models.scalar9.lq_gauge`).
+* Step control: a step that does not lower the cost is halved (up to ``max_halvings`` times). If no halving
+  helps, or ``max_iter`` is reached before convergence, the fit continues with Levenberg-Marquardt
+  (``scipy.optimize.least_squares(method="lm")``) from the last point, warns with
+  :class:`GaussNewtonFallbackWarning`, and records ``"fallback": "levenberg-marquardt"`` in the diagnostics.
+* Converged when the step is below ``xtol`` relative to the parameters, or the cost stops falling
+  (relative decrease below ``ftol``).
+* History: cost ``0.5 sum r_i^2`` (unit^2), RMS of ``r`` (unit) and step norm per iteration, in
+  ``Calibration.diagnostics["history"]``.
+* Uncertainty: ``cov = s^2 (J^T J)^-1`` at the solution with ``s^2 = sum r_i^2 / (N - 9)``; standard
+  deviations in ``Calibration.uncertainty["param_std"]`` (biases in the data unit, angles in radians, plus degrees).
+* Identifiability: samples on one plane (a single-axis turn) cannot identify the model; such data raise
+  :class:`~trimag.errors.IdentifiabilityError` (exit 3) with a message naming the missing rotations, also when
+  noise makes the plane slightly thick: the spread of the samples out of their best plane is then no larger
+  than the residual noise (``min_thickness``), or the predicted parameter spread exceeds ``max_rel_std``.
+
+Reference: a number or one value per sample (the data's unit), or ``"mean"``/``None``: ``F`` = the mean raw
+magnitude ``mean |B_m|`` of the fitted samples (the "mean value" reference the paper criticises; the result
+then has a relative, not absolute, scale).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from ..calibration import Calibration
+from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
+from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
+from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
+from ..reference import ScalarReference
+from ._common import scalar_reference
+from .base import Estimator, build_calibration
+
+__all__ = [
+    "GaussNewton",
+    "GaussNewtonFallbackWarning",
+    "algebraic_start",
+    "gauss_newton",
+    "params_text",
+    "planarity",
+    "residual_jacobian",
+]
+
+PARAM_NAMES = Scalar9.param_names()
+_ANGLES = ("alpha", "beta", "gamma")
+#: Thinnest/widest spread below which samples count as "close to one plane" (a single-axis turn plus noise or
+#: wobble); only then is the thickness-to-noise test applied, so that logs with a large residual (model error,
+#: disturbances) but a well-spread cloud are not mistaken for a single-axis turn.
+_FLAT = 0.2
+
+
+class GaussNewtonFallbackWarning(TrimagWarning):
+    """Gauss-Newton could not make progress (or ran out of iterations) and Levenberg-Marquardt took over."""
+
+
+# ---------------------------------------------------------------------------------------------- maths
+def _unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    return p[0:3], p[3:6], p[6:9]
+
+
+def residual_jacobian(
+    x: NDArray[np.float64], target: NDArray[np.float64], p: NDArray[np.float64], *, jacobian: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Residuals ``r_i = |T^-1 K^-1 (x_i - b)| - target_i`` (N,) and their Jacobian (N, 9) w.r.t. ``p``.
+
+    ``p = (b1, b2, b3, k1, k2, k3, alpha, beta, gamma)``; ``x`` (N, 3) and ``b`` in one unit, angles in
+    radians. With ``e = x - b``, ``z = e / k``, ``y = T^-1 z``, ``n = y / |y|`` and ``g = n^T T^-1``:
+
+    * ``dr/db_j = -g_j / k_j``
+    * ``dr/dk_j = -g_j z_j / k_j``
+    * ``dr/dtheta = -g . (dT/dtheta) y``  for ``theta`` in (alpha, beta, gamma)
+    """
+    b, k, ang = _unpack(p)
+    T = t_matrix(*ang)
+    Tinv = np.linalg.inv(T)
+    e = x - b
+    z = e / k
+    y = z @ Tinv.T
+    mag = np.sqrt(np.einsum("ij,ij->i", y, y))
+    r = mag - target
+    if not jacobian:
+        return r, None
+    n = y / mag[:, None]
+    g = n @ Tinv
+    J = np.empty((len(x), 9))
+    J[:, 0:3] = -g / k
+    J[:, 3:6] = -g * z / k
+    for j, dT in enumerate(t_matrix_derivatives(*ang)):
+        J[:, 6 + j] = -np.einsum("ij,ij->i", y @ dT.T, g)
+    return r, J
+
+
+def planarity(B: NDArray[np.float64]) -> float:
+    """Thinnest over widest RMS spread of the samples about their mean (0 for samples on one plane).
+
+    A full turn about one axis puts the raw field on an ellipse in a plane: the ratio is then only the noise
+    over the field. Turns about three axes give a ratio of order 1.
+    """
+    sv = np.linalg.svd(B - B.mean(axis=0), compute_uv=False)
+    return float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
+
+
+def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Scalar9, float]:
+    """Start values from a linear least-squares quadric fit, in the scalar9 gauge.
+
+    On centred, scaled samples ``u`` the ellipsoid ``(u - c)^T A (u - c) = F^2`` is, up to a factor,
+    ``u^T A' u + v^T u = 1`` (nine unknowns; the centre of the samples lies inside the ellipsoid, so the
+    constant term is non-zero and can be set to one). One linear least-squares solve, exact for noise-free
+    samples. Then ``c = -A'^-1 v / 2``, ``A = A' mean(F^2) / (1 + c^T A' c)``, ``A = M^T M`` (Cholesky) gives
+    the correction ``M``, reduced to the scalar9 gauge by :func:`~trimag.models.scalar9.lq_gauge` (same
+    magnitudes).
+
+    Returns
+    -------
+    start : Scalar9
+    cond : float
+        Column-normalised condition number of the linear design (infinite for samples on one plane).
+
+    Raises
+    ------
+    IdentifiabilityError
+        When the fitted quadric is not an ellipsoid.
+    """
+    centre = B.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((B - centre) ** 2, axis=1)))) or 1.0
+    u = (B - centre) / scale
+    f2_mean = float(np.mean((F / scale) ** 2))
+    x, y, z = u.T
+    D = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z])
+    cond, _, _ = design_condition(D)
+    theta = np.linalg.lstsq(D, np.ones(len(u)), rcond=None)[0]
+    a11, a22, a33, a12, a13, a23 = theta[:6]
+    A = np.array([[a11, a12, a13], [a12, a22, a23], [a13, a23, a33]])
+    v = theta[6:9]
+    try:
+        c = -0.5 * np.linalg.solve(A, v)
+        lam = f2_mean / (1.0 + float(c @ A @ c))
+        M = np.linalg.cholesky(A * lam).T
+    except np.linalg.LinAlgError:
+        raise IdentifiabilityError("the linear start fit is not an ellipsoid") from None
+    # |M (u - c)| = F / scale  <=>  |M (x - (centre + scale c))| = F
+    start = Scalar9.from_matrix_offset(M, centre + scale * c, gauge="magnitude")
+    return start, cond
+
+
+def gauss_newton(
+    x: NDArray[np.float64],
+    target: NDArray[np.float64],
+    p0: NDArray[np.float64],
+    *,
+    max_iter: int = 50,
+    xtol: float = 1e-10,
+    ftol: float = 1e-14,
+    max_halvings: int = 20,
+) -> dict[str, Any]:
+    """Plain Gauss-Newton with step halving on normalised data.
+
+    Returns
+    -------
+    dict
+        ``p`` (9,), ``converged`` (bool), ``iterations`` (int), ``history`` (list of dicts with ``iteration``,
+        ``cost`` = 0.5 sum r^2, ``step_norm``, ``step_fraction``), ``stalled`` (no halving lowered the cost).
+    """
+    p = np.array(p0, dtype=np.float64)
+    r, J = residual_jacobian(x, target, p)
+    cost = 0.5 * float(r @ r)
+    history: list[dict[str, Any]] = [{"iteration": 0, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0}]
+    converged = stalled = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        assert J is not None
+        delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+        frac = 1.0
+        for _ in range(max_halvings + 1):
+            trial = p + frac * delta
+            try:
+                r_new, _ = residual_jacobian(x, target, trial, jacobian=False)
+                cost_new = 0.5 * float(r_new @ r_new)
+            except (np.linalg.LinAlgError, FloatingPointError):
+                cost_new = math.inf
+            if np.isfinite(cost_new) and cost_new <= cost * (1 + 1e-12):
+                break
+            frac *= 0.5
+        else:
+            stalled = True
+            history.append({"iteration": it, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0})
+            break
+        step = frac * delta
+        p = p + step
+        step_norm = float(np.linalg.norm(step))
+        decrease = cost - cost_new
+        cost = cost_new
+        r, J = residual_jacobian(x, target, p)
+        history.append({"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": frac})
+        if step_norm <= xtol * (xtol + float(np.linalg.norm(p))) or (
+            frac == 1.0 and decrease <= ftol * max(cost, 1e-300)
+        ):
+            converged = True
+            break
+    return {"p": p, "converged": converged, "iterations": it, "history": history, "stalled": stalled}
+
+
+# ---------------------------------------------------------------------------------------------- estimator
+class GaussNewton(Estimator):
+    """Paper B: Gauss-Newton on ``|T^-1 K^-1 (B_m - b)| = F`` for the nine parameters of ``scalar9``.
+
+    Parameters
+    ----------
+    model : str
+        ``"scalar9"``.
+    max_iter : int
+        Gauss-Newton iteration limit (the paper reports convergence in 4).
+    xtol : float
+        Converged when ``|delta| <= xtol * (xtol + |p|)`` (parameters normalised by the field scale).
+    ftol : float
+        Converged when a full step lowers the cost by less than ``ftol`` relative.
+    max_halvings : int
+        Step halvings tried before falling back to Levenberg-Marquardt.
+    fallback : bool
+        Continue with Levenberg-Marquardt (and warn) when Gauss-Newton stalls or runs out of iterations;
+        with ``False`` the Gauss-Newton result is returned with ``converged = False`` and a warning.
+    max_rel_std : float
+        Largest accepted predicted standard deviation of a parameter, relative to its scale (biases: the
+        field magnitude; scale factors: 1; angles: 1 rad). Above it the data are declared unable to identify
+        the model (``IdentifiabilityError``, exit 3).
+    min_thickness : float
+        Smallest accepted ratio of the samples' thinnest RMS spread (about their best plane) to the residual
+        noise of the fit. A turn about a single axis has a ratio near 1 (its out-of-plane spread is only
+        noise): such data raise ``IdentifiabilityError``; turns about three axes give hundreds or more. Applied
+        only when the samples are close to one plane (thinnest/widest spread below 0.2).
+    start : dict or None
+        Start parameters ``{name: value}`` (angles in radians) instead of the algebraic fit.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from trimag.models.scalar9 import Scalar9
+    >>> from trimag.simulate import simulate
+    >>> truth = Scalar9(b1=300.0, b2=-200.0, b3=150.0, k1=1.01, k2=0.99, k3=1.005, alpha=0.01)
+    >>> sim = simulate(truth, n=600, field_nav=(48193.0, 0, 0), attitudes="axes", seed=1)
+    >>> est = GaussNewton().fit(sim.raw, 48193.0, units="nT")
+    >>> est.calibration_.stats["rms_after"] < 1e-6
+    True
+    """
+
+    name = "gauss-newton"
+    models = ("scalar9",)
+    requires_reference = False
+
+    def __init__(
+        self,
+        model: str = "scalar9",
+        max_iter: int = 50,
+        xtol: float = 1e-10,
+        ftol: float = 1e-14,
+        max_halvings: int = 20,
+        fallback: bool = True,
+        max_rel_std: float = 0.01,
+        min_thickness: float = 3.0,
+        start: dict[str, float] | None = None,
+    ) -> None:
+        self.model = model
+        self.max_iter = max_iter
+        self.xtol = xtol
+        self.ftol = ftol
+        self.max_halvings = max_halvings
+        self.fallback = fallback
+        self.max_rel_std = max_rel_std
+        self.min_thickness = min_thickness
+        self.start = start
+
+    def _check_options(self) -> None:
+        if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
+            raise TrimagInputError(
+                f"gauss-newton option max_iter must be an integer >= 1; got {self.max_iter!r}"
+            )
+        for key in ("xtol", "ftol", "max_rel_std", "min_thickness"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise TrimagInputError(f"gauss-newton option {key} must be a positive number; got {value!r}")
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        self._check_options()
+        check_not_degenerate(B)
+        ref = scalar_reference(reference, len(B), units)
+        if ref.values is None:
+            f_mean = float(np.linalg.norm(B, axis=1).mean())
+            ref = ScalarReference(
+                np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit
+            )
+        F = ref.values
+        assert F is not None
+        s = float(np.sqrt(np.mean(F**2)))
+        x, target = B / s, F / s
+        flatness = planarity(B)
+        single_axis_hint = (
+            f"the samples lie close to one plane (thinnest/widest spread {flatness:.2e}): this looks like a "
+            "turn about a single axis, which cannot identify the 9 scalar9 parameters; record turns about at "
+            "least two different axes (the paper pools turns about X, Y and Z) and fit them together"
+        )
+
+        # ---- start
+        if self.start is not None:
+            start = Scalar9.from_dict(self.start)
+            start_kind = "given"
+        else:
+            try:
+                start, start_cond = algebraic_start(B, F)
+            except IdentifiabilityError as exc:
+                raise IdentifiabilityError(
+                    f"the data cannot identify the scalar9 model: {single_axis_hint} ({exc})"
+                ) from None
+            if not np.isfinite(start_cond) or start_cond > CONDITION_ERROR:
+                raise IdentifiabilityError(
+                    f"the data cannot identify the scalar9 model: {single_axis_hint} (condition number of "
+                    f"the linear start fit {start_cond:.3g})"
+                )
+            start_kind = "linear quadric fit u^T A u + v^T u = 1 scaled to F, scalar9 gauge"
+        p0 = start.as_vector()
+        p0[:3] /= s
+
+        # ---- Gauss-Newton, then Levenberg-Marquardt if needed
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            try:
+                gn = gauss_newton(
+                    x, target, p0, max_iter=self.max_iter, xtol=self.xtol, ftol=self.ftol,
+                    max_halvings=self.max_halvings,
+                )
+            except FloatingPointError:
+                gn = {"p": p0, "converged": False, "iterations": 0, "history": [], "stalled": True}
+        p = gn["p"]
+        history = gn["history"]
+        converged = bool(gn["converged"])
+        optimizer = "gauss-newton"
+        fallback_info: dict[str, Any] | None = None
+        if not converged:
+            why = (
+                "no step along the Gauss-Newton direction lowered the cost"
+                if gn["stalled"]
+                else f"not converged after max_iter={self.max_iter} iterations"
+            )
+            if self.fallback:
+                res = least_squares(
+                    lambda q: residual_jacobian(x, target, q, jacobian=False)[0],
+                    p,
+                    jac=lambda q: residual_jacobian(x, target, q)[1],
+                    method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000,
+                )
+                p = res.x
+                converged = bool(res.success)
+                optimizer = "gauss-newton -> levenberg-marquardt"
+                fallback_info = {"reason": why, "lm_nfev": int(res.nfev), "lm_message": str(res.message)}
+                r_lm, _ = residual_jacobian(x, target, p, jacobian=False)
+                history = [*history, {
+                    "iteration": len(history), "cost": 0.5 * float(r_lm @ r_lm),
+                    "step_norm": float(np.linalg.norm(res.x - gn["p"])), "step_fraction": 1.0,
+                    "note": "levenberg-marquardt",
+                }]
+                warnings.warn(
+                    f"gauss-newton: {why}; continued with Levenberg-Marquardt "
+                    f"({'converged' if converged else 'did not converge: ' + str(res.message)})",
+                    GaussNewtonFallbackWarning,
+                    stacklevel=3,
+                )
+            else:
+                warnings.warn(
+                    f"gauss-newton: {why}; the result is not converged (fallback=False)",
+                    GaussNewtonFallbackWarning,
+                    stacklevel=3,
+                )
+        if p[3:6].min() <= 0 or np.abs(p[6:9]).max() >= math.pi / 2:
+            raise IdentifiabilityError(
+                "the scalar9 fit left the valid region (a scale factor <= 0 or an angle beyond 90 degrees): "
+                f"the data do not identify the model. {single_axis_hint if flatness < _FLAT else ''}".strip()
+            )
+
+        # ---- identifiability and uncertainty at the solution
+        r, J = residual_jacobian(x, target, p)
+        assert J is not None
+        cond, sv, vt = design_condition(J)
+        weak = weak_directions(vt, sv, PARAM_NAMES, threshold=1e4) if np.isfinite(cond) else []
+        hint = single_axis_hint if flatness < _FLAT else (
+            "record the sensor turning about all three axes (or tumble it through all attitudes)"
+        )
+        check_condition(cond, what="the scalar9 model (9 parameters)", hint=hint, weak=weak)
+        n = len(x)
+        dof = max(n - 9, 1)
+        sigma2 = float(r @ r) / dof
+        try:
+            cov_n = sigma2 * np.linalg.inv(J.T @ J)
+        except np.linalg.LinAlgError:
+            raise IdentifiabilityError(f"the data cannot identify the scalar9 model: {hint}") from None
+        std_n = np.sqrt(np.clip(np.diag(cov_n), 0.0, None))
+        # relative spread: biases / field (normalised units already), k / 1, angles / 1 rad
+        noise = math.sqrt(sigma2) * s
+        thickness = float(np.linalg.svd(B - B.mean(axis=0), compute_uv=False)[2] / math.sqrt(n))
+        thickness_ratio = thickness / noise if noise > 0 else math.inf
+        if thickness_ratio < self.min_thickness and flatness < _FLAT:
+            raise IdentifiabilityError(
+                "the data cannot identify the scalar9 model: the samples' spread out of their best plane "
+                f"({thickness:.4g} {units} RMS) is no larger than the fit's residual noise "
+                f"({noise:.4g} {units}); "
+                f"{single_axis_hint}"
+            )
+        too_loose = [name for name, v in zip(PARAM_NAMES, std_n, strict=True) if v > self.max_rel_std]
+        if too_loose:
+            raise IdentifiabilityError(
+                "the data cannot identify the scalar9 model: the predicted standard deviation of "
+                f"{', '.join(too_loose)} exceeds {self.max_rel_std:g} (relative to the field / 1 / 1 rad); "
+                f"{hint}"
+            )
+
+        # ---- back to data units
+        scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
+        params_vec = p * scale_vec
+        fitted = Scalar9.from_vector(params_vec)
+        matrix, offset = fitted.correction()
+        cov = cov_n * np.outer(scale_vec, scale_vec)
+        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
+        uncertainty = {
+            "param_std": param_std,
+            "param_std_deg": {a: math.degrees(param_std[a]) for a in _ANGLES},
+            "covariance": cov.tolist(),
+            "covariance_order": list(PARAM_NAMES),
+            "noise_std": float(noise),
+            "note": "cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
+        }
+        hist_out = [
+            {
+                **h,
+                "cost": float(h["cost"]) * s * s,
+                "rms": float(math.sqrt(2.0 * h["cost"] / n)) * s,
+                "step_norm": float(h["step_norm"]),
+            }
+            for h in history
+        ]
+        gn_iters = int(gn["iterations"])
+        diagnostics: dict[str, Any] = {
+            "condition_number": cond,
+            "planarity": flatness,
+            "thickness_to_noise": thickness_ratio,
+            "optimizer": optimizer,
+            "start": start_kind,
+            "start_params": {k: float(v) for k, v in start.as_dict().items()},
+            "history": hist_out,
+            "history_units": {"cost": f"0.5*sum((|B|-F)^2) in {units}^2", "rms": units,
+                              "step_norm": "normalised parameters (biases / field scale)"},
+            "angles_deg": fitted.angles_deg(),
+        }
+        if fallback_info is not None:
+            diagnostics["fallback"] = "levenberg-marquardt"
+            diagnostics["fallback_info"] = fallback_info
+        return build_calibration(
+            B, matrix, offset, model=model, method=self.name, units=units, reference=ref,
+            params=fitted.as_dict(), iterations=gn_iters, converged=converged,
+            uncertainty=uncertainty, diagnostics=diagnostics,
+            extra_stats={"gn_converged": bool(gn["converged"])},
+        )
+
+
+def params_text(cal: Calibration) -> str:
+    """Human-readable parameters of a calibration (see :func:`trimag.report.params_table`)."""
+    from ..report import params_table
+
+    return params_table(cal)
