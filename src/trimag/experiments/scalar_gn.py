@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -30,12 +29,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..calibration import atomic_write_text
 from ..errors import IdentifiabilityError
 from ..estimators.gauss_newton import GaussNewton
 from ..metrics import magnitude_stats
 from ..models.scalar9 import Scalar9
 from ..simulate import axis_turns, body_field
+from ._output import save_figure, write_csv
 
 __all__ = [
     "FIELD_NAV",
@@ -95,27 +94,6 @@ def _fit(B: NDArray[np.float64], reference: Any, units: str = "nT", **options: A
             return GaussNewton(**options).fit(B, reference, units=units).calibration_
         except IdentifiabilityError as exc:
             return str(exc)
-
-
-def _save_png(fig: Any, path: Path) -> None:
-    fd, tmp = __import__("tempfile").mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
-    def fmt(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.6g}"
-        return str(v).replace(",", ";").replace("\n", " ")
-
-    body = "".join(",".join(fmt(v) for v in r) + "\n" for r in rows)
-    atomic_write_text(path, ",".join(header) + "\n" + body)
 
 
 # ---------------------------------------------------------------------------------------------- part 1
@@ -365,7 +343,7 @@ def _figures(
         ax.set_ylabel("|B| - F  [nT]")
         ax.set_title(f"Paper B Fig. 1 analogue: sigma = 20 nT, F = {F_PAPER:.0f} nT")
         ax.legend()
-        _save_png(fig, out / "fig1_magnitude_error.png")
+        save_figure(fig, out / "fig1_magnitude_error.png")
         written.append("fig1_magnitude_error.png")
     fig = Figure(figsize=(9, 4), layout="constrained")
     a1, a2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
@@ -382,7 +360,7 @@ def _figures(
         a.set_ylabel("nT")
         a.legend(fontsize=8)
     fig.suptitle("Paper B Fig. 2 analogue: residual versus noise")
-    _save_png(fig, out / "fig2_residual_vs_sigma.png")
+    save_figure(fig, out / "fig2_residual_vs_sigma.png")
     written.append("fig2_residual_vs_sigma.png")
     for i, real in enumerate(reals):
         if "table" not in real:
@@ -404,7 +382,7 @@ def _figures(
         ax.set_title(f"{real['name']}: |B| before and after the pooled scalar9 fit")
         ax.legend(markerscale=20)
         name = f"fig3_real_log_{i + 1}.png"
-        _save_png(fig, out / name)
+        save_figure(fig, out / name)
         written.append(name)
     return written
 
@@ -468,7 +446,7 @@ def run(
     keys = ["sigma", "rms_before", "rms_after", "amp_before", "amp_after", "p2p_before", "p2p_after",
             "rms_noise_limit", "ratio_to_noise_limit", "rms_param_only", "amp_param_only", "iterations",
             "iterations_mean", "max_rel_param_error", "trials"]
-    _csv(out / "sigma_table.csv", [*keys, "paper_rms_before", "paper_rms_after", "paper_amp_before",
+    write_csv(out / "sigma_table.csv", [*keys, "paper_rms_before", "paper_rms_after", "paper_amp_before",
                                    "paper_amp_after"],
          [[r[k] for k in keys] + list(PAPER_ROWS.get(r["sigma"], (math.nan,) * 4)) for r in rows])
 
@@ -480,7 +458,7 @@ def run(
     tables += [(f"per_axis_real_{i + 1}", r.get("table", [])) for i, r in enumerate(reals)]
     for name, table in tables:
         if table:
-            _csv(out / f"{name}.csv", cross_keys, [[r.get(k, "") for k in cross_keys] for r in table])
+            write_csv(out / f"{name}.csv", cross_keys, [[r.get(k, "") for k in cross_keys] for r in table])
     figures = _figures(out, rows, example, reals)
 
     truth_deg = {**TRUTH.as_dict(), **{f"{k}_deg": v for k, v in TRUTH.angles_deg().items()}}

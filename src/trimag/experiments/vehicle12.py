@@ -31,8 +31,6 @@ fixed to the mean measured magnitude of the fitting trial; see ``docs/method-lin
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +47,7 @@ from ..estimators.linear_vector import LinearVector, fit_with_background, solve_
 from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
 from ..reference import igrf
+from ._output import write_dict_csv
 
 __all__ = [
     "BLOCKS",
@@ -299,15 +298,6 @@ def _table(case: dict[str, Any], euler: NDArray[np.float64]) -> list[dict[str, f
     return rows
 
 
-def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    atomic_write_text(path, buf.getvalue())
-
-
 def _format_table(rows: list[dict[str, float]], title: str) -> str:
     head = f"{'yaw':>5}{'pitch':>6}{'roll':>6}{'F true':>10}{'F meas':>10}{'F comp':>10}{'err bef':>9}" \
            f"{'err aft':>9}{'rate %':>8}{'prec %':>8}"
@@ -487,8 +477,8 @@ def run(
                          "weak_rms_after": _summary(weak_cases)["rms_after"]}
     table_strong = _table(strong_runs[0], TEST_ATTITUDES)
     table_weak = _table(weak_runs[0], WEAK_TEST_ATTITUDES)
-    _write_csv(out_dir / "vehicle12_table2_strong.csv", table_strong)
-    _write_csv(out_dir / "vehicle12_table3_weak.csv", table_weak)
+    write_dict_csv(out_dir / "vehicle12_table2_strong.csv", table_strong)
+    write_dict_csv(out_dir / "vehicle12_table3_weak.csv", table_weak)
     _figure(strong_runs[0], weak_runs[0], out_dir / "vehicle12_errors.png")
     real = {"skipped": "--no-real"} if extra.get("no_real") else run_broad(step=4 if quick else 1)
     summary: dict[str, Any] = {

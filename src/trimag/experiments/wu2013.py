@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import tempfile
 import time
 import warnings
 from functools import partial
@@ -44,6 +43,7 @@ from ..metrics import j_index
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, params_from_q
 from ..parallel import map_trials, trial_seeds
+from ._output import save_figure, write_csv
 
 __all__ = [
     "FIELD",
@@ -182,7 +182,7 @@ def real_log_figure(path: Path, out: Path, *, stride: int = 1) -> dict[str, Any]
         return float(np.std(x) / np.mean(x))
 
     name = path.parent.name + "_" + path.stem
-    _csv(out / f"fig6_{name}.csv", ["sample", "norm_before", "norm_after_pairwise", "norm_after_geometric"],
+    write_csv(out / f"fig6_{name}.csv", ["sample", "norm_before", "norm_after_pairwise", "norm_after_geometric"],
          [[i, before[i], after_pw[i], after_geo[i]] for i in range(len(B))])
     import matplotlib
 
@@ -207,7 +207,7 @@ def real_log_figure(path: Path, out: Path, *, stride: int = 1) -> dict[str, Any]
     ax.set_ylabel(f"|B| / mean |B|  (raw data in {unit})")
     ax.set_title(f"Fig. 6 analogue: {path.parent.name}/{path.name}")
     ax.legend(fontsize=8, title=f"thin: samples; thick: moving mean of {win}", title_fontsize=8)
-    _save_png(fig, out / f"fig6_{name}.png")
+    save_figure(fig, out / f"fig6_{name}.png")
     plt.close(fig)
     return {
         "file": f"{path.parent.name}/{path.name}",
@@ -232,24 +232,6 @@ def real_log_figure(path: Path, out: Path, *, stride: int = 1) -> dict[str, Any]
 
 
 # ---------------------------------------------------------------------------------------------- output
-def _save_png(fig: Any, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
-    def fmt(v: Any) -> str:
-        return f"{v:.8g}" if isinstance(v, float) else str(v)
-
-    atomic_write_text(path, ",".join(header) + "\n" + "".join(",".join(fmt(v) for v in r) + "\n" for r in rows))
-
-
 def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
@@ -275,7 +257,7 @@ def _fig34_png(rows: list[dict[str, Any]], out: Path, n_min: int, name: str, tit
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    _save_png(fig, out / name)
+    save_figure(fig, out / name)
     plt.close(fig)
 
 
@@ -297,7 +279,7 @@ def _fig5_png(rows: list[dict[str, Any]], out: Path) -> None:
     ax.set_title("Fig. 5: J versus noise")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    _save_png(fig, out / "fig5_J_vs_sigma.png")
+    save_figure(fig, out / "fig5_J_vs_sigma.png")
     plt.close(fig)
 
 
@@ -341,10 +323,10 @@ def run(
                      "J_p90": float(np.percentile(J, 90)), "J_mean": float(J.mean()),
                      "max_rel_error_max": float(r[:, 1].max())})
     keys3 = ["sigma", "N", "J_median", "J_p10", "J_p90", "J_mean", "max_rel_error_max"]
-    _csv(out / "fig3_J_vs_N.csv", keys3, [[r[k] for k in keys3] for r in fig3])
+    write_csv(out / "fig3_J_vs_N.csv", keys3, [[r[k] for k in keys3] for r in fig3])
     _fig34_png(fig3, out, 0, "fig3_J_vs_N.png", "Fig. 3: J versus N (pairwise)")
     _fig34_png(fig3, out, 400, "fig4_J_vs_N_large.png", "Fig. 4: J versus N, N >= 400")
-    _csv(out / "fig4_J_vs_N_large.csv", keys3, [[r[k] for k in keys3] for r in fig3 if r["N"] >= 400])
+    write_csv(out / "fig4_J_vs_N_large.csv", keys3, [[r[k] for k in keys3] for r in fig3 if r["N"] >= 400])
 
     # ---- Fig. 5
     seeds5 = trial_seeds(seed + 1, len(sigmas5) * k_trials)
@@ -364,7 +346,7 @@ def run(
         row["ratio_old_over_pairwise"] = row["J_old"] / row["J_pairwise"]
         fig5.append(row)
     keys5 = list(fig5[0])
-    _csv(out / "fig5_J_vs_sigma.csv", keys5, [[r[k] for k in keys5] for r in fig5])
+    write_csv(out / "fig5_J_vs_sigma.csv", keys5, [[r[k] for k in keys5] for r in fig5])
     _fig5_png(fig5, out)
 
     # ---- Fig. 6 analogue

@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import tempfile
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -39,13 +37,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..calibration import Calibration, atomic_write_text
+from ..calibration import Calibration
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..estimators.bfgs import BFGS
 from ..estimators.lms import LMS
 from ..estimators.quadric import Quadric, identifiability_report
 from ..models.zhang_cheng import ZhangCheng
 from ..simulate import body_field, random_attitudes, uniform_directions
+from ._output import jsonable, save_figure, write_csv
 
 __all__ = [
     "FIELD_NAV",
@@ -232,29 +231,6 @@ def noise_sweep(
 
 
 # ---------------------------------------------------------------------------------------------- output
-def _save_png(fig: Any, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _fmt(v: Any) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return f"{v:.10g}"
-    return str(v).replace(",", ";").replace("\n", " ")
-
-
-def _csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
-    atomic_write_text(path, ",".join(header) + "\n" + "".join(",".join(_fmt(v) for v in r) + "\n" for r in rows))
-
-
 def _figure(out: Path, sweep: list[dict[str, Any]], V: NDArray[np.float64]) -> str:
     from matplotlib.figure import Figure
 
@@ -278,7 +254,7 @@ def _figure(out: Path, sweep: list[dict[str, Any]], V: NDArray[np.float64]) -> s
         ax.set_title("paper's 40-sample path" if path == "paper" else "40 samples, full sphere")
         ax.grid(True, which="both", lw=0.3)
         ax.legend(fontsize=8)
-    _save_png(fig, out / "noise_sweep.png")
+    save_figure(fig, out / "noise_sweep.png")
     return "noise_sweep.png"
 
 
@@ -308,20 +284,6 @@ def _param_table_text(case: dict[str, Any]) -> str:
         )
         lines.append(f"{n:>10} {truth[n]:10.5f}{vals}")
     return "\n".join(lines)
-
-
-def _json_clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_clean(obj.tolist())
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 def run(
@@ -358,7 +320,7 @@ def run(
         for part in (case, sphere):
             row += [part["fits"][m]["W"][i] if "W" in part["fits"][m] else None for m in METHODS]
         w_rows.append(row)
-    _csv(out / "w_table.csv",
+    write_csv(out / "w_table.csv",
          ["term", "W_true", "W_paper", *[f"{p}_{m}" for p in ("paper_path", "full_sphere") for m in METHODS]],
          w_rows)
     p_rows = []
@@ -368,11 +330,11 @@ def run(
             row += [part["fits"][m]["param_errors"][n] if "param_errors" in part["fits"][m] else None
                     for m in METHODS]
         p_rows.append(row)
-    _csv(out / "param_errors.csv",
+    write_csv(out / "param_errors.csv",
          ["param", "true", *[f"{p}_{m}_abs_error" for p in ("paper_path", "full_sphere") for m in METHODS]],
          p_rows)
     sweep_keys = list(sweep[0].keys())
-    _csv(out / "noise_sweep.csv", sweep_keys, [[r[k] for k in sweep_keys] for r in sweep])
+    write_csv(out / "noise_sweep.csv", sweep_keys, [[r[k] for k in sweep_keys] for r in sweep])
     figure = _figure(out, sweep, case["V"])
 
     ident = case["identifiability"]
@@ -452,5 +414,5 @@ def run(
         "outputs": ["w_table.csv", "param_errors.csv", "noise_sweep.csv", figure],
         "text": "\n".join(text),
     }
-    cleaned: dict[str, Any] = _json_clean(summary)
+    cleaned: dict[str, Any] = jsonable(summary)
     return cleaned

@@ -1,0 +1,331 @@
+"""A small executor for independent trials: in-process, Dask's local scheduler, or a ``dask.distributed``
+cluster.
+
+Every Monte Carlo reproduction, benchmark and :mod:`trimag.batch` run goes through :func:`map_trials`, so one
+``--workers N`` (or ``--scheduler ADDRESS``) option speeds all of them up.
+
+Rules for the function you pass (so that the same code runs in one process, in worker processes, or on a
+cluster):
+
+* it must be picklable: a module-level function (or a :func:`functools.partial` of one), not a lambda or a
+  closure;
+* each item carries everything a trial needs, in particular its own random seed (use :func:`trial_seeds`), so
+  the results do not depend on ``workers`` or on the order in which trials finish;
+* it returns something picklable and small (numbers, a dict, a small array), not the simulated data.
+
+Example
+-------
+>>> from trimag.parallel import map_trials, trial_seeds
+>>> import numpy as np
+>>> def trial(seed):  # at module level in real code
+...     return float(np.random.default_rng(seed).normal())
+>>> out = map_trials(trial, trial_seeds(0, 4), progress=False)
+>>> len(out)
+4
+"""
+
+from __future__ import annotations
+
+import atexit
+import math
+import os
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, TypeVar
+
+import numpy as np
+
+from .errors import TrimagInputError
+
+__all__ = ["DEFAULT_LOCAL_BACKEND", "ProgressBar", "map_trials", "shutdown_pools", "trial_seeds"]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+#: Dask local scheduler used for ``workers > 1``. ``"processes"`` sidesteps the GIL, which numpy only releases
+#: inside large array operations; for trials of a few thousand samples (the usual Monte Carlo and
+#: calibration-log sizes) it measured faster than ``"threads"`` on the 2-core benchmark machine
+#: (docs/performance.md, "executor").
+DEFAULT_LOCAL_BACKEND = "processes"
+
+_SHOW_AFTER_S = 1.0
+
+
+def trial_seeds(seed: int | None, n: int) -> list[int]:
+    """``n`` independent integer seeds derived from ``seed`` (``numpy.random.SeedSequence.spawn``).
+
+    Give trial ``k`` the seed ``trial_seeds(seed, n)[k]``: the results are then the same whatever the number
+    of workers and whatever order the trials finish in.
+    """
+    if n < 0:
+        raise TrimagInputError(f"the number of trials must be >= 0; got {n}")
+    children = np.random.SeedSequence(seed).spawn(n)
+    return [int(c.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1)) for c in children]
+
+
+def _apply_chunk(fn: Callable[[Any], Any], chunk: Sequence[Any]) -> list[Any]:
+    """Run ``fn`` on every item of one chunk (the unit of work shipped to a worker)."""
+    return [fn(item) for item in chunk]
+
+
+class ProgressBar:
+    """A rich progress bar on stderr that appears only once the work has taken more than a second, and only
+    when stderr is a terminal (logs and pipes get no escape codes).
+
+    Parameters
+    ----------
+    label : str
+        Text before the bar.
+    total : int, optional
+        Number of units of work; ``None`` for an open count (e.g. rows of a file being streamed).
+    enabled : bool
+        ``False`` makes every method a no-op.
+    unit : str
+        Name of the unit shown with an open count (``"rows"``).
+
+    Use as a context manager; call :meth:`advance` (increments) or :meth:`update` (absolute count).
+    """
+
+    def __init__(self, label: str, total: int | None = None, enabled: bool = True, unit: str = "") -> None:
+        self.label = label
+        self.total = total
+        self.unit = unit
+        self.enabled = enabled and total != 0
+        self.done = 0
+        self.t0 = time.monotonic()
+        self._progress: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> ProgressBar:
+        return self
+
+    def advance(self, k: int) -> None:
+        """Add ``k`` finished units."""
+        self.update(self.done + k)
+
+    def update(self, done: int) -> None:
+        """Set the number of finished units."""
+        self.done = done
+        if not self.enabled:
+            return
+        if self._progress is None and time.monotonic() - self.t0 > _SHOW_AFTER_S:
+            self._start()
+        if self._progress is not None:
+            self._progress.update(self._task, completed=self.done)
+
+    def _start(self) -> None:
+        from rich.console import Console
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        console = Console(file=sys.stderr)
+        if not console.is_terminal:
+            self.enabled = False
+            return
+        if self.total is None:
+            columns: tuple[Any, ...] = (
+                TextColumn("[bold]{task.description}"), BarColumn(),
+                TextColumn("{task.completed:,} " + self.unit), TimeElapsedColumn(),
+            )
+        else:
+            columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                       TimeRemainingColumn())
+        self._progress = Progress(*columns, console=console, transient=False)
+        self._progress.start()
+        self._task = self._progress.add_task(self.label, total=self.total, completed=self.done)
+
+    def close(self) -> None:
+        """Stop the display (leaving its last state on the terminal)."""
+        if self._progress is not None:
+            self._progress.update(self._task, completed=self.done)
+            self._progress.stop()
+            self._progress = None
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+_POOLS: dict[int, ProcessPoolExecutor] = {}
+
+
+def _noop(i: int) -> int:
+    return i
+
+
+def _process_pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of ``workers`` spawned processes, kept for reuse by later calls (closed at exit).
+
+    The workers start with one BLAS thread each: ``workers`` processes each running a multi-threaded BLAS on
+    the same cores oversubscribe them (measured: several times slower), and one thread per process also makes
+    results bit-identical to an in-process run. Workers are spawned (not forked), so they read these variables
+    when numpy loads.
+    """
+    pool = _POOLS.get(workers)
+    if pool is not None and not getattr(pool, "_broken", False):
+        return pool
+    import multiprocessing
+
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    saved = {k: os.environ.get(k) for k in _BLAS_ENV}
+    os.environ.update({k: "1" for k in _BLAS_ENV})
+    try:  # start every worker now, while the environment says one BLAS thread
+        list(pool.map(_noop, range(workers)))
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    _POOLS[workers] = pool
+    return pool
+
+
+def shutdown_pools() -> None:
+    """Stop the worker processes kept by earlier ``map_trials(..., workers > 1)`` calls."""
+    while _POOLS:
+        _, pool = _POOLS.popitem()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+atexit.register(shutdown_pools)
+
+
+def _chunks(items: list[T], chunksize: int) -> list[list[T]]:
+    return [items[i : i + chunksize] for i in range(0, len(items), chunksize)]
+
+
+def _auto_chunksize(n: int, slots: int) -> int:
+    # ~8 chunks per worker: few enough that per-task overhead (pickling, scheduling: ~1 ms) is negligible,
+    # enough for load balancing and a moving progress bar
+    return max(1, math.ceil(n / (8 * max(slots, 1))))
+
+
+def map_trials(
+    fn: Callable[[T], R],
+    items: Iterable[T],
+    *,
+    workers: int = 1,
+    scheduler: Any = None,
+    progress: bool | str = True,
+    chunksize: int | None = None,
+    backend: str | None = None,
+) -> list[R]:
+    """Apply ``fn`` to every item and return the results in the order of ``items``.
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(item) -> result``. Module-level (picklable) when ``workers > 1`` or ``scheduler`` is given.
+    items : iterable
+        One entry per trial (e.g. a seed, or a ``(seed, noise)`` tuple, or a file path).
+    workers : int
+        ``1`` (default): run in this process, no Dask involved. ``> 1``: Dask's local scheduler with this many
+        workers (``backend``). Ignored when ``scheduler`` is given (the cluster has its own workers).
+    scheduler : str or distributed.Client, optional
+        Address of a running ``dask.distributed`` scheduler (e.g. ``"tcp://10.0.0.5:8786"``), or a ``Client``;
+        the trials then run on that cluster. A client opened here is closed afterwards; a client passed in is
+        left open.
+    progress : bool or str
+        Show a rich progress bar on stderr when the run takes more than a second (and stderr is a terminal).
+        A string is used as the bar's label (default label: ``"trials"``).
+    chunksize : int, optional
+        Items per Dask task. Default: about 8 tasks per worker, which keeps per-task overhead negligible.
+    backend : {"processes", "threads"}, optional
+        Dask local scheduler for ``workers > 1``; default :data:`DEFAULT_LOCAL_BACKEND`. ``"threads"`` avoids
+        starting processes and suits trials dominated by large numpy operations (which release the GIL).
+
+    Returns
+    -------
+    list
+        ``[fn(item) for item in items]``, whatever the execution route.
+
+    Raises
+    ------
+    TrimagInputError
+        ``workers < 1``, ``chunksize < 1`` or an unknown ``backend``.
+    Exception
+        The first exception raised by ``fn`` is re-raised (catch errors inside ``fn`` to keep going, as
+        :mod:`trimag.batch` does for bad files).
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
+        raise TrimagInputError(f"workers must be an integer >= 1; got {workers!r}")
+    if chunksize is not None and chunksize < 1:
+        raise TrimagInputError(f"chunksize must be >= 1; got {chunksize!r}")
+    backend = backend or DEFAULT_LOCAL_BACKEND
+    if backend not in ("processes", "threads"):
+        raise TrimagInputError(f"backend must be 'processes' or 'threads'; got {backend!r}")
+    items = list(items)
+    label = progress if isinstance(progress, str) else "trials"
+    with ProgressBar(label, len(items), bool(progress)) as bar:
+        if not items:
+            return []
+        if scheduler is not None:
+            return _run_distributed(fn, items, scheduler, chunksize, bar)
+        if workers == 1:
+            out = []
+            for item in items:
+                out.append(fn(item))
+                bar.advance(1)
+            return out
+        return _run_local(fn, items, int(workers), backend, chunksize, bar)
+
+
+def _run_local(
+    fn: Callable[[T], R], items: list[T], workers: int, backend: str, chunksize: int | None, bar: ProgressBar
+) -> list[R]:
+    import dask
+    from dask.callbacks import Callback
+
+    chunks = _chunks(items, chunksize or _auto_chunksize(len(items), workers))
+    token = uuid.uuid4().hex[:12]
+    names = [f"trimag-trials-{token}-{i}" for i in range(len(chunks))]
+    sizes = {name: len(c) for name, c in zip(names, chunks, strict=True)}
+    task = dask.delayed(_apply_chunk, pure=False, traverse=False)
+    tasks = [task(fn, chunk, dask_key_name=name) for name, chunk in zip(names, chunks, strict=True)]
+
+    def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
+        bar.advance(sizes.get(key if isinstance(key, str) else str(key), 0))
+
+    extra: dict[str, Any] = {"pool": _process_pool(workers)} if backend == "processes" else {}
+    with Callback(posttask=posttask):
+        results = dask.compute(*tasks, scheduler=backend, num_workers=workers, **extra)
+    return [r for chunk_result in results for r in chunk_result]
+
+
+def _run_distributed(
+    fn: Callable[[T], R], items: list[T], scheduler: Any, chunksize: int | None, bar: ProgressBar
+) -> list[R]:
+    from distributed import Client, as_completed
+
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, set_as_default=False) if own else scheduler
+    except OSError as exc:
+        raise TrimagInputError(
+            f"cannot connect to the Dask scheduler at {scheduler!r} ({exc}); start one with "
+            "`dask scheduler` and workers with `dask worker ADDRESS`, or drop --scheduler to run locally"
+        ) from None
+    try:
+        slots = sum(client.nthreads().values()) or 1
+        chunks = _chunks(items, chunksize or _auto_chunksize(len(items), slots))
+        futures = client.map(_apply_chunk, [fn] * len(chunks), chunks, pure=False)
+        size = {f.key: len(c) for f, c in zip(futures, chunks, strict=True)}
+        for fut in as_completed(futures, loop=client.loop):
+            if fut.status == "error":
+                fut.result()  # re-raises the trial's exception here
+            bar.advance(size[fut.key])
+        results = client.gather(futures)
+    finally:
+        if own:
+            client.close()
+    return [r for chunk_result in results for r in chunk_result]
