@@ -113,3 +113,9 @@ def j_index(true: Any, estimated: Any, *, keys: tuple[str, ...] | None = None) -
         raise TrimagInputError("J is undefined when a true parameter is 0 (relative error)")
     j = np.sqrt(np.sum(((t - e) / t) ** 2, axis=-1))
     return float(j) if np.ndim(j) == 0 else j
+
+
+# ---- the Cramér–Rao bound of the scalar calibration problem (issue 7; implemented in trimag.crlb) ------------
+from .crlb import crlb  # noqa: E402
+
+__all__ += ["crlb"]

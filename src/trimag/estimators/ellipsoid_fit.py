@@ -21,11 +21,10 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, weak_directions
 from ..errors import IdentifiabilityError
-from ..models.ellipsoid import Ellipsoid, to_symmetric
 from ._common import normalise, scalar_reference
-from .base import Estimator, build_calibration
+from .base import Estimator
 
-__all__ = ["EllipsoidFit", "algebraic_ellipsoid", "quadric_scatter"]
+__all__ = ["EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "quadric_scatter", "quadric_to_ellipsoid"]
 
 _TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
 _CHUNK = 250_000
@@ -77,7 +76,7 @@ def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
     S11, S12, S22 = S[:6, :6], S[:6, 6:], S[6:, 6:]
     T = np.linalg.solve(S22, S12.T)
     Mred = S11 - S12 @ T
-    vals, vecs = np.linalg.eig(np.linalg.solve(C, Mred))
+    _, vecs = np.linalg.eig(np.linalg.solve(C, Mred))
     vecs = np.real(vecs)
     # admissible solutions satisfy v^T C v > 0 (4J - I^2 > 0: an ellipsoid); their eigenvalue
     # lambda = v^T Mred v / v^T C v >= 0 is the algebraic cost, so take the smallest (0 for exact data;
@@ -93,21 +92,42 @@ def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
     candidates = np.nonzero(ok)[0]
     v1 = vecs[:, candidates[int(np.argmin(cost[ok] / q[ok]))]]
     v = np.concatenate([v1, -T @ v1])
+    W, centre = quadric_to_ellipsoid(v)
+    return W, centre, cond
+
+
+def quadric_to_ellipsoid(v: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Upper-triangular ``W`` (3, 3) and centre ``c`` (3,) with ``|W (u - c)| = 1`` on the quadric ``v``.
+
+    ``v`` (10,) holds the coefficients of ``(x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1)`` (any scale and sign).
+
+    Raises
+    ------
+    IdentifiabilityError
+        When the quadric is not an ellipsoid.
+    """
     a, b, c_, f, g, h, p, q, r, dd = v
     M = np.array([[a, h, g], [h, b, f], [g, f, c_]])
     if np.trace(M) < 0:
         M, p, q, r, dd = -M, -p, -q, -r, -dd
-    centre = -np.linalg.solve(M, np.array([p, q, r]))
-    scale = float(centre @ M @ centre - dd)
-    A = M / scale if scale > 0 else M
     try:
-        L = np.linalg.cholesky(A)
+        centre = -np.linalg.solve(M, np.array([p, q, r]))
+    except np.linalg.LinAlgError:
+        raise IdentifiabilityError(
+            "the samples do not describe an ellipsoid (degenerate quadric); record the sensor turning "
+            "through many more attitudes"
+        ) from None
+    scale = float(centre @ M @ centre - dd)
+    try:
+        if scale <= 0:
+            raise np.linalg.LinAlgError
+        L = np.linalg.cholesky(M / scale)
     except np.linalg.LinAlgError:
         raise IdentifiabilityError(
             "the samples do not describe an ellipsoid (the fitted quadric is not closed); record the "
             "sensor turning through many more attitudes"
         ) from None
-    return L.T, centre, cond
+    return np.asarray(L.T, dtype=np.float64), np.asarray(centre, dtype=np.float64)
 
 
 class EllipsoidFit(Estimator):
@@ -138,12 +158,13 @@ class EllipsoidFit(Estimator):
         W = W_u / norm.scale
         offset = norm.centre + norm.scale * c_u
         W, F_hat = gauge_scale(W, ref.values)
-        if self.form == "symmetric":
-            W = to_symmetric(W)
-        return build_calibration(
-            B, W, offset, model=model, method=self.name, units=units, reference=ref,
-            params=Ellipsoid.from_matrix_offset(W, offset).as_dict(), iterations=0, converged=True,
-            fitted_magnitude=F_hat, diagnostics={"condition_number": cond},
+        from .ml import ellipsoid_result  # ml builds on this module
+
+        return ellipsoid_result(
+            B, W, offset, ref=ref, F_hat=F_hat, sigma=None, model=model, method=self.name, units=units,
+            form=self.form, diagnostics={"condition_number": cond},
+            uncertainty_note="Fisher information at the estimate: a lower bound; this algebraic fit is biased "
+            "under strong noise (use ml)",
         )
 
 

@@ -36,7 +36,7 @@ from ..estimators import DEFAULT_METHOD, available_methods, get_estimator
 from ..models.ellipsoid import Ellipsoid, to_upper
 from ..simulate import great_circle_directions, hemisphere_directions, uniform_directions
 
-__all__ = ["PEERS", "add_arguments", "run", "truth"]
+__all__ = ["PEERS", "add_arguments", "markdown_tables", "run", "summarise", "truth"]
 
 SIGMAS = (4e-4, 1e-2, 5e-2)
 SIZES = (400, 2000, 20000)
@@ -167,6 +167,7 @@ def run_cell(
                  test_directions=test)
     crlb_std = bound.std[:9]
     errs: dict[str, list[Any]] = {k: [] for k in estimators}
+    score: dict[str, dict[int, float]] = {k: {} for k in estimators}
     field: dict[str, list[float]] = {k: [] for k in estimators}
     mag: dict[str, list[float]] = {k: [] for k in estimators}
     inside: dict[str, list[Any]] = {k: [] for k in estimators}
@@ -192,6 +193,7 @@ def run_cell(
             times[name] += time.perf_counter() - t0
             e = th - theta_t
             errs[name].append(e)
+            score[name][t] = float(np.sum((e / crlb_std) ** 2))
             U = np.zeros((3, 3))
             U[UPPER] = th[:6]
             y = (X_test - th[6:]) @ U.T
@@ -202,6 +204,7 @@ def run_cell(
                 std = np.array(list(unc["param_std"].values())[:9], dtype=np.float64)
                 inside[name].append(np.abs(e) <= std)
     rows = []
+    default = DEFAULT_METHOD["ellipsoid"]
     for name in estimators:
         ok = len(errs[name])
         row: dict[str, Any] = {"sigma": sigma, "n": n, "coverage": coverage, "estimator": name,
@@ -212,6 +215,9 @@ def run_cell(
             ratio = np.sqrt(np.mean(E**2, axis=0)) / crlb_std
             row.update({f"ratio_{k}": float(v) for k, v in zip(NAMES, ratio, strict=True)})
             row["ratio_max"] = float(ratio.max())
+            row["ratio_rms"] = float(np.sqrt(np.mean(ratio**2)))
+            # Monte Carlo standard error of one parameter's ratio (chi distribution): ratio / sqrt(2 trials)
+            row["ratio_se"] = float(row["ratio_rms"] / np.sqrt(2 * ok))
             row["field_rms"] = float(np.sqrt(np.mean(field[name])))
             row["magnitude_rms"] = float(np.sqrt(np.mean(mag[name])))
             row["ratio_field"] = row["field_rms"] / bound.field_rms
@@ -219,6 +225,15 @@ def run_cell(
             row["bias_max_sigma"] = float(np.max(np.abs(E.mean(axis=0)) / crlb_std))
             if inside[name]:
                 row["coverage_1sigma"] = float(np.mean(inside[name]))
+            if name != default and default in score and score[default]:
+                common = sorted(set(score[name]) & set(score[default]))
+                if len(common) > 1:
+                    diff = np.array([score[default][t] - score[name][t] for t in common])
+                    # paired comparison on the same data: mean of sum_k (e_k / crlb_k)^2, default minus this
+                    row["paired_diff_vs_default"] = float(-diff.mean())
+                    row["paired_se"] = float(diff.std(ddof=1) / np.sqrt(len(common)))
+                    row["default_worse"] = bool(diff.mean() > 2 * row["paired_se"]) or (
+                        fails[default] > fails[name])
         rows.append(row)
     return rows
 
@@ -271,6 +286,7 @@ def run(
         try:
             for s, n, c in cells:
                 rows.extend(run_cell(s, n, c, trials, seed, est))
+                write_rows(out_dir, rows)  # partial results survive an interrupted run
                 if progress is not None:
                     progress.advance(task)
         finally:
@@ -278,6 +294,8 @@ def run(
                 progress.stop()
     write_rows(out_dir, rows)
     summary = summarise(rows)
+    summary["text"] = markdown_tables(rows)
+    atomic_write_text(out_dir / "accuracy.md", summary["text"])
     summary.update({"trials": trials, "seed": seed, "default_method": DEFAULT_METHOD["ellipsoid"],
                     "peers": {k: v[1] for k, v in PEERS.items()}})
     atomic_write_text(out_dir / "accuracy.json", json.dumps({"summary": summary, "rows": rows}, indent=1))
@@ -303,8 +321,9 @@ def write_rows(out_dir: Path, rows: list[dict[str, Any]]) -> None:
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per cell: the best trimag ratio, the default method's ratios, the best peer, and whether the default
-    is at least as good as the best peer (by max parameter ratio and corrected-magnitude error)."""
+    """Per cell: the default method's ratios, the best peer (smallest max ratio), and whether any peer is
+    better than the default: a paired comparison on the same trials of ``sum_k (e_k / sqrt(CRLB_k))^2``, "better"
+    meaning lower by more than two standard errors (or fewer failures)."""
     default = DEFAULT_METHOD["ellipsoid"]
     cells: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for r in rows:
@@ -321,10 +340,41 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         if best_peer:
             entry.update({"best_peer": best_peer["estimator"], "best_peer_ratio_max": best_peer["ratio_max"],
                           "best_peer_ratio_magnitude": best_peer["ratio_magnitude"]})
-            if d and "ratio_max" in d:
-                entry["default_not_worse"] = bool(
-                    d["ratio_max"] <= best_peer["ratio_max"] * 1.02
-                    and d["magnitude_rms"] <= min(p["magnitude_rms"] for p in peers) * 1.02
-                )
+        peer_rows = [r for r in rs if r["estimator"] in PEERS]
+        if d and "ratio_max" in d and peer_rows:
+            worse = [r["estimator"] for r in peer_rows if r.get("default_worse")]
+            entry["peers_better_than_default"] = worse
+            entry["default_not_worse"] = not worse
         out.append(entry)
     return {"cells": out}
+
+
+def markdown_tables(rows: list[dict[str, Any]]) -> str:
+    """Markdown tables, one per noise level: rows = estimators, columns = (N, coverage) cells; each entry
+    ``max parameter ratio / corrected-magnitude ratio`` (``fail k`` when some trials failed)."""
+    out = []
+    sigmas = sorted({r["sigma"] for r in rows})
+    cells = sorted({(r["n"], r["coverage"]) for r in rows}, key=lambda c: (c[0], COVERAGES.index(c[1])))
+    names = list(dict.fromkeys(r["estimator"] for r in rows))
+    short = {"full": "full", "hemisphere": "hemi", "circles": "circles"}
+    for s in sigmas:
+        out.append(f"\n**sigma/F = {s:g}** (entries: max over the 9 parameters of RMS/sqrt(CRLB) / "
+                   "RMS corrected-magnitude error / its CRLB)\n")
+        out.append("| estimator | " + " | ".join(f"N={n} {short[c]}" for n, c in cells) + " |")
+        out.append("|---|" + "---|" * len(cells))
+        for name in names:
+            entries = []
+            for n, c in cells:
+                r = next((x for x in rows if x["sigma"] == s and x["n"] == n and x["coverage"] == c
+                          and x["estimator"] == name), None)
+                if r is None:
+                    entries.append("")
+                elif "ratio_max" not in r:
+                    entries.append(f"fail {r['failures']}/{r['trials']}")
+                else:
+                    e = f"{r['ratio_max']:.3g} / {r['ratio_magnitude']:.3g}"
+                    if r["failures"]:
+                        e += f" (fail {r['failures']})"
+                    entries.append(e)
+            out.append(f"| {name} | " + " | ".join(entries) + " |")
+    return "\n".join(out) + "\n"

@@ -3,37 +3,95 @@
 CSV/text and Parquet files are read ``chunk_rows`` rows at a time; NPZ and MAT files are loaded whole (they are
 single arrays in memory by nature). Text cells are kept as strings so ``apply`` writes every input row and
 column back unchanged, and appends the corrected columns.
+
+Speed (docs/performance.md): delimited text is parsed by pyarrow's streaming CSV reader with every column typed
+as a string (the cells are kept exactly), x/y/z are converted with one vectorised cast, and CSV output is
+written by pyarrow's CSV writer. Whitespace-delimited text, rows pyarrow refuses (e.g. a row with a different
+number of fields) and cells that need quoting on output fall back to pandas, which gives the same rows and
+cells. A :class:`Chunk` converts between its Arrow and pandas forms only when asked.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import re
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 from numpy.typing import NDArray
 
 from ..errors import TrimagInputError
 from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
 
-__all__ = ["Chunk", "MagnitudeAccumulator", "apply_file", "iter_chunks"]
+__all__ = ["Chunk", "ChunkSource", "MagnitudeAccumulator", "apply_file", "iter_chunks", "open_chunks"]
 
 DEFAULT_CHUNK_ROWS = 200_000
+# bytes per pyarrow read block (a chunk is assembled from blocks): pyarrow keeps some tens of blocks' worth of
+# buffers alive while streaming (measured: pool peak ~40x the block size), so blocks stay small; 1 MiB blocks
+# read as fast as 7 MiB ones (docs/performance.md)
+_MIN_BLOCK = 1 << 16
+_MAX_BLOCK = 1 << 20
 
 
-@dataclass
 class Chunk:
-    """One block of rows: the original cells, the x/y/z values (NaN where unusable) and the global row offset."""
+    """One block of rows: the original cells, the x/y/z values (NaN where unusable) and the global row offset.
 
-    table: pd.DataFrame
-    xyz: NDArray[np.float64]
-    start: int
+    Attributes
+    ----------
+    table : pandas.DataFrame
+        The rows' cells (text files: strings, exactly as in the file).
+    arrow : pyarrow.Table
+        The same cells as an Arrow table.
+    xyz : ndarray, shape (n, 3)
+        x, y, z as floats; NaN where a cell is missing or not a number.
+    start : int
+        Index of the chunk's first row among the data rows of the file (0-based).
+    """
+
+    def __init__(
+        self,
+        table: pd.DataFrame | None,
+        xyz: NDArray[np.float64],
+        start: int,
+        *,
+        arrow: pa.Table | None = None,
+    ) -> None:
+        if table is None and arrow is None:
+            raise ValueError("a Chunk needs its cells as a pandas DataFrame or a pyarrow Table")
+        self._table = table
+        self._arrow = arrow
+        self.xyz = xyz
+        self.start = start
+
+    @property
+    def table(self) -> pd.DataFrame:
+        if self._table is None:
+            assert self._arrow is not None
+            self._table = self._arrow.to_pandas()
+        return self._table
+
+    @property
+    def arrow(self) -> pa.Table:
+        if self._arrow is None:
+            assert self._table is not None
+            self._arrow = pa.Table.from_pandas(self._table, preserve_index=False)
+        return self._arrow
+
+    @property
+    def has_arrow(self) -> bool:
+        """True when the cells are already held as an Arrow table (no conversion needed)."""
+        return self._arrow is not None
+
+    def __len__(self) -> int:
+        return len(self.xyz)
 
 
 @dataclass
@@ -58,6 +116,49 @@ def _parse_rows(rows: str | None) -> tuple[int, int | None]:
     return (int(m.group(1)) if m.group(1) else 0), (int(m.group(2)) if m.group(2) else None)
 
 
+def _arrow_numeric(col: pa.ChunkedArray | pa.Array) -> NDArray[np.float64]:
+    """Column -> float64 (NaN for null, empty or non-numeric cells): one Arrow cast, pandas when it refuses."""
+    import pyarrow.compute as pc
+
+    try:
+        return np.asarray(pc.cast(col, pa.float64()).to_numpy(zero_copy_only=False), dtype=np.float64)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        return _numeric(pd.Series(col.to_pandas()))
+
+
+def _xyz(table: pa.Table, cols: tuple[str, str, str]) -> NDArray[np.float64]:
+    out = np.empty((table.num_rows, 3))
+    for j, c in enumerate(cols):
+        out[:, j] = _arrow_numeric(table.column(c))
+    return out
+
+
+def _rechunk(batches: Iterable[pa.RecordBatch], rows: int) -> Iterator[pa.Table]:
+    """Regroup record batches into tables of exactly ``rows`` rows (the last one shorter); zero-copy slices."""
+    buf: list[pa.RecordBatch] = []
+    n = 0
+    for batch in batches:
+        if batch.num_rows == 0:
+            continue
+        buf.append(batch)
+        n += batch.num_rows
+        while n >= rows:
+            table = pa.Table.from_batches(buf)
+            yield table.slice(0, rows)
+            rest = table.slice(rows)
+            buf = rest.to_batches()
+            n = rest.num_rows
+    if n:
+        yield pa.Table.from_batches(buf)
+
+
+def _bytes_per_row(path: Path, skip: int) -> float:
+    with path.open("rb") as fh:
+        head = fh.read(1 << 16)
+    lines = head.split(b"\n")[skip + 1 : -1]
+    return max(sum(len(ln) + 1 for ln in lines) / len(lines), 8.0) if lines else 64.0
+
+
 def open_chunks(
     path: str | Path,
     *,
@@ -66,10 +167,13 @@ def open_chunks(
     var: str | None = None,
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
 ) -> tuple[ChunkSource, Iterator[Chunk]]:
-    """Inspect ``path`` and return its description and an iterator over :class:`Chunk` s."""
+    """Inspect ``path`` and return its description and an iterator over :class:`Chunk` s of ``chunk_rows`` rows
+    (the last one shorter)."""
     p = Path(path)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
+    if chunk_rows < 1:
+        raise TrimagInputError(f"--chunk-rows must be a positive number of rows; got {chunk_rows}")
     kind = guess_format(p, fmt)
     if kind in ("csv", "txt"):
         layout = detect_csv_layout(p, fmt=kind)
@@ -90,16 +194,49 @@ def open_chunks(
         names = list(head.columns)
         source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names)
 
-        def gen_text() -> Iterator[Chunk]:
+        def gen_pandas(skip_rows: int = 0) -> Iterator[Chunk]:
             start = 0
-            reader = pd.read_csv(p, chunksize=chunk_rows, **kwargs)
-            for df in reader:
+            for df in pd.read_csv(p, chunksize=chunk_rows, **kwargs):
+                if skip_rows >= len(df):  # rows already delivered by the Arrow reader
+                    skip_rows -= len(df)
+                    start += len(df)
+                    continue
+                if skip_rows:
+                    df = df.iloc[skip_rows:].reset_index(drop=True)
+                    start += skip_rows
+                    skip_rows = 0
                 df.columns = names
                 xyz = np.column_stack([_numeric(df[c]) for c in cols])
                 yield Chunk(df, xyz, start)
                 start += len(df)
 
-        return source, gen_text()
+        def gen_arrow() -> Iterator[Chunk]:
+            import pyarrow.csv as pacsv
+
+            assert layout.delimiter is not None
+            block = int(np.clip(chunk_rows * _bytes_per_row(p, layout.skip), _MIN_BLOCK, _MAX_BLOCK))
+            start = 0
+            try:
+                reader = pacsv.open_csv(
+                    p,
+                    read_options=pacsv.ReadOptions(
+                        skip_rows=layout.skip + int(layout.has_header), column_names=names, block_size=block
+                    ),
+                    parse_options=pacsv.ParseOptions(delimiter=layout.delimiter),
+                    convert_options=pacsv.ConvertOptions(
+                        column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
+                        quoted_strings_can_be_null=False,
+                    ),
+                )
+                for table in _rechunk(reader, chunk_rows):
+                    yield Chunk(None, _xyz(table, cols), start, arrow=table)
+                    start += table.num_rows
+                return
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+                pass  # e.g. a row with a different number of fields: pandas reads the rest as before
+            yield from gen_pandas(skip_rows=start)
+
+        return source, (gen_arrow() if layout.delimiter is not None else gen_pandas())
     if kind == "parquet":
         import pyarrow.parquet as pq
 
@@ -108,7 +245,8 @@ def open_chunks(
         except Exception as exc:
             raise TrimagInputError(f"{p}: not a readable Parquet file ({exc})") from None
         names = list(pf.schema_arrow.names)
-        head = pf.read_row_group(0).to_pandas().head(2000) if pf.num_row_groups else pd.DataFrame(columns=names)
+        first = next(pf.iter_batches(batch_size=2000), None) if pf.num_row_groups else None
+        head = first.to_pandas() if first is not None else pd.DataFrame(columns=names)
         if len(head) == 0:
             raise TrimagInputError(f"{p}: the file has no data rows")
         cols, note = resolve_columns(head, columns)
@@ -116,11 +254,9 @@ def open_chunks(
 
         def gen_parquet() -> Iterator[Chunk]:
             start = 0
-            for batch in pf.iter_batches(batch_size=chunk_rows):
-                df = batch.to_pandas()
-                xyz = np.column_stack([_numeric(df[c]) for c in cols])
-                yield Chunk(df, xyz, start)
-                start += len(df)
+            for table in _rechunk(pf.iter_batches(batch_size=chunk_rows), chunk_rows):
+                yield Chunk(None, _xyz(table, cols), start, arrow=table)
+                start += table.num_rows
 
         return source, gen_parquet()
     df = read_table(p, fmt=kind, var=var)
@@ -136,6 +272,26 @@ def open_chunks(
 def iter_chunks(path: str | Path, **kwargs: Any) -> Iterator[Chunk]:
     """Iterate over the :class:`Chunk` s of a file (see :func:`open_chunks`)."""
     return open_chunks(path, **kwargs)[1]
+
+
+def _with_corrected(table: pa.Table, corrected: NDArray[np.float64], names: list[str]) -> pa.Table:
+    for j, name in enumerate(names):
+        table = table.append_column(name, pa.array(corrected[:, j], from_pandas=True))  # NaN -> empty cell
+    return table
+
+
+def _write_csv_rows(fh: Any, table: pa.Table, sep: str) -> None:
+    """Write the rows (no header) of ``table``: pyarrow's writer, or pandas when a cell needs quoting."""
+    import pyarrow.csv as pacsv
+
+    buf = io.BytesIO()
+    try:
+        pacsv.write_csv(table, buf, write_options=pacsv.WriteOptions(
+            include_header=False, delimiter=sep, quoting_style="none"))
+    except pa.ArrowInvalid:  # a cell holds the delimiter, a quote or a line break: quote as pandas does
+        fh.write(table.to_pandas().to_csv(index=False, header=False, sep=sep, lineterminator="\n"))
+        return
+    fh.write(buf.getvalue().decode("utf-8"))
 
 
 def apply_file(
@@ -166,6 +322,8 @@ def apply_file(
     source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
     new_cols = [f"{c}{suffix}" for c in source.columns]
     out_kind = guess_format(out) if out.suffix else "csv"
+    if out_kind not in ("csv", "txt", "parquet", "npz"):
+        raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     os.close(fd)
@@ -181,50 +339,54 @@ def apply_file(
                 first = True
                 for chunk in chunks:
                     corrected, bad = _correct(calibrate, chunk.xyz)
-                    df = chunk.table.copy()
-                    for j, name in enumerate(new_cols):
-                        df[name] = corrected[:, j]
-                    df.to_csv(fh, index=False, header=first and source.has_header, sep=sep, lineterminator="\n")
+                    if first and source.has_header:
+                        header = chunk.arrow.column_names if chunk.has_arrow else [str(c) for c in chunk.table.columns]
+                        csv.writer(fh, delimiter=sep, lineterminator="\n").writerow(header + new_cols)
                     first = False
-                    n_rows += len(df)
+                    if chunk.has_arrow:
+                        _write_csv_rows(fh, _with_corrected(chunk.arrow, corrected, new_cols), sep)
+                    else:  # NPZ/MAT tables and pandas-read text: written by pandas
+                        df = chunk.table.copy()
+                        for j, name in enumerate(new_cols):
+                            df[name] = corrected[:, j]
+                        df.to_csv(fh, index=False, header=False, sep=sep, lineterminator="\n")
+                    n_rows += len(chunk)
                     n_bad += bad
                     if progress:
                         progress(n_rows)
         elif out_kind == "parquet":
-            import pyarrow as pa
             import pyarrow.parquet as pq
 
             writer = None
             try:
                 for chunk in chunks:
                     corrected, bad = _correct(calibrate, chunk.xyz)
-                    df = chunk.table.copy()
-                    for j, name in enumerate(new_cols):
-                        df[name] = corrected[:, j]
-                    table = pa.Table.from_pandas(df, preserve_index=False)
+                    table = _with_corrected(chunk.arrow, corrected, new_cols)
                     if writer is None:
                         writer = pq.ParquetWriter(tmp, table.schema)
+                    elif not table.schema.equals(writer.schema):
+                        table = table.cast(writer.schema)
                     writer.write_table(table)
-                    n_rows += len(df)
+                    n_rows += table.num_rows
                     n_bad += bad
                     if progress:
                         progress(n_rows)
             finally:
                 if writer is not None:
                     writer.close()
-        elif out_kind == "npz":
+        else:  # npz: arrays in memory by nature
             parts = []
             for chunk in chunks:
                 corrected, bad = _correct(calibrate, chunk.xyz)
                 parts.append((chunk.xyz, corrected))
                 n_rows += len(corrected)
                 n_bad += bad
+                if progress:
+                    progress(n_rows)
             raw = np.vstack([r for r, _ in parts])
             cor = np.vstack([c for _, c in parts])
             with tmp.open("wb") as fh:
                 np.savez(fh, raw=raw, corrected=cor)
-        else:
-            raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
         os.replace(tmp, out)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -243,6 +405,8 @@ def _correct(
     calibrate: Callable[[NDArray[np.float64]], NDArray[np.float64]], xyz: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], int]:
     ok = np.isfinite(xyz).all(axis=1)
+    if ok.all():
+        return np.asarray(calibrate(xyz), dtype=np.float64), 0
     corrected = np.full_like(xyz, np.nan)
     if ok.any():
         corrected[ok] = calibrate(xyz[ok])

@@ -1,0 +1,196 @@
+"""``twostep``: TWOSTEP, the complete linear attitude-independent calibration of Alonso & Shuster (2002).
+
+R. Alonso, M. D. Shuster, "Complete linear attitude-independent magnetometer calibration", J. Astronaut. Sci.
+50(4), 2002. With ``A = I + D`` symmetric (the correction), ``b`` the offset and ``F_k`` the reference magnitude,
+each sample gives the scalar measurement
+
+    z_k = |x_k|^2 - F_k^2 = -x_k^T E x_k + 2 x_k^T c - |c|_E^2 + v_k,
+    E = A^2 - I,   c = (I + E) b,   |c|_E^2 = c^T (I + E)^-1 c = b^T A^2 b,
+
+whose noise ``v_k`` has mean ``mu = -sigma^2 tr(I + E)`` (``E|x + e|^2``) and variance
+``sigma_k^2 = 4 sigma^2 |A y_k|^2`` (to first order; ``y_k`` the corrected field).
+
+* **Step 1 (centred, linear)**: treating the constant ``|c|_E^2 + mu`` as one more unknown makes ``z_k`` linear in
+  ``(E, c, const)``; the weighted linear least-squares solution is the "centred" estimate (the constant is what
+  centring removes).
+  With one magnitude for every sample (the usual ground calibration) this centred problem is degenerate
+  (``E = -I``, ``c = 0`` fits exactly, since ``|x|^2`` is a combination of the design's columns); Alonso &
+  Shuster's orbit data have a varying ``F_k``. Step 1 then starts from the algebraic fit (``ellipsoid-fit``).
+* **Step 2**: Gauss-Newton on the full nonlinear model (the constant tied to ``c`` and ``E``, the noise mean
+  subtracted) with the weights ``1 / sigma_k^2``, started from step 1.
+
+The noise ``sigma`` TWOSTEP needs is an option (``noise_std``); when it is not given it is estimated from the
+step-1 residuals. The fit is made on normalised data; without a reference the magnitude is 1 there and the
+result is scaled to ``det W = 1``. TWOSTEP's step 1 is an algebraic fit: its errors-in-variables bias is what
+step 2 reduces but does not remove at strong noise (``docs/accuracy.md``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from ..calibration import Calibration
+from ..diagnostics import check_condition, check_not_degenerate, design_condition
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..models.ellipsoid import to_upper
+from ._common import normalise, scalar_reference
+from .base import Estimator
+from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
+from .ml import ellipsoid_result
+
+__all__ = ["TwoStep"]
+
+_SYM = (np.array([0, 1, 2, 1, 0, 0]), np.array([0, 1, 2, 2, 2, 1]))  # E11 E22 E33 E23 E13 E12
+_TERMS = ("E11", "E22", "E33", "E23", "E13", "E12", "c1", "c2", "c3", "const")
+
+
+def _sym(e: NDArray[np.float64]) -> NDArray[np.float64]:
+    E = np.zeros((3, 3))
+    E[_SYM] = e
+    E[_SYM[1], _SYM[0]] = e
+    return E
+
+
+def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rows ``(-x^2, -y^2, -z^2, -2yz, -2xz, -2xy, 2x, 2y, 2z)``: ``z_k = L_k (e, c) - const``."""
+    x, y, z = u.T
+    return np.column_stack([-x * x, -y * y, -z * z, -2 * y * z, -2 * x * z, -2 * x * y, 2 * x, 2 * y, 2 * z])
+
+
+class TwoStep(Estimator):
+    """TWOSTEP (Alonso & Shuster 2002): centred linear estimate, then Gauss-Newton with measurement weights.
+
+    Parameters
+    ----------
+    model : str
+        ``"ellipsoid"``.
+    form : {"upper", "symmetric"}
+        Gauge of the returned soft-iron matrix (TWOSTEP's own is symmetric).
+    noise_std : float, optional
+        Noise standard deviation per axis, data unit; estimated from the step-1 residuals when None.
+    max_iter : int
+        Gauss-Newton iteration limit of step 2.
+    """
+
+    name = "twostep"
+    models = ("ellipsoid",)
+
+    def __init__(
+        self, model: str = "ellipsoid", form: str = "upper", noise_std: float | None = None, max_iter: int = 50
+    ) -> None:
+        self.model = model
+        self.form = form
+        self.noise_std = noise_std
+        self.max_iter = max_iter
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        if self.form not in ("upper", "symmetric"):
+            raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {self.form!r}")
+        if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std >= 0):
+            raise TrimagInputError(f"`noise_std` must be a non-negative number; got {self.noise_std!r}")
+        check_not_degenerate(B)
+        ref = scalar_reference(reference, len(B), units)
+        u, norm = normalise(B)
+        if ref.values is not None:
+            f_scale = float(np.sqrt(np.mean(ref.values**2)))
+            F = ref.values / f_scale
+        else:
+            f_scale, F = 1.0, np.ones(len(B))
+        z = np.einsum("ij,ij->i", u, u) - F**2
+        L = _design(u)
+        # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
+        A1 = np.column_stack([L, -np.ones(len(u))])
+        constant_F = float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
+        if constant_F:
+            # with one magnitude for all samples the centred problem is degenerate (E = -I, c = 0 fits z
+            # exactly: |x|^2 is a combination of the design's columns), so step 1 starts from the algebraic fit
+            W0, c0, cond = algebraic_ellipsoid(u)  # also the identifiability check
+            M1 = float(np.mean(F)) ** 2 * (W0.T @ W0)
+            b1 = c0
+            x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
+            yk2 = np.einsum("ij,jk,ik->i", u - b1, M1 @ M1, u - b1)
+            w = 1.0 / np.maximum(yk2, 1e-12)
+        else:
+            cond, _, _ = design_condition(A1)
+            check_condition(cond, what="an ellipsoid (hard + soft iron)",
+                            hint="record the sensor in more attitudes, turning it about all three axes")
+            w = np.ones(len(u))
+            for _ in range(2):
+                sw = np.sqrt(w)
+                x1, *_ = np.linalg.lstsq(A1 * sw[:, None], z * sw, rcond=None)
+                E1, c1 = _sym(x1[:6]), x1[6:9]
+                M1 = np.eye(3) + E1
+                if np.any(np.linalg.eigvalsh(M1) <= 0):
+                    raise IdentifiabilityError(
+                        "TWOSTEP's linear step found no ellipsoid; record the sensor turning through many "
+                        "more attitudes (or use --method ml)"
+                    )
+                b1 = np.linalg.solve(M1, c1)
+                yk2 = np.einsum("ij,jk,ik->i", u - b1, M1 @ M1, u - b1)  # |A^2 (x - b)|^2 ~ |A y|^2
+                w = 1.0 / np.maximum(yk2, 1e-12)
+        resid1 = A1 @ x1 - z
+        if self.noise_std is not None:
+            sigma2 = (float(self.noise_std) / norm.scale) ** 2
+        else:
+            sigma2 = float(np.sum(w * resid1**2) / (4.0 * max(len(u) - 10, 1)))
+
+        # step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted
+        sw = np.sqrt(w)
+
+        def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
+            E, c = _sym(p[:6]), p[6:9]
+            M = np.eye(3) + E
+            const = c @ np.linalg.solve(M, c) - sigma2 * np.trace(M)
+            return np.asarray(sw * (L @ p - const - z), dtype=np.float64)
+
+        def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+            E, c = _sym(p[:6]), p[6:9]
+            M = np.eye(3) + E
+            bb = np.linalg.solve(M, c)
+            dconst = np.empty(9)
+            # d(c^T M^-1 c)/dE_ij = -(b b^T)_ij (x2 off the diagonal); d tr(M)/dE_ii = 1
+            outer = np.outer(bb, bb)
+            for k, (i, j) in enumerate(zip(*_SYM, strict=True)):
+                dconst[k] = -outer[i, j] * (1.0 if i == j else 2.0) - (sigma2 if i == j else 0.0)
+            dconst[6:9] = 2 * bb
+            return np.asarray(sw[:, None] * (L - dconst[None, :]), dtype=np.float64)
+
+        res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        E, c = _sym(res.x[:6]), res.x[6:9]
+        M = np.eye(3) + E
+        ev, evec = np.linalg.eigh(M)
+        if np.any(ev <= 0):
+            raise IdentifiabilityError(
+                "TWOSTEP converged to a matrix that is not positive definite; record the sensor turning "
+                "through many more attitudes (or use --method ml)"
+            )
+        A = (evec * np.sqrt(ev)) @ evec.T
+        b_u = np.linalg.solve(M, c)
+        # guard: step 2 can run away on poorly covered data (e.g. one hemisphere at strong noise); keep the
+        # step-1 estimate when step 2 fits the magnitudes worse
+        ev1, evec1 = np.linalg.eigh(M1)
+        A1m = (evec1 * np.sqrt(np.clip(ev1, 0, None))) @ evec1.T
+        fit2 = float(np.mean((np.linalg.norm((u - b_u) @ A.T, axis=1) - F) ** 2))
+        fit1 = float(np.mean((np.linalg.norm((u - b1) @ A1m.T, axis=1) - F) ** 2))
+        step2_used = bool(res.success) and fit2 <= fit1 * 1.5
+        if not step2_used:
+            A, b_u = A1m, b1
+        W = to_upper(A) * f_scale / norm.scale
+        offset = norm.centre + norm.scale * b_u
+        F_hat = None
+        if ref.values is None:
+            W, F_hat = gauge_scale(W, None)
+        return ellipsoid_result(
+            B, W, offset, ref=ref, F_hat=F_hat, sigma=float(np.sqrt(sigma2) * norm.scale), model=model,
+            method=self.name, units=units, form=self.form, iterations=int(res.nfev), converged=bool(res.success),
+            diagnostics={"condition_number": cond, "optimizer": str(res.message), "step2_used": step2_used},
+            uncertainty_note="Fisher information at the estimate (a lower bound; TWOSTEP is not bias-free at "
+            "strong noise)",
+        )

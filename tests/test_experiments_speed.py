@@ -1,0 +1,92 @@
+"""Small-size checks of the speed benchmark's parts (the real measurements live in benchmarks/speed.py)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from trimag.errors import TrimagInputError
+from trimag.experiments import get_experiment
+from trimag.experiments.speed import (
+    _run_measured,
+    fit_benchmark,
+    growth_exponents,
+    speed_ratios,
+    write_big_log,
+)
+
+
+def test_registered_as_bench_target() -> None:
+    module = get_experiment("speed", kind="bench")
+    assert callable(module.run) and callable(module.add_arguments)
+
+
+def test_growth_exponent_recovers_power_law() -> None:
+    rows = [{"estimator": "a", "n": n, "median_s": 1e-6 * n**1.0} for n in (1e3, 1e4, 1e5, 1e6)]
+    rows += [{"estimator": "b", "n": n, "median_s": 1e-9 * n**1.5} for n in (1e4, 1e5, 1e6)]
+    rows += [{"estimator": "c", "n": 1e6, "median_s": 1.0}, {"estimator": "c", "n": 1e7, "note": "skipped"}]
+    e = growth_exponents(rows)
+    assert e["a"]["exponent"] == pytest.approx(1.0) and e["a"]["n_min"] == 1e4  # 1e3 excluded
+    assert e["b"]["exponent"] == pytest.approx(1.5)
+    assert "c" not in e  # one measured size only
+
+
+def test_ratio_uses_fastest_peer_of_equal_accuracy() -> None:
+    rows = [
+        {"estimator": "ml", "kind": "trimag", "model": "ellipsoid", "n": 10_000, "median_s": 0.01,
+         "param_rms_error": 1.0e-4},
+        {"estimator": "fast-biased", "kind": "peer", "model": "ellipsoid", "n": 10_000, "median_s": 0.001,
+         "param_rms_error": 5e-4},
+        {"estimator": "slow-good", "kind": "peer", "model": "ellipsoid", "n": 10_000, "median_s": 0.2,
+         "param_rms_error": 1.05e-4},
+        {"estimator": "slower-good", "kind": "peer", "model": "ellipsoid", "n": 10_000, "median_s": 0.5,
+         "param_rms_error": 0.9e-4},
+    ]
+    (r,) = speed_ratios(rows)
+    assert r["peer"] == "slow-good" and r["ratio"] == pytest.approx(20.0)
+    assert r["fastest_peer"] == "fast-biased" and r["ratio_fastest_any"] == pytest.approx(0.1)
+    rows[2]["param_rms_error"] = rows[3]["param_rms_error"] = 1.0  # no peer as accurate
+    (r,) = speed_ratios(rows)
+    assert r["ratio"] is None and r["note"] == "no peer reaches this accuracy"
+
+
+def test_fit_benchmark_small(monkeypatch: pytest.MonkeyPatch) -> None:
+    logged: list[str] = []
+    rows, profiles = fit_benchmark([300, 600], repeats=2, budget=1e-9, seed=0, estimators=["ellipsoid-fit"],
+                                   profile_at=300, log=logged.append)
+    first, second = rows
+    assert first["estimator"] == "ellipsoid-fit" and first["n"] == 300 and first["repeats"] == 2
+    assert first["min_s"] <= first["median_s"] <= first["max_s"]
+    assert first["param_rms_error"] < 0.01  # sigma/F = 1e-2, 300 samples
+    assert "skipped: projected" in second["note"]  # the tiny budget skips N = 600
+    assert "ellipsoid-fit" in profiles and "cumulative" in profiles["ellipsoid-fit"]
+    with pytest.raises(TrimagInputError, match="unknown estimators"):
+        fit_benchmark([300], repeats=1, budget=1.0, seed=0, estimators=["nope"], profile_at=None,
+                      log=logged.append)
+
+
+def test_write_big_log_and_measure(tmp_path: Path) -> None:
+    csv_path, pq_path = tmp_path / "big.csv", tmp_path / "big.parquet"
+    write_big_log(csv_path, 1500, parquet=pq_path)
+    a = pd.read_csv(csv_path)
+    b = pd.read_parquet(pq_path)
+    assert list(a.columns) == ["t", "bx", "by", "bz"] and len(a) == 1500
+    np.testing.assert_allclose(a.to_numpy(), b.to_numpy())
+    assert csv_path.read_text(encoding="utf-8").startswith("t,bx,by,bz\n")
+    r = _run_measured([sys.executable, "-c", "import numpy; x = numpy.ones(30_000_000)"])
+    assert r["peak_rss_mb"] > 200 and r["wall_s"] > 0  # 240 MB array
+    with pytest.raises(RuntimeError, match="failed"):
+        _run_measured([sys.executable, "-c", "raise SystemExit(3)"])
+
+
+def test_rows_with_different_keys_keep_every_column(tmp_path: Path) -> None:
+    from trimag.experiments.speed import _write_rows
+
+    _write_rows(tmp_path / "f.csv", [{"n": 1, "median_s": 0.5}, {"n": 2, "note": "skipped: projected 40 s"}])
+    df = pd.read_csv(tmp_path / "f.csv")
+    assert list(df.columns) == ["n", "median_s", "note"]
+    assert df["note"].iloc[1].startswith("skipped") and np.isnan(df["median_s"].iloc[1])
