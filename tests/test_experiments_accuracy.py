@@ -1,0 +1,30 @@
+"""``trimag bench accuracy`` on a tiny grid (trimag's own estimators; the peers are optional)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from trimag.experiments import accuracy
+
+
+def test_accuracy_tiny_grid(tmp_path):
+    summary = accuracy.run(tmp_path, trials=3, seed=0, json_mode=True, sizes=[400], sigmas=[0.01],
+                           coverages=["full"], estimators=["ml", "ellipsoid-fit"])
+    assert (tmp_path / "accuracy.csv").exists() and (tmp_path / "accuracy.md").exists()
+    rows = json.loads((tmp_path / "accuracy.json").read_text())["rows"]
+    assert [r["estimator"] for r in rows] == ["ml", "ellipsoid-fit"]
+    ml = rows[0]
+    assert ml["failures"] == 0
+    # 3 trials: ratios are noisy but must be of order 1 for an estimator at the bound
+    assert 0.2 < ml["ratio_rms"] < 3 and np.isfinite(ml["ratio_magnitude"])
+    assert 0.0 <= ml["coverage_1sigma"] <= 1.0
+    assert "paired_diff_vs_default" in rows[1]
+    assert summary["cells"][0]["default_ratio_max"] == ml["ratio_max"]
+    assert "| ml |" in summary["text"]
+
+
+def test_truth_has_unit_determinant():
+    W, _ = accuracy.truth().correction()
+    assert abs(np.linalg.det(W) - 1) < 1e-12
