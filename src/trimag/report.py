@@ -169,8 +169,10 @@ def fit_report(
     u = corrected / np.maximum(n_after[:, None], 1e-300)
     az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
     sin_el = np.clip(u[:, 2], -1, 1)
-    h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1)
-    fig.colorbar(h[3], ax=ax, label="samples")
+    from matplotlib.colors import LogNorm
+
+    h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1, norm=LogNorm())
+    fig.colorbar(h[3], ax=ax, label="samples per cell (log scale; grey = none)")
     cov = (cal.diagnostics or {}).get("coverage", {})
     ax.set(
         xlabel="azimuth of corrected field [deg]",
