@@ -16,11 +16,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from _helpers import simulate_ellipsoid
 from trimag import Calibration
 from trimag.errors import TrimagInputError
 from trimag.io import MagnitudeAccumulator, apply_file, iter_chunks, open_chunks
 from trimag.workflow import apply_to_file, evaluate_file
+
+from _helpers import simulate_ellipsoid
 
 N = 103  # not a multiple of the chunk sizes used below
 BAD = {7: "nan", 20: "", 41: "abc", 66: "inf"}  # row -> bad x cell
@@ -67,7 +68,7 @@ def _expected_corrected(c: Calibration, rows: list[list[str]]) -> np.ndarray:
 
 @pytest.mark.parametrize("chunk_rows", [1, 10, 50, 1000])
 def test_apply_csv_keeps_every_row_and_cell(tmp_path: Path, cal: tuple[Calibration, Path], chunk_rows: int) -> None:
-    c, cal_path = cal
+    c, _ = cal
     rows, _ = _rows()
     src = tmp_path / "log.csv"
     _write_csv(src, rows, preamble=("Fs,50.00", "sensor,QMC5883L"))
@@ -244,3 +245,26 @@ def test_accumulator_matches_numpy() -> None:
     r = acc_ref.result()
     assert r["rms"] == pytest.approx(np.sqrt(np.mean((norms - ref) ** 2)), rel=1e-12)
     assert r["max_abs"] == pytest.approx(np.max(np.abs(norms - ref)), rel=1e-12)
+
+
+def test_short_row_mid_file_falls_back_without_losing_rows(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
+    """A row with a missing field after the first read block: pyarrow refuses it, pandas continues from the
+    first row not yet delivered; every row is kept once, in order, the short one counted as uncorrected."""
+    c, _ = cal
+    n, short = 4000, 3500  # ~150 kB: the short row lies beyond the first 64 kB read block
+    raw = simulate_ellipsoid(n, seed=6)
+    lines = ["t,bx,by,bz"] + [f"{i},{x:.2f},{y:.2f},{z:.2f}" for i, (x, y, z) in enumerate(raw)]
+    lines[short + 1] = ",".join(lines[short + 1].split(",")[:3])
+    src = tmp_path / "ragged.csv"
+    src.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    parts = list(iter_chunks(src, chunk_rows=500))
+    assert parts[0].has_arrow and not parts[-1].has_arrow  # fast path first, then the fallback
+    assert [p.start for p in parts] == list(range(0, n, 500)) and sum(len(p) for p in parts) == n
+    out = tmp_path / "ragged_out.csv"
+    res = apply_file(c.apply, src, out, chunk_rows=500)
+    assert res["n_rows"] == n and res["n_uncorrected"] == 1
+    got = out.read_text(encoding="utf-8").splitlines()
+    assert len(got) == n + 1 and [g.split(",")[0] for g in got[1:]] == [str(i) for i in range(n)]
+    assert got[short + 1].endswith(",,,,")  # missing z kept empty, no corrected values
+    cor = np.array([g.split(",")[4:] for i, g in enumerate(got[1:]) if i != short], dtype=float)
+    np.testing.assert_allclose(cor, c.apply(np.delete(raw.round(2), short, axis=0)), rtol=1e-12)

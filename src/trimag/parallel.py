@@ -133,7 +133,7 @@ class ProgressBar:
             return
         if self.total is None:
             columns: tuple[Any, ...] = (
-                TextColumn("[bold]{task.description}"), BarColumn(),
+                TextColumn("[bold]{task.description}"), BarColumn(bar_width=20),
                 TextColumn("{task.completed:,} " + self.unit), TimeElapsedColumn(),
             )
         else:

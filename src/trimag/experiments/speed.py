@@ -479,6 +479,7 @@ def _figure(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 5.5))
+    ax.set_prop_cycle(color=[plt.get_cmap("tab20")(i / 19) for i in range(20)])
     for name in dict.fromkeys(r["estimator"] for r in rows):
         pts = [(r["n"], r["median_s"]) for r in rows if r["estimator"] == name and "median_s" in r]
         if pts:
@@ -559,7 +560,7 @@ def run(
                                                          "met": hit[0]["median_s"] < limit}
         five_x = [r for r in ratios if r["n"] >= 10_000]
         targets["every method >= 5x faster than the fastest equally accurate peer (N >= 1e4)"] = {
-            "met": all(r["ratio"] is None or r["ratio"] >= 5 for r in five_x),
+            "met": all(r["ratio"] is None or r["ratio"] >= 5 for r in five_x) if five_x else None,
             "worst": min((r for r in five_x if r["ratio"] is not None), key=lambda r: r["ratio"], default=None),
         }
         summary.update(fits=rows, ratios=ratios, exponents=exps, targets=targets)
@@ -590,7 +591,8 @@ def run(
 def _text(s: dict[str, Any]) -> str:
     lines = []
     for name, t in s.get("targets", {}).items():
-        lines.append(f"{'MET ' if t.get('met') else 'MISS'}  {name}: "
+        verdict = "n/a " if t.get("met") is None else ("MET " if t["met"] else "MISS")
+        lines.append(f"{verdict}  {name}: "
                      + ", ".join(f"{k}={v:.4g}" for k, v in t.items() if isinstance(v, float)))
     for name, e in s.get("exponents", {}).items():
         lines.append(f"growth exponent {name}: {e['exponent']:.2f} (N {e['n_min']:.0e}..{e['n_max']:.0e})")
