@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
+import trimag
 from trimag.crlb import UPPER, crlb
 from trimag.errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
 from trimag.estimators.ml import MaximumLikelihood, geometric_residual
@@ -131,3 +132,23 @@ def test_bad_options():
         MaximumLikelihood(form="lower").fit(raw, 1.0)
     with pytest.raises(TrimagInputError, match="noise_std"):
         MaximumLikelihood(noise_std=-1.0).fit(raw, 1.0)
+
+
+def test_large_log_path_matches_full_solve(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Above LARGE_N samples, ml solves on a spread subsample and polishes on all samples (normal
+    equations); the result must equal the full Levenberg-Marquardt solve to well inside its uncertainty."""
+    import trimag.estimators.ml as ml_module
+
+    rng = np.random.default_rng(11)
+    n = 80_000
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    D = np.array([[1.08, 0.03, -0.02], [0.0, 0.93, 0.04], [0.0, 0.0, 1.0]])
+    raw = u @ D.T + [0.2, -0.1, 0.15] + rng.normal(scale=0.02, size=(n, 3))
+    fast = trimag.fit(raw, method="ml", reference=1.0)
+    assert fast.stats["iterations"] >= 1
+    monkeypatch.setattr(ml_module, "LARGE_N", 10 * n)
+    full = trimag.fit(raw, method="ml", reference=1.0)
+    std = np.array(list(full.uncertainty["param_std"].values()))[:9]
+    diff = np.concatenate([(fast.matrix - full.matrix)[np.triu_indices(3)], fast.offset - full.offset])
+    assert np.all(np.abs(diff) < 0.05 * std)

@@ -31,6 +31,7 @@ CONDITION_WARN = 1e4
 CONDITION_ERROR = 1e9
 
 _CHUNK = 200_000
+_COVERAGE_SAMPLES = 100_000
 
 
 def fibonacci_sphere(n: int) -> NDArray[np.float64]:
@@ -65,6 +66,8 @@ def sphere_coverage(
         (0 for a balanced sphere, 1 for one direction), ``cell_counts`` (list of n_cells ints).
     """
     d = np.asarray(directions, dtype=np.float64)
+    stride = max(1, len(d) // _COVERAGE_SAMPLES)  # large logs: an evenly spread subsample, counts scaled
+    d = d[::stride]
     norms = np.linalg.norm(d, axis=1)
     u = d[norms > 0] / norms[norms > 0, None]
     centres = fibonacci_sphere(n_cells)
@@ -73,7 +76,7 @@ def sphere_coverage(
     counts = np.zeros(n_cells, dtype=np.int64)
     for start in range(0, len(u), _CHUNK):
         idx = np.argmax(u[start : start + _CHUNK] @ centres.T, axis=1)
-        counts += np.bincount(idx, minlength=n_cells)
+        counts += np.bincount(idx, minlength=n_cells) * stride
     if len(u):
         scatter = (u.T @ u) / len(u)
         isotropy = float(3.0 * np.linalg.eigvalsh(scatter)[0])
@@ -151,6 +154,7 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
     IdentifiabilityError
         With a message saying what to record instead.
     """
+    B = B[:: max(1, len(B) // _COVERAGE_SAMPLES)]  # an evenly spread subsample decides it as well
     centred = B - B.mean(axis=0)
     scale = float(np.max(np.abs(B))) or 1.0
     sv = np.linalg.svd(centred / scale, compute_uv=False)

@@ -121,20 +121,26 @@ def geometric_residual(
     mag = np.sqrt(np.einsum("ij,ij->i", y, y))
     n = y / mag[:, None]
     g = mag - target
-    # dy/dtheta (N, 3, 9)
-    Gy = np.zeros((len(u), 3, 9))
-    for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
-        Gy[:, i, k] = e[:, j]
-    Gy[:, :, 6:] = -W[None, :, :]
-    dg = np.einsum("ni,nik->nk", n, Gy)
-    dn = (Gy - n[:, :, None] * dg[:, None, :]) / mag[:, None, None]
     q = n @ W  # W^T n, (N, 3)
-    dq = np.einsum("ij,nik->njk", W, dn)
-    for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
-        dq[:, j, k] += n[:, i]
-    qn = np.sqrt(np.einsum("ij,ij->i", q, q))
+    qn2 = np.einsum("ij,ij->i", q, q)
+    qn = np.sqrt(qn2)
     s = 1.0 / qn
-    ds = -np.einsum("ni,nik->nk", q, dq) / qn[:, None] ** 3
+    # Closed-form columns (no (N, 3, 9) tensor): for an upper entry (i, j) dy/dtheta = e_j unit_i, for b_m
+    # dy/dtheta = -W[:, m]. Then dg = n . dy, dq = W^T (dy - n dg) / mag (+ n_i at row j for W_ij itself),
+    # ds = -(q . dq) / |q|^3; the products q . W^T dy reduce to (W q)_i e_j and -(W^T W q)_m.
+    ii, jj = UPPER
+    Wq = q @ W.T
+    WtWq = q @ (W.T @ W)
+    dg = np.empty((len(u), 9))
+    A = np.empty((len(u), 9))
+    extra = np.zeros((len(u), 9))
+    dg[:, :6] = n[:, ii] * e[:, jj]
+    dg[:, 6:] = -q
+    A[:, :6] = e[:, jj] * Wq[:, ii]
+    A[:, 6:] = -WtWq
+    extra[:, :6] = q[:, jj] * n[:, ii]
+    qn3 = qn2 * qn
+    ds = -(A - dg * qn2[:, None]) / (mag * qn3)[:, None] - extra / qn3[:, None]
     r = s * g
     J = s[:, None] * dg + g[:, None] * ds
     return np.asarray(r, dtype=np.float64), np.asarray(J, dtype=np.float64)
@@ -155,11 +161,20 @@ def weighted_ml(
     Returns ``(p, least_squares result, function evaluations)``.
     """
 
+    cache: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+
+    def both(q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        key = np.asarray(q, dtype=np.float64).tobytes()
+        if key not in cache:  # fun and jac at the same point share one evaluation
+            cache.clear()
+            cache[key] = geometric_residual(u, q, target)
+        return cache[key]
+
     def fun(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        return geometric_residual(u, q, target)[0]
+        return both(q)[0]
 
     def jac(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        return geometric_residual(u, q, target)[1]
+        return both(q)[1]
 
     method = "lm" if loss == "linear" else "trf"
     res = least_squares(
@@ -167,6 +182,48 @@ def weighted_ml(
         gtol=1e-12, max_nfev=max_iter * 10,
     )
     return np.asarray(res.x, dtype=np.float64), res, int(res.nfev)
+
+
+#: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
+#: with Gauss-Newton steps on the normal equations (9 x 9), so time and memory stay linear in N.
+LARGE_N = 50_000
+
+
+_POLISH_CHUNK = 65_536
+
+
+def _normal_equations(
+    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """``J^T J`` (9, 9), ``J^T r`` (9,) and ``sum r^2`` of the geometric residual, accumulated in chunks
+    (cache-sized temporaries; memory independent of N)."""
+    JtJ = np.zeros((9, 9))
+    Jtr = np.zeros(9)
+    ss = 0.0
+    for start in range(0, len(u), _POLISH_CHUNK):
+        r, J = geometric_residual(u[start : start + _POLISH_CHUNK], p, target[start : start + _POLISH_CHUNK])
+        JtJ += J.T @ J
+        Jtr += J.T @ r
+        ss += float(r @ r)
+    return JtJ, Jtr, ss
+
+
+def gauss_newton_polish(
+    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 2
+) -> tuple[NDArray[np.float64], float, NDArray[np.float64], int]:
+    """Gauss-Newton steps on the geometric residual over all samples from a nearby start ``p``.
+
+    Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
+    point before the final, negligible step).
+    """
+    evaluations = 0
+    while True:
+        JtJ, Jtr, ss = _normal_equations(u, p, target)
+        evaluations += 1
+        step = np.linalg.solve(JtJ, Jtr)
+        p = p - step
+        if np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p)) or evaluations >= max_steps:
+            return p, ss, JtJ, evaluations
 
 
 def bias_correction(
@@ -272,14 +329,17 @@ def ellipsoid_result(
     y = (B - offset) @ W.T
     mag = np.linalg.norm(y, axis=1)
     target = ref.values if known else np.full(len(B), float(F_hat if F_hat is not None else mag.mean()))
-    w = _weights(B, W, offset)
+    # sums over samples (noise level, information) use an evenly spread subsample on large logs
+    idx = np.linspace(0, len(B) - 1, min(len(B), LARGE_N)).astype(np.int64)
     if sigma is None:
-        sigma = float(np.sqrt(np.sum(w * (mag - target) ** 2) / max(len(B) - 9, 1)))
+        w = _weights(B[idx], W, offset)
+        sigma = float(np.sqrt(np.sum(w * (mag[idx] - target[idx]) ** 2) / max(len(idx) - 9, 1)))
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     coverage = sphere_coverage(y)
     if sigma > 0:
-        J = fisher_information(B, _upper_param, theta, sigma, known_magnitude=known)
+        # the information is a sum over samples: on large logs, an evenly spread subsample scaled up
+        J = fisher_information(B[idx], _upper_param, theta, sigma, known_magnitude=known) * (len(B) / len(idx))
         grad = None
         names: tuple[str, ...] = _NAMES
         if not known:
@@ -369,18 +429,29 @@ class MaximumLikelihood(Estimator):
         else:
             f_scale, target = 1.0, np.ones(len(B))
         p0 = np.concatenate([W0[UPPER], c0])
-        p, res, nfev = weighted_ml(u, p0, target, loss=self.loss, max_iter=self.max_iter)
-        cond, s, vt = design_condition(res.jac)
+        large = len(u) > LARGE_N and self.loss == "linear"
+        # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N)
+        sub_idx = np.linspace(0, len(u) - 1, LARGE_N).astype(np.int64) if large else slice(None)
+        p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter)
+        if large:
+            p, sum_sq, JtJ, n_polish = gauss_newton_polish(u, p, target)
+            nfev += n_polish
+            # singular values of J equal those of its Cholesky factor (J = QR), so condition from JtJ
+            design = np.linalg.cholesky(JtJ + 1e-300 * np.eye(9)).T
+        else:
+            sum_sq, design = float(np.sum(res.fun**2)), res.jac
+        cond, s, vt = design_condition(design)
         check_condition(
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
         )
-        sigma2_u = float(np.sum(res.fun**2) / max(len(u) - 9, 1))
+        sigma2_u = sum_sq / max(len(u) - 9, 1)
         if self.noise_std is not None:
             sigma2_u = (float(self.noise_std) / norm.scale) ** 2
         correction = np.zeros(9)
         if self.bias_correction and self.loss == "linear" and sigma2_u > 0:
-            correction = bias_correction(u, p, target, sigma2_u)
+            # the bias is a ratio of two sums over samples: a spread subsample estimates it as well
+            correction = bias_correction(u[sub_idx], p, target[sub_idx], sigma2_u)
             p = p - correction
         W_u, b_u = _unpack(p)
         W = W_u * f_scale / norm.scale
