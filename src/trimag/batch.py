@@ -188,6 +188,7 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
 def _write_parquet(df: pd.DataFrame, path: Path) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are ordinary files
     try:
         df.to_parquet(tmp, index=False)
         os.replace(tmp, path)

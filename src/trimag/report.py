@@ -38,6 +38,7 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 110) ->
     fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".png", dir=target.parent)
     os.close(fd)
     try:
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are ordinary files
         fig.savefig(tmp, dpi=dpi, format="png")
         os.replace(tmp, target)
     except BaseException:

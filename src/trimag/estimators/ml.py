@@ -328,7 +328,10 @@ def ellipsoid_result(
     theta = np.concatenate([W[UPPER], offset])
     y = (B - offset) @ W.T
     mag = np.linalg.norm(y, axis=1)
-    target = ref.values if known else np.full(len(B), float(F_hat if F_hat is not None else mag.mean()))
+    target: NDArray[np.float64] = (
+        ref.values if ref.values is not None
+        else np.full(len(B), float(F_hat if F_hat is not None else mag.mean()))
+    )
     # sums over samples (noise level, information) use an evenly spread subsample on large logs
     idx = np.linspace(0, len(B) - 1, min(len(B), LARGE_N)).astype(np.int64)
     if sigma is None:

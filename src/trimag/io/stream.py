@@ -329,6 +329,7 @@ def apply_file(
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     os.close(fd)
+    os.chmod(tmp_name, 0o644)  # mkstemp creates 0600; outputs are ordinary files
     tmp = Path(tmp_name)
     n_rows = 0
     n_bad = 0
