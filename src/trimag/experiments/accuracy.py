@@ -23,6 +23,7 @@ import json
 import time
 import warnings
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -272,12 +273,13 @@ def run(
     except ImportError:  # pragma: no cover
         progress = None
     if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
+        from ..parallel import map_trials
 
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futs = [pool.submit(_cell_by_name, s, n, c, trials, seed, estimators) for s, n, c in cells]
-            for f in futs:
-                rows.extend(f.result())
+        for cell_rows in map_trials(
+            partial(_cell_star, trials=trials, seed=seed, estimators=estimators), cells, workers=workers,
+            progress="accuracy",
+        ):
+            rows.extend(cell_rows)
     else:
         task = None
         if progress is not None:
@@ -300,6 +302,12 @@ def run(
                     "peers": {k: v[1] for k, v in PEERS.items()}})
     atomic_write_text(out_dir / "accuracy.json", json.dumps({"summary": summary, "rows": rows}, indent=1))
     return summary
+
+
+def _cell_star(cell: tuple[Any, ...], *, trials: int, seed: int, estimators: Any) -> Any:
+    """``_cell_by_name`` for one ``(sigma, n, coverage)`` cell (a picklable single-argument task)."""
+    s, n, c = cell
+    return _cell_by_name(s, n, c, trials, seed, estimators)
 
 
 def _cell_by_name(

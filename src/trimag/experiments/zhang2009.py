@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import math
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +42,7 @@ from ..estimators.bfgs import BFGS
 from ..estimators.lms import LMS
 from ..estimators.quadric import Quadric, identifiability_report
 from ..models.zhang_cheng import ZhangCheng
+from ..parallel import map_trials
 from ..simulate import body_field, random_attitudes, uniform_directions
 from ._output import jsonable, save_figure, write_csv
 
@@ -224,10 +224,7 @@ def noise_sweep(
 ) -> list[dict[str, Any]]:
     """Part 3: Monte Carlo over sigma on the paper's path and on the full sphere (40 samples each)."""
     cells = [(p, s, trials, seed, tilt_deg, inclination_deg) for p in ("paper", "sphere") for s in sigmas]
-    if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(_sweep_cell, cells))
-    return [_sweep_cell(c) for c in cells]
+    return map_trials(_sweep_cell, cells, workers=workers, progress="noise sweep")
 
 
 # ---------------------------------------------------------------------------------------------- output
