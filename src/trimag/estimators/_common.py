@@ -7,9 +7,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import TrimagInputError
 from ..reference import ScalarReference, as_scalar_reference
 
-__all__ = ["Normalisation", "normalise", "scalar_reference"]
+__all__ = ["Normalisation", "check_ellipsoid_options", "normalise", "scalar_reference"]
 
 
 class Normalisation:
@@ -32,3 +33,11 @@ def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisatio
 def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:
     """Shortcut to :func:`trimag.reference.as_scalar_reference`."""
     return as_scalar_reference(reference, n, units=units)
+
+
+def check_ellipsoid_options(form: str, noise_std: float | None = None) -> None:
+    """Validate the options the ellipsoid estimators share (``form``, ``noise_std``)."""
+    if form not in ("upper", "symmetric"):
+        raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {form!r}")
+    if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
+        raise TrimagInputError(f"`noise_std` must be a non-negative number; got {noise_std!r}")

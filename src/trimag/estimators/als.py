@@ -27,8 +27,8 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..diagnostics import check_not_degenerate
-from ..errors import IdentifiabilityError, TrimagInputError
-from ._common import normalise, scalar_reference
+from ..errors import IdentifiabilityError
+from ._common import check_ellipsoid_options, normalise, scalar_reference
 from .base import Estimator
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale, quadric_to_ellipsoid
 from .ml import ellipsoid_result
@@ -125,8 +125,7 @@ class AdjustedLeastSquares(Estimator):
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
-        if self.form not in ("upper", "symmetric"):
-            raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {self.form!r}")
+        check_ellipsoid_options(self.form)
         check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)

@@ -51,7 +51,7 @@ from ..diagnostics import (
 from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
-from ._common import normalise, scalar_reference
+from ._common import check_ellipsoid_options, normalise, scalar_reference
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 
@@ -418,10 +418,7 @@ class MaximumLikelihood(Estimator):
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
-        if self.form not in ("upper", "symmetric"):
-            raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {self.form!r}")
-        if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std >= 0):
-            raise TrimagInputError(f"`noise_std` must be a non-negative number; got {self.noise_std!r}")
+        check_ellipsoid_options(self.form, self.noise_std)
         check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)

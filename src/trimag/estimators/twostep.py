@@ -35,9 +35,9 @@ from scipy.optimize import least_squares
 
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
-from ..errors import IdentifiabilityError, TrimagInputError
+from ..errors import IdentifiabilityError
 from ..models.ellipsoid import to_upper
-from ._common import normalise, scalar_reference
+from ._common import check_ellipsoid_options, normalise, scalar_reference
 from .base import Estimator
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 from .ml import ellipsoid_result
@@ -90,10 +90,7 @@ class TwoStep(Estimator):
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
-        if self.form not in ("upper", "symmetric"):
-            raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {self.form!r}")
-        if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std >= 0):
-            raise TrimagInputError(f"`noise_std` must be a non-negative number; got {self.noise_std!r}")
+        check_ellipsoid_options(self.form, self.noise_std)
         check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)
