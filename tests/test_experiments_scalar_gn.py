@@ -16,7 +16,7 @@ from trimag.experiments import get_experiment
 from trimag.experiments import scalar_gn as sgn
 from trimag.workflow import fit_file
 
-BROAD = Path("/work/shared/data/broad/01_undisturbed_slow_rotation_A.mat")
+BROAD = sgn.BROAD_TRIAL
 
 
 def _trimag(*args: str) -> subprocess.CompletedProcess[str]:
@@ -91,7 +91,7 @@ def test_run_quick_writes_outputs(tmp_path: Path) -> None:
     assert "48193" in summary["text"] and "b1=-190" in summary["text"]
 
 
-@pytest.mark.skipif(not BROAD.exists(), reason="shared data absent (/work/shared/data/broad)")
+@pytest.mark.skipif(not BROAD.exists(), reason="shared data absent (../shared/data/broad)")
 def test_real_log_pooled_fit() -> None:
     real = sgn.real_log_experiment(BROAD)
     table = {r["fit_on"]: r for r in real["table"]}

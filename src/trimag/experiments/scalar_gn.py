@@ -34,6 +34,7 @@ from ..estimators.gauss_newton import GaussNewton
 from ..metrics import magnitude_stats
 from ..models.scalar9 import Scalar9
 from ..simulate import axis_turns, body_field
+from ._data import shared_data_dir
 from ._output import save_figure, write_csv
 
 __all__ = [
@@ -73,8 +74,8 @@ TRUTH = Scalar9.from_degrees(
 #: Field in the navigation frame (NED), nT: |F| = 48193, inclination 45 deg, declination 0 (our choice).
 FIELD_NAV = F_PAPER * np.array([math.cos(math.radians(45.0)), 0.0, math.sin(math.radians(45.0))])
 
-BROAD_TRIAL = Path("/work/shared/data/broad/01_undisturbed_slow_rotation_A.mat")
-HMC_LOG = Path("/work/shared/data/hmc5883l-sunsided/full-sphere_hmc5883l_compass.mat")
+BROAD_TRIAL = shared_data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
+HMC_LOG = shared_data_dir() / "hmc5883l-sunsided" / "full-sphere_hmc5883l_compass.mat"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

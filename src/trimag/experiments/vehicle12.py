@@ -22,7 +22,8 @@ fitting attitudes, 5 test attitudes. Metrics: total-field error before/after per
 ``(|e_b| - |e_a|) / |e_b|`` and precision ``|e_a| / F`` (:mod:`trimag.metrics`), their mean and spread
 (standard deviation over the test attitudes, ddof=0; the paper's "均方差"), per-axis vector errors.
 
-Real data: BROAD (``/work/shared/data/broad``) trials with optical-reference quaternions (body -> ENU,
+Real data: BROAD (``$TRIMAG_SHARED_DATA/broad`` or ``../shared/data/broad``) trials with optical-reference
+quaternions (body -> ENU,
 scalar first, verified against gravity); fit on one trial, test on the others. No iron-free run or local
 field vector exists there, so the background is fitted jointly (``estimate_background``) with ``|H_n|``
 fixed to the mean measured magnitude of the fitting trial; see ``docs/method-linear-vector.md``.
@@ -47,6 +48,7 @@ from ..estimators.linear_vector import LinearVector, fit_with_background, solve_
 from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
 from ..reference import igrf
+from ._data import shared_data_dir
 from ._output import write_dict_csv
 
 __all__ = [
@@ -320,7 +322,7 @@ def _noise_free_check(setup: Setup, H_n: NDArray[np.float64]) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- real data
-BROAD_DIR = Path(os.environ.get("TRIMAG_BROAD_DIR", "/work/shared/data/broad"))
+BROAD_DIR = Path(os.environ["TRIMAG_BROAD_DIR"]) if os.environ.get("TRIMAG_BROAD_DIR") else shared_data_dir() / "broad"
 BROAD_FIT = "01_undisturbed_slow_rotation_A.mat"
 BROAD_TEST = ("02_undisturbed_slow_rotation_B.mat", "03_undisturbed_slow_rotation_C.mat",
               "06_undisturbed_fast_rotation_A.mat")

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import time
 import warnings
 from functools import partial
@@ -43,6 +42,7 @@ from ..metrics import j_index
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, params_from_q
 from ..parallel import map_trials, trial_seeds
+from ._data import shared_data_dir
 from ._output import save_figure, write_csv
 
 __all__ = [
@@ -73,7 +73,7 @@ N_GRID_QUICK = (20, 100, 400, 720, 1000)
 SIGMAS_FIG5 = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 2e-2, 3e-2, 5e-2, 1e-1)
 SIGMAS_FIG5_QUICK = (1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
 N_FIG5 = 720
-DEFAULT_DATA_DIR = Path(os.environ.get("TRIMAG_SHARED_DATA", "/work/shared/data"))
+DEFAULT_DATA_DIR = shared_data_dir()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
