@@ -152,3 +152,67 @@ def test_large_log_path_matches_full_solve(monkeypatch: pytest.MonkeyPatch) -> N
     std = np.array(list(full.uncertainty["param_std"].values()))[:9]
     diff = np.concatenate([(fast.matrix - full.matrix)[np.triu_indices(3)], fast.offset - full.offset])
     assert np.all(np.abs(diff) < 0.05 * std)
+
+
+# ---- balanced sampling: the sample mean as the offset (docs/method-ml.md, "Balanced sampling") -------------
+def _circle_fits(n, sigma, k, balance, *, directions=None):
+    """k fits (unknown F) of three complete, evenly sampled great circles; returns offset errors (k, 3),
+    reported offset std (k, 3) and the balance diagnostics."""
+    from trimag.simulate import great_circle_directions
+
+    u = great_circle_directions(n) if directions is None else directions
+    errs, stds, tests = [], [], []
+    for t in range(k):
+        raw = u @ D.T + B0 + np.random.default_rng(300 + t).normal(scale=sigma, size=u.shape)
+        cal = trimag.fit(raw, method="ml", balance=balance)
+        errs.append(cal.offset - B0)
+        stds.append([cal.uncertainty["param_std"][f"hard_iron_{a}"] for a in "xyz"])
+        tests.append(cal.diagnostics.get("balanced_offset"))
+    return np.array(errs), np.array(stds), tests
+
+
+def test_balanced_turns_use_the_sample_mean_and_beat_the_unknown_direction_bound():
+    n, sigma, k = 600, 0.05, 24
+    err_auto, std_auto, tests = _circle_fits(n, sigma, k, "auto")
+    err_ml, std_ml, none = _circle_fits(n, sigma, k, "never")
+    assert all(t is None for t in none)  # "never": no test, plain ML
+    accepted = np.array([t["applied"] for t in tests])
+    assert accepted.mean() >= 0.85  # the test keeps its level (1 %) on balanced data; a few misses allowed
+    # accepted: the offset is the sample mean and its reported std is sigma / sqrt(N) per axis
+    for t, e in zip(tests, err_auto, strict=True):
+        if t["applied"]:
+            assert t["balanced"] and t["dof"] == 3 and 0 <= t["p_value"] <= 1
+    np.testing.assert_allclose(std_auto[accepted], sigma / np.sqrt(n), rtol=0.15)
+    # the mean's error is ~ sigma / sqrt(N); the ML's (unknown directions) ~ sqrt(3) sigma / sqrt(N)
+    rms_auto = np.sqrt(np.mean(err_auto**2))
+    rms_ml = np.sqrt(np.mean(err_ml**2))
+    assert rms_auto < 0.8 * rms_ml
+    assert rms_auto < 1.3 * sigma / np.sqrt(n)
+
+
+def test_unbalanced_data_keep_the_ml_offset():
+    from trimag.simulate import hemisphere_directions
+
+    u = hemisphere_directions(600, seed=4)
+    raw = u @ D.T + B0 + np.random.default_rng(5).normal(scale=0.05, size=u.shape)
+    auto = trimag.fit(raw, method="ml")  # balance="auto" is the default
+    plain = trimag.fit(raw, method="ml", balance="never")
+    test = auto.diagnostics["balanced_offset"]
+    assert not test["balanced"] and not test["applied"] and test["p_value"] < 1e-6
+    np.testing.assert_array_equal(auto.offset, plain.offset)
+    forced = trimag.fit(raw, method="ml", balance="always")  # the magcal assumption, wrong here
+    np.testing.assert_allclose(forced.offset, raw.mean(axis=0), rtol=0, atol=1e-12)
+    assert np.linalg.norm(forced.offset - B0) > 10 * np.linalg.norm(plain.offset - B0)
+
+
+def test_balance_statistic_is_chi2_with_3_dof_under_balance():
+    """Mean of the statistic over balanced trials ~ 3 (its expectation), not inflated by a wrong covariance."""
+    _, _, tests = _circle_fits(300, 0.02, 40, "auto")
+    chi2 = np.array([t["chi2"] for t in tests])
+    assert 2.0 < chi2.mean() < 4.2  # standard error of the mean ~ 0.39 over 40 trials
+
+
+def test_bad_balance_option():
+    raw = uniform_directions(100, seed=0) @ D.T + B0
+    with pytest.raises(TrimagInputError, match="balance"):
+        trimag.fit(raw, method="ml", balance="sometimes")

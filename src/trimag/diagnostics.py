@@ -31,7 +31,7 @@ CONDITION_WARN = 1e4
 CONDITION_ERROR = 1e9
 
 _CHUNK = 200_000
-_COVERAGE_SAMPLES = 100_000
+_COVERAGE_SAMPLES = 50_000
 
 
 def fibonacci_sphere(n: int) -> NDArray[np.float64]:

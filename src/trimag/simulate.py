@@ -79,12 +79,18 @@ def hemisphere_directions(n: int, seed: int | np.random.Generator | None = None)
 
 
 def great_circle_directions(n: int) -> NDArray[np.float64]:
-    """``n`` unit vectors on the three orthogonal great circles (xy, yz, zx planes), shape (n, 3)."""
-    k = int(np.ceil(n / 3))
-    t = 2.0 * np.pi * np.arange(k) / k
-    c, s, z = np.cos(t), np.sin(t), np.zeros(k)
-    v = np.vstack([np.column_stack([c, s, z]), np.column_stack([z, c, s]), np.column_stack([s, z, c])])
-    return v[:n]
+    """``n`` unit vectors on the three orthogonal great circles (xy, yz, zx planes), shape (n, 3).
+
+    Each circle is complete and evenly sampled (``n // 3`` points, one more on the first ``n % 3`` circles), as
+    full turns on a turntable at constant rate give, so the directions sum to zero.
+    """
+    counts = [n // 3 + (1 if i < n % 3 else 0) for i in range(3)]
+    parts = []
+    for i, k in enumerate(counts):
+        t = 2.0 * np.pi * np.arange(k) / max(k, 1)
+        c, s, z = np.cos(t), np.sin(t), np.zeros(k)
+        parts.append([np.column_stack([c, s, z]), np.column_stack([z, c, s]), np.column_stack([s, z, c])][i])
+    return np.vstack(parts)
 
 
 def body_field(attitude: Rotation, field_nav: ArrayLike) -> NDArray[np.float64]:

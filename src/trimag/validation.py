@@ -59,8 +59,8 @@ def check_field(
         )
     if arr.shape[0] == 0:
         raise TrimagInputError(f"`{name}` is empty: no samples to work with")
-    bad = ~np.isfinite(arr).all(axis=1)
-    if bad.any():
+    if not np.isfinite(arr).all():  # the per-row mask (for the message) only when something is wrong
+        bad = ~np.isfinite(arr).all(axis=1)
         raise TrimagInputError(
             f"`{name}` has {int(bad.sum())} row(s) with NaN or inf (first at row {int(np.argmax(bad))}); "
             "drop them first (the file readers do this and report the count)"

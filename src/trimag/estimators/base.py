@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..calibration import Calibration
 from ..diagnostics import sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
-from ..metrics import magnitude_stats
+from ..metrics import norm_stats, row_norms
 from ..models import get_model
 from ..reference import ScalarReference
 from ..units import normalise_unit
@@ -129,7 +129,7 @@ class Estimator:
         corrected = cal.apply(X)
         ref_value = (cal.reference or {}).get("value")
         target = self._residual_target(corrected, reference, ref_value)
-        self.residuals_ = np.linalg.norm(corrected, axis=1) - target
+        self.residuals_ = row_norms(corrected) - target
         self.cond_ = float(cal.diagnostics.get("condition_number", np.nan))
         return self
 
@@ -140,7 +140,7 @@ class Estimator:
             return np.asarray(reference, dtype=np.float64)
         if ref_value is not None:
             return float(ref_value)
-        return float(np.linalg.norm(corrected, axis=1).mean())
+        return float(row_norms(corrected).mean())
 
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
@@ -170,27 +170,33 @@ def build_calibration(
     uncertainty: Mapping[str, Any] | None = None,
     diagnostics: Mapping[str, Any] | None = None,
     extra_stats: Mapping[str, Any] | None = None,
+    corrected: NDArray[np.float64] | None = None,
+    coverage: Mapping[str, Any] | None = None,
 ) -> Calibration:
     """Assemble a :class:`Calibration` with before/after statistics and sphere coverage.
 
     Statistics use ``F`` = the reference magnitude(s), or, when the magnitude is unknown, the mean corrected
     magnitude: ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``. ``fitted_magnitude`` (the radius
     implied by the method's scale gauge, e.g. det(W) = 1) is recorded as ``reference["fitted_radius"]``.
+    ``corrected`` (the samples corrected by ``matrix``, ``offset``) and ``coverage`` (the
+    :func:`~trimag.diagnostics.sphere_coverage` of ``corrected``) may be passed when the caller has them already.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
-    corrected = (B - offset) @ matrix.T
+    if corrected is None:
+        corrected = (B - offset) @ matrix.T
+    norms_after = row_norms(corrected)
     if reference.values is not None:
         F: Any = reference.values
         ref_info = reference.info()
     else:
         # no reference: the statistics use the mean corrected magnitude (docs/cli.md, "rms_*")
-        F = float(np.linalg.norm(corrected, axis=1).mean())
+        F = float(norms_after.mean())
         ref_info = reference.info(fitted_value=F)
         if fitted_magnitude is not None:
             ref_info["fitted_radius"] = float(fitted_magnitude)
-    before = magnitude_stats(B, F)
-    after = magnitude_stats(corrected, F)
+    before = norm_stats(row_norms(B), F)
+    after = norm_stats(norms_after, F)
     stats: dict[str, Any] = {
         "n_samples": int(B.shape[0]),
         "n_used": int(B.shape[0]),
@@ -208,7 +214,7 @@ def build_calibration(
         "std_norm_after": after["std_norm"],
     }
     stats.update(extra_stats or {})
-    cov = sphere_coverage(corrected)
+    cov = coverage if coverage is not None else sphere_coverage(corrected)
     diag = {"coverage": {k: v for k, v in cov.items() if k != "cell_counts"}}
     diag.update(diagnostics or {})
     return Calibration.from_matrix_offset(

@@ -49,6 +49,7 @@ from ..diagnostics import (
     weak_directions,
 )
 from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
+from ..metrics import row_norms
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
 from ._common import check_ellipsoid_options, normalise, scalar_reference
@@ -56,10 +57,12 @@ from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 
 __all__ = [
+    "BALANCE_CHOICES",
     "COVERAGE_WARN",
     "VIF_REPORT",
     "VIF_WARN",
     "MaximumLikelihood",
+    "balance_test",
     "bias_correction",
     "ellipsoid_result",
     "geometric_residual",
@@ -300,11 +303,71 @@ def identifiability(
     return out
 
 
+#: Values of the ``balance`` option of ``ml``.
+BALANCE_CHOICES = ("auto", "never", "always")
+#: Significance level of :func:`balance_test`: the data count as balanced unless the test rejects at this level.
+BALANCE_ALPHA = 0.01
+
+
+def balance_test(
+    B: NDArray[np.float64], offset: NDArray[np.float64], cov_offset: NDArray[np.float64], sigma: float,
+    *, alpha: float = BALANCE_ALPHA,
+) -> dict[str, Any]:
+    """Are the true field directions balanced (``sum_i u_i = 0``), so that the sample mean is the offset?
+
+    With balanced directions (e.g. complete turns sampled evenly in time) ``mean(x) = b + mean(e)``: the sample
+    mean estimates the offset with covariance ``sigma^2 I / N``, below the bound for unknown directions (about
+    ``3 sigma^2 / N`` per axis on a full sphere). The test compares ``d = mean(x) - b_ml`` with its covariance
+    under balance. To first order ``mean(e)`` is uncorrelated with the maximum-likelihood error (its
+    Jacobian in ``b`` is minus the unit normals), so ``Cov(d) = Cov(b_ml) - sigma^2 I / N`` (a Hausman test), and
+    ``chi2 = d^T Cov(d)^-1 d`` has 3 degrees of freedom under balance.
+
+    Parameters
+    ----------
+    B : ndarray, shape (N, 3)
+        Raw samples.
+    offset : ndarray, shape (3,)
+        Maximum-likelihood offset.
+    cov_offset : ndarray, shape (3, 3)
+        Its covariance (data units squared).
+    sigma : float
+        Noise standard deviation per axis (data units).
+    alpha : float
+        Significance level; balanced when the p-value exceeds it.
+
+    Returns
+    -------
+    dict
+        ``balanced`` (bool), ``chi2``, ``dof``, ``p_value``, ``alpha``, ``sample_mean`` (list of 3).
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    n = len(B)
+    mean = (np.ones(n) @ B) / n
+    d = mean - offset
+    cov_d = np.asarray(cov_offset, dtype=np.float64) - (sigma**2 / n) * np.eye(3)
+    evals, evecs = np.linalg.eigh(0.5 * (cov_d + cov_d.T))
+    keep = evals > 1e-6 * max(float(evals.max()), sigma**2 / n)
+    dof = int(keep.sum())
+    z = evecs.T @ d
+    stat = float(np.sum(z[keep] ** 2 / evals[keep])) if dof else float("inf")
+    p_value = float(chi2_dist.sf(stat, dof)) if dof else 0.0
+    return {
+        "balanced": bool(dof == 3 and p_value > alpha),
+        "chi2": stat,
+        "dof": dof,
+        "p_value": p_value,
+        "alpha": alpha,
+        "sample_mean": mean.tolist(),
+    }
+
+
 def ellipsoid_result(
     B: NDArray[np.float64], W: NDArray[np.float64], offset: NDArray[np.float64], *, ref: ScalarReference,
     F_hat: float | None, sigma: float | None, model: str, method: str, units: str, form: str,
     iterations: int = 0, converged: bool = True, diagnostics: dict[str, Any] | None = None,
     uncertainty_note: str = "Fisher information at the estimate (attained by an efficient estimator)",
+    balance: str = "never",
 ) -> Calibration:
     """Finish an ellipsoid fit: uncertainty, identifiability diagnostics and the :class:`Calibration`.
 
@@ -320,14 +383,18 @@ def ellipsoid_result(
         Fitted magnitude when unknown.
     sigma : float or None
         Noise standard deviation per axis (data units); estimated from the residuals when None.
+    balance : {"never", "auto", "always"}
+        Whether to replace the offset by the sample mean when the field directions are balanced
+        (:func:`balance_test`): never, when the test accepts it, or always.
     """
     if form not in ("upper", "symmetric"):
         raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {form!r}")
+    if balance not in BALANCE_CHOICES:
+        raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {balance!r}")
     known = ref.values is not None
     W = to_upper(W)
-    theta = np.concatenate([W[UPPER], offset])
     y = (B - offset) @ W.T
-    mag = np.linalg.norm(y, axis=1)
+    mag = row_norms(y)
     target: NDArray[np.float64] = (
         ref.values if ref.values is not None
         else np.full(len(B), float(F_hat if F_hat is not None else mag.mean()))
@@ -339,12 +406,13 @@ def ellipsoid_result(
         sigma = float(np.sqrt(np.sum(w * (mag[idx] - target[idx]) ** 2) / max(len(idx) - 9, 1)))
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
-    coverage = sphere_coverage(y)
+    cov: NDArray[np.float64] | None = None
+    names: tuple[str, ...] = _NAMES
     if sigma > 0:
+        theta = np.concatenate([W[UPPER], offset])
         # the information is a sum over samples: on large logs, an evenly spread subsample scaled up
         J = fisher_information(B[idx], _upper_param, theta, sigma, known_magnitude=known) * (len(B) / len(idx))
         grad = None
-        names: tuple[str, ...] = _NAMES
         if not known:
             names = (*_NAMES, "F")
             Winv = np.linalg.inv(W)
@@ -356,6 +424,23 @@ def ellipsoid_result(
             cov = _constrained_inverse(J, grad)
         except IdentifiabilityError:
             cov = np.full_like(J, np.inf)
+        if balance != "never" and np.isfinite(cov).all():
+            test = balance_test(B, offset, cov[6:9, 6:9], sigma)
+            apply_mean = balance == "always" or test["balanced"]
+            test["applied"] = bool(apply_mean)
+            diag["balanced_offset"] = test
+            if apply_mean:
+                # the sample mean is the offset; its error (mean noise) is uncorrelated to first order with
+                # the ML estimate of W (docs/method-ml.md, "Balanced sampling"), so only the b block changes
+                offset = np.asarray(test["sample_mean"], dtype=np.float64)
+                y = (B - offset) @ W.T
+                cov = cov.copy()
+                cov[6:9, :] = 0.0
+                cov[:, 6:9] = 0.0
+                cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
+    coverage = sphere_coverage(y)
+    if cov is not None:
+        theta = np.concatenate([W[UPPER], offset])
         Fm = float(np.mean(np.asarray(target, dtype=np.float64)))
         X_test = (Fm * fibonacci_sphere(500)) @ np.linalg.inv(W).T + offset
         field_rms, mag_rms = (
@@ -373,10 +458,12 @@ def ellipsoid_result(
             "predicted_magnitude_rms": mag_rms,
         }
     W_out = to_symmetric(W) if form == "symmetric" else W
+    upper = form == "upper"  # then the corrected samples and their coverage are those computed above
     return build_calibration(
         B, W_out, offset, model=model, method=method, units=units, reference=ref,
         params=Ellipsoid.from_matrix_offset(W_out, offset).as_dict(), iterations=iterations,
         converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag,
+        corrected=y if upper else None, coverage=coverage if upper else None,
     )
 
 
@@ -399,6 +486,10 @@ class MaximumLikelihood(Estimator):
         Subtract the second-order noise bias (default True). False gives the plain weighted ML.
     noise_std : float, optional
         Noise standard deviation per axis in the data's unit; estimated from the residuals when None.
+    balance : {"auto", "never", "always"}
+        Offset from the sample mean when the field directions are balanced (``sum u_i = 0``, e.g. complete
+        turns sampled evenly): ``"auto"`` (default) when :func:`balance_test` accepts it, ``"never"``, or
+        ``"always"``. Recorded in ``diagnostics["balanced_offset"]``.
     """
 
     name = "ml"
@@ -406,7 +497,7 @@ class MaximumLikelihood(Estimator):
 
     def __init__(
         self, model: str = "ellipsoid", form: str = "upper", loss: str = "linear", max_iter: int = 100,
-        bias_correction: bool = True, noise_std: float | None = None,
+        bias_correction: bool = True, noise_std: float | None = None, balance: str = "auto",
     ) -> None:
         self.model = model
         self.form = form
@@ -414,11 +505,14 @@ class MaximumLikelihood(Estimator):
         self.max_iter = max_iter
         self.bias_correction = bias_correction
         self.noise_std = noise_std
+        self.balance = balance
 
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
         check_ellipsoid_options(self.form, self.noise_std)
+        if self.balance not in BALANCE_CHOICES:
+            raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {self.balance!r}")
         check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)
@@ -462,6 +556,7 @@ class MaximumLikelihood(Estimator):
         return ellipsoid_result(
             B, W, offset, ref=ref, F_hat=F_hat, sigma=float(np.sqrt(sigma2_u) * norm.scale), model=model,
             method=self.name, units=units, form=self.form, iterations=nfev, converged=bool(res.success),
+            balance=self.balance if self.loss == "linear" else "never",
             diagnostics={
                 "condition_number": cond,
                 "optimizer": str(res.message),
