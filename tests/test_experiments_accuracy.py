@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from trimag.experiments import accuracy
 
@@ -28,3 +29,18 @@ def test_accuracy_tiny_grid(tmp_path):
 def test_truth_has_unit_determinant():
     W, _ = accuracy.truth().correction()
     assert abs(np.linalg.det(W) - 1) < 1e-12
+
+
+def test_merge_parts_split_by_estimator(tmp_path):
+    """Two runs with the same seed (the default in both, a different second estimator) merge into one table; a
+    part with another seed is refused."""
+    kw = {"trials": 3, "json_mode": True, "sizes": [300], "sigmas": [0.01], "coverages": ["circles"]}
+    accuracy.run(tmp_path / "a", seed=0, estimators=["ml", "ellipsoid-fit"], **kw)
+    accuracy.run(tmp_path / "b", seed=0, estimators=["ml", "als"], **kw)
+    merged = accuracy.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "all")
+    rows = json.loads((tmp_path / "all" / "accuracy.json").read_text())["rows"]
+    assert sorted(r["estimator"] for r in rows) == ["als", "ellipsoid-fit", "ml"]
+    assert "| als |" in merged["text"] and "| ellipsoid-fit |" in merged["text"]
+    accuracy.run(tmp_path / "c", seed=1, estimators=["ml"], **kw)
+    with pytest.raises(ValueError, match="seed"):
+        accuracy.merge([tmp_path / "a", tmp_path / "c"], tmp_path / "bad")

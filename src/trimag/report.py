@@ -105,6 +105,13 @@ def params_table(cal: Calibration) -> str:
     if (cal.diagnostics or {}).get("fallback"):
         info = cal.diagnostics.get("fallback_info") or {}
         lines.append(f"note: Levenberg-Marquardt fallback ({info.get('reason', 'see diagnostics')})")
+    balance = (cal.diagnostics or {}).get("balanced_offset")
+    if isinstance(balance, dict) and balance.get("applied"):
+        lines.append(
+            "note: offset = sample mean (field directions balanced: chi2 "
+            f"{balance.get('chi2', float('nan')):.3g}, p = {balance.get('p_value', float('nan')):.3g}; "
+            "--option balance=never to keep the maximum-likelihood offset)"
+        )
     return "\n".join(lines)
 
 

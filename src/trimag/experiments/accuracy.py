@@ -37,7 +37,7 @@ from ..estimators import DEFAULT_METHOD, available_methods, get_estimator
 from ..models.ellipsoid import Ellipsoid, to_upper
 from ..simulate import great_circle_directions, hemisphere_directions, uniform_directions
 
-__all__ = ["PEERS", "add_arguments", "markdown_tables", "run", "summarise", "truth"]
+__all__ = ["PEERS", "add_arguments", "markdown_tables", "merge", "run", "summarise", "truth"]
 
 SIGMAS = (4e-4, 1e-2, 5e-2)
 SIZES = (400, 2000, 20000)
@@ -301,6 +301,49 @@ def run(
     summary.update({"trials": trials, "seed": seed, "default_method": DEFAULT_METHOD["ellipsoid"],
                     "peers": {k: v[1] for k, v in PEERS.items()}})
     atomic_write_text(out_dir / "accuracy.json", json.dumps({"summary": summary, "rows": rows}, indent=1))
+    return summary
+
+
+def merge(parts: list[Path], out_dir: Path) -> dict[str, Any]:
+    """Merge the ``accuracy.json`` of several runs (e.g. the grid split by N or by estimator, same seed) into
+    one ``accuracy.csv/.json/.md`` in ``out_dir``.
+
+    Rows are keyed by (sigma, N, coverage, estimator); a key present in several parts must have the same
+    trial count and results in each (the same seed gives the same data), else :class:`ValueError`. The
+    paired comparisons against the default method stay those computed within each part.
+    """
+    rows: dict[tuple[Any, ...], dict[str, Any]] = {}
+    meta: dict[str, Any] = {}
+    for part in parts:
+        data = json.loads((Path(part) / "accuracy.json").read_text())
+        seeds = {data["summary"].get("seed")}
+        if meta and meta.get("seed") not in seeds:
+            raise ValueError(f"{part}: seed {seeds} differs from the other parts' {meta.get('seed')}")
+        meta.setdefault("seed", data["summary"].get("seed"))
+        for r in data["rows"]:
+            key = (r["sigma"], r["n"], r["coverage"], r["estimator"])
+            if key in rows:
+                old = rows[key]
+                if old["trials"] != r["trials"] or not np.isclose(old.get("ratio_max", np.nan),
+                                                                  r.get("ratio_max", np.nan), equal_nan=True):
+                    if old["estimator"] != DEFAULT_METHOD["ellipsoid"]:
+                        raise ValueError(f"{part}: {key} differs from an earlier part")
+                    # the default appears in every part for the paired comparisons; keep the most trials
+                    if r["trials"] <= old["trials"]:
+                        continue
+                else:
+                    continue
+            rows[key] = r
+    merged = sorted(rows.values(), key=lambda r: (r["sigma"], r["n"], r["coverage"], r["estimator"]))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_rows(out_dir, merged)
+    summary = summarise(merged)
+    summary["text"] = markdown_tables(merged)
+    summary.update({"seed": meta.get("seed"), "parts": [str(p) for p in parts],
+                    "default_method": DEFAULT_METHOD["ellipsoid"], "peers": {k: v[1] for k, v in PEERS.items()}})
+    atomic_write_text(out_dir / "accuracy.md", summary["text"])
+    atomic_write_text(out_dir / "accuracy.json", json.dumps({"summary": summary, "rows": merged}, indent=1))
     return summary
 
 

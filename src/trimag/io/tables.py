@@ -291,7 +291,10 @@ def read_table(path: str | Path, *, fmt: str | None = None, var: str | None = No
 def _numeric(series: pd.Series) -> NDArray[np.float64]:
     if series.dtype.kind in "fiub":
         return series.to_numpy(dtype=np.float64)
-    return pd.to_numeric(series.astype(str).str.strip(), errors="coerce").to_numpy(dtype=np.float64)
+    try:  # every cell a number (the usual case): one conversion, no per-cell cleaning
+        return np.asarray(series.to_numpy(), dtype=np.float64)
+    except (TypeError, ValueError):  # empty or non-numeric cells become NaN (dropped and counted by the caller)
+        return pd.to_numeric(series.astype(str).str.strip(), errors="coerce").to_numpy(dtype=np.float64)
 
 
 def resolve_columns(
@@ -450,7 +453,7 @@ def read_samples(
         )
     kept = df[ok]
     field_arr = xyz[ok]
-    n_dup = int(len(field_arr) - len(np.unique(field_arr, axis=0)))
+    n_dup = int(pd.DataFrame(field_arr).duplicated().sum())
     return Samples(
         field=np.ascontiguousarray(field_arr),
         table=kept.reset_index(drop=True),
