@@ -126,12 +126,26 @@ class Estimator:
         cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
         self.calibration_ = cal
         self.n_samples_ = int(X.shape[0])
-        corrected = cal.apply(X)
-        ref_value = (cal.reference or {}).get("value")
-        target = self._residual_target(corrected, reference, ref_value)
-        self.residuals_ = row_norms(corrected) - target
+        # residuals_ is computed on first access (trimag.fit never needs it: one pass less over the data)
+        self._residual_inputs: tuple[NDArray[np.float64], Any] | None = (X, reference)
+        self._residuals: NDArray[np.float64] | None = None
         self.cond_ = float(cal.diagnostics.get("condition_number", np.nan))
         return self
+
+    @property
+    def residuals_(self) -> NDArray[np.float64]:
+        """``|corrected_i| - F_i`` (N,) on the fitted samples, in their unit."""
+        if not hasattr(self, "calibration_"):
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(B, reference) first")
+        if self._residuals is None:
+            assert self._residual_inputs is not None
+            X, reference = self._residual_inputs
+            cal = self.calibration_
+            corrected = cal.apply(X)
+            target = self._residual_target(corrected, reference, (cal.reference or {}).get("value"))
+            self._residuals = row_norms(corrected) - target
+            self._residual_inputs = None
+        return self._residuals
 
     def _residual_target(self, corrected: NDArray[np.float64], reference: Any, ref_value: Any) -> Any:
         if isinstance(reference, ScalarReference) and reference.values is not None:
