@@ -15,6 +15,9 @@ Three parts:
    optical attitude ``opt_quat``) and the HMC5883L full-sphere log (gauss; segments from the MPU6050 gyro);
    reference = the mean raw magnitude of the fitted subset (no absolute reference exists in the shared logs).
    Skipped, with the reason, when the shared data are absent.
+
+The noise sweep's trials run through :func:`trimag.parallel.map_trials` (``workers``), one seed per trial
+(:func:`trimag.parallel.trial_seeds`), so its numbers do not depend on the number of workers.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 import math
 import warnings
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..errors import IdentifiabilityError
+from ..errors import IdentifiabilityError, TrimagInputError
 from ..estimators.gauss_newton import GaussNewton
 from ..metrics import magnitude_stats
 from ..models.scalar9 import Scalar9
+from ..parallel import map_trials, trial_seeds
 from ..simulate import axis_turns, body_field
 from ._data import shared_data_dir
 from ._output import save_figure, write_csv
@@ -49,6 +54,7 @@ __all__ = [
     "rotation_segments",
     "run",
     "sigma_sweep",
+    "sweep_trial",
     "tilted_turns",
 ]
 
@@ -98,45 +104,75 @@ def _fit(B: NDArray[np.float64], reference: Any, units: str = "nT", **options: A
 
 
 # ---------------------------------------------------------------------------------------------- part 1
+@lru_cache(maxsize=4)
+def _clean_turns(n_per_axis: int) -> NDArray[np.float64]:
+    """Noise-free raw readings (3 n_per_axis, 3) of :data:`TRUTH` on the turns about X, Y, Z, nT (read-only)."""
+    clean = TRUTH.distort(body_field(axis_turns(n_per_axis), FIELD_NAV))
+    clean.flags.writeable = False
+    return clean
+
+
+def _noisy_turns(n_per_axis: int, sigma: float, trial_seed: int) -> NDArray[np.float64]:
+    """One trial's raw readings: the noise-free turns plus white noise of ``sigma`` nT per axis."""
+    clean = _clean_turns(n_per_axis)
+    rng = np.random.default_rng(trial_seed)
+    return clean + rng.normal(scale=sigma, size=clean.shape)
+
+
+def sweep_trial(item: tuple[float, int], *, n_per_axis: int) -> dict[str, float]:
+    """One Monte Carlo trial of the noise sweep: ``item = (sigma nT, trial seed)`` -> statistics (nT).
+
+    Keys: ``rms_before``, ``rms_after``, ``amp_before``, ``amp_after``, ``p2p_before``, ``p2p_after``,
+    ``iterations``, ``rms_noise_limit``, ``rms_param_only``, ``amp_param_only``, ``rel_err`` (largest relative
+    parameter error). Module-level so that :func:`trimag.parallel.map_trials` can ship it to worker processes.
+    """
+    sigma, trial_seed = item
+    raw = _noisy_turns(n_per_axis, sigma, trial_seed)
+    cal = GaussNewton().fit(raw, F_PAPER, units="nT").calibration_
+    st = cal.stats
+    limit = magnitude_stats(TRUTH.correct(raw), F_PAPER)["rms"]
+    param_only = magnitude_stats(cal.apply(_clean_turns(n_per_axis)), F_PAPER)
+    est = Scalar9.from_dict(cal.params).as_vector()
+    tv = TRUTH.as_vector()
+    return {
+        "rms_before": float(st["rms_before"]), "rms_after": float(st["rms_after"]),
+        "amp_before": float(st["max_abs_before"]), "amp_after": float(st["max_abs_after"]),
+        "p2p_before": float(st["p2p_before"]), "p2p_after": float(st["p2p_after"]),
+        "iterations": float(st["iterations"]), "rms_noise_limit": float(limit),
+        "rms_param_only": float(param_only["rms"]), "amp_param_only": float(param_only["max_abs"]),
+        "rel_err": float(np.max(np.abs(est - tv) / np.abs(tv))),
+    }
+
+
 def sigma_sweep(
-    *, n_per_axis: int, trials: int, seed: int, sigmas: tuple[float, ...] = SIGMAS
+    *, n_per_axis: int, trials: int, seed: int, sigmas: tuple[float, ...] = SIGMAS, workers: int = 1,
+    progress: bool | str = False,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Monte Carlo over noise levels; returns the table rows (means over trials) and one example fit.
+
+    The ``len(sigmas) * trials`` trials (:func:`sweep_trial`, one seed each from
+    :func:`trimag.parallel.trial_seeds`) run through :func:`trimag.parallel.map_trials` on ``workers``
+    processes; the result does not depend on ``workers``.
 
     Each row: ``sigma``, ``rms_before``, ``rms_after``, ``amp_before`` (max ||B| - F|), ``amp_after``,
     ``p2p_before``, ``p2p_after``, ``iterations`` (largest over trials), ``iterations_mean``,
     ``rms_noise_limit`` (RMS after correcting with the true parameters), ``ratio_to_noise_limit``,
     ``rms_param_only`` / ``amp_param_only`` (the fitted correction applied to the noise-free samples: the error
     left by the parameter estimates alone),
-    ``trials``, ``max_rel_param_error``.
+    ``trials``, ``max_rel_param_error``. The example (``{"raw", "cal"}``) is the first trial at sigma 20 nT
+    (empty when 20 is not among ``sigmas``), refitted here from its seed.
     """
-    rng = np.random.default_rng(seed)
-    true_field = body_field(axis_turns(n_per_axis), FIELD_NAV)
-    clean = TRUTH.distort(true_field)
+    if trials < 1:
+        raise TrimagInputError(f"the number of trials must be >= 1; got {trials}")
+    seeds = trial_seeds(seed, len(sigmas) * trials)
+    items = [(float(s), seeds[i * trials + k]) for i, s in enumerate(sigmas) for k in range(trials)]
+    results = map_trials(partial(sweep_trial, n_per_axis=n_per_axis), items, workers=workers,
+                         progress=progress)
     rows: list[dict[str, Any]] = []
-    example: dict[str, Any] = {}
-    for sigma in sigmas:
-        acc: dict[str, list[float]] = {}
-        for trial in range(trials):
-            raw = clean + rng.normal(scale=sigma, size=clean.shape)
-            cal = GaussNewton().fit(raw, F_PAPER, units="nT").calibration_
-            st = cal.stats
-            limit = magnitude_stats(TRUTH.correct(raw), F_PAPER)["rms"]
-            param_only = magnitude_stats(cal.apply(clean), F_PAPER)
-            est = Scalar9.from_dict(cal.params).as_vector()
-            tv = TRUTH.as_vector()
-            for key, val in (
-                ("rms_before", st["rms_before"]), ("rms_after", st["rms_after"]),
-                ("amp_before", st["max_abs_before"]), ("amp_after", st["max_abs_after"]),
-                ("p2p_before", st["p2p_before"]), ("p2p_after", st["p2p_after"]),
-                ("iterations", float(st["iterations"])), ("rms_noise_limit", limit),
-                ("rms_param_only", param_only["rms"]), ("amp_param_only", param_only["max_abs"]),
-                ("rel_err", float(np.max(np.abs(est - tv) / np.abs(tv)))),
-            ):
-                acc.setdefault(key, []).append(float(val))
-            if trial == 0 and sigma == 20.0:
-                example = {"raw": raw, "cal": cal}
-        row = {k: float(np.mean(v)) for k, v in acc.items() if k not in ("iterations", "rel_err")}
+    for i, sigma in enumerate(sigmas):
+        chunk = results[i * trials : (i + 1) * trials]
+        acc = {key: [r[key] for r in chunk] for key in chunk[0]}
+        row: dict[str, Any] = {k: float(np.mean(v)) for k, v in acc.items() if k not in ("iterations", "rel_err")}
         row["sigma"] = float(sigma)
         row["iterations"] = int(max(acc["iterations"]))
         row["iterations_mean"] = float(np.mean(acc["iterations"]))
@@ -144,6 +180,11 @@ def sigma_sweep(
         row["ratio_to_noise_limit"] = row["rms_after"] / row["rms_noise_limit"]
         row["trials"] = trials
         rows.append(row)
+    example: dict[str, Any] = {}
+    if 20.0 in sigmas:
+        item = items[list(sigmas).index(20.0) * trials]
+        raw = _noisy_turns(n_per_axis, *item)
+        example = {"raw": raw, "cal": GaussNewton().fit(raw, F_PAPER, units="nT").calibration_}
     return rows, example
 
 
@@ -442,7 +483,8 @@ def run(
     real_arg = extra.get("real_log")
     real_paths = [Path(p) for p in str(real_arg).split(",")] if real_arg else [BROAD_TRIAL, HMC_LOG]
 
-    rows, example = sigma_sweep(n_per_axis=n_per_axis, trials=n_trials, seed=seed)
+    rows, example = sigma_sweep(n_per_axis=n_per_axis, trials=n_trials, seed=seed, workers=workers,
+                                progress=False if json_mode else "noise sweep trials")
     before_clean = magnitude_stats(TRUTH.distort(body_field(axis_turns(n_per_axis), FIELD_NAV)), F_PAPER)
     keys = ["sigma", "rms_before", "rms_after", "amp_before", "amp_after", "p2p_before", "p2p_after",
             "rms_noise_limit", "ratio_to_noise_limit", "rms_param_only", "amp_param_only", "iterations",

@@ -27,6 +27,10 @@ quaternions (body -> ENU,
 scalar first, verified against gravity); fit on one trial, test on the others. No iron-free run or local
 field vector exists there, so the background is fitted jointly (``estimate_background``) with ``|H_n|``
 fixed to the mean measured magnitude of the fitting trial; see ``docs/method-linear-vector.md``.
+
+The Monte Carlo runs go through :func:`trimag.parallel.map_trials` (``workers``): each run is
+:func:`case_trial` with its own seed from :func:`trimag.parallel.trial_seeds`, so the numbers do not depend on
+the number of workers.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from __future__ import annotations
 import argparse
 import os
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -44,9 +49,11 @@ from scipy.special import elliprd
 
 from ..attitude import background_from_samples, body_field, from_euler, from_quaternion
 from ..calibration import atomic_write_text
+from ..errors import TrimagInputError
 from ..estimators.linear_vector import LinearVector, fit_with_background, solve_interference
 from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
+from ..parallel import map_trials, trial_seeds
 from ..reference import igrf
 from ._data import shared_data_dir
 from ._output import write_dict_csv
@@ -60,6 +67,7 @@ __all__ = [
     "Setup",
     "add_arguments",
     "block_setup",
+    "case_trial",
     "demagnetising_factors",
     "run",
     "run_broad",
@@ -258,6 +266,28 @@ def run_case(
     }
 
 
+def case_trial(
+    trial_seed: int,
+    *,
+    setup: Setup,
+    fit_euler: NDArray[np.float64],
+    test_euler: NDArray[np.float64],
+    H_n: NDArray[np.float64],
+    noise: float,
+    quantum: float,
+    attitude_error_deg: float,
+    hysteresis: float,
+) -> dict[str, Any]:
+    """One Monte Carlo run of :func:`run_case` with its own generator ``np.random.default_rng(trial_seed)``.
+
+    Module-level (picklable) so that :func:`trimag.parallel.map_trials` can run it in worker processes; the
+    settings come through :func:`functools.partial`. Returns :func:`run_case`'s dict (a few small arrays).
+    """
+    rng = np.random.default_rng(trial_seed)
+    return run_case(setup, fit_euler, test_euler, H_n, rng=rng, noise=noise, quantum=quantum,
+                    attitude_error_deg=attitude_error_deg, hysteresis=hysteresis)
+
+
 def _summary(cases: list[dict[str, Any]]) -> dict[str, Any]:
     """Mean over Monte Carlo runs of the per-run statistics over the test attitudes."""
     per_run = {
@@ -445,13 +475,16 @@ def run(
     json_mode: bool = False,
     **extra: Any,
 ) -> dict[str, Any]:
-    """Run the strong/weak simulation (``trials`` Monte Carlo runs, default 200, quick 20) and BROAD."""
+    """Run the strong/weak simulation (``trials`` Monte Carlo runs, default 200, quick 20; on ``workers``
+    processes via :func:`trimag.parallel.map_trials`) and BROAD."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     p = {k: float(extra[k]) if extra.get(k) is not None else v for k, v in DEFAULTS.items()}
     if extra.get("attitude_error") is not None:
         p["attitude_error_deg"] = float(extra["attitude_error"])
     n_runs = trials or (20 if quick else 200)
+    if n_runs < 1:
+        raise TrimagInputError(f"--trials must be >= 1; got {n_runs}")
     H_n = igrf(*LAB).ned_nT
     strong_setup = block_setup(susceptibility=p["susceptibility"], remanence=p["remanence"],
                                elevation_deg=p["elevation_deg"])
@@ -459,22 +492,28 @@ def run(
                              elevation_deg=p["elevation_deg"])
     kw = {"noise": p["noise"], "quantum": p["quantum"], "attitude_error_deg": p["attitude_error_deg"],
           "hysteresis": p["hysteresis"]}
-    rng = np.random.default_rng(seed)
-    strong_runs = [run_case(strong_setup, FIT_ATTITUDES, TEST_ATTITUDES, H_n, rng=rng, **kw)
-                   for _ in range(n_runs)]
-    weak_runs = [run_case(weak_setup, FIT_ATTITUDES, WEAK_TEST_ATTITUDES, H_n, rng=rng, **kw)
-                 for _ in range(n_runs)]
+    progress = not json_mode
+
+    def runs(setup: Setup, test_euler: NDArray[np.float64], seeds: list[int], label: str,
+             **over: float) -> list[dict[str, Any]]:
+        settings: dict[str, Any] = {**kw, **over}
+        fn = partial(case_trial, setup=setup, fit_euler=FIT_ATTITUDES, test_euler=test_euler, H_n=H_n,
+                     **settings)
+        return map_trials(fn, seeds, workers=workers, progress=label if progress else False)
+
+    seeds = trial_seeds(seed, 2 * n_runs)
+    strong_runs = runs(strong_setup, TEST_ATTITUDES, seeds[:n_runs], "strong-case runs")
+    weak_runs = runs(weak_setup, WEAK_TEST_ATTITUDES, seeds[n_runs:], "weak-case runs")
     strong, weak = _summary(strong_runs), _summary(weak_runs)
-    # error budget: which source makes the after-compensation error (strong case, fewer runs)
+    # error budget: which source makes the after-compensation error (fewer runs; every row reuses the same
+    # trial seeds)
     budget = {}
     n_b = max(n_runs // 4, 5)
+    seeds_b = trial_seeds(seed + 1, 2 * n_b)
     for label, over in (("noise+quantisation", {"attitude_error_deg": 0.0, "hysteresis": 0.0}),
                         ("+turntable error", {"hysteresis": 0.0}), ("+hysteresis (all)", {})):
-        rng_b = np.random.default_rng(seed + 1)
-        cases = [run_case(strong_setup, FIT_ATTITUDES, TEST_ATTITUDES, H_n, rng=rng_b, **{**kw, **over})
-                 for _ in range(n_b)]
-        weak_cases = [run_case(weak_setup, FIT_ATTITUDES, WEAK_TEST_ATTITUDES, H_n, rng=rng_b,
-                               **{**kw, **over}) for _ in range(n_b)]
+        cases = runs(strong_setup, TEST_ATTITUDES, seeds_b[:n_b], f"error budget {label}", **over)
+        weak_cases = runs(weak_setup, WEAK_TEST_ATTITUDES, seeds_b[n_b:], f"error budget {label}", **over)
         budget[label] = {"strong_rms_after": _summary(cases)["rms_after"],
                          "weak_rms_after": _summary(weak_cases)["rms_after"]}
     table_strong = _table(strong_runs[0], TEST_ATTITUDES)
