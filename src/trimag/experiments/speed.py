@@ -564,6 +564,10 @@ def run(
             "worst": min((r for r in five_x if r["ratio"] is not None), key=lambda r: r["ratio"], default=None),
         }
         summary.update(fits=rows, ratios=ratios, exponents=exps, targets=targets)
+        # the fits take the longest: keep their summary even if a later part fails
+        atomic_write_text(out_dir / "speed.json", json.dumps(jsonable(summary), indent=1) + "\n")
+    if tmp is not None:
+        Path(tmp).mkdir(parents=True, exist_ok=True)
     tmp_root = Path(tempfile.mkdtemp(prefix="trimag-speed-", dir=tmp))
     try:
         if "apply" not in skip:
