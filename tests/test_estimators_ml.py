@@ -216,3 +216,15 @@ def test_bad_balance_option():
     raw = uniform_directions(100, seed=0) @ D.T + B0
     with pytest.raises(TrimagInputError, match="balance"):
         trimag.fit(raw, method="ml", balance="sometimes")
+
+
+def test_real_hand_rotated_log_is_not_taken_for_balanced():
+    """The bundled QMC5883L log (hand-rotated): the test must reject balance by far and keep the ML offset."""
+    from importlib import resources
+
+    with resources.as_file(resources.files("trimag") / "data" / "qmc5883l_noisy_raw_data.csv") as path:
+        raw = np.loadtxt(path, delimiter=",", skiprows=3)
+    cal = trimag.fit(raw, units="counts")
+    test = cal.diagnostics["balanced_offset"]
+    assert not test["applied"] and test["chi2"] > 1e3  # measured: 1.66e5
+    np.testing.assert_array_equal(cal.offset, trimag.fit(raw, units="counts", balance="never").offset)
