@@ -16,26 +16,24 @@ __all__ = ["Normalisation", "check_ellipsoid_options", "normalise", "scalar_refe
 class Normalisation:
     """Affine normalisation ``u = (x - centre) / scale`` that keeps fits well conditioned in any unit."""
 
-    def __init__(self, B: NDArray[np.float64]) -> None:
-        # the centre as a matrix-vector product: one BLAS pass (B.mean(axis=0) reduces a strided axis, ~10x slower)
-        self.centre = (np.ones(len(B)) @ B) / len(B)
-        centred = B - self.centre
-        flat = centred.ravel()
-        self.scale = float(np.sqrt(np.dot(flat, flat) / len(B))) or 1.0
-        self._centred: NDArray[np.float64] | None = centred
+    def __init__(self, centre: NDArray[np.float64], scale: float) -> None:
+        self.centre = centre
+        self.scale = scale
 
     def forward(self, B: NDArray[np.float64]) -> NDArray[np.float64]:
         return (B - self.centre) / self.scale
 
 
 def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisation]:
-    """Return ``(u, norm)`` with ``u = norm.forward(B)`` (computed once, from the centred copy)."""
-    norm = Normalisation(B)
-    u = norm._centred
-    norm._centred = None
-    assert u is not None
-    u *= 1.0 / norm.scale
-    return u, norm
+    """Centre ``B`` (N, 3) on its mean and scale it to unit RMS radius: returns ``(u, norm)``,
+    ``u = norm.forward(B)``, computed in one pass (the centre as a matrix-vector product: ``B.mean(axis=0)``
+    reduces a strided axis, about 10x slower)."""
+    centre = (np.ones(len(B)) @ B) / len(B)
+    u = B - centre
+    flat = u.ravel()
+    scale = float(np.sqrt(np.dot(flat, flat) / len(B))) or 1.0
+    u *= 1.0 / scale
+    return u, Normalisation(centre, scale)
 
 
 def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:
