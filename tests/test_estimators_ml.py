@@ -228,3 +228,14 @@ def test_real_hand_rotated_log_is_not_taken_for_balanced():
     test = cal.diagnostics["balanced_offset"]
     assert not test["applied"] and test["chi2"] > 1e3  # measured: 1.66e5
     np.testing.assert_array_equal(cal.offset, trimag.fit(raw, units="counts", balance="never").offset)
+
+
+def test_balance_always_applies_to_noise_free_data_too():
+    from trimag.simulate import great_circle_directions
+
+    u = great_circle_directions(300)
+    raw = u @ D.T + B0  # noise-free, noise given as 0: no covariance, so no test; "always" still takes the mean
+    cal = trimag.fit(raw, method="ml", balance="always", noise_std=0.0)
+    assert cal.diagnostics["balanced_offset"]["applied"] and cal.diagnostics["balanced_offset"]["balanced"] is None
+    np.testing.assert_allclose(cal.offset, raw.mean(axis=0), atol=1e-12)
+    np.testing.assert_allclose(cal.offset, B0, atol=1e-12)  # balanced design: the mean is the offset

@@ -438,6 +438,11 @@ def ellipsoid_result(
                 cov[6:9, :] = 0.0
                 cov[:, 6:9] = 0.0
                 cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
+    if balance == "always" and "balanced_offset" not in diag:  # no noise estimate or no covariance: no test
+        offset = (np.ones(len(B)) @ B) / len(B)
+        y = (B - offset) @ W.T
+        diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
+                                   "note": "forced by balance='always'; not tested (no noise estimate)"}
     coverage = sphere_coverage(y)
     if cov is not None:
         theta = np.concatenate([W[UPPER], offset])
