@@ -238,7 +238,8 @@ def bias_correction(
     is taken by central differences with step ``h = 1e-3`` (normalised units, data of radius ~1).
     """
     h = 1e-3
-    base = _psi(u, p, target)
+    r0, J = geometric_residual(u, p, target)  # psi at the data, and J for H = J^T J: one evaluation
+    base = r0[:, None] * J
     lap = np.zeros(9)
     for k in range(3):
         dp = u.copy()
@@ -246,7 +247,6 @@ def bias_correction(
         dm = u.copy()
         dm[:, k] -= h
         lap += np.sum(_psi(dp, p, target) + _psi(dm, p, target) - 2 * base, axis=0) / h**2
-    _, J = geometric_residual(u, p, target)
     return np.asarray(-np.linalg.solve(J.T @ J, 0.5 * sigma2 * lap), dtype=np.float64)
 
 
