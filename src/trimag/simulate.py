@@ -84,12 +84,11 @@ def great_circle_directions(n: int) -> NDArray[np.float64]:
     Each circle is complete and evenly sampled (``n // 3`` points, one more on the first ``n % 3`` circles), as
     full turns on a turntable at constant rate give, so the directions sum to zero.
     """
-    counts = [n // 3 + (1 if i < n % 3 else 0) for i in range(3)]
     parts = []
-    for i, k in enumerate(counts):
+    for i in range(3):  # circle i: (cos, sin, 0) with its columns rolled by i -> xy, yz, zx planes
+        k = n // 3 + (1 if i < n % 3 else 0)
         t = 2.0 * np.pi * np.arange(k) / max(k, 1)
-        c, s, z = np.cos(t), np.sin(t), np.zeros(k)
-        parts.append([np.column_stack([c, s, z]), np.column_stack([z, c, s]), np.column_stack([s, z, c])][i])
+        parts.append(np.roll(np.column_stack([np.cos(t), np.sin(t), np.zeros(k)]), i, axis=1))
     return np.vstack(parts)
 
 
