@@ -40,9 +40,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import IdentifiabilityError, TrimagInputError
+from .metrics import row_dot
 from .models.base import ErrorModel
 
-__all__ = ["UPPER_NAMES", "Bound", "crlb", "fisher_information", "parametrisation", "predicted_errors"]
+__all__ = [
+    "UPPER_NAMES",
+    "Bound",
+    "EllipsoidGeometry",
+    "crlb",
+    "ellipsoid_fisher",
+    "ellipsoid_geometry",
+    "fisher_information",
+    "parametrisation",
+    "predicted_errors",
+]
 
 UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 #: Parameter names of the ``ellipsoid`` model in the upper-triangular gauge.
@@ -152,6 +163,61 @@ def _field_jacobian(
     return np.asarray(term_w + term_b[None], dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class EllipsoidGeometry:
+    """Per-sample quantities of the magnitude model at ``(W, b)`` for raw samples ``X`` (N, 3).
+
+    Attributes
+    ----------
+    e : ndarray (N, 3)
+        ``x_i - b``.
+    magnitude : ndarray (N,)
+        ``|W (x_i - b)|``.
+    normal : ndarray (N, 3)
+        Corrected direction ``n_i = W (x_i - b) / |W (x_i - b)|``.
+    gradient : ndarray (N, 3)
+        ``W^T n_i``: gradient of the magnitude with respect to the raw sample.
+    weight : ndarray (N,)
+        ``1 / |W^T n_i|^2``: the weight that turns a squared magnitude residual into a squared distance.
+    """
+
+    e: NDArray[np.float64]
+    magnitude: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    gradient: NDArray[np.float64]
+    weight: NDArray[np.float64]
+
+
+def ellipsoid_geometry(X: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64]) -> EllipsoidGeometry:
+    """:class:`EllipsoidGeometry` of samples ``X`` (N, 3) under the correction ``W`` (3, 3), offset ``b`` (3,)."""
+    e = X - b
+    y = e @ W.T
+    mag = np.sqrt(row_dot(y, y))
+    n = y / mag[:, None]
+    q = n @ W
+    w = 1.0 / row_dot(q, q)
+    return EllipsoidGeometry(e, mag, n, q, w)
+
+
+def ellipsoid_fisher(
+    geometry: EllipsoidGeometry, sigma: float, *, known_magnitude: bool = True
+) -> NDArray[np.float64]:
+    """:func:`fisher_information` of the ``ellipsoid`` model in the upper-triangular gauge, in closed form.
+
+    ``a_i = d|W (x_i - b)| / d theta`` has the entries ``n_i[r] e_i[c]`` for the upper entry ``(r, c)`` of ``W``
+    and ``-(W^T n_i)_m`` for ``b_m`` (and ``-1`` for ``F`` when the magnitude is unknown); the information is
+    ``sigma^-2 sum_i w_i a_i a_i^T`` (module docstring). Shape (9, 9), or (10, 10) with ``F`` last.
+    """
+    g = geometry
+    p = 9 if known_magnitude else 10
+    a = np.empty((len(g.weight), p))
+    a[:, :6] = g.normal[:, UPPER[0]] * g.e[:, UPPER[1]]
+    a[:, 6:9] = -g.gradient
+    if not known_magnitude:
+        a[:, 9] = -1.0
+    return np.asarray((a * g.weight[:, None]).T @ a / sigma**2, dtype=np.float64)
+
+
 def fisher_information(
     X: ArrayLike, param: Param, theta: ArrayLike, sigma: float, *, known_magnitude: bool = True
 ) -> NDArray[np.float64]:
@@ -175,6 +241,9 @@ def fisher_information(
     """
     X = np.asarray(X, dtype=np.float64)
     th = np.asarray(theta, dtype=np.float64)
+    if param is _upper_param:  # the ellipsoid's own gauge: closed form, no finite differences
+        W, b = _upper_param(th)
+        return ellipsoid_fisher(ellipsoid_geometry(X, W, b), sigma, known_magnitude=known_magnitude)
     W, b, dW, db = _derivatives(param, th)
     G = _field_jacobian(X, W, b, dW, db)  # (N, 3, p)
     y = (X - b) @ W.T
@@ -183,7 +252,7 @@ def fisher_information(
     if not known_magnitude:
         a = np.column_stack([a, -np.ones(len(X))])
     grad_x = n @ W  # rows: W^T n
-    w = 1.0 / np.einsum("ij,ij->i", grad_x, grad_x)
+    w = 1.0 / row_dot(grad_x, grad_x)
     return np.asarray((a * w[:, None]).T @ a / sigma**2, dtype=np.float64)
 
 
@@ -224,11 +293,11 @@ def predicted_errors(
     C = covariance[:p, :p]
     W, b, dW, db = _derivatives(param, theta)
     G = _field_jacobian(X_test, W, b, dW, db)
-    field_ms = float(np.mean(np.einsum("nik,kl,nil->n", G, C, G)))
+    field_ms = float(np.einsum("nik,nik->", G @ C, G)) / len(G)
     y = (X_test - b) @ W.T
     n = y / np.linalg.norm(y, axis=1, keepdims=True)
     m = np.einsum("ni,nik->nk", n, G)
-    mag_ms = float(np.mean(np.einsum("nk,kl,nl->n", m, C, m)))
+    mag_ms = float(np.einsum("nk,nk->", m @ C, m)) / len(m)
     return float(np.sqrt(max(field_ms, 0.0))), float(np.sqrt(max(mag_ms, 0.0)))
 
 

@@ -14,12 +14,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import IdentifiabilityError, IdentifiabilityWarning
+from .metrics import row_dot
 
 __all__ = [
     "CONDITION_ERROR",
     "CONDITION_WARN",
+    "DIAGNOSTIC_SAMPLES",
     "check_not_degenerate",
     "design_condition",
+    "diagnostic_subsample",
     "fibonacci_sphere",
     "sphere_coverage",
     "weak_directions",
@@ -30,8 +33,16 @@ CONDITION_WARN = 1e4
 #: Column-normalised condition number above which the design is treated as rank deficient (exit 3).
 CONDITION_ERROR = 1e9
 
-_CHUNK = 200_000
-_COVERAGE_SAMPLES = 50_000
+#: Rows per block of the nearest-cell search (the (block, n_cells) products stay in cache).
+_CHUNK = 2048
+#: Diagnostics that summarise the whole log (sphere coverage, degeneracy, and the noise level and Fisher
+#: information of the ellipsoid methods) use at most this many evenly spread samples: sums over samples scaled up.
+DIAGNOSTIC_SAMPLES = 20_000
+
+
+def diagnostic_subsample(n: int) -> NDArray[np.int64]:
+    """Indices of at most :data:`DIAGNOSTIC_SAMPLES` samples spread evenly over ``0 .. n - 1`` (all when fewer)."""
+    return np.linspace(0, n - 1, min(n, DIAGNOSTIC_SAMPLES)).astype(np.int64)
 
 
 def fibonacci_sphere(n: int) -> NDArray[np.float64]:
@@ -63,24 +74,30 @@ def sphere_coverage(
     dict
         ``fraction`` (covered cells / n_cells, 0..1), ``isotropy`` (3 x smallest eigenvalue of the mean
         outer product of unit directions: 1 for an even sphere, 0 for a plane), ``mean_direction_norm``
-        (0 for a balanced sphere, 1 for one direction), ``cell_counts`` (list of n_cells ints).
+        (0 for a balanced sphere, 1 for one direction), ``n_cells``, ``min_count``, ``n_used`` (non-zero
+        samples counted: at most about :data:`DIAGNOSTIC_SAMPLES`, evenly spread; counts are scaled up to the
+        whole log), ``cell_counts`` (list of n_cells ints).
     """
     d = np.asarray(directions, dtype=np.float64)
-    stride = max(1, len(d) // _COVERAGE_SAMPLES)  # large logs: an evenly spread subsample, counts scaled
+    stride = max(1, len(d) // DIAGNOSTIC_SAMPLES)  # large logs: an evenly spread subsample, counts scaled
     d = d[::stride]
-    norms = np.linalg.norm(d, axis=1)
-    u = d[norms > 0] / norms[norms > 0, None]
-    centres = fibonacci_sphere(n_cells)
+    norms = np.sqrt(row_dot(d, d))
+    nonzero = norms > 0
+    u = d[nonzero] / norms[nonzero, None] if not nonzero.all() else d / norms[:, None]
+    centres_t = np.ascontiguousarray(fibonacci_sphere(n_cells).T)
     if min_count is None:
-        min_count = max(1, int(np.ceil(0.1 * len(u) / n_cells)))
+        min_count = max(1, int(np.ceil(0.1 * len(u) * stride / n_cells)))  # counts are scaled by the stride
     counts = np.zeros(n_cells, dtype=np.int64)
+    dots = np.empty((min(len(u), _CHUNK), n_cells))
     for start in range(0, len(u), _CHUNK):
-        idx = np.argmax(u[start : start + _CHUNK] @ centres.T, axis=1)
-        counts += np.bincount(idx, minlength=n_cells) * stride
+        block = u[start : start + _CHUNK]
+        prod = dots[: len(block)]
+        np.matmul(block, centres_t, out=prod)
+        counts += np.bincount(prod.argmax(axis=1), minlength=n_cells) * stride
     if len(u):
         scatter = (u.T @ u) / len(u)
         isotropy = float(3.0 * np.linalg.eigvalsh(scatter)[0])
-        mean_norm = float(np.linalg.norm(u.mean(axis=0)))
+        mean_norm = float(np.linalg.norm((np.ones(len(u)) @ u) / len(u)))
     else:
         isotropy, mean_norm = 0.0, 0.0
     return {
@@ -89,6 +106,7 @@ def sphere_coverage(
         "mean_direction_norm": mean_norm,
         "n_cells": n_cells,
         "min_count": int(min_count),
+        "n_used": len(u),
         "cell_counts": counts.tolist(),
     }
 
@@ -154,10 +172,13 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
     IdentifiabilityError
         With a message saying what to record instead.
     """
-    B = B[:: max(1, len(B) // _COVERAGE_SAMPLES)]  # an evenly spread subsample decides it as well
-    centred = B - B.mean(axis=0)
+    B = B[:: max(1, len(B) // DIAGNOSTIC_SAMPLES)]  # an evenly spread subsample decides it as well
+    centred = B - (np.ones(len(B)) @ B) / len(B)
     scale = float(np.max(np.abs(B))) or 1.0
-    sv = np.linalg.svd(centred / scale, compute_uv=False)
+    centred *= 1.0 / scale
+    # singular values of the centred samples from their 3 x 3 Gram matrix (eigenvalue error ~ 1e-16 of the
+    # largest: far below the 1e-12 ratio the plane test needs)
+    sv = np.sqrt(np.clip(np.linalg.eigvalsh(centred.T @ centred), 0.0, None))[::-1]
     if sv[0] <= 1e-12 * np.sqrt(len(B)):
         raise IdentifiabilityError(
             "all samples are identical (the sensor appears stuck or the log repeats one value); "

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["magnitude_error", "magnitude_stats", "norm_stats", "rms", "row_norms"]
+__all__ = ["before_after_stats", "magnitude_error", "magnitude_stats", "norm_stats", "rms", "row_dot", "row_norms"]
 
 
 def rms(x: ArrayLike) -> float:
@@ -19,10 +19,24 @@ def rms(x: ArrayLike) -> float:
     return float(np.sqrt(np.mean(a * a)))
 
 
+def row_dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Row-wise dot products ``sum_k a_ik b_ik`` of two (N, 3) arrays -> (N,).
+
+    Three column products: about 5x faster than ``np.einsum("ij,ij->i", a, b)``, whose inner loop over 3
+    elements dominates; other shapes fall back to ``einsum``.
+    """
+    if a.ndim == 2 and a.shape[1] == 3 and b.shape == a.shape:
+        out = a[:, 0] * b[:, 0]
+        out += a[:, 1] * b[:, 1]
+        out += a[:, 2] * b[:, 2]
+        return out
+    return np.asarray(np.einsum("...i,...i->...", a, b), dtype=np.float64)
+
+
 def row_norms(B: ArrayLike) -> NDArray[np.float64]:
-    """Magnitudes ``|B_i|`` of field samples ``B`` (N, 3) -> (N,) (one pass, no temporaries of shape (N, 3))."""
+    """Magnitudes ``|B_i|`` of field samples ``B`` (N, 3) -> (N,)."""
     a = np.asarray(B, dtype=np.float64)
-    return np.sqrt(np.einsum("...i,...i->...", a, a))
+    return np.sqrt(row_dot(a, a))
 
 
 def magnitude_error(B: ArrayLike, reference: ArrayLike) -> NDArray[np.float64]:
@@ -53,6 +67,108 @@ def norm_stats(norms: ArrayLike, reference: ArrayLike) -> dict[str, Any]:
         "peak_to_peak": hi - lo,
         "bias": float(err.mean()),
     }
+
+
+_STATS_CHUNK = 65_536
+
+
+class _Moments:
+    """Count, mean, sum of squared deviations, min and max of a stream of blocks (Chan et al.'s pairwise
+    update: no cancellation when the mean is large and the spread tiny)."""
+
+    def __init__(self) -> None:
+        self.n, self.mean, self.m2 = 0, 0.0, 0.0
+        self.lo, self.hi = np.inf, -np.inf
+
+    def add(self, x: NDArray[np.float64]) -> None:
+        m = len(x)
+        if m == 0:
+            return
+        mean = float(np.ones(m) @ x) / m
+        dev = x - mean
+        m2 = float(np.dot(dev, dev))
+        total = self.n + m
+        delta = mean - self.mean
+        self.mean += delta * m / total
+        self.m2 += m2 + delta * delta * self.n * m / total
+        self.n = total
+        self.lo, self.hi = min(self.lo, float(x.min())), max(self.hi, float(x.max()))
+
+
+def _stats_from(norms: _Moments, err: _Moments | None, F: float) -> dict[str, Any]:
+    """:func:`norm_stats` from moments; ``err`` holds ``|B_i| - F_i`` (per-sample reference) or None (``F``)."""
+    n = norms.n
+    std_norm = float(np.sqrt(max(norms.m2, 0.0) / n))
+    if err is None:
+        bias = norms.mean - F
+        rms_ = float(np.sqrt(max(norms.m2, 0.0) / n + bias * bias))
+        lo, hi = norms.lo - F, norms.hi - F
+    else:
+        bias = err.mean
+        rms_ = float(np.sqrt(max(err.m2, 0.0) / n + bias * bias))
+        lo, hi = err.lo, err.hi
+    return {
+        "mean_norm": float(norms.mean),
+        "std_norm": std_norm,
+        "rms": rms_,
+        "max_abs": max(-lo, hi),
+        "peak_to_peak": hi - lo,
+        "bias": float(bias),
+    }
+
+
+def before_after_stats(
+    B: NDArray[np.float64],
+    matrix: NDArray[np.float64],
+    offset: NDArray[np.float64],
+    reference: NDArray[np.float64] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any], float]:
+    """:func:`norm_stats` of the raw samples and of the corrected ``matrix @ (B_i - offset)``, in one pass.
+
+    Parameters
+    ----------
+    B : ndarray, shape (N, 3)
+        Raw samples.
+    matrix : ndarray, shape (3, 3)
+    offset : ndarray, shape (3,)
+    reference : ndarray, shape (N,), optional
+        Reference magnitude per sample. Without it ``F`` is the mean corrected magnitude.
+
+    Returns
+    -------
+    before, after : dict
+        As :func:`norm_stats` (``mean_norm``, ``std_norm``, ``rms``, ``max_abs``, ``peak_to_peak``, ``bias``).
+    F : float
+        The magnitude the statistics refer to: the mean corrected magnitude, or the mean reference.
+
+    Notes
+    -----
+    The samples are processed in blocks of 65 536 rows, so no (N, 3) or (N,) temporary is formed; the result
+    equals ``norm_stats(row_norms(B), F)`` and ``norm_stats(row_norms(corrected), F)`` to rounding.
+    """
+    matrix_t = np.ascontiguousarray(np.asarray(matrix, dtype=np.float64).T)
+    offset = np.asarray(offset, dtype=np.float64)
+    raw, cor = _Moments(), _Moments()
+    raw_err, cor_err = (_Moments(), _Moments()) if reference is not None else (None, None)
+    ref_sum = 0.0
+    buf = np.empty((min(len(B), _STATS_CHUNK), 3))
+    for start in range(0, len(B), _STATS_CHUNK):
+        block = B[start : start + _STATS_CHUNK]
+        y = buf[: len(block)]
+        np.subtract(block, offset, out=y)
+        y = y @ matrix_t
+        n_raw = np.sqrt(row_dot(block, block))
+        n_cor = np.sqrt(row_dot(y, y))
+        raw.add(n_raw)
+        cor.add(n_cor)
+        if reference is not None:
+            assert raw_err is not None and cor_err is not None
+            ref = reference[start : start + _STATS_CHUNK]
+            ref_sum += float(np.sum(ref))
+            raw_err.add(n_raw - ref)
+            cor_err.add(n_cor - ref)
+    F = ref_sum / len(B) if reference is not None else cor.mean
+    return _stats_from(raw, raw_err, F), _stats_from(cor, cor_err, F), float(F)
 
 
 # ---- paper C: compensation rate and precision (methods.md, paper C) -------------------------------------

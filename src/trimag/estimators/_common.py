@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from ..errors import TrimagInputError
 from ..reference import ScalarReference, as_scalar_reference
 
-__all__ = ["Normalisation", "check_ellipsoid_options", "normalise", "scalar_reference"]
+__all__ = ["Normalisation", "check_ellipsoid_options", "normalisation_of", "normalise", "scalar_reference"]
 
 
 class Normalisation:
@@ -34,6 +34,18 @@ def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisatio
     scale = float(np.sqrt(np.dot(flat, flat) / len(B))) or 1.0
     u *= 1.0 / scale
     return u, Normalisation(centre, scale)
+
+
+def normalisation_of(B: NDArray[np.float64]) -> Normalisation:
+    """The :func:`normalise` centre and scale of an evenly spread subsample of ``B`` (N, 3), without a copy of ``B``.
+
+    For fits that are invariant to translation and scale (the algebraic ellipsoid fit) the normalisation only
+    conditions the arithmetic, so the subsample's (:func:`trimag.diagnostics.diagnostic_subsample`) does as well.
+    """
+    from ..diagnostics import diagnostic_subsample
+
+    _, norm = normalise(B[diagnostic_subsample(len(B))])
+    return norm
 
 
 def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..calibration import Calibration
-from ..diagnostics import sphere_coverage
+from ..diagnostics import diagnostic_subsample, sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
-from ..metrics import norm_stats, row_norms
+from ..metrics import before_after_stats, row_norms
 from ..models import get_model
 from ..reference import ScalarReference
 from ..units import normalise_unit
@@ -184,7 +184,6 @@ def build_calibration(
     uncertainty: Mapping[str, Any] | None = None,
     diagnostics: Mapping[str, Any] | None = None,
     extra_stats: Mapping[str, Any] | None = None,
-    corrected: NDArray[np.float64] | None = None,
     coverage: Mapping[str, Any] | None = None,
 ) -> Calibration:
     """Assemble a :class:`Calibration` with before/after statistics and sphere coverage.
@@ -192,25 +191,20 @@ def build_calibration(
     Statistics use ``F`` = the reference magnitude(s), or, when the magnitude is unknown, the mean corrected
     magnitude: ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``. ``fitted_magnitude`` (the radius
     implied by the method's scale gauge, e.g. det(W) = 1) is recorded as ``reference["fitted_radius"]``.
-    ``corrected`` (the samples corrected by ``matrix``, ``offset``) and ``coverage`` (the
-    :func:`~trimag.diagnostics.sphere_coverage` of ``corrected``) may be passed when the caller has them already.
+    The statistics take one pass over the samples in blocks (:func:`~trimag.metrics.before_after_stats`);
+    ``coverage`` (the :func:`~trimag.diagnostics.sphere_coverage` of the corrected samples) may be passed when
+    the caller has it already, otherwise it is computed on :func:`~trimag.diagnostics.diagnostic_subsample`.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
-    if corrected is None:
-        corrected = (B - offset) @ matrix.T
-    norms_after = row_norms(corrected)
+    before, after, F = before_after_stats(B, matrix, offset, reference.values)
     if reference.values is not None:
-        F: Any = reference.values
         ref_info = reference.info()
     else:
         # no reference: the statistics use the mean corrected magnitude (docs/cli.md, "rms_*")
-        F = float(norms_after.mean())
         ref_info = reference.info(fitted_value=F)
         if fitted_magnitude is not None:
             ref_info["fitted_radius"] = float(fitted_magnitude)
-    before = norm_stats(row_norms(B), F)
-    after = norm_stats(norms_after, F)
     stats: dict[str, Any] = {
         "n_samples": int(B.shape[0]),
         "n_used": int(B.shape[0]),
@@ -228,7 +222,9 @@ def build_calibration(
         "std_norm_after": after["std_norm"],
     }
     stats.update(extra_stats or {})
-    cov = coverage if coverage is not None else sphere_coverage(corrected)
+    if coverage is None:
+        coverage = sphere_coverage((B[diagnostic_subsample(len(B))] - offset) @ matrix.T)
+    cov = coverage
     diag = {"coverage": {k: v for k, v in cov.items() if k != "cell_counts"}}
     diag.update(diagnostics or {})
     return Calibration.from_matrix_offset(

@@ -21,26 +21,32 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, weak_directions
 from ..errors import IdentifiabilityError
-from ._common import normalise, scalar_reference
+from ._common import Normalisation, normalisation_of, scalar_reference
 from .base import Estimator
 
 __all__ = ["EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "quadric_scatter", "quadric_to_ellipsoid"]
 
 _TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
-_CHUNK = 250_000
+_CHUNK = 65_536
 _FACTORS = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0])
 
 
-def quadric_scatter(u: NDArray[np.float64]) -> NDArray[np.float64]:
+def quadric_scatter(u: NDArray[np.float64], norm: Normalisation | None = None) -> NDArray[np.float64]:
     """The 10x10 scatter ``D^T D`` of the quadric design, accumulated in chunks. ``u``: (N, 3).
 
-    The design is built transposed, (10, chunk), so that every term is one contiguous elementwise product and
-    the scatter one matrix product (memory: 10 x 250 000 doubles whatever N).
+    With ``norm``, ``u`` holds raw samples and the design is built from ``norm.forward(u)``, one chunk at a time
+    (no normalised copy of the samples). The design is built transposed, (10, chunk), so that every term is one
+    contiguous elementwise product and the scatter one matrix product (memory: 10 x 65 536 doubles whatever N).
     """
     S = np.zeros((10, 10))
     D = np.empty((10, min(len(u), _CHUNK)))
+    buf = np.empty((min(len(u), _CHUNK), 3)) if norm is not None else None
     for start in range(0, len(u), _CHUNK):
-        x, y, z = u[start : start + _CHUNK].T
+        block = u[start : start + _CHUNK]
+        if norm is not None and buf is not None:
+            block = np.subtract(block, norm.centre, out=buf[: len(block)])
+            block *= 1.0 / norm.scale
+        x, y, z = block.T
         m = len(x)
         d = D[:, :m]
         np.multiply(x, x, out=d[0])
@@ -56,8 +62,12 @@ def quadric_scatter(u: NDArray[np.float64]) -> NDArray[np.float64]:
     return S * np.outer(_FACTORS, _FACTORS)
 
 
-def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
-    """Fit an ellipsoid to normalised points ``u`` (N, 3).
+def algebraic_ellipsoid(
+    u: NDArray[np.float64], norm: Normalisation | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """Fit an ellipsoid to normalised points ``u`` (N, 3), or to raw samples ``u`` normalised by ``norm``.
+
+    The results are in the normalised frame either way.
 
     Returns
     -------
@@ -68,7 +78,7 @@ def algebraic_ellipsoid(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
     cond : float
         Column-normalised condition number of the design.
     """
-    S = quadric_scatter(u)
+    S = quadric_scatter(u, norm)
     d = np.sqrt(np.diag(S))
     d[d == 0] = 1.0
     # The solution itself is the (near-)null vector of the design, so identifiability is decided by the
@@ -167,8 +177,9 @@ class EllipsoidFit(Estimator):
     ) -> Calibration:
         check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        u, norm = normalise(B)
-        W_u, c_u, cond = algebraic_ellipsoid(u)
+        # the fit is invariant to translation and scale: normalise chunk by chunk, no copy of B
+        norm = normalisation_of(B)
+        W_u, c_u, cond = algebraic_ellipsoid(B, norm)
         W = W_u / norm.scale
         offset = norm.centre + norm.scale * c_u
         W, F_hat = gauge_scale(W, ref.values)

@@ -43,6 +43,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
+from ..metrics import row_dot
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import scalar_reference
@@ -93,7 +94,7 @@ def residual_jacobian(
     e = x - b
     z = e / k
     y = z @ Tinv.T
-    mag = np.sqrt(np.einsum("ij,ij->i", y, y))
+    mag = np.sqrt(row_dot(y, y))
     r = mag - target
     if not jacobian:
         return r, None
@@ -103,7 +104,7 @@ def residual_jacobian(
     J[:, 0:3] = -g / k
     J[:, 3:6] = -g * z / k
     for j, dT in enumerate(t_matrix_derivatives(*ang)):
-        J[:, 6 + j] = -np.einsum("ij,ij->i", y @ dT.T, g)
+        J[:, 6 + j] = -row_dot(y @ dT.T, g)
     return r, J
 
 

@@ -37,19 +37,28 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..calibration import Calibration
-from ..crlb import UPPER, UPPER_NAMES, _constrained_inverse, _upper_param, fisher_information, predicted_errors
+from ..crlb import (
+    UPPER,
+    UPPER_NAMES,
+    _constrained_inverse,
+    _upper_param,
+    ellipsoid_fisher,
+    ellipsoid_geometry,
+    predicted_errors,
+)
 from ..diagnostics import (
     CONDITION_ERROR,
     CONDITION_WARN,
     check_condition,
     check_not_degenerate,
     design_condition,
+    diagnostic_subsample,
     fibonacci_sphere,
     sphere_coverage,
     weak_directions,
 )
 from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
-from ..metrics import row_norms
+from ..metrics import row_dot
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
 from ._common import check_ellipsoid_options, normalise, scalar_reference
@@ -94,20 +103,12 @@ def magnitude_jacobian(
     """Magnitudes ``|W (u - b)|`` (N,) and their Jacobian (N, 9) w.r.t. (upper W, b)."""
     e = u - b
     y = e @ W.T
-    mag = np.sqrt(np.einsum("ij,ij->i", y, y))
+    mag = np.sqrt(row_dot(y, y))
     n = y / mag[:, None]
     J = np.empty((len(u), 9))
     J[:, :6] = n[:, UPPER[0]] * e[:, UPPER[1]]
     J[:, 6:] = -(n @ W)
     return mag, J
-
-
-def _weights(u: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``w_i = 1 / |W^T n_i|^2``: inverse squared gradient of the magnitude w.r.t. the raw sample."""
-    y = (u - b) @ W.T
-    n = y / np.linalg.norm(y, axis=1, keepdims=True)
-    gx = n @ W
-    return np.asarray(1.0 / np.einsum("ij,ij->i", gx, gx), dtype=np.float64)
 
 
 def geometric_residual(
@@ -119,34 +120,36 @@ def geometric_residual(
     invariant to the scale of ``W``; the Jacobian includes the derivative of the weight.
     """
     W, b = _unpack(p)
-    e = u - b
-    y = e @ W.T
-    mag = np.sqrt(np.einsum("ij,ij->i", y, y))
-    n = y / mag[:, None]
+    # Component-major layout: every quantity is a (3, N) or (N,) array of contiguous rows, so each step below
+    # is one pass over N numbers.
+    e = (u - b).T  # (3, N)
+    y = W @ e
+    mag = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
+    n = y / mag
     g = mag - target
-    q = n @ W  # W^T n, (N, 3)
-    qn2 = np.einsum("ij,ij->i", q, q)
+    q = W.T @ n  # W^T n
+    qn2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2]
     qn = np.sqrt(qn2)
     s = 1.0 / qn
-    # Closed-form columns (no (N, 3, 9) tensor): for an upper entry (i, j) dy/dtheta = e_j unit_i, for b_m
+    # Closed-form Jacobian (no (N, 3, 9) tensor): for an upper entry (i, j) dy/dtheta = e_j unit_i, for b_m
     # dy/dtheta = -W[:, m]. Then dg = n . dy, dq = W^T (dy - n dg) / mag (+ n_i at row j for W_ij itself),
-    # ds = -(q . dq) / |q|^3; the products q . W^T dy reduce to (W q)_i e_j and -(W^T W q)_m.
-    ii, jj = UPPER
-    Wq = q @ W.T
-    WtWq = q @ (W.T @ W)
-    dg = np.empty((len(u), 9))
-    A = np.empty((len(u), 9))
-    extra = np.zeros((len(u), 9))
-    dg[:, :6] = n[:, ii] * e[:, jj]
-    dg[:, 6:] = -q
-    A[:, :6] = e[:, jj] * Wq[:, ii]
-    A[:, 6:] = -WtWq
-    extra[:, :6] = q[:, jj] * n[:, ii]
-    qn3 = qn2 * qn
-    ds = -(A - dg * qn2[:, None]) / (mag * qn3)[:, None] - extra / qn3[:, None]
-    r = s * g
-    J = s[:, None] * dg + g[:, None] * ds
-    return np.asarray(r, dtype=np.float64), np.asarray(J, dtype=np.float64)
+    # ds = -(q . dq) / |q|^3; the products q . W^T dy reduce to (W q)_i e_j and -(W^T W q)_m. Collecting
+    # terms, J = alpha dg - beta (q . W^T dy) - gamma (q_j n_i for W_ij) with the per-sample factors below:
+    #   J[W_ij] = e_j (alpha n_i - beta (W q)_i) - gamma n_i q_j,    J[b_m] = -alpha q_m + beta (W^T W q)_m.
+    Wq = W @ q
+    WtWq = W.T @ Wq
+    gamma = g / (qn2 * qn)
+    beta = gamma / mag
+    alpha = s + beta * qn2
+    P = alpha * n - beta * Wq
+    R = gamma * n
+    Jt = np.empty((9, len(g)))
+    for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
+        np.multiply(e[j], P[i], out=Jt[k])
+        Jt[k] -= R[i] * q[j]
+    np.multiply(beta, WtWq, out=Jt[6:])
+    Jt[6:] -= alpha * q
+    return np.asarray(s * g, dtype=np.float64), Jt.T
 
 
 def _psi(u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -393,17 +396,17 @@ def ellipsoid_result(
         raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {balance!r}")
     known = ref.values is not None
     W = to_upper(W)
-    y = (B - offset) @ W.T
-    mag = row_norms(y)
-    target: NDArray[np.float64] = (
-        ref.values if ref.values is not None
-        else np.full(len(B), float(F_hat if F_hat is not None else mag.mean()))
+    # sums over samples (noise level, information, coverage) use an evenly spread subsample on large logs
+    idx = diagnostic_subsample(len(B))
+    B_sub = B if len(idx) == len(B) else B[idx]
+    geometry = ellipsoid_geometry(B_sub, W, offset)
+    target_sub: Any = (
+        ref.values[idx] if ref.values is not None
+        else float(F_hat if F_hat is not None else geometry.magnitude.mean())
     )
-    # sums over samples (noise level, information) use an evenly spread subsample on large logs
-    idx = np.linspace(0, len(B) - 1, min(len(B), LARGE_N)).astype(np.int64)
     if sigma is None:
-        w = _weights(B[idx], W, offset)
-        sigma = float(np.sqrt(np.sum(w * (mag[idx] - target[idx]) ** 2) / max(len(idx) - 9, 1)))
+        resid = geometry.magnitude - target_sub
+        sigma = float(np.sqrt(np.sum(geometry.weight * resid**2) / max(len(idx) - 9, 1)))
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     cov: NDArray[np.float64] | None = None
@@ -411,7 +414,7 @@ def ellipsoid_result(
     if sigma > 0:
         theta = np.concatenate([W[UPPER], offset])
         # the information is a sum over samples: on large logs, an evenly spread subsample scaled up
-        J = fisher_information(B[idx], _upper_param, theta, sigma, known_magnitude=known) * (len(B) / len(idx))
+        J = ellipsoid_fisher(geometry, sigma, known_magnitude=known) * (len(B) / len(idx))
         grad = None
         if not known:
             names = (*_NAMES, "F")
@@ -433,20 +436,19 @@ def ellipsoid_result(
                 # the sample mean is the offset; its error (mean noise) is uncorrelated to first order with
                 # the ML estimate of W (docs/method-ml.md, "Balanced sampling"), so only the b block changes
                 offset = np.asarray(test["sample_mean"], dtype=np.float64)
-                y = (B - offset) @ W.T
                 cov = cov.copy()
                 cov[6:9, :] = 0.0
                 cov[:, 6:9] = 0.0
                 cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
     if balance == "always" and "balanced_offset" not in diag:  # no noise estimate or no covariance: no test
         offset = (np.ones(len(B)) @ B) / len(B)
-        y = (B - offset) @ W.T
         diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
                                    "note": "forced by balance='always'; not tested (no noise estimate)"}
-    coverage = sphere_coverage(y)
+    offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
+    coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal)
     if cov is not None:
         theta = np.concatenate([W[UPPER], offset])
-        Fm = float(np.mean(np.asarray(target, dtype=np.float64)))
+        Fm = float(np.mean(ref.values)) if ref.values is not None else float(target_sub)
         X_test = (Fm * fibonacci_sphere(500)) @ np.linalg.inv(W).T + offset
         field_rms, mag_rms = (
             predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
@@ -463,12 +465,12 @@ def ellipsoid_result(
             "predicted_magnitude_rms": mag_rms,
         }
     W_out = to_symmetric(W) if form == "symmetric" else W
-    upper = form == "upper"  # then the corrected samples and their coverage are those computed above
+    upper = form == "upper"  # then the corrected directions and their coverage are those computed above
     return build_calibration(
         B, W_out, offset, model=model, method=method, units=units, reference=ref,
         params=Ellipsoid.from_matrix_offset(W_out, offset).as_dict(), iterations=iterations,
         converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag,
-        corrected=y if upper else None, coverage=coverage if upper else None,
+        coverage=coverage if upper else None,
     )
 
 

@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
+from ..metrics import row_dot
 from ..models import get_model
 from ..models.ortho_gain import params_from_q
 from ._common import scalar_reference
@@ -192,7 +193,7 @@ def solve_pairs(
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)
         y1, y2 = (u1 - b) @ C.T, (u2 - b) @ C.T
-        return np.einsum("ij,ij->i", y1, y1) - np.einsum("ij,ij->i", y2, y2)
+        return row_dot(y1, y1) - row_dot(y2, y2)
 
     def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)

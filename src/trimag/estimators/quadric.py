@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
+from ..metrics import row_dot
 from ..models.zhang_cheng import ZhangCheng, quadric_terms
 from ..reference import ScalarReference
 from ._common import scalar_reference
@@ -159,7 +160,7 @@ def physical_jacobian(V: NDArray[np.float64], model: ZhangCheng) -> NDArray[np.f
     J = np.empty((len(V), 9))
     for j in range(6):
         dM = -M @ dD[j] @ M
-        J[:, j] = 2.0 * np.einsum("ij,ij->i", y, e @ dM.T)
+        J[:, j] = 2.0 * row_dot(y, e @ dM.T)
     J[:, 6:] = -2.0 * (y @ M)
     return J
 

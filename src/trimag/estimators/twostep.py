@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
+from ..metrics import row_dot
 from ..models.ellipsoid import to_upper
 from ._common import check_ellipsoid_options, normalise, scalar_reference
 from .base import Estimator
@@ -99,7 +100,7 @@ class TwoStep(Estimator):
             F = ref.values / f_scale
         else:
             f_scale, F = 1.0, np.ones(len(B))
-        z = np.einsum("ij,ij->i", u, u) - F**2
+        z = row_dot(u, u) - F**2
         L = _design(u)
         # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
         A1 = np.column_stack([L, -np.ones(len(u))])

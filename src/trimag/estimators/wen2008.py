@@ -39,6 +39,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
+from ..metrics import row_dot
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, normalised_upper
 from ._common import scalar_reference
@@ -188,7 +189,7 @@ def solve_wen_pairs(B1: NDArray[np.float64], B2: NDArray[np.float64], *, max_ite
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C = Wen2008Model.in_gauge(*p).correction()[0]
         y1, y2 = u1 @ C.T, u2 @ C.T
-        return np.einsum("ij,ij->i", y1, y1) - np.einsum("ij,ij->i", y2, y2)
+        return row_dot(y1, y1) - row_dot(y2, y2)
 
     p0 = np.array([start.k1, start.k2, start.alpha, start.gamma])
     res = least_squares(
