@@ -110,3 +110,21 @@ def test_metrics_reexports_crlb():
     from trimag import metrics
 
     assert metrics.crlb is crlb
+
+
+@pytest.mark.parametrize("known", [True, False], ids=["known-F", "unknown-F"])
+def test_closed_form_ellipsoid_fisher_equals_generic_path(known):
+    """``fisher_information`` takes a closed form for the ellipsoid's upper gauge; the generic finite-difference
+    path (any other parametrisation callable) gives the same matrix on noisy samples off the ellipsoid."""
+    from trimag.crlb import _upper_param, fisher_information
+
+    truth = _ellipsoid()
+    _, theta, param = parametrisation(truth)
+    assert param is _upper_param
+    rng = np.random.default_rng(5)
+    W, b = param(theta)
+    X = uniform_directions(400, seed=4) @ np.linalg.inv(W).T + b + 0.05 * rng.standard_normal((400, 3))
+    fast = fisher_information(X, param, theta, 0.05, known_magnitude=known)
+    generic = fisher_information(X, lambda t: _upper_param(t), theta, 0.05, known_magnitude=known)
+    assert fast.shape == ((9, 9) if known else (10, 10))
+    assert np.max(np.abs(fast - generic)) <= 1e-8 * np.max(np.abs(generic))

@@ -119,3 +119,43 @@ def test_estimator_contract_basics() -> None:
     assert np.array_equal(raw, copy)
     assert est.residuals_.shape == (300,) and est.n_samples_ == 300
     np.testing.assert_allclose(est.transform(raw), est.calibration_.apply(raw))
+
+
+def test_algebraic_fit_normalised_on_the_fly_equals_the_normalised_copy():
+    """``algebraic_ellipsoid(B, norm)`` (normalised chunk by chunk, no copy) equals the fit of the copy."""
+    from trimag.estimators._common import normalisation_of, normalise
+    from trimag.estimators.ellipsoid_fit import algebraic_ellipsoid
+    from trimag.simulate import uniform_directions
+
+    rng = np.random.default_rng(4)
+    B = uniform_directions(3000, seed=5) @ np.diag([1.1, 0.9, 1.05]) * 4e4 + [3e3, -2e3, 1e3]
+    B += 50 * rng.standard_normal(B.shape)
+    norm = normalisation_of(B)
+    W1, c1, cond1 = algebraic_ellipsoid(B, norm)
+    W2, c2, cond2 = algebraic_ellipsoid(norm.forward(B))
+    np.testing.assert_allclose(W1, W2, rtol=1e-10)
+    np.testing.assert_allclose(c1, c2, atol=1e-12)
+    assert cond1 == pytest.approx(cond2, rel=1e-8)
+    # and the fit does not depend on the normalisation (translation and scale invariance)
+    u, norm_full = normalise(B)
+    W3, c3, _ = algebraic_ellipsoid(u)
+    np.testing.assert_allclose(W3 / norm_full.scale, W1 / norm.scale, rtol=1e-8)
+    np.testing.assert_allclose(norm_full.centre + norm_full.scale * c3, norm.centre + norm.scale * c1, rtol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["ellipsoid-fit", "ml", "als", "twostep"])
+def test_memory_layout_of_the_input_does_not_matter(method: str) -> None:
+    """A Fortran-ordered (or transposed-view) input gives the same calibration and statistics as a C-ordered
+    one, and is not modified (the component-major fast paths must never write through a view)."""
+    rng = np.random.default_rng(8)
+    raw = simulate_ellipsoid(800) + 30.0 * rng.standard_normal((800, 3))
+    c_order = np.ascontiguousarray(raw)
+    f_order = np.asfortranarray(raw)
+    kept = f_order.copy()
+    a = trimag.fit(c_order, method=method, units="nT")
+    b = trimag.fit(f_order, method=method, units="nT")
+    np.testing.assert_array_equal(f_order, kept)
+    np.testing.assert_allclose(b.matrix, a.matrix, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(b.offset, a.offset, rtol=1e-12, atol=1e-9)
+    for key in ("rms_before", "rms_after", "max_abs_after", "mean_norm_after"):
+        assert b.stats[key] == pytest.approx(a.stats[key], rel=1e-12), key

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._rowwise import affine
 from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit
@@ -213,6 +214,8 @@ class Calibration:
             raise TrimagInputError(f"`B` must have shape (3,) or (N, 3); got {arr.shape}")
         if inverse:
             return np.linalg.solve(self.matrix, arr.T).T + self.offset
+        if arr.ndim == 2 and len(arr) > 1000:
+            return affine(arr, self.matrix, self.offset)  # blocked, component-major: ~3x faster on long arrays
         return (arr - self.offset) @ self.matrix.T
 
     def inv(self) -> Calibration:

@@ -165,17 +165,18 @@ def _field_jacobian(
 
 @dataclass(frozen=True)
 class EllipsoidGeometry:
-    """Per-sample quantities of the magnitude model at ``(W, b)`` for raw samples ``X`` (N, 3).
+    """Per-sample quantities of the magnitude model at ``(W, b)`` for raw samples ``X`` (N, 3), stored
+    component-major (one contiguous row per component: numpy is 5-10x faster on rows than on (N, 3) columns).
 
     Attributes
     ----------
-    e : ndarray (N, 3)
+    e : ndarray (3, N)
         ``x_i - b``.
     magnitude : ndarray (N,)
         ``|W (x_i - b)|``.
-    normal : ndarray (N, 3)
+    normal : ndarray (3, N)
         Corrected direction ``n_i = W (x_i - b) / |W (x_i - b)|``.
-    gradient : ndarray (N, 3)
+    gradient : ndarray (3, N)
         ``W^T n_i``: gradient of the magnitude with respect to the raw sample.
     weight : ndarray (N,)
         ``1 / |W^T n_i|^2``: the weight that turns a squared magnitude residual into a squared distance.
@@ -190,12 +191,14 @@ class EllipsoidGeometry:
 
 def ellipsoid_geometry(X: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64]) -> EllipsoidGeometry:
     """:class:`EllipsoidGeometry` of samples ``X`` (N, 3) under the correction ``W`` (3, 3), offset ``b`` (3,)."""
-    e = X - b
-    y = e @ W.T
-    mag = np.sqrt(row_dot(y, y))
-    n = y / mag[:, None]
-    q = n @ W
-    w = 1.0 / row_dot(q, q)
+    X = np.asarray(X, dtype=np.float64)
+    e = np.empty((3, len(X)))  # a new array: X (possibly a view of the caller's data) is never written
+    np.subtract(X.T, np.asarray(b, dtype=np.float64)[:, None], out=e)
+    y = W @ e
+    mag = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
+    n = y / mag
+    q = W.T @ n
+    w = 1.0 / (q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
     return EllipsoidGeometry(e, mag, n, q, w)
 
 
@@ -210,12 +213,14 @@ def ellipsoid_fisher(
     """
     g = geometry
     p = 9 if known_magnitude else 10
-    a = np.empty((len(g.weight), p))
-    a[:, :6] = g.normal[:, UPPER[0]] * g.e[:, UPPER[1]]
-    a[:, 6:9] = -g.gradient
+    a = np.empty((p, len(g.weight)))  # component-major: a[k] is parameter k's derivative for every sample
+    for k, (r, c) in enumerate(zip(*UPPER, strict=True)):
+        np.multiply(g.normal[r], g.e[c], out=a[k])
+    np.negative(g.gradient, out=a[6:9])
     if not known_magnitude:
-        a[:, 9] = -1.0
-    return np.asarray((a * g.weight[:, None]).T @ a / sigma**2, dtype=np.float64)
+        a[9] = -1.0
+    a *= np.sqrt(g.weight)  # in place: the information is then one symmetric product
+    return np.asarray(a @ a.T / sigma**2, dtype=np.float64)
 
 
 def fisher_information(

@@ -69,9 +69,6 @@ def norm_stats(norms: ArrayLike, reference: ArrayLike) -> dict[str, Any]:
     }
 
 
-_STATS_CHUNK = 65_536
-
-
 class _Moments:
     """Count, mean, sum of squared deviations, min and max of a stream of blocks (Chan et al.'s pairwise
     update: no cancellation when the mean is large and the spread tiny)."""
@@ -80,12 +77,13 @@ class _Moments:
         self.n, self.mean, self.m2 = 0, 0.0, 0.0
         self.lo, self.hi = np.inf, -np.inf
 
-    def add(self, x: NDArray[np.float64]) -> None:
+    def add(self, x: NDArray[np.float64], scratch: NDArray[np.float64] | None = None) -> None:
+        """Add the values ``x`` (m,); ``scratch`` (at least m,) avoids a temporary."""
         m = len(x)
         if m == 0:
             return
-        mean = float(np.ones(m) @ x) / m
-        dev = x - mean
+        mean = float(np.sum(x)) / m
+        dev = np.subtract(x, mean, out=None if scratch is None else scratch[:m])
         m2 = float(np.dot(dev, dev))
         total = self.n + m
         delta = mean - self.mean
@@ -143,30 +141,41 @@ def before_after_stats(
 
     Notes
     -----
-    The samples are processed in blocks of 65 536 rows, so no (N, 3) or (N,) temporary is formed; the result
+    The samples are processed in blocks of 65 536 rows (:mod:`trimag._rowwise`), so no (N, 3) or (N,) temporary
+    is formed; the result
     equals ``norm_stats(row_norms(B), F)`` and ``norm_stats(row_norms(corrected), F)`` to rounding.
     """
-    matrix_t = np.ascontiguousarray(np.asarray(matrix, dtype=np.float64).T)
+    from . import _rowwise
+
+    matrix = np.ascontiguousarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
     raw, cor = _Moments(), _Moments()
     raw_err, cor_err = (_Moments(), _Moments()) if reference is not None else (None, None)
     ref_sum = 0.0
-    buf = np.empty((min(len(B), _STATS_CHUNK), 3))
-    for start in range(0, len(B), _STATS_CHUNK):
-        block = B[start : start + _STATS_CHUNK]
-        y = buf[: len(block)]
-        np.subtract(block, offset, out=y)
-        y = y @ matrix_t
-        n_raw = np.sqrt(row_dot(block, block))
-        n_cor = np.sqrt(row_dot(y, y))
-        raw.add(n_raw)
-        cor.add(n_cor)
+    size = min(max(len(B), 1), _rowwise.BLOCK)
+    y_buf, tmp = np.empty((3, size)), np.empty(size)
+    n_raw_buf, n_cor_buf, err_buf = np.empty(size), np.empty(size), np.empty(size)
+
+    def norms(t: NDArray[np.float64], out: NDArray[np.float64], scratch: NDArray[np.float64]) -> NDArray[np.float64]:
+        np.multiply(t[0], t[0], out=out)
+        out += np.multiply(t[1], t[1], out=scratch)
+        out += np.multiply(t[2], t[2], out=scratch)
+        return np.sqrt(out, out=out)
+
+    for start, t in _rowwise.transposed_blocks(B):  # component-major blocks (trimag._rowwise)
+        m = t.shape[1]
+        n_raw = norms(t, n_raw_buf[:m], tmp[:m])
+        t -= offset[:, None]
+        y = np.matmul(matrix, t, out=y_buf[:, :m])
+        n_cor = norms(y, n_cor_buf[:m], tmp[:m])
+        raw.add(n_raw, tmp)
+        cor.add(n_cor, tmp)
         if reference is not None:
             assert raw_err is not None and cor_err is not None
-            ref = reference[start : start + _STATS_CHUNK]
+            ref = reference[start : start + m]
             ref_sum += float(np.sum(ref))
-            raw_err.add(n_raw - ref)
-            cor_err.add(n_cor - ref)
+            raw_err.add(np.subtract(n_raw, ref, out=err_buf[:m]), tmp)
+            cor_err.add(np.subtract(n_cor, ref, out=err_buf[:m]), tmp)
     F = ref_sum / len(B) if reference is not None else cor.mean
     return _stats_from(raw, raw_err, F), _stats_from(cor, cor_err, F), float(F)
 

@@ -38,7 +38,7 @@ def check_field(
     Returns
     -------
     ndarray, shape (N, 3), float64
-        A new array (the input is never modified).
+        A new C-ordered array (the input is never modified).
 
     Raises
     ------
@@ -48,7 +48,7 @@ def check_field(
         Fewer than ``min_samples`` rows.
     """
     try:
-        arr = np.array(B, dtype=np.float64, copy=True)
+        arr = np.array(B, dtype=np.float64, copy=True, order="C")  # C order: row blocks are contiguous
     except (TypeError, ValueError) as exc:
         raise TrimagInputError(f"`{name}` must be numeric with shape (N, 3); got {type(B).__name__}") from exc
     if arr.ndim == 1 and allow_single and arr.shape[0] == 3:

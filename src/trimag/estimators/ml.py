@@ -445,7 +445,7 @@ def ellipsoid_result(
         diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
                                    "note": "forced by balance='always'; not tested (no noise estimate)"}
     offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
-    coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal)
+    coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal.T)
     if cov is not None:
         theta = np.concatenate([W[UPPER], offset])
         Fm = float(np.mean(ref.values)) if ref.values is not None else float(target_sub)

@@ -1,0 +1,57 @@
+"""Sphere coverage, the degeneracy check and the diagnostic subsample."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from trimag.diagnostics import (
+    DIAGNOSTIC_SAMPLES,
+    check_not_degenerate,
+    diagnostic_subsample,
+    fibonacci_sphere,
+    sphere_coverage,
+)
+from trimag.errors import IdentifiabilityError
+from trimag.simulate import hemisphere_directions, uniform_directions
+
+
+def test_diagnostic_subsample_is_everything_or_evenly_spread():
+    np.testing.assert_array_equal(diagnostic_subsample(1234), np.arange(1234))
+    idx = diagnostic_subsample(10 * DIAGNOSTIC_SAMPLES)
+    assert len(idx) == DIAGNOSTIC_SAMPLES and idx[0] == 0 and idx[-1] == 10 * DIAGNOSTIC_SAMPLES - 1
+    gaps = np.diff(idx)
+    assert gaps.min() >= 9 and gaps.max() <= 11
+
+
+def test_coverage_counts_cells_by_nearest_centre():
+    """Each sample goes to its nearest lattice centre (checked against a brute-force argmin of the distance)."""
+    u = uniform_directions(5000, seed=0)
+    cov = sphere_coverage(3.7 * u)  # any length
+    centres = fibonacci_sphere(100)
+    brute = np.bincount(np.argmin(((u[:, None, :] - centres[None]) ** 2).sum(-1), axis=1), minlength=100)
+    np.testing.assert_array_equal(cov["cell_counts"], brute)
+    assert cov["fraction"] == 1.0 and cov["n_used"] == 5000
+
+
+def test_coverage_of_a_large_log_scales_counts_and_threshold_together():
+    """A log larger than the diagnostic subsample: counts are scaled up to the whole log, and so is the
+    threshold a cell needs (10 % of its share of the whole log), so the covered fraction is that of the log."""
+    n = 3 * DIAGNOSTIC_SAMPLES
+    u = hemisphere_directions(n, seed=1)
+    cov = sphere_coverage(u)
+    assert cov["n_used"] <= DIAGNOSTIC_SAMPLES
+    assert sum(cov["cell_counts"]) == pytest.approx(n, rel=1e-3)
+    assert cov["min_count"] == pytest.approx(0.1 * n / 100, rel=0.01)
+    assert 0.45 <= cov["fraction"] <= 0.6  # a hemisphere covers about half of the cells
+
+
+def test_degeneracy_check_on_a_large_log():
+    rng = np.random.default_rng(3)
+    n = 2 * DIAGNOSTIC_SAMPLES + 17
+    plane = np.column_stack([rng.standard_normal((n, 2)) * 3e4, np.full(n, 1.2e4)])
+    with pytest.raises(IdentifiabilityError, match="one plane"):
+        check_not_degenerate(plane)
+    with pytest.raises(IdentifiabilityError, match="identical"):
+        check_not_degenerate(np.tile([5e4, -2e3, 7e3], (n, 1)))
+    check_not_degenerate(uniform_directions(n, seed=2) * 5e4 + 1e3)  # a sphere passes
