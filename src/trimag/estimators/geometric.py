@@ -99,22 +99,25 @@ def solve_geometric(B: NDArray[np.float64], *, bias: bool = False, max_iter: int
     def unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
         return q_to_matrix(p[:5]), (p[5:8] if bias else np.zeros(3)), float(p[-1])
 
+    ut = np.ascontiguousarray(u.T)  # component-major (3, N): contiguous passes (trimag._rowwise)
+
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b, h = unpack(p)
-        return np.linalg.norm((u - b) @ C.T, axis=1) - h
+        y = C @ (ut - b[:, None])
+        return np.asarray(np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) - h, dtype=np.float64)
 
     def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b, _ = unpack(p)
-        e = u - b
-        y = e @ C.T
-        n = y / np.linalg.norm(y, axis=1)[:, None]
-        J = np.empty((len(u), 6 + nb))
-        r, c = _Q_IDX
-        J[:, :5] = n[:, r] * e[:, c]
+        e = ut - b[:, None]
+        y = C @ e
+        n = y / np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
+        Jt = np.empty((6 + nb, e.shape[1]))
+        for k, (r, c) in enumerate(zip(*_Q_IDX, strict=True)):
+            np.multiply(n[r], e[c], out=Jt[k])
         if bias:
-            J[:, 5:8] = -(n @ C)
-        J[:, -1] = -1.0
-        return J
+            Jt[5:8] = -(C.T @ n)
+        Jt[-1] = -1.0
+        return Jt.T
 
     res = least_squares(
         fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10

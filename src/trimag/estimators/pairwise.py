@@ -37,7 +37,6 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..metrics import row_dot
 from ..models import get_model
 from ..models.ortho_gain import params_from_q
 from ._common import scalar_reference
@@ -190,21 +189,26 @@ def solve_pairs(
     C0, b0, cond = closed_form_pairs(u1, u2, bias=bias)
     p0 = np.concatenate([C0[_Q_IDX], b0]) if bias else C0[_Q_IDX].copy()
 
+    # component-major copies (3, N): every product below is one contiguous pass (trimag._rowwise)
+    u1t, u2t = np.ascontiguousarray(u1.T), np.ascontiguousarray(u2.T)
+
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)
-        y1, y2 = (u1 - b) @ C.T, (u2 - b) @ C.T
-        return row_dot(y1, y1) - row_dot(y2, y2)
+        y1, y2 = C @ (u1t - b[:, None]), C @ (u2t - b[:, None])
+        return np.asarray(np.sum(y1 * y1 - y2 * y2, axis=0), dtype=np.float64)
 
     def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)
-        e1, e2 = u1 - b, u2 - b
-        y1, y2 = e1 @ C.T, e2 @ C.T
-        J = np.empty((len(u1), 8 if bias else 5))
-        r, c = _Q_IDX
-        J[:, :5] = 2.0 * (y1[:, r] * e1[:, c] - y2[:, r] * e2[:, c])
+        e1, e2 = u1t - b[:, None], u2t - b[:, None]
+        y1, y2 = C @ e1, C @ e2
+        Jt = np.empty((8 if bias else 5, e1.shape[1]))
+        for k, (r, c) in enumerate(zip(*_Q_IDX, strict=True)):
+            np.multiply(y1[r], e1[c], out=Jt[k])
+            Jt[k] -= y2[r] * e2[c]
+        Jt[:5] *= 2.0
         if bias:
-            J[:, 5:] = -2.0 * ((y1 - y2) @ C)
-        return J
+            Jt[5:] = -2.0 * (C.T @ (y1 - y2))
+        return Jt.T
 
     res = least_squares(
         fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10
