@@ -164,3 +164,44 @@ def test_row_selection(tmp_path: Path) -> None:
 def test_shared_real_logs(rel: str, kwargs: dict[str, str], n: int) -> None:
     s = read_samples(SHARED_DATA / rel, **kwargs)
     assert s.field.shape == (n, 3) and s.n_dropped == 0
+
+
+def test_count_duplicate_rows_matches_pandas_and_ignores_hash_collisions(monkeypatch):
+    """The hashed duplicate count equals pandas' exact one (``-0.0 == 0.0`` included); rows whose hashes
+    collide but differ are not counted (forced here by a constant hash)."""
+    import pandas as pd
+
+    import trimag.io.tables as tables
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        a = rng.integers(-2, 3, (int(rng.integers(1, 200)), 3)).astype(float)
+        if trial % 2:
+            a[a == 0] = -0.0
+        assert tables.count_duplicate_rows(a) == int(pd.DataFrame(a + 0.0).duplicated().sum())
+    distinct = rng.standard_normal((50, 3))
+    assert tables.count_duplicate_rows(distinct) == 0
+    monkeypatch.setattr(tables.pd.util, "hash_array", lambda values, *a, **k: np.zeros(len(values), np.uint64))
+    assert tables.count_duplicate_rows(distinct) == 0
+    assert tables.count_duplicate_rows(np.vstack([distinct, distinct[:7]])) == 7
+
+
+def test_csv_reader_arrow_and_pandas_paths_agree(tmp_path, monkeypatch):
+    """The pyarrow reader (every cell a string) gives the same samples, table and counts as the pandas one,
+    with a preamble, quoted cells, empty and non-numeric field cells."""
+    import trimag.io.tables as tables
+
+    text = "Fs,50.00\nt,bx,by,bz,note\n" + "".join(
+        f'{i * 0.02:.2f},{1000 + i},{-200 + 3 * i},{50 - i},"a, {i}"\n' for i in range(40)
+    )
+    text += '0.80,,5,6,x\n0.82,abc,1,2,y\n0.84,1001,-197,49,"a, 1"\n'
+    path = tmp_path / "log.csv"
+    path.write_text(text)
+    fast = read_samples(path)
+    monkeypatch.setattr(tables, "_read_delimited_arrow", lambda *a, **k: None)
+    slow = read_samples(path)
+    np.testing.assert_array_equal(fast.field, slow.field)
+    assert fast.table.astype(str).equals(slow.table.astype(str))
+    assert (fast.n_rows, fast.n_dropped, fast.n_duplicates) == (slow.n_rows, slow.n_dropped, slow.n_duplicates)
+    assert (fast.n_dropped, fast.n_duplicates) == (2, 1)
+    assert fast.columns == ("bx", "by", "bz")
