@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import _rowwise
+
 __all__ = ["before_after_stats", "magnitude_error", "magnitude_stats", "norm_stats", "rms", "row_dot", "row_norms"]
 
 
@@ -145,8 +147,6 @@ def before_after_stats(
     is formed; the result
     equals ``norm_stats(row_norms(B), F)`` and ``norm_stats(row_norms(corrected), F)`` to rounding.
     """
-    from . import _rowwise
-
     matrix = np.ascontiguousarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
     raw, cor = _Moments(), _Moments()
