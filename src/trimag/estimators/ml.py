@@ -122,7 +122,8 @@ def geometric_residual(
     W, b = _unpack(p)
     # Component-major layout: every quantity is a (3, N) or (N,) array of contiguous rows, so each step below
     # is one pass over N numbers.
-    e = (u - b).T  # (3, N)
+    e = np.empty((3, len(u)))
+    np.subtract(u.T, b[:, None], out=e)  # (3, N), C-ordered (``(u - b).T`` broadcasts over rows of 3: slow)
     y = W @ e
     mag = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
     n = y / mag
