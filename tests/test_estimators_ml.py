@@ -239,3 +239,31 @@ def test_balance_always_applies_to_noise_free_data_too():
     assert cal.diagnostics["balanced_offset"]["applied"] and cal.diagnostics["balanced_offset"]["balanced"] is None
     np.testing.assert_allclose(cal.offset, raw.mean(axis=0), atol=1e-12)
     np.testing.assert_allclose(cal.offset, B0, atol=1e-12)  # balanced design: the mean is the offset
+
+
+def test_gauss_newton_reaches_the_levenberg_marquardt_minimum_and_declines_bad_starts():
+    """From the algebraic start, undamped Gauss-Newton reaches the minimum MINPACK's Levenberg-Marquardt finds
+    (to 1e-10); from a start where a full step raises the cost it returns None, so the fit falls back to LM."""
+    from scipy.optimize import least_squares
+
+    from trimag.estimators._common import normalise
+    from trimag.estimators.ellipsoid_fit import algebraic_ellipsoid
+    from trimag.estimators.ml import gauss_newton_solve
+
+    rng = np.random.default_rng(11)
+    W = np.array([[1.1, 0.05, -0.03], [0.0, 0.95, 0.02], [0.0, 0.0, 1.02]])
+    X = uniform_directions(1500, seed=12) @ np.linalg.inv(W).T + [0.2, -0.1, 0.3]
+    X += 0.03 * rng.standard_normal(X.shape)
+    u, _ = normalise(X)
+    W0, c0, _ = algebraic_ellipsoid(u)
+    p0 = np.concatenate([W0[UPPER], c0])
+    target = np.ones(len(u))
+    gn = gauss_newton_solve(u, p0, target)
+    assert gn is not None and gn.nfev <= 10
+    lm = least_squares(lambda p: geometric_residual(u, p, target)[0], p0,
+                       jac=lambda p: geometric_residual(u, p, target)[1], method="lm",
+                       xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    np.testing.assert_allclose(gn.x, lm.x, rtol=0, atol=1e-10)
+    far = p0.copy()
+    far[6:] += 3.0  # the offset three radii away: Gauss-Newton's first step overshoots
+    assert gauss_newton_solve(u, far, target) is None
