@@ -1,17 +1,18 @@
-"""``ml``: maximum likelihood on the magnitude residual, Levenberg-Marquardt with analytic Jacobian, corrected
-for its second-order noise bias (``docs/method-ml.md``).
+"""``ml``: maximum likelihood on the magnitude residual, Gauss-Newton (Levenberg-Marquardt when it does not
+descend) with analytic Jacobian, corrected for its second-order noise bias (``docs/method-ml.md``).
 
 Model (``docs/accuracy.md``): raw samples ``x_i = inv(W) y_i + b + e_i`` with ``|y_i| = F`` and white Gaussian
 noise ``e_i ~ N(0, sigma^2 I)``. Parameters: the upper-triangular ``W`` (6, the gauge that removes the rotation a
 magnitude cannot see) and the offset ``b`` (3).
 
 1. **Start**: the algebraic fit (``ellipsoid-fit``) on normalised data.
-2. **Maximum likelihood** (first order): Levenberg-Marquardt (``scipy.optimize.least_squares``, analytic
-   Jacobian) on the geometric residual ``r_i = (|W (x_i - b)| - F_i) / |W^T n_i|`` (``n_i`` the corrected
-   direction): the first-order signed distance of the sample from the ellipsoid, of variance ``sigma^2``. This is
-   the ML weighting (it attains the Cramér–Rao bound of :func:`trimag.crlb.crlb` to first order); the weight sits
-   inside the residual with its exact derivative, which also stops LM from shrinking ``W`` towards a huge
-   ellipsoid on partial coverage (as a magnitude residual with frozen weights does on one hemisphere).
+2. **Maximum likelihood** (first order): Gauss-Newton from the start (:func:`gauss_newton_solve`;
+   Levenberg-Marquardt, ``scipy.optimize.least_squares``, when a step raises the cost), analytic Jacobian, on
+   the geometric residual ``r_i = (|W (x_i - b)| - F_i) / |W^T n_i|`` (``n_i`` the corrected direction): the
+   first-order signed distance of the sample from the ellipsoid, of variance ``sigma^2``. This is the ML
+   weighting (it attains the Cramér–Rao bound of :func:`trimag.crlb.crlb` to first order); the weight sits
+   inside the residual with its exact derivative, which also stops the iteration from shrinking ``W`` towards a
+   huge ellipsoid on partial coverage (as a magnitude residual with frozen weights does on one hemisphere).
 3. **Bias correction** (the point of this method): the estimate solves ``sum_i psi(x_i, theta) = 0`` with
    ``psi = r grad_theta r``. Under noise ``E[psi(x + e)] = psi(x) + sigma^2/2 Laplacian_x psi + O(sigma^4)``,
    so the estimate carries the bias ``-H^-1 sum_i sigma^2/2 Laplacian_x psi_i`` (``H = J^T J``), of order
@@ -536,7 +537,7 @@ class MaximumLikelihood(Estimator):
         ``scipy.optimize.least_squares`` loss: ``"linear"`` (default) or a robust one (``"soft_l1"``,
         ``"huber"``, ``"cauchy"``) for logs with disturbed samples (no bias correction then).
     max_iter : int
-        Iteration limit of each Levenberg-Marquardt run.
+        Iteration limit of each Gauss-Newton / Levenberg-Marquardt run.
     bias_correction : bool
         Subtract the second-order noise bias (default True). False gives the plain weighted ML.
     noise_std : float, optional
