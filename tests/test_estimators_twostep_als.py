@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import trimag
 from trimag.crlb import UPPER, crlb
 from trimag.errors import TrimagInputError
 from trimag.estimators.als import AdjustedLeastSquares, als_scatter, als_solve
@@ -104,3 +105,21 @@ def test_twostep_noise_option():
         TwoStep(noise_std=float("nan")).fit(raw, 1.0)
     cal = TwoStep(noise_std=0.0).fit(raw, 1.0).calibration_
     np.testing.assert_allclose(_params(cal), THETA, atol=1e-8)
+
+
+def test_twostep_step2_on_sufficient_statistics_matches_levenberg_marquardt(monkeypatch):
+    """Step 2 by Gauss-Newton on 9 x 9 sufficient statistics gives the calibration MINPACK's
+    Levenberg-Marquardt gives on the (N, 9) residuals (forced here by making the fast path decline)."""
+    import trimag.estimators.twostep as twostep_module
+
+    rng = np.random.default_rng(21)
+    W = np.array([[1.08, 0.04, -0.02], [0.0, 0.96, 0.03], [0.0, 0.0, 1.01]])
+    X = uniform_directions(3000, seed=22) @ np.linalg.inv(W).T * 5e4 + [900.0, -400.0, 250.0]
+    X += 300.0 * rng.standard_normal(X.shape)
+    fast = trimag.fit(X, method="twostep", units="nT")
+    assert "sufficient statistics" in fast.diagnostics["optimizer"]
+    monkeypatch.setattr(twostep_module, "_gauss_newton_step2", lambda *a, **k: None)
+    slow = trimag.fit(X, method="twostep", units="nT")
+    assert "sufficient statistics" not in slow.diagnostics["optimizer"]
+    np.testing.assert_allclose(fast.matrix, slow.matrix, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(fast.offset, slow.offset, rtol=0, atol=1e-6)

@@ -62,6 +62,54 @@ def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.column_stack([-x * x, -y * y, -z * z, -2 * y * z, -2 * x * z, -2 * x * y, 2 * x, 2 * y, 2 * z])
 
 
+class _Step2Result:
+    """The attributes of ``scipy.optimize.OptimizeResult`` that TWOSTEP reads."""
+
+    def __init__(self, x: NDArray[np.float64], nfev: int) -> None:
+        self.x, self.nfev, self.success = x, nfev, True
+        self.message = f"Gauss-Newton on sufficient statistics converged in {nfev - 1} steps"
+
+
+def _gauss_newton_step2(
+    L: NDArray[np.float64], sw: NDArray[np.float64], z: NDArray[np.float64], p0: NDArray[np.float64],
+    const_and_grad: Any, *, max_steps: int = 50, xtol: float = 1e-12,
+) -> _Step2Result | None:
+    """Step 2 by Gauss-Newton on 9 x 9 sufficient statistics, or None when a step raises the cost.
+
+    The residual ``r = sw (L p - const(p) - z)`` is linear in ``p`` but for the scalar ``const``, so ``J^T J``,
+    ``J^T r`` and ``r^T r`` follow from ``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw`` (``Lw = sw L``,
+    ``zw = sw z``) and three scalars, computed once: each step costs O(1) instead of an (N, 9) Jacobian.
+    """
+    Lw = L * sw[:, None]
+    zw = sw * z
+    G, h, k = Lw.T @ Lw, Lw.T @ sw, Lw.T @ zw
+    s0, s1, s2 = float(sw @ sw), float(sw @ zw), float(zw @ zw)
+
+    def cost(p: NDArray[np.float64], const: float) -> float:
+        return float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
+
+    p = np.asarray(p0, dtype=np.float64).copy()
+    const, dconst = const_and_grad(p)
+    f = cost(p, const)
+    for step_no in range(1, max_steps + 1):
+        JtJ = G - np.outer(h, dconst) - np.outer(dconst, h) + s0 * np.outer(dconst, dconst)
+        Jtr = (G @ p - h * const - k) - dconst * (h @ p - s0 * const - s1)
+        try:
+            step = np.linalg.solve(JtJ, Jtr)
+        except np.linalg.LinAlgError:
+            return None
+        p_new = p - step
+        const_new, dconst_new = const_and_grad(p_new)
+        f_new = cost(p_new, const_new)
+        converged = bool(np.linalg.norm(step) <= xtol * (1.0 + np.linalg.norm(p_new)))
+        if not np.isfinite(f_new) or f_new > f + 1e-10 * abs(f) + 1e-12 * s2:
+            return _Step2Result(p, step_no + 1) if converged else None
+        p, const, dconst, f = p_new, const_new, dconst_new, f_new
+        if converged:
+            return _Step2Result(p, step_no + 1)
+    return None
+
+
 class TwoStep(Estimator):
     """TWOSTEP (Alonso & Shuster 2002): centred linear estimate, then Gauss-Newton with measurement weights.
 
@@ -141,13 +189,8 @@ class TwoStep(Estimator):
         # step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted
         sw = np.sqrt(w)
 
-        def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
-            E, c = _sym(p[:6]), p[6:9]
-            M = np.eye(3) + E
-            const = c @ np.linalg.solve(M, c) - sigma2 * np.trace(M)
-            return np.asarray(sw * (L @ p - const - z), dtype=np.float64)
-
-        def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        def const_and_grad(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+            """The model's constant ``c^T M^-1 c - sigma^2 tr(M)`` and its gradient in ``p`` (9,)."""
             E, c = _sym(p[:6]), p[6:9]
             M = np.eye(3) + E
             bb = np.linalg.solve(M, c)
@@ -157,10 +200,18 @@ class TwoStep(Estimator):
             for k, (i, j) in enumerate(zip(*_SYM, strict=True)):
                 dconst[k] = -outer[i, j] * (1.0 if i == j else 2.0) - (sigma2 if i == j else 0.0)
             dconst[6:9] = 2 * bb
-            return np.asarray(sw[:, None] * (L - dconst[None, :]), dtype=np.float64)
+            return float(c @ bb - sigma2 * np.trace(M)), dconst
 
-        res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
-                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
+            return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
+
+        def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+            return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
+
+        res = _gauss_newton_step2(L, sw, z, x1[:9], const_and_grad, max_steps=self.max_iter)
+        if res is None:  # a step raised the cost: Levenberg-Marquardt from the same start
+            res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
+                                xtol=1e-12, ftol=1e-12, gtol=1e-12)
         E, c = _sym(res.x[:6]), res.x[6:9]
         M = np.eye(3) + E
         ev, evec = np.linalg.eigh(M)
