@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from .._rowwise import affine
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -57,9 +58,34 @@ def _sym(e: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rows ``(-x^2, -y^2, -z^2, -2yz, -2xz, -2xy, 2x, 2y, 2z)``: ``z_k = L_k (e, c) - const``."""
-    x, y, z = u.T
-    return np.column_stack([-x * x, -y * y, -z * z, -2 * y * z, -2 * x * z, -2 * x * y, 2 * x, 2 * y, 2 * z])
+    """Rows ``(-x^2, -y^2, -z^2, -2yz, -2xz, -2xy, 2x, 2y, 2z)``: ``z_k = L_k (e, c) - const``.
+
+    Built component-major ((9, N), one contiguous pass per term) and returned as its (N, 9) transpose.
+    """
+    x, y, z = np.ascontiguousarray(u.T)
+    Lt = np.empty((9, len(x)))
+    for k, (a, b, f) in enumerate(((x, x, -1.0), (y, y, -1.0), (z, z, -1.0), (y, z, -2.0), (x, z, -2.0),
+                                   (x, y, -2.0))):
+        np.multiply(a, b, out=Lt[k])
+        Lt[k] *= f
+    np.multiply(x, 2.0, out=Lt[6])
+    np.multiply(y, 2.0, out=Lt[7])
+    np.multiply(z, 2.0, out=Lt[8])
+    return Lt.T
+
+
+def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """TWOSTEP's measurement weights ``1 / |M (u_k - b)|^2`` with ``M = A^2`` symmetric: ``|A^2 (x - b)|^2 =
+    (x - b)^T M^2 (x - b) ~ |A y|^2``, shape (N,)."""
+    t = affine(u, M, b)
+    return np.asarray(1.0 / np.maximum(row_dot(t, t), 1e-12), dtype=np.float64)
+
+
+def _magnitude_misfit(u: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64],
+                      F: NDArray[np.float64]) -> float:
+    """``mean((|A (u_k - b)| - F_k)^2)``."""
+    t = affine(u, A, b)
+    return float(np.mean((np.sqrt(row_dot(t, t)) - F) ** 2))
 
 
 class _Step2Result:
@@ -151,7 +177,6 @@ class TwoStep(Estimator):
         z = row_dot(u, u) - F**2
         L = _design(u)
         # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
-        A1 = np.column_stack([L, -np.ones(len(u))])
         constant_F = float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
         if constant_F:
             # with one magnitude for all samples the centred problem is degenerate (E = -I, c = 0 fits z
@@ -160,9 +185,9 @@ class TwoStep(Estimator):
             M1 = float(np.mean(F)) ** 2 * (W0.T @ W0)
             b1 = c0
             x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
-            yk2 = np.einsum("ij,jk,ik->i", u - b1, M1 @ M1, u - b1)
-            w = 1.0 / np.maximum(yk2, 1e-12)
+            w = _weights(u, b1, M1)
         else:
+            A1 = np.column_stack([L, -np.ones(len(u))])
             cond, _, _ = design_condition(A1)
             check_condition(cond, what="an ellipsoid (hard + soft iron)",
                             hint="record the sensor in more attitudes, turning it about all three axes")
@@ -178,9 +203,8 @@ class TwoStep(Estimator):
                         "more attitudes (or use --method ml)"
                     )
                 b1 = np.linalg.solve(M1, c1)
-                yk2 = np.einsum("ij,jk,ik->i", u - b1, M1 @ M1, u - b1)  # |A^2 (x - b)|^2 ~ |A y|^2
-                w = 1.0 / np.maximum(yk2, 1e-12)
-        resid1 = A1 @ x1 - z
+                w = _weights(u, b1, M1)
+        resid1 = L @ x1[:9] - x1[9] - z
         if self.noise_std is not None:
             sigma2 = (float(self.noise_std) / norm.scale) ** 2
         else:
@@ -226,8 +250,8 @@ class TwoStep(Estimator):
         # step-1 estimate when step 2 fits the magnitudes worse
         ev1, evec1 = np.linalg.eigh(M1)
         A1m = (evec1 * np.sqrt(np.clip(ev1, 0, None))) @ evec1.T
-        fit2 = float(np.mean((np.linalg.norm((u - b_u) @ A.T, axis=1) - F) ** 2))
-        fit1 = float(np.mean((np.linalg.norm((u - b1) @ A1m.T, axis=1) - F) ** 2))
+        fit2 = _magnitude_misfit(u, A, b_u, F)
+        fit1 = _magnitude_misfit(u, A1m, b1, F)
         step2_used = bool(res.success) and fit2 <= fit1 * 1.5
         if not step2_used:
             A, b_u = A1m, b1
