@@ -172,14 +172,16 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
     IdentifiabilityError
         With a message saying what to record instead.
     """
-    B = B[:: max(1, len(B) // DIAGNOSTIC_SAMPLES)]  # an evenly spread subsample decides it as well
-    centred = B - (np.ones(len(B)) @ B) / len(B)
-    scale = float(np.max(np.abs(B))) or 1.0
+    # an evenly spread subsample decides it as well; component-major (3, m) so that each pass is contiguous
+    centred = np.ascontiguousarray(B[:: max(1, len(B) // DIAGNOSTIC_SAMPLES)].T)
+    m = centred.shape[1]
+    scale = max(float(centred.max()), -float(centred.min())) or 1.0
+    centred -= (centred.sum(axis=1) / m)[:, None]
     centred *= 1.0 / scale
     # singular values of the centred samples from their 3 x 3 Gram matrix (eigenvalue error ~ 1e-16 of the
     # largest: far below the 1e-12 ratio the plane test needs)
-    sv = np.sqrt(np.clip(np.linalg.eigvalsh(centred.T @ centred), 0.0, None))[::-1]
-    if sv[0] <= 1e-12 * np.sqrt(len(B)):
+    sv = np.sqrt(np.clip(np.linalg.eigvalsh(centred @ centred.T), 0.0, None))[::-1]
+    if sv[0] <= 1e-12 * np.sqrt(m):
         raise IdentifiabilityError(
             "all samples are identical (the sensor appears stuck or the log repeats one value); "
             "check the sensor, then record it while turning it through many attitudes"

@@ -43,7 +43,6 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
-from ..metrics import row_dot
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import scalar_reference
@@ -91,21 +90,27 @@ def residual_jacobian(
     b, k, ang = _unpack(p)
     T = t_matrix(*ang)
     Tinv = np.linalg.inv(T)
-    e = x - b
-    z = e / k
-    y = z @ Tinv.T
-    mag = np.sqrt(row_dot(y, y))
+    # component-major (3, N) layout: each step is one contiguous pass (trimag._rowwise)
+    z = np.empty((3, len(x)))
+    np.subtract(x.T, b[:, None], out=z)
+    z *= (1.0 / k)[:, None]
+    y = Tinv @ z
+    mag = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
     r = mag - target
     if not jacobian:
         return r, None
-    n = y / mag[:, None]
-    g = n @ Tinv
-    J = np.empty((len(x), 9))
-    J[:, 0:3] = -g / k
-    J[:, 3:6] = -g * z / k
+    y *= 1.0 / mag  # y is now n = y / |y|; y itself is mag * n below
+    g = Tinv.T @ y
+    Jt = np.empty((9, len(x)))
+    np.multiply(g, (-1.0 / k)[:, None], out=Jt[0:3])
+    np.multiply(Jt[0:3], z, out=Jt[3:6])
     for j, dT in enumerate(t_matrix_derivatives(*ang)):
-        J[:, 6 + j] = -row_dot(y @ dT.T, g)
-    return r, J
+        v = dT @ y  # (dT/dtheta) n; times mag gives (dT/dtheta) y
+        Jt[6 + j] = v[0] * g[0]
+        Jt[6 + j] += v[1] * g[1]
+        Jt[6 + j] += v[2] * g[2]
+        Jt[6 + j] *= -mag
+    return r, Jt.T
 
 
 def planarity(B: NDArray[np.float64]) -> float:

@@ -15,7 +15,8 @@ The squared corrected magnitude expands to
 
 (for a pair's difference), so each pair's residual is linear in the six entries of ``M = Gamma^-T Gamma^-1``.
 The closed-form start is the null vector of that N x 6 design ``W``; the upper Cholesky factor of ``M``,
-scaled so that its (3, 3) entry is 1, is ``Gamma^-1``. Levenberg-Marquardt on the five ``q`` (analytic
+scaled so that its (3, 3) entry is 1, is ``Gamma^-1``. Gauss-Newton (Levenberg-Marquardt when a step raises
+the cost: :mod:`trimag.estimators._solve`) on the five ``q`` (analytic
 Jacobian) then minimises ``Phi`` exactly (the paper solves ``grad Phi = 0``).
 
 With offsets (``ortho-gain-bias``) each residual ``|C (B1 - b)|^2 - |C (B2 - b)|^2`` is linear in
@@ -32,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
@@ -40,6 +40,7 @@ from ..errors import IdentifiabilityError, TrimagInputError
 from ..models import get_model
 from ..models.ortho_gain import params_from_q
 from ._common import scalar_reference
+from ._solve import gauss_newton_then_lm
 from .base import Estimator, build_calibration
 
 __all__ = [
@@ -180,7 +181,8 @@ def solve_pairs(
     """Minimise ``Phi`` over the pairs ``(B1[i], B2[i])`` (both (N, 3), one unit) without validation.
 
     The data are scaled (and, with ``bias``, centred) internally; ``C`` is invariant to that, ``b`` is
-    mapped back. Start: :func:`closed_form_pairs`; then Levenberg-Marquardt with the analytic Jacobian.
+    mapped back. Start: :func:`closed_form_pairs`; then Gauss-Newton with the analytic Jacobian, falling back to
+    Levenberg-Marquardt.
     """
     both = np.vstack([B1, B2])
     centre = both.mean(axis=0) if bias else np.zeros(3)
@@ -210,8 +212,9 @@ def solve_pairs(
             Jt[5:] = -2.0 * (C.T @ (y1 - y2))
         return Jt.T
 
-    res = least_squares(
-        fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10
+    res = gauss_newton_then_lm(
+        fun, jac, p0, max_steps=max_iter,
+        lm_options={"xtol": 1e-15, "ftol": 1e-15, "gtol": 1e-15, "max_nfev": max_iter * 10},
     )
     C, b_u = _unpack(res.x, bias)
     phi = float(np.sum(res.fun**2)) * scale**4
@@ -231,7 +234,7 @@ class Pairwise(Estimator):
     seed : int
         Seed of the random pairing.
     max_iter : int
-        Levenberg-Marquardt iteration limit (x10 function evaluations).
+        Gauss-Newton step limit; the Levenberg-Marquardt fallback gets x10 function evaluations.
 
     Notes
     -----
