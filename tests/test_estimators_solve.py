@@ -37,8 +37,8 @@ def test_nonlinear_fit_reaches_a_smaller_gradient_than_minpack() -> None:
     lm = least_squares(fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     assert res.method == "gauss-newton"
     np.testing.assert_allclose(res.x, lm.x, rtol=1e-7)
-    grad = np.linalg.norm(jac(res.x).T @ fun(res.x))
-    assert grad <= max(np.linalg.norm(jac(lm.x).T @ fun(lm.x)), 1e-12)
+    grad = float(np.linalg.norm(jac(res.x).T @ fun(res.x)))
+    assert grad <= max(float(np.linalg.norm(jac(lm.x).T @ fun(lm.x))), 1e-12)
 
 
 def test_a_step_that_raises_the_cost_hands_over_to_levenberg_marquardt() -> None:
