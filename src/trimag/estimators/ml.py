@@ -50,6 +50,7 @@ from ..crlb import (
 from ..diagnostics import (
     CONDITION_ERROR,
     CONDITION_WARN,
+    DIAGNOSTIC_SAMPLES,
     check_condition,
     check_not_degenerate,
     design_condition,
@@ -154,15 +155,9 @@ def geometric_residual(
     return np.asarray(s * g, dtype=np.float64), Jt.T
 
 
-def _psi(u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Per-sample estimating function ``psi_i = r_i grad_theta r_i`` of the ML fit, shape (N, 9)."""
-    r, J = geometric_residual(u, p, target)
-    return np.asarray(r[:, None] * J, dtype=np.float64)
-
-
 def weighted_ml(
     u: NDArray[np.float64], p0: NDArray[np.float64], target: NDArray[np.float64], *, loss: str = "linear",
-    max_iter: int = 100,
+    max_iter: int = 100, xtol: float = 1e-12,
 ) -> tuple[NDArray[np.float64], Any, int]:
     """Magnitude-residual ML (geometric residual, exact Jacobian) from ``p0`` (upper W, b) on normalised ``u``.
 
@@ -185,7 +180,7 @@ def weighted_ml(
         return both(q)[1]
 
     if loss == "linear":
-        gn = gauss_newton_solve(u, p0, target, max_steps=max_iter)
+        gn = gauss_newton_solve(u, p0, target, max_steps=max_iter, xtol=xtol)
         if gn is not None:
             return np.asarray(gn.x, dtype=np.float64), gn, int(gn.nfev)
     method = "lm" if loss == "linear" else "trf"
@@ -200,10 +195,13 @@ class GaussNewtonResult:
     """What :func:`gauss_newton_solve` found, with the attributes of ``scipy.optimize.OptimizeResult`` that the
     fit reads: ``x``, ``fun`` (residuals), ``jac`` (N, 9), ``nfev``, ``success``, ``message``."""
 
-    def __init__(self, x: NDArray[np.float64], fun: NDArray[np.float64], jac: NDArray[np.float64], nfev: int):
+    def __init__(
+        self, x: NDArray[np.float64], fun: NDArray[np.float64], jac: NDArray[np.float64], nfev: int,
+        xtol: float = 1e-12,
+    ):
         self.x, self.fun, self.jac, self.nfev = x, fun, jac, nfev
         self.success = True
-        self.message = f"Gauss-Newton converged in {nfev - 1} steps (relative step <= 1e-12)"
+        self.message = f"Gauss-Newton converged in {nfev - 1} steps (relative step <= {xtol:g})"
 
 
 def gauss_newton_solve(
@@ -232,16 +230,16 @@ def gauss_newton_solve(
         converged = bool(np.linalg.norm(step) <= xtol * (1.0 + np.linalg.norm(p_new)))
         if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-10):
             # a step that raises the cost: diverging, or (when converged) rounding; keep the better point
-            return GaussNewtonResult(p, r, J, step_no + 1) if converged else None
+            return GaussNewtonResult(p, r, J, step_no + 1, xtol) if converged else None
         p, r, J, cost = p_new, r_new, J_new, cost_new
         if converged:
-            return GaussNewtonResult(p, r, J, step_no + 1)
+            return GaussNewtonResult(p, r, J, step_no + 1, xtol)
     return None
 
 
 #: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
 #: with Gauss-Newton steps on the normal equations (9 x 9), so time and memory stay linear in N.
-LARGE_N = 50_000
+LARGE_N = 20_000
 
 
 _POLISH_CHUNK = 65_536
@@ -287,18 +285,22 @@ def bias_correction(
     """Second-order noise bias of the ML estimate ``p`` (to subtract), normalised units.
 
     ``bias = -H^-1 sum_i sigma^2/2 Laplacian_x psi_i`` (module docstring, step 3), ``H = J^T J``. The Laplacian
-    is taken by central differences with step ``h = 1e-3`` (normalised units, data of radius ~1).
+    is taken by central differences with step ``h = 1e-3`` (normalised units, data of radius ~1). The residual
+    depends on a sample only through ``x - b``, so shifting every sample by ``+h e_k`` is shifting the offset
+    by ``-h e_k``: no shifted copies of the samples are made, and each ``sum_i psi_i = J^T r`` is one product.
     """
     h = 1e-3
     r0, J = geometric_residual(u, p, target)  # psi at the data, and J for H = J^T J: one evaluation
-    base = r0[:, None] * J
+    base = J.T @ r0
     lap = np.zeros(9)
     for k in range(3):
-        dp = u.copy()
-        dp[:, k] += h
-        dm = u.copy()
-        dm[:, k] -= h
-        lap += np.sum(_psi(dp, p, target) + _psi(dm, p, target) - 2 * base, axis=0) / h**2
+        for sign in (1.0, -1.0):
+            shifted = p.copy()
+            shifted[6 + k] -= sign * h  # samples + sign h e_k  ==  offset - sign h e_k
+            r, Js = geometric_residual(u, shifted, target)
+            lap += Js.T @ r
+        lap -= 2.0 * base
+    lap /= h**2
     return np.asarray(-np.linalg.solve(J.T @ J, 0.5 * sigma2 * lap), dtype=np.float64)
 
 
@@ -582,7 +584,9 @@ class MaximumLikelihood(Estimator):
         large = len(u) > LARGE_N and self.loss == "linear"
         # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N)
         sub_idx = np.linspace(0, len(u) - 1, LARGE_N).astype(np.int64) if large else slice(None)
-        p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter)
+        # (on the subsample a relative step of 1e-9 is close enough: the polish converges quadratically from it)
+        p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter,
+                                   xtol=1e-9 if large else 1e-12)
         if large:
             p, sum_sq, JtJ, n_polish = gauss_newton_polish(u, p, target)
             nfev += n_polish
@@ -600,8 +604,10 @@ class MaximumLikelihood(Estimator):
             sigma2_u = (float(self.noise_std) / norm.scale) ** 2
         correction = np.zeros(9)
         if self.bias_correction and self.loss == "linear" and sigma2_u > 0:
-            # the bias is a ratio of two sums over samples: a spread subsample estimates it as well
-            correction = bias_correction(u[sub_idx], p, target[sub_idx], sigma2_u)
+            # the bias is a ratio of two sums over samples: an evenly spread subsample estimates it as well
+            # (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself, 0.003 standard deviations)
+            bias_idx = diagnostic_subsample(len(u)) if len(u) > DIAGNOSTIC_SAMPLES else slice(None)
+            correction = bias_correction(u[bias_idx], p, target[bias_idx], sigma2_u)
             p = p - correction
         W_u, b_u = _unpack(p)
         W = W_u * f_scale / norm.scale
