@@ -159,3 +159,21 @@ def test_memory_layout_of_the_input_does_not_matter(method: str) -> None:
     np.testing.assert_allclose(b.offset, a.offset, rtol=1e-12, atol=1e-9)
     for key in ("rms_before", "rms_after", "max_abs_after", "mean_norm_after"):
         assert b.stats[key] == pytest.approx(a.stats[key], rel=1e-12), key
+
+
+def test_power_sums_equal_the_direct_sums_over_several_chunks() -> None:
+    from itertools import product
+
+    from trimag.estimators._common import normalisation_of
+    from trimag.estimators.ellipsoid_fit import _CHUNK, power_sums
+
+    rng = np.random.default_rng(3)
+    raw = rng.normal(size=(_CHUNK + 1234, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]  # > 1 chunk
+    norm = normalisation_of(raw)
+    u = (raw - norm.centre) / norm.scale
+    sums = power_sums(raw, norm)
+    direct = {(a, b, c): float(np.sum(u[:, 0] ** a * u[:, 1] ** b * u[:, 2] ** c))
+              for a, b, c in product(range(5), repeat=3) if a + b + c <= 4}
+    assert set(sums) == set(direct) and len(sums) == 35
+    for key, value in direct.items():
+        assert sums[key] == pytest.approx(value, rel=1e-10, abs=1e-8 * len(u)), key

@@ -30,7 +30,7 @@ from ..diagnostics import check_not_degenerate
 from ..errors import IdentifiabilityError
 from ._common import check_ellipsoid_options, normalise, scalar_reference
 from .base import Estimator
-from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale, quadric_to_ellipsoid
+from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale, power_sums, quadric_to_ellipsoid
 from .ml import ellipsoid_result
 
 __all__ = ["AdjustedLeastSquares", "als_scatter", "als_solve"]
@@ -44,22 +44,12 @@ _XI: tuple[tuple[tuple[tuple[int, int, int], float], ...], ...] = (
 # t_k(x; s) = sum_j _HERMITE[k][j] s^j x^(k - 2j)
 _HERMITE: tuple[dict[int, float], ...] = ({0: 1.0}, {0: 1.0}, {0: 1.0, 1: -1.0}, {0: 1.0, 1: -3.0},
                                           {0: 1.0, 1: -6.0, 2: 3.0})
-_CHUNK = 250_000
 
 
 def _moments(u: NDArray[np.float64]) -> dict[tuple[int, int, int], float]:
-    """Sums ``sum_i x^p y^q z^r`` for ``p + q + r <= 4`` (chunked)."""
-    out: dict[tuple[int, int, int], float] = {
-        (a, b, c): 0.0 for a, b, c in product(range(5), repeat=3) if a + b + c <= 4
-    }
-    for start in range(0, len(u), _CHUNK):
-        x, y, z = u[start : start + _CHUNK].T
-        px = [np.ones_like(x), x, x * x, x**3, x**4]
-        py = [np.ones_like(y), y, y * y, y**3, y**4]
-        pz = [np.ones_like(z), z, z * z, z**3, z**4]
-        for e in out:
-            out[e] += float(np.sum(px[e[0]] * py[e[1]] * pz[e[2]]))
-    return out
+    """Sums ``sum_i x^p y^q z^r`` for ``p + q + r <= 4`` (:func:`~trimag.estimators.ellipsoid_fit.power_sums`:
+    one chunked component-major pass)."""
+    return power_sums(u)
 
 
 def als_scatter(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
