@@ -59,7 +59,10 @@ def check_field(
         )
     if arr.shape[0] == 0:
         raise TrimagInputError(f"`{name}` is empty: no samples to work with")
-    if not np.isfinite(arr).all():  # the per-row mask (for the message) only when something is wrong
+    # NaN and inf make the sum non-finite (one pass, no (N, 3) mask); only then (or on overflow) look closer
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = arr.sum()
+    if not np.isfinite(total) and not np.isfinite(arr).all():
         bad = ~np.isfinite(arr).all(axis=1)
         raise TrimagInputError(
             f"`{name}` has {int(bad.sum())} row(s) with NaN or inf (first at row {int(np.argmax(bad))}); "
