@@ -26,3 +26,15 @@ def test_huge_finite_values_pass_and_non_finite_ones_are_caught_whatever_their_s
     arr[3, 0], arr[4, 1] = np.inf, -np.inf  # inf - inf: a NaN sum
     with pytest.raises(TrimagInputError, match="2 row"):
         check_field(arr)
+
+
+def test_float64_c_ordered_input_is_a_read_only_view_and_anything_else_a_copy() -> None:
+    B = np.random.default_rng(0).normal(size=(50, 3))
+    view = check_field(B)
+    assert np.shares_memory(view, B) and not view.flags.writeable and B.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        view[0, 0] = 1.0  # the caller's array cannot be written through it
+    for other in (np.asfortranarray(B), B.astype(np.float32), B[::2], B.tolist()):
+        arr = check_field(other)
+        assert arr.flags.c_contiguous and arr.dtype == np.float64 and arr.flags.writeable
+        assert not isinstance(other, np.ndarray) or not np.shares_memory(arr, other)

@@ -38,7 +38,8 @@ def check_field(
     Returns
     -------
     ndarray, shape (N, 3), float64
-        A new C-ordered array (the input is never modified).
+        C-ordered and never the caller's writable array: a read-only view when ``B`` is already a C-ordered
+        float64 array (no copy), otherwise a new array. The input is never modified.
 
     Raises
     ------
@@ -48,7 +49,13 @@ def check_field(
         Fewer than ``min_samples`` rows.
     """
     try:
-        arr = np.array(B, dtype=np.float64, copy=True, order="C")  # C order: row blocks are contiguous
+        if isinstance(B, np.ndarray) and B.dtype == np.float64 and B.flags.c_contiguous:
+            # already what trimag needs: a read-only view, no copy (a 1e7-row log is 240 MB); any attempt to
+            # write into it raises, so the caller's array can never be modified
+            arr = B.view()
+            arr.flags.writeable = False
+        else:
+            arr = np.array(B, dtype=np.float64, copy=True, order="C")  # C order: row blocks are contiguous
     except (TypeError, ValueError) as exc:
         raise TrimagInputError(f"`{name}` must be numeric with shape (N, 3); got {type(B).__name__}") from exc
     if arr.ndim == 1 and allow_single and arr.shape[0] == 3:

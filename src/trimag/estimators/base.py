@@ -134,7 +134,12 @@ class Estimator:
 
     @property
     def residuals_(self) -> NDArray[np.float64]:
-        """``|corrected_i| - F_i`` (N,) on the fitted samples, in their unit."""
+        """``|corrected_i| - F_i`` (N,) on the fitted samples, in their unit.
+
+        Computed on first access from the samples given to :meth:`fit`. A C-ordered float64 array is not copied
+        by ``fit`` (:func:`~trimag.validation.check_field`), so if you modify it in place in between, read
+        ``residuals_`` before you do.
+        """
         if not hasattr(self, "calibration_"):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(B, reference) first")
         if self._residuals is None:
