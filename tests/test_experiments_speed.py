@@ -106,3 +106,10 @@ def test_rows_with_different_keys_keep_every_column(tmp_path: Path) -> None:
     df = pd.read_csv(tmp_path / "f.csv")
     assert list(df.columns) == ["n", "median_s", "note"]
     assert df["note"].iloc[1].startswith("skipped") and np.isnan(df["median_s"].iloc[1])
+
+
+def test_accuracy_sets_below_one_is_refused(tmp_path: Path) -> None:
+    from trimag.experiments import speed
+
+    with pytest.raises(TrimagInputError, match="--accuracy-sets must be at least 1"):
+        speed.run(tmp_path, accuracy_sets=0, skip=("fits", "apply", "batch"))

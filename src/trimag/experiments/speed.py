@@ -580,7 +580,7 @@ def run(
     n_apply = int(apply_rows or (200_000 if quick else 10_000_000))
     n_files = int(batch_files or (40 if quick else 1000))
     n_samples = int(batch_samples or (2000 if quick else 5000))
-    n_sets = int(accuracy_sets or (3 if quick else ACCURACY_SETS))
+    n_sets = int(accuracy_sets if accuracy_sets is not None else (3 if quick else ACCURACY_SETS))
     if n_sets < 1:
         from ..errors import TrimagInputError
 
