@@ -47,12 +47,8 @@ def normalisation_of(B: NDArray[np.float64]) -> Normalisation:
     conditions the arithmetic (it brings the samples to a centred cloud of radius about 1), so a small subsample
     does as well as the whole log: the fitted ellipsoid is the same to rounding (tested).
     """
-    sub = np.ascontiguousarray(B[:: max(1, len(B) // NORMALISATION_SAMPLES)].T)  # (3, m): contiguous components
-    centre = sub.sum(axis=1) / sub.shape[1]
-    sub -= centre[:, None]
-    flat = sub.ravel()
-    scale = float(np.sqrt(np.dot(flat, flat) / sub.shape[1])) or 1.0
-    return Normalisation(centre, scale)
+    _, norm = normalise(np.ascontiguousarray(B[:: max(1, len(B) // NORMALISATION_SAMPLES)]))
+    return norm
 
 
 def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:

@@ -46,18 +46,12 @@ _HERMITE: tuple[dict[int, float], ...] = ({0: 1.0}, {0: 1.0}, {0: 1.0, 1: -1.0},
                                           {0: 1.0, 1: -6.0, 2: 3.0})
 
 
-def _moments(u: NDArray[np.float64]) -> dict[tuple[int, int, int], float]:
-    """Sums ``sum_i x^p y^q z^r`` for ``p + q + r <= 4`` (:func:`~trimag.estimators.ellipsoid_fit.power_sums`:
-    one chunked component-major pass)."""
-    return power_sums(u)
-
-
 def als_scatter(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """``(Psi_0, Psi_1, Psi_2)``: the noise-corrected scatter is ``Psi_0 + s Psi_1 + s^2 Psi_2``, ``s = sigma^2``.
 
     ``u`` : ndarray, shape (N, 3), samples (normalised units).
     """
-    mom = _moments(u)
+    mom = power_sums(u)  # the 35 sums of x^p y^q z^r, p + q + r <= 4, in one pass
     P = np.zeros((3, 10, 10))
     for a in range(10):
         for b in range(a, 10):
