@@ -115,7 +115,7 @@ def magnitude_jacobian(
 
 #: Rows per block of :func:`geometric_residual`: its ~20 temporaries of this length stay in cache and below the
 #: allocator's mmap threshold (128 KiB), so repeated evaluations reuse memory instead of faulting in fresh
-#: pages (at N = 1e5 whole-array temporaries cost ~8000 page faults per ``ml`` fit, a third of its time).
+#: pages (at N = 1e5 whole-array temporaries cost ~8000 page faults per ``ml`` fit, about a quarter of its time).
 _RESIDUAL_BLOCK = 8192
 
 
