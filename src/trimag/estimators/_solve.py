@@ -1,6 +1,6 @@
 """Nonlinear least squares from a close start: Gauss-Newton first, Levenberg-Marquardt when it fails (not public API).
 
-The refinements of ``pairwise`` and ``geometric`` start from a closed-form solution that is exact on noise-free
+The refinements of ``ml``, ``pairwise`` and ``geometric`` start from a closed-form solution that is exact on noise-free
 data, so the problem is nearly linear there and undamped Gauss-Newton converges quadratically in a few steps.
 Each step solves the p x p normal equations ``(J^T J) delta = J^T r`` (one BLAS product over the N x p Jacobian),
 where MINPACK's Levenberg-Marquardt factors the N x p Jacobian by QR at every iteration and, at the tight
@@ -18,12 +18,62 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-__all__ = ["gauss_newton_then_lm"]
+__all__ = ["gauss_newton", "gauss_newton_then_lm"]
 
 #: Relative step (``|delta| <= XTOL (1 + |p|)``) at which Gauss-Newton has converged: about 100 x rounding.
 XTOL = 1e-13
 #: A relative step below this after which the cost rose (by rounding only) also counts as converged.
 ROUNDING_STEP = 1e-8
+
+
+def gauss_newton(
+    fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    jac: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    p0: NDArray[np.float64],
+    *,
+    max_steps: int = 50,
+    xtol: float = XTOL,
+) -> OptimizeResult | None:
+    """Undamped Gauss-Newton from ``p0``, or None as soon as a step raises ``sum fun(p)^2`` (far from the minimum)
+    or ``max_steps`` pass without convergence; the caller then runs Levenberg-Marquardt.
+
+    Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
+    rounding only (relative step below :data:`ROUNDING_STEP`) keeps the point before it. ``fun`` is evaluated at
+    every trial point and ``jac`` only at accepted ones (a caller whose ``fun`` and ``jac`` share one evaluation
+    can cache it). Returns an ``OptimizeResult`` as :func:`gauss_newton_then_lm`.
+    """
+    p = np.asarray(p0, dtype=np.float64).copy()
+    r = fun(p)
+    J = jac(p)
+    cost = float(r @ r)
+    nfev = njev = 1
+    for step_no in range(1, max_steps + 1):
+        if not np.isfinite(cost):
+            return None
+        A = J.T @ J
+        g = J.T @ r
+        d = np.sqrt(np.diag(A))
+        if not np.all(np.isfinite(d)) or np.any(d == 0):
+            return None
+        try:  # Jacobi-scaled normal equations (columns of very different size stay well conditioned)
+            step = np.linalg.solve(A / np.outer(d, d), g / d) / d
+        except np.linalg.LinAlgError:
+            return None
+        p_new = p - step
+        r_new = fun(p_new)
+        nfev += 1
+        cost_new = float(r_new @ r_new)
+        rel_step = float(np.linalg.norm(step)) / (1.0 + float(np.linalg.norm(p_new)))
+        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
+            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
+                return _result(p, r, J, nfev, njev, step_no, xtol)
+            return None
+        p, r, cost = p_new, r_new, cost_new
+        J = jac(p)
+        njev += 1
+        if rel_step <= xtol:
+            return _result(p, r, J, nfev, njev, step_no, xtol)
+    return None
 
 
 def gauss_newton_then_lm(
@@ -32,9 +82,10 @@ def gauss_newton_then_lm(
     p0: NDArray[np.float64],
     *,
     max_steps: int = 50,
+    xtol: float = XTOL,
     lm_options: dict[str, Any] | None = None,
 ) -> OptimizeResult:
-    """Minimise ``sum fun(p)^2`` from ``p0`` by Gauss-Newton; fall back to Levenberg-Marquardt.
+    """Minimise ``sum fun(p)^2`` from ``p0`` by :func:`gauss_newton`; fall back to Levenberg-Marquardt.
 
     Parameters
     ----------
@@ -46,6 +97,8 @@ def gauss_newton_then_lm(
         Start, close to the minimum (a closed-form fit).
     max_steps : int
         Gauss-Newton steps before handing over to Levenberg-Marquardt.
+    xtol : float
+        Gauss-Newton has converged when the relative step is at most this.
     lm_options : dict, optional
         Keyword arguments of the fallback ``least_squares(fun, p0, jac=jac, method="lm", ...)`` call.
 
@@ -56,37 +109,9 @@ def gauss_newton_then_lm(
         ``message`` and ``method`` (``"gauss-newton"`` or ``"levenberg-marquardt"``), as ``least_squares``
         returns them.
     """
-    p = np.asarray(p0, dtype=np.float64).copy()
-    r = fun(p)
-    J = jac(p)
-    cost = float(r @ r)
-    nfev = njev = 1
-    for step_no in range(1, max_steps + 1):
-        if not np.isfinite(cost):
-            break
-        A = J.T @ J
-        g = J.T @ r
-        d = np.sqrt(np.diag(A))
-        if not np.all(np.isfinite(d)) or np.any(d == 0):
-            break
-        try:  # Jacobi-scaled normal equations (columns of very different size stay well conditioned)
-            step = np.linalg.solve(A / np.outer(d, d), g / d) / d
-        except np.linalg.LinAlgError:
-            break
-        p_new = p - step
-        r_new = fun(p_new)
-        nfev += 1
-        cost_new = float(r_new @ r_new)
-        rel_step = float(np.linalg.norm(step)) / (1.0 + float(np.linalg.norm(p_new)))
-        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
-            if rel_step <= ROUNDING_STEP:  # the minimum, to rounding: keep the better point
-                return _result(p, r, J, nfev, njev, step_no)
-            break
-        p, r, cost = p_new, r_new, cost_new
-        J = jac(p)
-        njev += 1
-        if rel_step <= XTOL:
-            return _result(p, r, J, nfev, njev, step_no)
+    res = gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
+    if res is not None:
+        return res
     res = least_squares(fun, np.asarray(p0, dtype=np.float64), jac=jac, method="lm", **(lm_options or {}))
     res.method = "levenberg-marquardt"
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
@@ -94,9 +119,10 @@ def gauss_newton_then_lm(
 
 
 def _result(
-    p: NDArray[np.float64], r: NDArray[np.float64], J: NDArray[np.float64], nfev: int, njev: int, steps: int
+    p: NDArray[np.float64], r: NDArray[np.float64], J: NDArray[np.float64], nfev: int, njev: int, steps: int,
+    xtol: float,
 ) -> OptimizeResult:
     return OptimizeResult(
         x=p, fun=r, jac=J, nfev=nfev, njev=njev, success=True, status=2, method="gauss-newton",
-        message=f"Gauss-Newton converged in {steps} steps (relative step <= {XTOL:g})",
+        message=f"Gauss-Newton converged in {steps} steps (relative step <= {xtol:g})",
     )

@@ -31,11 +31,12 @@ covariance is then stated in that gauge with ``F`` as a tenth parameter.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from ..calibration import Calibration
 from ..crlb import (
@@ -64,6 +65,7 @@ from ..metrics import row_dot
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
 from ._common import check_ellipsoid_options, normalise, scalar_reference
+from ._solve import gauss_newton
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 
@@ -185,23 +187,9 @@ def weighted_ml(
     Returns ``(p, least_squares result, function evaluations)``.
     """
 
-    cache: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
-
-    def both(q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        key = np.asarray(q, dtype=np.float64).tobytes()
-        if key not in cache:  # fun and jac at the same point share one evaluation
-            cache.clear()
-            cache[key] = geometric_residual(u, q, target)
-        return cache[key]
-
-    def fun(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        return both(q)[0]
-
-    def jac(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        return both(q)[1]
-
+    fun, jac = _cached_residual(u, target)
     if loss == "linear":
-        gn = gauss_newton_solve(u, p0, target, max_steps=max_iter, xtol=xtol)
+        gn = gauss_newton(fun, jac, p0, max_steps=max_iter, xtol=xtol)
         if gn is not None:
             return np.asarray(gn.x, dtype=np.float64), gn, int(gn.nfev)
     method = "lm" if loss == "linear" else "trf"
@@ -212,50 +200,36 @@ def weighted_ml(
     return np.asarray(res.x, dtype=np.float64), res, int(res.nfev)
 
 
-class GaussNewtonResult:
-    """What :func:`gauss_newton_solve` found, with the attributes of ``scipy.optimize.OptimizeResult`` that the
-    fit reads: ``x``, ``fun`` (residuals), ``jac`` (N, 9), ``nfev``, ``success``, ``message``."""
-
-    def __init__(
-        self, x: NDArray[np.float64], fun: NDArray[np.float64], jac: NDArray[np.float64], nfev: int,
-        xtol: float = 1e-12,
-    ):
-        self.x, self.fun, self.jac, self.nfev = x, fun, jac, nfev
-        self.success = True
-        self.message = f"Gauss-Newton converged in {nfev - 1} steps (relative step <= {xtol:g})"
-
-
 def gauss_newton_solve(
     u: NDArray[np.float64], p0: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 100,
     xtol: float = 1e-12,
-) -> GaussNewtonResult | None:
+) -> OptimizeResult | None:
     """Undamped Gauss-Newton on the geometric residual from ``p0``, or None as soon as a step does not lower
-    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``).
+    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``): :func:`._solve.gauss_newton`.
 
     From the algebraic start the problem is nearly linear, so Gauss-Newton converges quadratically (4-6 steps),
     each a 9 x 9 solve, where MINPACK's Levenberg-Marquardt factors the (N, 9) Jacobian at every step. It stops
     on the same criterion as the ``least_squares`` call it replaces (relative step <= ``xtol``), so both
     reach the same minimum to rounding.
     """
-    p = np.asarray(p0, dtype=np.float64).copy()
-    r, J = geometric_residual(u, p, target)
-    cost = float(r @ r)
-    for step_no in range(1, max_steps + 1):
-        try:
-            step = np.linalg.solve(J.T @ J, J.T @ r)
-        except np.linalg.LinAlgError:
-            return None
-        p_new = p - step
-        r_new, J_new = geometric_residual(u, p_new, target)
-        cost_new = float(r_new @ r_new)
-        converged = bool(np.linalg.norm(step) <= xtol * (1.0 + np.linalg.norm(p_new)))
-        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-10):
-            # a step that raises the cost: diverging, or (when converged) rounding; keep the better point
-            return GaussNewtonResult(p, r, J, step_no + 1, xtol) if converged else None
-        p, r, J, cost = p_new, r_new, J_new, cost_new
-        if converged:
-            return GaussNewtonResult(p, r, J, step_no + 1, xtol)
-    return None
+    fun, jac = _cached_residual(u, target)
+    return gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
+
+
+def _cached_residual(
+    u: NDArray[np.float64], target: NDArray[np.float64]
+) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], Callable[[NDArray[np.float64]], NDArray[np.float64]]]:
+    """``fun`` and ``jac`` of the geometric residual that share one evaluation per point."""
+    cache: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+
+    def both(q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        key = np.asarray(q, dtype=np.float64).tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = geometric_residual(u, q, target)
+        return cache[key]
+
+    return (lambda q: both(q)[0]), (lambda q: both(q)[1])
 
 
 #: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
