@@ -8,6 +8,7 @@ import pytest
 from trimag.diagnostics import (
     DIAGNOSTIC_SAMPLES,
     check_not_degenerate,
+    design_condition,
     diagnostic_subsample,
     fibonacci_sphere,
     sphere_coverage,
@@ -55,3 +56,19 @@ def test_degeneracy_check_on_a_large_log():
     with pytest.raises(IdentifiabilityError, match="identical"):
         check_not_degenerate(np.tile([5e4, -2e3, 7e3], (n, 1)))
     check_not_degenerate(uniform_directions(n, seed=2) * 5e4 + 1e3)  # a sphere passes
+
+
+@pytest.mark.parametrize("shape", [(5000, 9), (40, 8), (12, 9)])
+def test_design_condition_equals_the_svd_of_the_column_scaled_design(shape):
+    """Tall designs go through an in-place QR first; singular values and weak directions must be those of the
+    SVD of the column-scaled matrix."""
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=shape) * np.logspace(-3, 3, shape[1])
+    a[:, -1] = a[:, 0] * 1e3 + 1e-4 * rng.normal(size=shape[0])  # one nearly dependent column
+    scaled = a / np.linalg.norm(a, axis=0)
+    _, s_ref, vt_ref = np.linalg.svd(scaled, full_matrices=False)
+    cond, s, vt = design_condition(a)
+    np.testing.assert_allclose(s, s_ref, rtol=1e-9)
+    assert cond == pytest.approx(s_ref[0] / s_ref[-1], rel=1e-8)
+    np.testing.assert_allclose(np.abs(vt[-1]), np.abs(vt_ref[-1]), atol=1e-8)
+    assert np.all(np.isfinite(a))  # the input is not overwritten

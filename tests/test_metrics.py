@@ -52,3 +52,26 @@ def test_before_after_stats_tiny_spread_on_a_large_magnitude():
     assert F == pytest.approx(5e4, rel=1e-12)
     assert after["rms"] == pytest.approx(float(np.std(radius)), rel=1e-3)
     assert after["bias"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_scratch_buffers_are_reused_distinct_when_nested_and_bounded():
+    """``_rowwise.scratch`` lends C-contiguous buffers of the asked shape, reuses them after the ``with`` block,
+    never lends the same memory twice at once, and keeps a bounded pool."""
+    with rowwise.scratch(3, 1000) as a:
+        assert a.shape == (3, 1000) and a.flags["C_CONTIGUOUS"] and a.dtype == np.float64
+        with rowwise.scratch(3, 1000) as b:
+            assert not np.shares_memory(a, b)
+        a_mem = a.__array_interface__["data"][0]
+    with rowwise.scratch(2, 1500) as c:  # fits in a freed buffer: reused, not allocated
+        assert c.__array_interface__["data"][0] in (a_mem, b.__array_interface__["data"][0])
+    held = []
+    for k in range(3 * rowwise.SCRATCH_POOL):  # many sizes, several held at once: the pool stays bounded
+        ctx = rowwise.scratch(3 * rowwise.SCRATCH_POOL - k, 1000)
+        ctx.__enter__()
+        held.append(ctx)
+    for ctx in held:  # the largest first: the smallest, dropped, is the last in the pool
+        ctx.__exit__(None, None, None)
+    assert len(rowwise._pool.free) <= rowwise.SCRATCH_POOL
+    with rowwise.scratch(rowwise.SCRATCH_KEEP + 1) as big:  # larger than kept: freed after use
+        big_mem = big.__array_interface__["data"][0]
+    assert all(buf.__array_interface__["data"][0] != big_mem for buf in rowwise._pool.free)

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._rowwise import scratch
 from .errors import IdentifiabilityError, TrimagInputError
 from .metrics import row_dot
 from .models.base import ErrorModel
@@ -194,9 +195,9 @@ def ellipsoid_geometry(X: NDArray[np.float64], W: NDArray[np.float64], b: NDArra
     X = np.asarray(X, dtype=np.float64)
     e = np.empty((3, len(X)))  # a new array: X (possibly a view of the caller's data) is never written
     np.subtract(X.T, np.asarray(b, dtype=np.float64)[:, None], out=e)
-    y = W @ e
-    mag = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
-    n = y / mag
+    n = W @ e
+    mag = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    n /= mag  # the corrected field, normalised in place
     q = W.T @ n
     w = 1.0 / (q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
     return EllipsoidGeometry(e, mag, n, q, w)
@@ -213,14 +214,15 @@ def ellipsoid_fisher(
     """
     g = geometry
     p = 9 if known_magnitude else 10
-    a = np.empty((p, len(g.weight)))  # component-major: a[k] is parameter k's derivative for every sample
-    for k, (r, c) in enumerate(zip(*UPPER, strict=True)):
-        np.multiply(g.normal[r], g.e[c], out=a[k])
-    np.negative(g.gradient, out=a[6:9])
-    if not known_magnitude:
-        a[9] = -1.0
-    a *= np.sqrt(g.weight)  # in place: the information is then one symmetric product
-    return np.asarray(a @ a.T / sigma**2, dtype=np.float64)
+    # component-major: a[k] is parameter k's derivative for every sample (a reused buffer, trimag._rowwise.scratch)
+    with scratch(p, len(g.weight)) as a:
+        for k, (r, c) in enumerate(zip(*UPPER, strict=True)):
+            np.multiply(g.normal[r], g.e[c], out=a[k])
+        np.negative(g.gradient, out=a[6:9])
+        if not known_magnitude:
+            a[9] = -1.0
+        a *= np.sqrt(g.weight)  # in place: the information is then one symmetric product
+        return np.asarray(a @ a.T / sigma**2, dtype=np.float64)
 
 
 def fisher_information(

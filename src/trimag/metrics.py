@@ -153,8 +153,6 @@ def before_after_stats(
     raw_err, cor_err = (_Moments(), _Moments()) if reference is not None else (None, None)
     ref_sum = 0.0
     size = min(max(len(B), 1), _rowwise.BLOCK)
-    y_buf, tmp = np.empty((3, size)), np.empty(size)
-    n_raw_buf, n_cor_buf, err_buf = np.empty(size), np.empty(size), np.empty(size)
 
     def norms(t: NDArray[np.float64], out: NDArray[np.float64], scratch: NDArray[np.float64]) -> NDArray[np.float64]:
         np.multiply(t[0], t[0], out=out)
@@ -162,20 +160,23 @@ def before_after_stats(
         out += np.multiply(t[2], t[2], out=scratch)
         return np.sqrt(out, out=out)
 
-    for start, t in _rowwise.transposed_blocks(B):  # component-major blocks (trimag._rowwise)
-        m = t.shape[1]
-        n_raw = norms(t, n_raw_buf[:m], tmp[:m])
-        t -= offset[:, None]
-        y = np.matmul(matrix, t, out=y_buf[:, :m])
-        n_cor = norms(y, n_cor_buf[:m], tmp[:m])
-        raw.add(n_raw, tmp)
-        cor.add(n_cor, tmp)
-        if reference is not None:
-            assert raw_err is not None and cor_err is not None
-            ref = reference[start : start + m]
-            ref_sum += float(np.sum(ref))
-            raw_err.add(np.subtract(n_raw, ref, out=err_buf[:m]), tmp)
-            cor_err.add(np.subtract(n_cor, ref, out=err_buf[:m]), tmp)
+    with _rowwise.scratch(7, size) as work:  # reused block buffers (trimag._rowwise.scratch)
+        y_buf = work[:3]
+        tmp, n_raw_buf, n_cor_buf, err_buf = work[3:]
+        for start, t in _rowwise.transposed_blocks(B):  # component-major blocks (trimag._rowwise)
+            m = t.shape[1]
+            n_raw = norms(t, n_raw_buf[:m], tmp[:m])
+            t -= offset[:, None]
+            y = np.matmul(matrix, t, out=y_buf[:, :m])
+            n_cor = norms(y, n_cor_buf[:m], tmp[:m])
+            raw.add(n_raw, tmp)
+            cor.add(n_cor, tmp)
+            if reference is not None:
+                assert raw_err is not None and cor_err is not None
+                ref = reference[start : start + m]
+                ref_sum += float(np.sum(ref))
+                raw_err.add(np.subtract(n_raw, ref, out=err_buf[:m]), tmp)
+                cor_err.add(np.subtract(n_cor, ref, out=err_buf[:m]), tmp)
     F = ref_sum / len(B) if reference is not None else cor.mean
     return _stats_from(raw, raw_err, F), _stats_from(cor, cor_err, F), float(F)
 

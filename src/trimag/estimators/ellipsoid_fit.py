@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import transposed_blocks
+from .._rowwise import scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, weak_directions
 from ..errors import IdentifiabilityError
@@ -66,25 +66,25 @@ def _pair_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> 
     for the full ``D D^T``). Memory: 6 x 65 536 doubles whatever N.
     """
     moments = np.zeros(len(_PAIRS))
-    Q = np.empty((6, min(max(len(u), 1), _CHUNK)))
     centre = norm.centre if norm is not None else None
-    for _, t in transposed_blocks(u, centre, block=_CHUNK):  # component-major blocks: contiguous x, y, z
-        if norm is not None:
-            t *= 1.0 / norm.scale
-        x, y, z = t
-        q = Q[:, : len(x)]
-        np.multiply(x, x, out=q[0])
-        np.multiply(y, y, out=q[1])
-        np.multiply(z, z, out=q[2])
-        np.multiply(y, z, out=q[3])
-        np.multiply(x, z, out=q[4])
-        np.multiply(x, y, out=q[5])
-        terms = (*q, x, y, z)
-        for k, (a_, b_) in enumerate(_PAIRS):
-            if b_ == 9:  # times the constant term
-                moments[k] += float(np.sum(terms[a_])) if a_ < 9 else len(x)
-            else:
-                moments[k] += float(np.dot(terms[a_], terms[b_]))
+    with scratch(6, min(max(len(u), 1), _CHUNK)) as Q:  # a reused buffer (trimag._rowwise.scratch)
+        for _, t in transposed_blocks(u, centre, block=_CHUNK):  # component-major blocks: contiguous x, y, z
+            if norm is not None:
+                t *= 1.0 / norm.scale
+            x, y, z = t
+            q = Q[:, : len(x)]
+            np.multiply(x, x, out=q[0])
+            np.multiply(y, y, out=q[1])
+            np.multiply(z, z, out=q[2])
+            np.multiply(y, z, out=q[3])
+            np.multiply(x, z, out=q[4])
+            np.multiply(x, y, out=q[5])
+            terms = (*q, x, y, z)
+            for k, (a_, b_) in enumerate(_PAIRS):
+                if b_ == 9:  # times the constant term
+                    moments[k] += float(np.sum(terms[a_])) if a_ < 9 else len(x)
+                else:
+                    moments[k] += float(np.dot(terms[a_], terms[b_]))
     return moments
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._rowwise import affine
+from .._rowwise import BLOCK, scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -57,35 +57,101 @@ def _sym(e: NDArray[np.float64]) -> NDArray[np.float64]:
     return E
 
 
-def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rows ``(-x^2, -y^2, -z^2, -2yz, -2xz, -2xy, 2x, 2y, 2z)``: ``z_k = L_k (e, c) - const``.
-
-    Built component-major ((9, N), one contiguous pass per term) and returned as its (N, 9) transpose.
-    """
-    x, y, z = np.ascontiguousarray(u.T)
-    Lt = np.empty((9, len(x)))
+def _design_rows(t: NDArray[np.float64], out: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The design's rows ``(-x^2, -y^2, -z^2, -2yz, -2xz, -2xy, 2x, 2y, 2z)`` (9, m) of the component-major samples
+    ``t`` (3, m), written into ``out``: ``z_k = L_k (e, c) - const``."""
+    x, y, z = t
     for k, (a, b, f) in enumerate(((x, x, -1.0), (y, y, -1.0), (z, z, -1.0), (y, z, -2.0), (x, z, -2.0),
                                    (x, y, -2.0))):
-        np.multiply(a, b, out=Lt[k])
-        Lt[k] *= f
-    np.multiply(x, 2.0, out=Lt[6])
-    np.multiply(y, 2.0, out=Lt[7])
-    np.multiply(z, 2.0, out=Lt[8])
+        np.multiply(a, b, out=out[k])
+        out[k] *= f
+    np.multiply(t, 2.0, out=out[6:9])
+    return out
+
+
+def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The (N, 9) design (:func:`_design_rows` of every sample), for the paths that need it whole."""
+    Lt = np.empty((9, len(u)))
+    _design_rows(np.ascontiguousarray(u.T), Lt)
     return Lt.T
+
+
+def _blocks(u: NDArray[np.float64], rows: int) -> Any:
+    """``(start, t, work)`` per block of :func:`transposed_blocks`, ``work`` a reused (rows, m) buffer."""
+    with scratch(rows, min(max(len(u), 1), BLOCK)) as work:
+        for start, t in transposed_blocks(u):
+            yield start, t, work[:, : t.shape[1]]
+
+
+def _sum_squares(v: NDArray[np.float64], out: NDArray[np.float64], tmp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``v[0]^2 + v[1]^2 + v[2]^2`` of ``v`` (3, m) into ``out`` (m,)."""
+    np.multiply(v[0], v[0], out=out)
+    out += np.multiply(v[1], v[1], out=tmp)
+    out += np.multiply(v[2], v[2], out=tmp)
+    return out
 
 
 def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
     """TWOSTEP's measurement weights ``1 / |M (u_k - b)|^2`` with ``M = A^2`` symmetric: ``|A^2 (x - b)|^2 =
-    (x - b)^T M^2 (x - b) ~ |A y|^2``, shape (N,)."""
-    t = affine(u, M, b)
-    return np.asarray(1.0 / np.maximum(row_dot(t, t), 1e-12), dtype=np.float64)
+    (x - b)^T M^2 (x - b) ~ |A y|^2``, shape (N,). Computed in blocks (no (N, 3) temporary)."""
+    w = np.empty(len(u))
+    M = np.ascontiguousarray(M)
+    for start, t, work in _blocks(u, 5):
+        t -= b[:, None]
+        y = np.matmul(M, t, out=work[:3])
+        q = _sum_squares(y, work[3], work[4])
+        np.divide(1.0, np.maximum(q, 1e-12, out=q), out=w[start : start + t.shape[1]])
+    return w
 
 
 def _magnitude_misfit(u: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64],
                       F: NDArray[np.float64]) -> float:
-    """``mean((|A (u_k - b)| - F_k)^2)``."""
-    t = affine(u, A, b)
-    return float(np.mean((np.sqrt(row_dot(t, t)) - F) ** 2))
+    """``mean((|A (u_k - b)| - F_k)^2)``, in blocks."""
+    total = 0.0
+    A = np.ascontiguousarray(A)
+    for start, t, work in _blocks(u, 5):
+        t -= b[:, None]
+        y = np.matmul(A, t, out=work[:3])
+        mag = np.sqrt(_sum_squares(y, work[3], work[4]), out=work[3])
+        mag -= F[start : start + t.shape[1]]
+        total += float(mag @ mag)
+    return total / len(u)
+
+
+def _step2_statistics(
+    u: NDArray[np.float64], w: NDArray[np.float64], z: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float, float]:
+    """``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw``, ``sw^T sw``, ``sw^T zw``, ``zw^T zw`` with ``sw = sqrt(w)``,
+    ``Lw = sw L``, ``zw = sw z``: step 2's sufficient statistics, accumulated block by block (the (N, 9) design is
+    never formed)."""
+    G, h, k = np.zeros((9, 9)), np.zeros(9), np.zeros(9)
+    s0 = s1 = s2 = 0.0
+    for start, t, work in _blocks(u, 11):
+        m = t.shape[1]
+        Lw, sw, zw = work[:9], work[9], work[10]
+        _design_rows(t, Lw)
+        np.sqrt(w[start : start + m], out=sw)
+        np.multiply(sw, z[start : start + m], out=zw)
+        Lw *= sw
+        G += Lw @ Lw.T
+        h += Lw @ sw
+        k += Lw @ zw
+        s0, s1, s2 = s0 + float(sw @ sw), s1 + float(sw @ zw), s2 + float(zw @ zw)
+    return G, h, k, s0, s1, s2
+
+
+def _weighted_residual_sum(
+    u: NDArray[np.float64], w: NDArray[np.float64], z: NDArray[np.float64], x: NDArray[np.float64]
+) -> float:
+    """``sum w_k (L_k x[:9] - x[9] - z_k)^2`` (step 1's weighted residuals), in blocks."""
+    total = 0.0
+    for start, t, work in _blocks(u, 9):
+        m = t.shape[1]
+        r = x[:9] @ _design_rows(t, work)
+        r -= x[9]
+        r -= z[start : start + m]
+        total += float(np.dot(w[start : start + m] * r, r))
+    return total
 
 
 class _Step2Result:
@@ -97,19 +163,17 @@ class _Step2Result:
 
 
 def _gauss_newton_step2(
-    L: NDArray[np.float64], sw: NDArray[np.float64], z: NDArray[np.float64], p0: NDArray[np.float64],
-    const_and_grad: Any, *, max_steps: int = 50, xtol: float = 1e-12,
+    stats: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float, float],
+    p0: NDArray[np.float64], const_and_grad: Any, *, max_steps: int = 50, xtol: float = 1e-12,
 ) -> _Step2Result | None:
     """Step 2 by Gauss-Newton on 9 x 9 sufficient statistics, or None when a step raises the cost.
 
     The residual ``r = sw (L p - const(p) - z)`` is linear in ``p`` but for the scalar ``const``, so ``J^T J``,
-    ``J^T r`` and ``r^T r`` follow from ``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw`` (``Lw = sw L``,
-    ``zw = sw z``) and three scalars, computed once: each step costs O(1) instead of an (N, 9) Jacobian.
+    ``J^T r`` and ``r^T r`` follow from ``stats`` = (``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw``, and three
+    scalars; ``Lw = sw L``, ``zw = sw z``; :func:`_step2_statistics`), computed once: each step costs O(1)
+    instead of an (N, 9) Jacobian.
     """
-    Lw = L * sw[:, None]
-    zw = sw * z
-    G, h, k = Lw.T @ Lw, Lw.T @ sw, Lw.T @ zw
-    s0, s1, s2 = float(sw @ sw), float(sw @ zw), float(zw @ zw)
+    G, h, k, s0, s1, s2 = stats
 
     def cost(p: NDArray[np.float64], const: float) -> float:
         return float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
@@ -175,7 +239,6 @@ class TwoStep(Estimator):
         else:
             f_scale, F = 1.0, np.ones(len(B))
         z = row_dot(u, u) - F**2
-        L = _design(u)
         # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
         constant_F = float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
         if constant_F:
@@ -187,7 +250,7 @@ class TwoStep(Estimator):
             x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
             w = _weights(u, b1, M1)
         else:
-            A1 = np.column_stack([L, -np.ones(len(u))])
+            A1 = np.column_stack([_design(u), -np.ones(len(u))])
             cond, _, _ = design_condition(A1)
             check_condition(cond, what="an ellipsoid (hard + soft iron)",
                             hint="record the sensor in more attitudes, turning it about all three axes")
@@ -204,14 +267,12 @@ class TwoStep(Estimator):
                     )
                 b1 = np.linalg.solve(M1, c1)
                 w = _weights(u, b1, M1)
-        resid1 = L @ x1[:9] - x1[9] - z
         if self.noise_std is not None:
             sigma2 = (float(self.noise_std) / norm.scale) ** 2
         else:
-            sigma2 = float(np.sum(w * resid1**2) / (4.0 * max(len(u) - 10, 1)))
+            sigma2 = _weighted_residual_sum(u, w, z, x1) / (4.0 * max(len(u) - 10, 1))
 
         # step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted
-        sw = np.sqrt(w)
 
         def const_and_grad(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
             """The model's constant ``c^T M^-1 c - sigma^2 tr(M)`` and its gradient in ``p`` (9,)."""
@@ -226,14 +287,16 @@ class TwoStep(Estimator):
             dconst[6:9] = 2 * bb
             return float(c @ bb - sigma2 * np.trace(M)), dconst
 
-        def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
-            return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
+        res = _gauss_newton_step2(_step2_statistics(u, w, z), x1[:9], const_and_grad, max_steps=self.max_iter)
+        if res is None:  # a step raised the cost: Levenberg-Marquardt from the same start, on the whole design
+            L, sw = _design(u), np.sqrt(w)
 
-        def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
-            return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
+            def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
+                return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
 
-        res = _gauss_newton_step2(L, sw, z, x1[:9], const_and_grad, max_steps=self.max_iter)
-        if res is None:  # a step raised the cost: Levenberg-Marquardt from the same start
+            def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+                return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
+
             res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
                                 xtol=1e-12, ftol=1e-12, gtol=1e-12)
         E, c = _sym(res.x[:6]), res.x[6:9]

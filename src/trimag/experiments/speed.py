@@ -190,12 +190,31 @@ def _profile(fit: FitFn, top: int = 12) -> str:
     return buf.getvalue()
 
 
+#: Bytes of the array :func:`_settle_allocator` allocates and frees.
+SETTLE_BYTES = 8 << 20
+
+
+def _settle_allocator() -> None:
+    """Allocate and free one 8 MiB array before any timing.
+
+    glibc's malloc maps every fresh array above its mmap threshold (128 KiB at start) and pays a page fault per
+    4 KiB at first touch (~2 us each on this machine); freeing a mapped block raises the threshold to that
+    block's size. A process that has loaded or made a log of a few MiB is in the raised state; this benchmark's
+    process reaches it only after the first large size, so without this step the fit times at small N (trimag's
+    and the peers' alike) depended on which measurement ran before (measured: 320-460 faults, ~1 ms, per fit at
+    N = 1e4 for ``ellipsoid-fit`` and ``circuitpython-mag-cal``).
+    """
+    block = np.ones(SETTLE_BYTES // 8)
+    del block
+
+
 def fit_benchmark(
     sizes: list[int], *, repeats: int, budget: float, seed: int, estimators: list[str] | None,
     profile_at: int | None, log: Callable[[str], None], accuracy_sets: int = ACCURACY_SETS,
 ) -> tuple[list[dict[str, Any]], dict[str, str]]:
     """Time and memory of every estimator at every size, and the parameter error of the ellipsoid estimators
     over ``accuracy_sets`` data sets (:func:`_accuracy_sets`); returns rows and cProfile texts."""
+    _settle_allocator()
     methods = [(m, get_estimator(m).models[0]) for m in available_methods()]
     from .accuracy import PEERS
 
