@@ -194,7 +194,27 @@ def test_large_log_path_matches_full_solve(monkeypatch: pytest.MonkeyPatch) -> N
     full = trimag.fit(raw, method="ml", reference=1.0)
     std = np.array(list(full.uncertainty["param_std"].values()))[:9]
     diff = np.concatenate([(fast.matrix - full.matrix)[np.triu_indices(3)], fast.offset - full.offset])
-    assert np.all(np.abs(diff) < 0.05 * std)
+    assert np.all(np.abs(diff) < 1e-3 * std)
+
+
+def test_large_log_path_converges_on_a_hemisphere_at_strong_noise(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On poorly conditioned data (one hemisphere, sigma/F = 5e-2) Gauss-Newton contracts slowly (~0.1 per
+    step); the polish keeps stepping until the predicted remaining error is below POLISH_TOLERANCE standard
+    deviations, so the subsample-and-polish path still lands on the full solve (two fixed steps left up to 0.06
+    standard deviations here)."""
+    import trimag.estimators.ml as ml_module
+    from trimag.simulate import hemisphere_directions
+
+    n = 20_000
+    raw = hemisphere_directions(n, seed=0) @ D.T + B0 + np.random.default_rng(50).normal(scale=0.05, size=(n, 3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        fast = trimag.fit(raw, method="ml", reference=1.0)
+        monkeypatch.setattr(ml_module, "LARGE_N", 10 * n)
+        full = trimag.fit(raw, method="ml", reference=1.0)
+    std = np.array(list(full.uncertainty["param_std"].values()))[:9]
+    diff = np.concatenate([(fast.matrix - full.matrix)[np.triu_indices(3)], fast.offset - full.offset])
+    assert np.all(np.abs(diff) < 1e-2 * std)
 
 
 # ---- balanced sampling: the sample mean as the offset (docs/method-ml.md, "Balanced sampling") -------------

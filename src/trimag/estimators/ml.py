@@ -248,7 +248,7 @@ def _cached_residual(
 
 #: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
 #: with Gauss-Newton steps on the normal equations (9 x 9), so time and memory stay linear in N.
-LARGE_N = 20_000
+LARGE_N = 10_000
 
 
 def _normal_equations(
@@ -273,23 +273,46 @@ def _normal_equations(
     return JtJ, Jtr, ss
 
 
+#: The polish stops when the error left after its last step, predicted from the contraction of the last two
+#: steps, is below this many standard deviations of the estimate (per parameter).
+POLISH_TOLERANCE = 1e-3
+
+
 def gauss_newton_polish(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 2
+    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 8,
+    tolerance: float = POLISH_TOLERANCE,
 ) -> tuple[NDArray[np.float64], float, NDArray[np.float64], int]:
     """Gauss-Newton steps on the geometric residual over all samples from a nearby start ``p``.
 
+    Gauss-Newton converges linearly here (the residuals are not zero): each step shrinks the error by a factor
+    ``rho``, small on well-covered data (~0.02 at sigma/F = 5e-2 on a full sphere) and larger on poorly
+    conditioned data (~0.1 on a hemisphere at sigma/F = 5e-2). With the step size ``s_k`` in standard deviations
+    of the estimate (from ``J^T J`` and the residuals), the error left after step ``k`` is about
+    ``(s_k / s_{k-1}) s_k``; the polish stops when that is below ``tolerance``, when the relative step is below
+    1e-10 (noise-free data), or after ``max_steps`` evaluations. Two steps on well-covered data, 3-5 on poorly
+    covered data.
+
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
-    point before the final, negligible step).
+    point before the final step).
     """
     evaluations = 0
+    previous: float | None = None  # the size of the step before (no contraction estimate after the first)
+    dof = max(len(u) - 9, 1)
     while True:
         JtJ, Jtr, ss = _normal_equations(u, p, target)
         assert JtJ is not None
         evaluations += 1
         step = np.linalg.solve(JtJ, Jtr)
         p = p - step
-        if np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p)) or evaluations >= max_steps:
+        std = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0.0, None) * (ss / dof))
+        size = float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf
+        if (
+            np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p))
+            or (previous is not None and size / previous * size <= tolerance)
+            or evaluations >= max_steps
+        ):
             return p, ss, JtJ, evaluations
+        previous = size
 
 
 #: Unit vectors to the vertices of a regular tetrahedron: ``sum v = 0`` and ``sum v v^T = 4/3 I``, so
