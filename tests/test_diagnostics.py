@@ -72,3 +72,18 @@ def test_design_condition_equals_the_svd_of_the_column_scaled_design(shape):
     assert cond == pytest.approx(s_ref[0] / s_ref[-1], rel=1e-8)
     np.testing.assert_allclose(np.abs(vt[-1]), np.abs(vt_ref[-1]), atol=1e-8)
     assert np.all(np.isfinite(a))  # the input is not overwritten
+
+
+def test_gram_condition_matches_the_design_and_never_fails_when_singular():
+    from trimag.diagnostics import gram_condition
+
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(2000, 9)) * np.logspace(-2, 2, 9)
+    cond, s, vt = gram_condition(a.T @ a)
+    cond_ref, s_ref, vt_ref = design_condition(a)
+    assert cond == pytest.approx(cond_ref, rel=1e-8)
+    np.testing.assert_allclose(s, s_ref, rtol=1e-8)
+    np.testing.assert_allclose(np.abs(vt[-1]), np.abs(vt_ref[-1]), atol=1e-8)
+    a[:, 4] = 2.0 * a[:, 1]  # exactly dependent columns
+    cond_singular, _, _ = gram_condition(a.T @ a)
+    assert cond_singular > 1e7 or cond_singular == np.inf

@@ -330,3 +330,26 @@ def test_gauss_newton_reaches_the_levenberg_marquardt_minimum_and_declines_bad_s
     far = p0.copy()
     far[6:] += 3.0  # the offset three radii away: Gauss-Newton's first step overshoots
     assert gauss_newton_solve(u, far, target) is None
+
+
+@pytest.mark.parametrize("n", [5000, 30_000])
+@pytest.mark.parametrize("sigma", [0.0, 0.01])
+def test_two_great_circles_are_refused_or_flagged_never_a_crash(n, sigma):
+    """Turning the sensor about two axes only puts the samples on two planar sections of the ellipsoid, which
+    every quadric of a one-parameter family passes through: ``ml`` must raise IdentifiabilityError or warn,
+    on both the small and the large-log path (it used to fail with LinAlgError or a complex scale)."""
+    rng = np.random.default_rng(7)
+    t = rng.uniform(0.0, 2.0 * np.pi, n)
+    half = n // 2
+    u = np.zeros((n, 3))
+    u[:half, 0], u[:half, 1] = np.cos(t[:half]), np.sin(t[:half])
+    u[half:, 1], u[half:, 2] = np.cos(t[half:]), np.sin(t[half:])
+    raw = u @ D.T + B0 + rng.normal(scale=sigma, size=(n, 3))
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cal = MaximumLikelihood().fit(raw).calibration_
+    except IdentifiabilityError:
+        return
+    assert any(issubclass(w.category, IdentifiabilityWarning) for w in caught)
+    assert np.linalg.det(cal.matrix) > 0

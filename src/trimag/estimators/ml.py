@@ -58,6 +58,7 @@ from ..diagnostics import (
     design_condition,
     diagnostic_subsample,
     fibonacci_sphere,
+    gram_condition,
     sphere_coverage,
     weak_directions,
 )
@@ -246,6 +247,18 @@ def _cached_residual(
     return (lambda q: both(q)[0]), (lambda q: both(q)[1])
 
 
+def _positive_diagonal(W: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``W`` with its rows' signs flipped so that the diagonal is positive: ``|W e|`` does not change (a row sign
+    is part of the rotation the magnitude cannot see), and ``det W > 0``, which the scale gauge needs."""
+    d = np.diag(W)
+    if not np.all(np.isfinite(W)) or np.any(d == 0):
+        raise IdentifiabilityError(
+            "the fit did not converge to an ellipsoid (a zero or undefined axis); the data cannot identify the "
+            "ellipsoid model: record the sensor turning about all three axes"
+        )
+    return np.sign(d)[:, None] * W
+
+
 #: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
 #: with Gauss-Newton steps on the normal equations (9 x 9), so time and memory stay linear in N.
 LARGE_N = 10_000
@@ -273,6 +286,10 @@ def _normal_equations(
     return JtJ, Jtr, ss
 
 
+_SINGULAR = (
+    "the data cannot identify the ellipsoid model (its normal equations are singular); record the sensor turning "
+    "about all three axes"
+)
 #: The polish stops when the error left after its last step, predicted from the contraction of the last two
 #: steps, is below this many standard deviations of the estimate (per parameter).
 POLISH_TOLERANCE = 1e-3
@@ -302,9 +319,12 @@ def gauss_newton_polish(
         JtJ, Jtr, ss = _normal_equations(u, p, target)
         assert JtJ is not None
         evaluations += 1
-        step = np.linalg.solve(JtJ, Jtr)
+        try:
+            step = np.linalg.solve(JtJ, Jtr)
+            std = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0.0, None) * (ss / dof))
+        except np.linalg.LinAlgError as exc:
+            raise IdentifiabilityError(_SINGULAR) from exc
         p = p - step
-        std = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0.0, None) * (ss / dof))
         size = float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf
         if (
             np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p))
@@ -343,7 +363,10 @@ def bias_correction(
         shifted[6:] -= h * v  # samples + h v  ==  offset - h v
         lap += _normal_equations(u, shifted, target, hessian=False)[1]
     lap *= 1.5 / h**2
-    return np.asarray(-np.linalg.solve(H, 0.5 * sigma2 * lap), dtype=np.float64)
+    try:
+        return np.asarray(-np.linalg.solve(H, 0.5 * sigma2 * lap), dtype=np.float64)
+    except np.linalg.LinAlgError as exc:
+        raise IdentifiabilityError(_SINGULAR) from exc
 
 
 def identifiability(
@@ -633,11 +656,10 @@ class MaximumLikelihood(Estimator):
         if large:
             p, sum_sq, JtJ, n_polish = gauss_newton_polish(u, p, target)
             nfev += n_polish
-            # singular values of J equal those of its Cholesky factor (J = QR), so condition from JtJ
-            design = np.linalg.cholesky(JtJ + 1e-300 * np.eye(9)).T
+            cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
         else:
-            sum_sq, design = float(np.sum(res.fun**2)), res.jac
-        cond, s, vt = design_condition(design)
+            sum_sq = float(np.sum(res.fun**2))
+            cond, s, vt = design_condition(res.jac)
         check_condition(
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
@@ -653,7 +675,7 @@ class MaximumLikelihood(Estimator):
             correction = bias_correction(u[bias_idx], p, target[bias_idx], sigma2_u)
             p = p - correction
         W_u, b_u = _unpack(p)
-        W = W_u * f_scale / norm.scale
+        W = _positive_diagonal(W_u) * f_scale / norm.scale
         offset = norm.centre + norm.scale * b_u
         F_hat = None
         if ref.values is None:
