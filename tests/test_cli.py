@@ -138,6 +138,22 @@ def test_planar_data_exit_3(tmp_path: Path) -> None:
     assert not out.exists() and not list(tmp_path.glob(".*tmp"))
 
 
+def test_single_axis_turn_of_a_noisy_sensor_exit_3(tmp_path: Path) -> None:
+    """A turn about one axis with 1 % noise is not an exact plane, but the spread across the plane is noise:
+    refused with exit 3 (it used to give a calibration without a warning)."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 2000)
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])
+    raw = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) @ tilt.T * 480.0 + [30.0, -12.0, 55.0]
+    raw += rng.normal(scale=4.8, size=raw.shape)
+    p = tmp_path / "one-axis.csv"
+    np.savetxt(p, raw, delimiter=",", header="bx,by,bz", comments="")
+    out = tmp_path / "cal.json"
+    proc = run_trimag("fit", p, "-o", out)
+    _one_line_error(proc, 3, "one plane within the noise")
+    assert not out.exists()
+
+
 def test_strict_refuses_nan(tmp_path: Path) -> None:
     raw = simulate_ellipsoid(100, noise=20.0)
     raw[10, 0] = np.nan

@@ -8,6 +8,7 @@ import pytest
 from trimag.diagnostics import (
     DIAGNOSTIC_SAMPLES,
     check_not_degenerate,
+    check_not_planar_within_noise,
     design_condition,
     diagnostic_subsample,
     fibonacci_sphere,
@@ -87,3 +88,31 @@ def test_gram_condition_matches_the_design_and_never_fails_when_singular():
     a[:, 4] = 2.0 * a[:, 1]  # exactly dependent columns
     cond_singular, _, _ = gram_condition(a.T @ a)
     assert cond_singular > 1e7 or cond_singular == np.inf
+
+
+@pytest.mark.parametrize("method", ["ml", "ellipsoid-fit", "twostep", "als"])
+@pytest.mark.parametrize("sigma", [4e-4, 1e-2, 5e-2])
+def test_single_axis_turns_are_refused_at_any_noise_level(method, sigma):
+    """One great circle plus noise (a sensor turned about one axis) passes the exact-plane test, but every
+    ellipsoid method must refuse it: its spread across the plane is the noise."""
+    import trimag
+
+    rng = np.random.default_rng(9)
+    t = rng.uniform(0, 2 * np.pi, 3000)
+    D = np.array([[1.05, 0.02, -0.01], [0.0, 0.96, 0.03], [0.0, 0.0, 1.0]])
+    raw = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) @ D.T + [0.1, -0.05, 0.08]
+    raw += rng.normal(scale=sigma, size=raw.shape)
+    with pytest.raises(IdentifiabilityError, match="one plane within the noise"):
+        trimag.fit(raw, method=method)
+
+
+def test_plane_noise_ratio_of_a_sphere_and_of_a_slab():
+    """The ratio is the RMS distance from the best plane over the noise: ~0.58 F / sigma for a full sphere,
+    ~1 for a flat slab of noise; sigma = 0 (noise-free) never refuses."""
+    rng = np.random.default_rng(10)
+    sphere = uniform_directions(4000, seed=10) + rng.normal(scale=0.01, size=(4000, 3))
+    assert check_not_planar_within_noise(sphere, 0.01) == pytest.approx(np.sqrt(1 / 3) / 0.01, rel=0.05)
+    slab = np.column_stack([rng.uniform(-1, 1, (4000, 2)), rng.normal(scale=0.01, size=4000)])
+    with pytest.raises(IdentifiabilityError, match="1 x the noise"):
+        check_not_planar_within_noise(slab, 0.01)
+    assert check_not_planar_within_noise(slab, 0.0) == np.inf

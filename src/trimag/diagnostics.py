@@ -21,7 +21,9 @@ __all__ = [
     "CONDITION_ERROR",
     "CONDITION_WARN",
     "DIAGNOSTIC_SAMPLES",
+    "PLANE_NOISE_RATIO",
     "check_not_degenerate",
+    "check_not_planar_within_noise",
     "design_condition",
     "diagnostic_subsample",
     "fibonacci_sphere",
@@ -35,6 +37,11 @@ CONDITION_WARN = 1e4
 #: Column-normalised condition number above which the design is treated as rank deficient (exit 3).
 CONDITION_ERROR = 1e9
 
+#: A log whose RMS distance from its best-fitting plane is below this many noise standard deviations lies in one
+#: plane within the noise (the sensor turned about a single axis): its out-of-plane shape is fitted to noise.
+#: Measured (docs/method-ml.md, "Identifiability"): 1.0-1.9 for single-axis turns at sigma/F = 4e-4 to 5e-2;
+#: 5.7 for one hemisphere at sigma/F = 5e-2; 6.3-98 on five real logs.
+PLANE_NOISE_RATIO = 3.0
 #: Rows per block of the nearest-cell search (the (block, n_cells) products stay in cache).
 _CHUNK = 512
 #: Diagnostics that summarise the whole log (sphere coverage, degeneracy, and the noise level and Fisher
@@ -221,3 +228,32 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
             "field along the missing direction is never seen; record rotations about at least two "
             "more axes (or tumble the sensor through all attitudes)"
         )
+
+
+def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float:
+    """Refuse a log that lies in one plane within the noise; returns the ratio it was judged by.
+
+    ``B`` (N, 3): raw samples (or an evenly spread subsample); ``sigma``: the noise standard deviation per axis
+    in their unit, from the fit. The RMS distance of the samples from their best-fitting plane (the smallest
+    principal standard deviation) divided by ``sigma`` is 1-2 when the sensor turned about a single axis: the
+    spread out of that plane is noise, so the ellipsoid's extent across it is fitted to noise.
+    :func:`check_not_degenerate` only catches exact planes (noise-free data).
+
+    Raises
+    ------
+    IdentifiabilityError
+        When the ratio is below :data:`PLANE_NOISE_RATIO`.
+    """
+    if not sigma > 0:
+        return float("inf")
+    centred = np.ascontiguousarray(B.T)
+    centred -= (centred.sum(axis=1) / centred.shape[1])[:, None]
+    smallest = float(np.linalg.eigvalsh(centred @ centred.T / centred.shape[1])[0])
+    ratio = float(np.sqrt(max(smallest, 0.0)) / sigma)
+    if ratio < PLANE_NOISE_RATIO:
+        raise IdentifiabilityError(
+            f"all samples lie in one plane within the noise (RMS distance from the plane {ratio:.2g} x the noise "
+            "level): the sensor turned about a single axis, or not at all, so the field across that plane is never "
+            "seen; record rotations about at least two more axes (or tumble the sensor through all attitudes)"
+        )
+    return ratio

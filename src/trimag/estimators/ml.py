@@ -55,6 +55,7 @@ from ..diagnostics import (
     DIAGNOSTIC_SAMPLES,
     check_condition,
     check_not_degenerate,
+    check_not_planar_within_noise,
     design_condition,
     diagnostic_subsample,
     fibonacci_sphere,
@@ -523,6 +524,7 @@ def ellipsoid_result(
     if sigma is None:
         resid = geometry.magnitude - target_sub
         sigma = float(np.sqrt(np.sum(geometry.weight * resid**2) / max(len(idx) - 9, 1)))
+    plane_ratio = check_not_planar_within_noise(B_sub, sigma)
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     cov: NDArray[np.float64] | None = None
@@ -570,6 +572,7 @@ def ellipsoid_result(
             predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
         )
         diag["identifiability"] = identifiability(J, names, cov, coverage)
+        diag["identifiability"]["plane_noise_ratio"] = plane_ratio  # check_not_planar_within_noise
         uncertainty = {
             "basis": uncertainty_note,
             "gauge": "upper-triangular W" + ("" if known else ", det(W) = 1, F estimated"),
