@@ -246,9 +246,10 @@ def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float
     """
     if not sigma > 0:
         return float("inf")
-    centred = np.ascontiguousarray(B.T)
-    centred -= (centred.sum(axis=1) / centred.shape[1])[:, None]
-    smallest = float(np.linalg.eigvalsh(centred @ centred.T / centred.shape[1])[0])
+    with scratch(3, len(B)) as centred:  # component-major, a reused buffer (trimag._rowwise.scratch)
+        np.copyto(centred, B.T)
+        centred -= (centred.sum(axis=1) / centred.shape[1])[:, None]
+        smallest = float(np.linalg.eigvalsh(centred @ centred.T / centred.shape[1])[0])
     ratio = float(np.sqrt(max(smallest, 0.0)) / sigma)
     if ratio < PLANE_NOISE_RATIO:
         raise IdentifiabilityError(
