@@ -353,3 +353,37 @@ def test_two_great_circles_are_refused_or_flagged_never_a_crash(n, sigma):
         return
     assert any(issubclass(w.category, IdentifiabilityWarning) for w in caught)
     assert np.linalg.det(cal.matrix) > 0
+
+
+def test_information_relative_to_a_full_sphere_flags_two_great_circles():
+    """Two noisy great circles leave one combination of parameters to the noise: every ellipsoid method warns
+    (the column-normalised condition number and the variance inflation factors do not see it), while a full
+    sphere keeps ~1x and one hemisphere ~10x the full-sphere standard deviation, without that warning."""
+    rng = np.random.default_rng(12)
+    n = 5000
+    t = rng.uniform(0.0, 2.0 * np.pi, n)
+    u = np.zeros((n, 3))
+    u[: n // 2, 0], u[: n // 2, 1] = np.cos(t[: n // 2]), np.sin(t[: n // 2])
+    u[n // 2 :, 1], u[n // 2 :, 2] = np.cos(t[n // 2 :]), np.sin(t[n // 2 :])
+    noise = rng.normal(scale=0.01, size=(n, 3))
+    fitted = 0
+    for method in ("ml", "ellipsoid-fit", "twostep", "als"):
+        try:  # refusing the data (exit 3) is also an answer; a calibration must come with the warning
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                cal = trimag.fit(u @ D.T + B0 + noise, method=method)
+        except IdentifiabilityError:
+            continue
+        fitted += 1
+        assert any(issubclass(w.category, IdentifiabilityWarning) and "full sphere" in str(w.message) for w in caught)
+        assert cal.diagnostics["identifiability"]["std_inflation_vs_full_sphere"] > 30
+        assert "w13" in cal.diagnostics["identifiability"]["weakest_combination"]
+    assert fitted >= 2
+    from trimag.simulate import hemisphere_directions
+
+    cases = ((uniform_directions(n, seed=12), 0.9, 1.5), (hemisphere_directions(n, seed=12), 5, 20))
+    for directions, low, high in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", IdentifiabilityWarning)
+            cal = trimag.fit(directions @ D.T + B0 + noise, method="ml")
+        assert low < cal.diagnostics["identifiability"]["std_inflation_vs_full_sphere"] < high

@@ -96,6 +96,11 @@ COVERAGE_WARN = 0.25
 VIF_REPORT = 10.0
 #: ... and above which the fit warns (standard deviation inflated 10x).
 VIF_WARN = 100.0
+#: Warn when the worst-determined combination of parameters has more than this many times the standard
+#: deviation a full-sphere recording of the same length would give (:func:`identifiability`). Measured: 1.0-1.3
+#: for full spheres and three great circles, 10-11 for one hemisphere, 1.6-6.5 on five real logs, 120-2400
+#: for two great circles at sigma/F <= 1e-2.
+INFLATION_WARN = 30.0
 
 
 def _unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -373,6 +378,7 @@ def bias_correction(
 def identifiability(
     fisher: NDArray[np.float64], names: tuple[str, ...], covariance: NDArray[np.float64], coverage: dict[str, Any],
     *, vif_report: float = VIF_REPORT, vif_warn: float = VIF_WARN, coverage_warn: float = COVERAGE_WARN,
+    reference_fisher: NDArray[np.float64] | None = None, inflation_warn: float = INFLATION_WARN,
 ) -> dict[str, Any]:
     """Condition number, per-parameter variance inflation and the verdict, for ``Calibration.diagnostics``.
 
@@ -381,6 +387,14 @@ def identifiability(
     a parameter's variance inflation factor exceeds ``vif_warn`` or the column-normalised condition number of
     the Fisher information exceeds ``CONDITION_WARN``; raises :class:`IdentifiabilityError` above
     ``CONDITION_ERROR``.
+
+    With ``reference_fisher`` (the information a full sphere of the same length carries at the same estimate),
+    the generalised eigenvalues of the W, b blocks are the fractions of that information each combination of
+    parameters keeps. The smallest, as a ratio of standard deviations ``1 / sqrt(fraction)``, is
+    ``std_inflation_vs_full_sphere``; the fit warns above ``inflation_warn`` and names the parameters of that
+    combination. This catches two great circles (the pencil of quadrics through both leaves one combination to
+    the noise), which the column-normalised condition number and the variance inflation factors do not see:
+    the weak combination is nearly a single parameter whose information is small but uncorrelated.
     """
     # the condition number is taken on W and b alone (with an unknown magnitude the scale of W and F
     # trade off exactly, which the det(W) gauge removes; it is not a property of the data)
@@ -413,6 +427,13 @@ def identifiability(
     if bad:
         reasons.append(f"poorly determined: {', '.join(bad)} (variance inflated more than {vif_warn:g}x by the "
                        "correlation with the other parameters)")
+    if reference_fisher is not None:
+        inflation, weakest = _inflation_vs_full_sphere(fw, reference_fisher[:9, :9], names[:9])
+        out["std_inflation_vs_full_sphere"] = inflation
+        out["weakest_combination"] = weakest
+        if inflation > inflation_warn:
+            reasons.append(f"the worst-determined parameter combination ({', '.join(weakest)}) has {inflation:.3g}x "
+                           "the standard deviation a full sphere of the same length would give")
     out["warning"] = "; ".join(reasons) or None
     if reasons:
         warnings.warn(
@@ -421,6 +442,23 @@ def identifiability(
             IdentifiabilityWarning, stacklevel=4,
         )
     return out
+
+
+def _inflation_vs_full_sphere(
+    fisher: NDArray[np.float64], reference: NDArray[np.float64], names: tuple[str, ...]
+) -> tuple[float, list[str]]:
+    """``1 / sqrt(smallest generalised eigenvalue)`` of ``(fisher, reference)`` (both (p, p)) and the parameters
+    that dominate its eigenvector (in units of their full-sphere standard deviations); ``(nan, [])`` when the
+    reference is not positive definite."""
+    try:
+        L = np.linalg.cholesky(reference)
+    except np.linalg.LinAlgError:
+        return float("nan"), []
+    Linv = np.linalg.inv(L)
+    ev, vecs = np.linalg.eigh(Linv @ fisher @ Linv.T)
+    inflation = float(1.0 / np.sqrt(ev[0])) if ev[0] > 0 else float("inf")
+    v = np.abs((Linv.T @ vecs[:, 0]) * np.sqrt(np.diag(reference)))  # the combination, per reference std
+    return inflation, [names[k] for k in np.nonzero(v > 0.3 * v.max())[0]]
 
 
 #: Values of the ``balance`` option of ``ml``.
@@ -571,7 +609,9 @@ def ellipsoid_result(
         field_rms, mag_rms = (
             predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
         )
-        diag["identifiability"] = identifiability(J, names, cov, coverage)
+        # the information the same number of samples would carry on a full sphere, at the same estimate
+        J_ref = ellipsoid_fisher(ellipsoid_geometry(X_test, W, offset), sigma, known_magnitude=known)
+        diag["identifiability"] = identifiability(J, names, cov, coverage, reference_fisher=J_ref * (len(B) / 500))
         diag["identifiability"]["plane_noise_ratio"] = plane_ratio  # check_not_planar_within_noise
         uncertainty = {
             "basis": uncertainty_note,
