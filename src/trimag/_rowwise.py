@@ -21,7 +21,7 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK", "affine", "scratch", "transposed_blocks"]
+__all__ = ["BLOCK", "affine", "scratch", "sum_squares", "transposed_blocks"]
 
 #: Rows per block.
 BLOCK = 65_536
@@ -66,6 +66,17 @@ def transposed_blocks(
             if offset is not None:
                 t -= np.asarray(offset, dtype=np.float64)[:, None]
             yield start, t
+
+
+def sum_squares(
+    t: NDArray[np.float64], *, out: NDArray[np.float64], tmp: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``t[0]^2 + t[1]^2 + t[2]^2`` of a component-major block ``t`` (3, m), in that order, into ``out`` (m,);
+    ``tmp`` (m,) is scratch. Returns ``out``."""
+    np.multiply(t[0], t[0], out=out)
+    out += np.multiply(t[1], t[1], out=tmp)
+    out += np.multiply(t[2], t[2], out=tmp)
+    return out
 
 
 def affine(

@@ -155,10 +155,7 @@ def before_after_stats(
     size = min(max(len(B), 1), _rowwise.BLOCK)
 
     def norms(t: NDArray[np.float64], out: NDArray[np.float64], scratch: NDArray[np.float64]) -> NDArray[np.float64]:
-        np.multiply(t[0], t[0], out=out)
-        out += np.multiply(t[1], t[1], out=scratch)
-        out += np.multiply(t[2], t[2], out=scratch)
-        return np.sqrt(out, out=out)
+        return np.sqrt(_rowwise.sum_squares(t, out=out, tmp=scratch), out=out)
 
     with _rowwise.scratch(7, size) as work:  # reused block buffers (trimag._rowwise.scratch)
         y_buf = work[:3]

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-from .._rowwise import scratch
+from .._rowwise import scratch, sum_squares
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
@@ -162,12 +162,12 @@ def _residual_block(
         mag, tmp, g, qn2, qn, s, gamma, beta = ws[18:26]
         np.subtract(u.T, b[:, None], out=e)  # (``(u - b).T`` broadcasts over rows of 3: slow)
         np.matmul(W, e, out=y)
-        _sum_squares(y, out=mag, tmp=tmp)
+        sum_squares(y, out=mag, tmp=tmp)
         np.sqrt(mag, out=mag)
         np.divide(y, mag, out=n)
         np.subtract(mag, target, out=g)
         np.matmul(W.T, n, out=q)  # W^T n
-        _sum_squares(q, out=qn2, tmp=tmp)
+        sum_squares(q, out=qn2, tmp=tmp)
         np.sqrt(qn2, out=qn)
         np.divide(1.0, qn, out=s)
         # Closed-form Jacobian (no (N, 3, 9) tensor): for an upper entry (i, j) dy/dtheta = e_j unit_i, for b_m
@@ -190,13 +190,6 @@ def _residual_block(
         np.multiply(beta, WtWq, out=Jt_out[6:])
         Jt_out[6:] -= np.multiply(alpha, q, out=q)
         np.multiply(s, g, out=r_out)
-
-
-def _sum_squares(v: NDArray[np.float64], *, out: NDArray[np.float64], tmp: NDArray[np.float64]) -> None:
-    """``out = v[0]^2 + v[1]^2 + v[2]^2`` for ``v`` (3, m), in that order, without temporaries."""
-    np.multiply(v[0], v[0], out=out)
-    out += np.multiply(v[1], v[1], out=tmp)
-    out += np.multiply(v[2], v[2], out=tmp)
 
 
 def weighted_ml(

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._rowwise import BLOCK, scratch, transposed_blocks
+from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -83,14 +83,6 @@ def _blocks(u: NDArray[np.float64], rows: int) -> Any:
             yield start, t, work[:, : t.shape[1]]
 
 
-def _sum_squares(v: NDArray[np.float64], out: NDArray[np.float64], tmp: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``v[0]^2 + v[1]^2 + v[2]^2`` of ``v`` (3, m) into ``out`` (m,)."""
-    np.multiply(v[0], v[0], out=out)
-    out += np.multiply(v[1], v[1], out=tmp)
-    out += np.multiply(v[2], v[2], out=tmp)
-    return out
-
-
 def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
     """TWOSTEP's measurement weights ``1 / |M (u_k - b)|^2`` with ``M = A^2`` symmetric: ``|A^2 (x - b)|^2 =
     (x - b)^T M^2 (x - b) ~ |A y|^2``, shape (N,). Computed in blocks (no (N, 3) temporary)."""
@@ -99,7 +91,7 @@ def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float
     for start, t, work in _blocks(u, 5):
         t -= b[:, None]
         y = np.matmul(M, t, out=work[:3])
-        q = _sum_squares(y, work[3], work[4])
+        q = sum_squares(y, out=work[3], tmp=work[4])
         np.divide(1.0, np.maximum(q, 1e-12, out=q), out=w[start : start + t.shape[1]])
     return w
 
@@ -112,7 +104,7 @@ def _magnitude_misfit(u: NDArray[np.float64], A: NDArray[np.float64], b: NDArray
     for start, t, work in _blocks(u, 5):
         t -= b[:, None]
         y = np.matmul(A, t, out=work[:3])
-        mag = np.sqrt(_sum_squares(y, work[3], work[4]), out=work[3])
+        mag = np.sqrt(sum_squares(y, out=work[3], tmp=work[4]), out=work[3])
         mag -= F[start : start + t.shape[1]]
         total += float(mag @ mag)
     return total / len(u)
