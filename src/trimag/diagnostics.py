@@ -28,6 +28,7 @@ __all__ = [
     "diagnostic_subsample",
     "fibonacci_sphere",
     "gram_condition",
+    "principal_std",
     "sphere_coverage",
     "weak_directions",
 ]
@@ -199,6 +200,23 @@ def check_condition(
         )
 
 
+def principal_std(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """Standard deviations of the samples ``B`` (N, 3) along their principal axes (3,), largest first, and their
+    largest absolute value; on an evenly spread subsample of at most :data:`DIAGNOSTIC_SAMPLES` samples.
+
+    Computed from the 3 x 3 covariance of the samples scaled by their largest value, component-major in a reused
+    buffer (eigenvalue error ~1e-16 of the largest: far below the 1e-12 ratio the plane test needs).
+    """
+    sub = B[:: max(1, len(B) // DIAGNOSTIC_SAMPLES)]
+    with scratch(3, len(sub)) as centred:
+        np.copyto(centred, sub.T)
+        scale = max(float(centred.max()), -float(centred.min())) or 1.0
+        centred -= (centred.sum(axis=1) / centred.shape[1])[:, None]
+        centred *= 1.0 / scale
+        variances = np.linalg.eigvalsh(centred @ centred.T / centred.shape[1])
+    return np.sqrt(np.clip(variances, 0.0, None))[::-1] * scale, scale
+
+
 def check_not_degenerate(B: NDArray[np.float64]) -> None:
     """Refuse data that no 3-D calibration can use: a stuck sensor, or all samples on one line or plane.
 
@@ -207,22 +225,14 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
     IdentifiabilityError
         With a message saying what to record instead.
     """
-    # an evenly spread subsample decides it as well; component-major (3, m) so that each pass is contiguous
-    centred = np.ascontiguousarray(B[:: max(1, len(B) // DIAGNOSTIC_SAMPLES)].T)
-    m = centred.shape[1]
-    scale = max(float(centred.max()), -float(centred.min())) or 1.0
-    centred -= (centred.sum(axis=1) / m)[:, None]
-    centred *= 1.0 / scale
-    # singular values of the centred samples from their 3 x 3 Gram matrix (eigenvalue error ~ 1e-16 of the
-    # largest: far below the 1e-12 ratio the plane test needs)
-    sv = np.sqrt(np.clip(np.linalg.eigvalsh(centred @ centred.T), 0.0, None))[::-1]
-    if sv[0] <= 1e-12 * np.sqrt(m):
+    std, scale = principal_std(B)
+    if std[0] <= 1e-12 * scale:
         raise IdentifiabilityError(
             "all samples are identical (the sensor appears stuck or the log repeats one value); "
             "check the sensor, then record it while turning it through many attitudes"
         )
-    if sv[2] <= 1e-6 * sv[0]:
-        kind = "one line" if sv[1] <= 1e-6 * sv[0] else "one plane"
+    if std[2] <= 1e-6 * std[0]:
+        kind = "one line" if std[1] <= 1e-6 * std[0] else "one plane"
         raise IdentifiabilityError(
             f"all samples lie in {kind} (the sensor turned about a single axis, or not at all): the "
             "field along the missing direction is never seen; record rotations about at least two "
@@ -233,10 +243,11 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
 def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float:
     """Refuse a log that lies in one plane within the noise; returns the ratio it was judged by.
 
-    ``B`` (N, 3): raw samples (or an evenly spread subsample); ``sigma``: the noise standard deviation per axis
-    in their unit, from the fit. The RMS distance of the samples from their best-fitting plane (the smallest
-    principal standard deviation) divided by ``sigma`` is 1-2 when the sensor turned about a single axis: the
-    spread out of that plane is noise, so the ellipsoid's extent across it is fitted to noise.
+    ``B`` (N, 3): raw samples (:func:`principal_std` takes an evenly spread subsample); ``sigma``: the noise
+    standard deviation per axis in their unit, from the fit. The RMS distance of the samples from their
+    best-fitting plane (the smallest principal standard deviation) divided by ``sigma`` is 1-2 when the sensor
+    turned about a single axis: the spread out of that plane is noise, so the ellipsoid's extent across it is
+    fitted to noise.
     :func:`check_not_degenerate` only catches exact planes (noise-free data).
 
     Raises
@@ -246,11 +257,7 @@ def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float
     """
     if not sigma > 0:
         return float("inf")
-    with scratch(3, len(B)) as centred:  # component-major, a reused buffer (trimag._rowwise.scratch)
-        np.copyto(centred, B.T)
-        centred -= (centred.sum(axis=1) / centred.shape[1])[:, None]
-        smallest = float(np.linalg.eigvalsh(centred @ centred.T / centred.shape[1])[0])
-    ratio = float(np.sqrt(max(smallest, 0.0)) / sigma)
+    ratio = float(principal_std(B)[0][2] / sigma)
     if ratio < PLANE_NOISE_RATIO:
         raise IdentifiabilityError(
             f"all samples lie in one plane within the noise (RMS distance from the plane {ratio:.2g} x the noise "

@@ -555,7 +555,7 @@ def ellipsoid_result(
     if sigma is None:
         resid = geometry.magnitude - target_sub
         sigma = float(np.sqrt(np.sum(geometry.weight * resid**2) / max(len(idx) - 9, 1)))
-    plane_ratio = check_not_planar_within_noise(B_sub, sigma)
+    plane_ratio = check_not_planar_within_noise(B, sigma)
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     cov: NDArray[np.float64] | None = None
