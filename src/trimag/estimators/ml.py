@@ -686,7 +686,7 @@ class MaximumLikelihood(Estimator):
         # the start only has to lie in the basin of the subsample's minimum: the algebraic fit of that subsample
         W0, c0, _ = algebraic_ellipsoid(u[sub_idx])
         p0 = np.concatenate([W0[UPPER], c0])
-        # (on the subsample a relative step of 1e-9 is close enough: the polish converges quadratically from it)
+        # (on the subsample a relative step of 1e-9 is close enough: the polish on all samples takes it from there)
         p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter,
                                    xtol=1e-9 if large else 1e-12)
         if large:
