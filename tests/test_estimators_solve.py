@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from trimag.estimators._solve import gauss_newton_then_lm
+from trimag.estimators._solve import contraction, gauss_newton_then_lm
 
 
 def test_linear_problem_is_solved_in_one_step() -> None:
@@ -61,3 +61,30 @@ def test_running_out_of_steps_hands_over_too() -> None:
 
     res = gauss_newton_then_lm(fun, jac, np.array([50.0]), max_steps=1)
     assert res.method == "levenberg-marquardt" and res.x[0] == pytest.approx(2.0, rel=1e-6)
+
+
+def test_contraction_is_the_ratio_of_the_later_steps() -> None:
+    # the first step (leaving the start) is not used; the larger of the last two ratios is
+    assert contraction([1.0, 1e-3, 2e-6, 1e-9]) == pytest.approx(2e-3)
+    assert contraction([1.0, 1e-2, 1e-5]) == pytest.approx(1e-3)
+    assert contraction([1.0, 1e-2]) is None  # too few steps to see the linear phase
+    assert contraction([]) is None
+
+
+def test_gauss_newton_reports_its_steps_and_their_contraction() -> None:
+    # a noisy exponential: nonzero residuals, so Gauss-Newton converges linearly at a fixed rate
+    t = np.linspace(0, 3, 200)
+    y = 2.0 * np.exp(-1.3 * t) + 0.05 * np.random.default_rng(2).normal(size=t.size)
+    res = gauss_newton_then_lm(
+        lambda p: np.asarray(p[0] * np.exp(-p[1] * t) - y),
+        lambda p: np.column_stack([np.exp(-p[1] * t), -p[0] * t * np.exp(-p[1] * t)]),
+        np.array([1.5, 1.0]), xtol=1e-14,
+    )
+    steps = res.step_norms
+    assert res.method == "gauss-newton" and len(steps) >= 4
+    rho = contraction(steps)
+    assert rho is not None and 0 < rho < 0.5
+    # linear convergence: once the start is left, consecutive steps shrink by about the same factor
+    ratios = np.array(steps[1:]) / np.array(steps[:-1])
+    assert np.all(np.abs(np.log(ratios[2:] / rho)) < np.log(1.5))
+    assert ratios[-1] <= rho and ratios[-2] <= rho

@@ -217,8 +217,11 @@ def principal_std(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
     return np.sqrt(np.clip(variances, 0.0, None))[::-1] * scale, scale
 
 
-def check_not_degenerate(B: NDArray[np.float64]) -> None:
+def check_not_degenerate(B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Refuse data that no 3-D calibration can use: a stuck sensor, or all samples on one line or plane.
+
+    Returns the principal standard deviations of ``B`` (:func:`principal_std`), for
+    :func:`check_not_planar_within_noise`.
 
     Raises
     ------
@@ -238,9 +241,12 @@ def check_not_degenerate(B: NDArray[np.float64]) -> None:
             "field along the missing direction is never seen; record rotations about at least two "
             "more axes (or tumble the sensor through all attitudes)"
         )
+    return std
 
 
-def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float:
+def check_not_planar_within_noise(
+    B: NDArray[np.float64], sigma: float, *, std: NDArray[np.float64] | None = None
+) -> float:
     """Refuse a log that lies in one plane within the noise; returns the ratio it was judged by.
 
     ``B`` (N, 3): raw samples (:func:`principal_std` takes an evenly spread subsample); ``sigma``: the noise
@@ -248,7 +254,8 @@ def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float
     best-fitting plane (the smallest principal standard deviation) divided by ``sigma`` is 1-2 when the sensor
     turned about a single axis: the spread out of that plane is noise, so the ellipsoid's extent across it is
     fitted to noise.
-    :func:`check_not_degenerate` only catches exact planes (noise-free data).
+    :func:`check_not_degenerate` only catches exact planes (noise-free data); ``std``, the principal standard
+    deviations it returned for the same ``B``, saves computing them again.
 
     Raises
     ------
@@ -257,7 +264,7 @@ def check_not_planar_within_noise(B: NDArray[np.float64], sigma: float) -> float
     """
     if not sigma > 0:
         return float("inf")
-    ratio = float(principal_std(B)[0][2] / sigma)
+    ratio = float((principal_std(B)[0] if std is None else std)[2] / sigma)
     if ratio < PLANE_NOISE_RATIO:
         raise IdentifiabilityError(
             f"all samples lie in one plane within the noise (RMS distance from the plane {ratio:.2g} x the noise "

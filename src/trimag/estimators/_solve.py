@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-__all__ = ["gauss_newton", "gauss_newton_then_lm"]
+__all__ = ["contraction", "gauss_newton", "gauss_newton_then_lm"]
 
 #: Relative step (``|delta| <= XTOL (1 + |p|)``) at which Gauss-Newton has converged: about 100 x rounding.
 XTOL = 1e-13
@@ -47,6 +47,7 @@ def gauss_newton(
     J = jac(p)
     cost = float(r @ r)
     nfev = njev = 1
+    step_norms: list[float] = []
     for step_no in range(1, max_steps + 1):
         if not np.isfinite(cost):
             return None
@@ -63,16 +64,18 @@ def gauss_newton(
         r_new = fun(p_new)
         nfev += 1
         cost_new = float(r_new @ r_new)
-        rel_step = float(np.linalg.norm(step)) / (1.0 + float(np.linalg.norm(p_new)))
+        step_norm = float(np.linalg.norm(step))
+        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
         if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
             if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
-                return _result(p, r, J, nfev, njev, step_no, xtol)
+                return _result(p, r, J, nfev, njev, step_no, xtol, step_norms)
             return None
         p, r, cost = p_new, r_new, cost_new
+        step_norms.append(step_norm)
         J = jac(p)
         njev += 1
         if rel_step <= xtol:
-            return _result(p, r, J, nfev, njev, step_no, xtol)
+            return _result(p, r, J, nfev, njev, step_no, xtol, step_norms)
     return None
 
 
@@ -106,7 +109,8 @@ def gauss_newton_then_lm(
     -------
     scipy.optimize.OptimizeResult
         ``x``, ``fun`` (residuals at ``x``), ``jac`` (at ``x``), ``nfev``, ``njev``, ``success``, ``status``,
-        ``message`` and ``method`` (``"gauss-newton"`` or ``"levenberg-marquardt"``), as ``least_squares``
+        ``message``, ``step_norms`` (Gauss-Newton only: sizes of the accepted steps) and ``method``
+        (``"gauss-newton"`` or ``"levenberg-marquardt"``), as ``least_squares``
         returns them.
     """
     res = gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
@@ -120,9 +124,24 @@ def gauss_newton_then_lm(
 
 def _result(
     p: NDArray[np.float64], r: NDArray[np.float64], J: NDArray[np.float64], nfev: int, njev: int, steps: int,
-    xtol: float,
+    xtol: float, step_norms: list[float],
 ) -> OptimizeResult:
     return OptimizeResult(
         x=p, fun=r, jac=J, nfev=nfev, njev=njev, success=True, status=2, method="gauss-newton",
         message=f"Gauss-Newton converged in {steps} steps (relative step <= {xtol:g})",
+        step_norms=step_norms,
     )
+
+
+def contraction(step_norms: list[float]) -> float | None:
+    """The factor by which Gauss-Newton shrinks the error per step, from the sizes of its accepted steps.
+
+    Away from a zero-residual minimum Gauss-Newton converges linearly: ``|step_k| ~ rho |step_(k-1)|``. The
+    first step leaves the (nonlinear) start, so the estimate is the larger ratio of the last two pairs of
+    later steps; None with fewer than three steps. Rounding in the last steps only makes it larger
+    (conservative).
+    """
+    if len(step_norms) < 3 or min(step_norms[-3:-1]) <= 0:
+        return None
+    ratios = [step_norms[k] / step_norms[k - 1] for k in range(max(2, len(step_norms) - 2), len(step_norms))]
+    return float(max(ratios))

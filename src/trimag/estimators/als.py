@@ -110,7 +110,7 @@ class AdjustedLeastSquares(Estimator):
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
         check_ellipsoid_options(self.form)
-        check_not_degenerate(B)
+        principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)
         _, _, cond = algebraic_ellipsoid(u)  # identifiability checks (raises / warns)
@@ -125,4 +125,5 @@ class AdjustedLeastSquares(Estimator):
             form=self.form, diagnostics={"condition_number": cond, "als_noise_std": sigma},
             uncertainty_note="Fisher information at the estimate (a lower bound; ALS is consistent but "
             "unweighted)",
+            principal=principal,
         )

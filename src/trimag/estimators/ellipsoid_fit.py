@@ -223,7 +223,7 @@ class EllipsoidFit(Estimator):
     def _fit(
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
-        check_not_degenerate(B)
+        principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         # the fit is invariant to translation and scale: normalise chunk by chunk, no copy of B
         norm = normalisation_of(B)
@@ -238,6 +238,7 @@ class EllipsoidFit(Estimator):
             form=self.form, diagnostics={"condition_number": cond},
             uncertainty_note="Fisher information at the estimate: a lower bound; this algebraic fit is biased "
             "under strong noise (use ml)",
+            principal=principal,
         )
 
 

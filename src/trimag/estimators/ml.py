@@ -68,7 +68,7 @@ from ..metrics import row_dot
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
 from ._common import check_ellipsoid_options, normalise, scalar_reference
-from ._solve import gauss_newton
+from ._solve import contraction, gauss_newton
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 
@@ -290,13 +290,15 @@ _SINGULAR = (
     "about all three axes"
 )
 #: The polish stops when the error left after its last step, predicted from the contraction of the last two
-#: steps, is below this many standard deviations of the estimate (per parameter).
-POLISH_TOLERANCE = 1e-3
+#: steps, is below this many standard deviations of the estimate (per parameter). An error of 0.01 standard
+#: deviations adds 1e-4 to the estimate's variance, and is of the size of the sampling error of the bias
+#: correction on its subsample (0.003 standard deviations at N = 2e5, more above).
+POLISH_TOLERANCE = 1e-2
 
 
 def gauss_newton_polish(
     u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 8,
-    tolerance: float = POLISH_TOLERANCE,
+    tolerance: float = POLISH_TOLERANCE, contraction: float | None = None,
 ) -> tuple[NDArray[np.float64], float, NDArray[np.float64], int]:
     """Gauss-Newton steps on the geometric residual over all samples from a nearby start ``p``.
 
@@ -305,8 +307,11 @@ def gauss_newton_polish(
     conditioned data (~0.1 on a hemisphere at sigma/F = 5e-2). With the step size ``s_k`` in standard deviations
     of the estimate (from ``J^T J`` and the residuals), the error left after step ``k`` is about
     ``(s_k / s_{k-1}) s_k``; the polish stops when that is below ``tolerance``, when the relative step is below
-    1e-10 (noise-free data), or after ``max_steps`` evaluations. Two steps on well-covered data, 3-5 on poorly
-    covered data.
+    1e-10 (noise-free data), or after ``max_steps`` evaluations. ``contraction``, the factor measured while
+    Gauss-Newton converged on the subsample (:func:`._solve.contraction`; the same data geometry, so the same
+    ``rho`` up to sampling noise), predicts the error left after the first step as ``contraction * s_1``: when
+    that is below ``tolerance`` the polish stops after one evaluation. One step on well-covered logs up to a few
+    1e5 samples, two above; 3-5 on poorly covered data.
 
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
     point before the final step).
@@ -325,9 +330,10 @@ def gauss_newton_polish(
             raise IdentifiabilityError(_SINGULAR) from exc
         p = p - step
         size = float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf
+        rho = contraction if previous is None else size / previous
         if (
             np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p))
-            or (previous is not None and size / previous * size <= tolerance)
+            or (rho is not None and rho * size <= tolerance)
             or evaluations >= max_steps
         ):
             return p, ss, JtJ, evaluations
@@ -518,7 +524,7 @@ def ellipsoid_result(
     F_hat: float | None, sigma: float | None, model: str, method: str, units: str, form: str,
     iterations: int = 0, converged: bool = True, diagnostics: dict[str, Any] | None = None,
     uncertainty_note: str = "Fisher information at the estimate (attained by an efficient estimator)",
-    balance: str = "never",
+    balance: str = "never", principal: NDArray[np.float64] | None = None,
 ) -> Calibration:
     """Finish an ellipsoid fit: uncertainty, identifiability diagnostics and the :class:`Calibration`.
 
@@ -537,6 +543,9 @@ def ellipsoid_result(
     balance : {"never", "auto", "always"}
         Whether to replace the offset by the sample mean when the field directions are balanced
         (:func:`balance_test`): never, when the test accepts it, or always.
+    principal : ndarray, shape (3,), optional
+        Principal standard deviations of ``B``, as :func:`~trimag.diagnostics.check_not_degenerate` returned
+        them (computed here when None).
     """
     if form not in ("upper", "symmetric"):
         raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {form!r}")
@@ -555,7 +564,7 @@ def ellipsoid_result(
     if sigma is None:
         resid = geometry.magnitude - target_sub
         sigma = float(np.sqrt(np.sum(geometry.weight * resid**2) / max(len(idx) - 9, 1)))
-    plane_ratio = check_not_planar_within_noise(B, sigma)
+    plane_ratio = check_not_planar_within_noise(B, sigma, std=principal)
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     cov: NDArray[np.float64] | None = None
@@ -672,7 +681,7 @@ class MaximumLikelihood(Estimator):
         check_ellipsoid_options(self.form, self.noise_std)
         if self.balance not in BALANCE_CHOICES:
             raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {self.balance!r}")
-        check_not_degenerate(B)
+        principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)
         if ref.values is not None:
@@ -690,7 +699,9 @@ class MaximumLikelihood(Estimator):
         p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter,
                                    xtol=1e-9 if large else 1e-12)
         if large:
-            p, sum_sq, JtJ, n_polish = gauss_newton_polish(u, p, target)
+            p, sum_sq, JtJ, n_polish = gauss_newton_polish(
+                u, p, target, contraction=contraction(getattr(res, "step_norms", None) or [])
+            )
             nfev += n_polish
             cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
         else:
@@ -728,4 +739,5 @@ class MaximumLikelihood(Estimator):
                     "relative_size": float(np.linalg.norm(correction) / max(float(np.linalg.norm(p)), 1e-300)),
                 },
             },
+            principal=principal,
         )

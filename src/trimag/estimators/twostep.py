@@ -222,7 +222,7 @@ class TwoStep(Estimator):
         self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
     ) -> Calibration:
         check_ellipsoid_options(self.form, self.noise_std)
-        check_not_degenerate(B)
+        principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
         u, norm = normalise(B)
         if ref.values is not None:
@@ -321,4 +321,5 @@ class TwoStep(Estimator):
             diagnostics={"condition_number": cond, "optimizer": str(res.message), "step2_used": step2_used},
             uncertainty_note="Fisher information at the estimate (a lower bound; TWOSTEP is not bias-free at "
             "strong noise)",
+            principal=principal,
         )
