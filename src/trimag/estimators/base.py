@@ -15,6 +15,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import diagnostic_subsample, sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
@@ -133,7 +134,8 @@ class Estimator:
         model = self._resolve_model()
         X = check_field(B, min_samples=self._min_samples(model), model=model)
         unit = normalise_unit(units)
-        cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
+        with one_blas_thread():  # small BLAS calls only: a second thread would just spin-wait (trimag._threads)
+            cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
         self.calibration_ = cal
         self.n_samples_ = int(X.shape[0])
         # residuals_ is computed on first access (trimag.fit never needs it: one pass less over the data)
