@@ -71,6 +71,28 @@ def test_blocked_normal_equations_equal_the_full_jacobian(monkeypatch: pytest.Mo
     assert ml_module._normal_equations(u, p, t, hessian=False)[0] is None
 
 
+def test_normal_equations_on_raw_samples_and_a_constant_target(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The polish of long logs passes the raw samples with their normalisation (normalised block by block, no copy)
+    and, without a reference, one number as the target: the same sums as on the normalised copy with a target
+    array, to rounding."""
+    import trimag.estimators.ml as ml_module
+    from trimag.estimators._common import normalisation_stats, normalise
+
+    monkeypatch.setattr(ml_module, "_RESIDUAL_BLOCK", 64)
+    rng = np.random.default_rng(5)
+    raw = rng.normal(size=(300, 3)) * [300.0, 250.0, 200.0] + [1500.0, -800.0, 400.0]  # far from the origin
+    u, norm = normalise(raw)
+    stats = normalisation_stats(raw)
+    np.testing.assert_allclose(stats.centre, norm.centre, rtol=1e-14)
+    assert stats.scale == pytest.approx(norm.scale, rel=1e-14)
+    p = np.array([1.1, 0.1, -0.05, 0.9, 0.08, 1.0, 0.1, 0.2, -0.1])
+    JtJ, Jtr, ss = ml_module._normal_equations(u, p, np.ones(300))
+    JtJ_raw, Jtr_raw, ss_raw = ml_module._normal_equations(raw, p, 1.0, norm=stats)
+    np.testing.assert_allclose(JtJ_raw, JtJ, rtol=1e-11)
+    np.testing.assert_allclose(Jtr_raw, Jtr, rtol=1e-8, atol=1e-10 * np.abs(Jtr).max())
+    assert ss_raw == pytest.approx(ss, rel=1e-11)
+
+
 def test_tetrahedral_bias_correction_equals_central_differences():
     """The bias correction's Laplacian on a tetrahedron (5 evaluations) equals the central-difference Laplacian
     (7 evaluations), computed here from the residual directly, to 1e-3 of the correction."""

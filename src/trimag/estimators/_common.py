@@ -7,10 +7,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._rowwise import BLOCK, column_means, scratch, sum_squares, transposed_blocks
 from ..errors import TrimagInputError
 from ..reference import ScalarReference, as_scalar_reference
 
-__all__ = ["Normalisation", "check_ellipsoid_options", "normalisation_of", "normalise", "scalar_reference"]
+__all__ = [
+    "Normalisation", "check_ellipsoid_options", "normalisation_of", "normalisation_stats", "normalise",
+    "scalar_reference",
+]
 
 #: Rows :func:`normalisation_of` uses (evenly spread).
 NORMALISATION_SAMPLES = 2048
@@ -29,14 +33,25 @@ class Normalisation:
 
 def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisation]:
     """Centre ``B`` (N, 3) on its mean and scale it to unit RMS radius: returns ``(u, norm)``,
-    ``u = norm.forward(B)``, computed in one pass (the centre as a matrix-vector product: ``B.mean(axis=0)``
-    reduces a strided axis, about 10x slower)."""
-    centre = (np.ones(len(B)) @ B) / len(B)
+    ``u = norm.forward(B)`` (the centre by :func:`trimag._rowwise.column_means`)."""
+    centre = column_means(B)
     u = B - centre
     flat = u.ravel()
     scale = float(np.sqrt(np.dot(flat, flat) / len(B))) or 1.0
     u *= 1.0 / scale
     return u, Normalisation(centre, scale)
+
+
+def normalisation_stats(B: NDArray[np.float64]) -> Normalisation:
+    """The centre and scale of :func:`normalise` without the normalised copy of ``B`` (N, 3): two passes block by
+    block, memory independent of N. The same values to rounding (the sums are taken in another order)."""
+    centre = column_means(B)
+    total = 0.0
+    with scratch(min(max(len(B), 1), BLOCK)) as out, scratch(min(max(len(B), 1), BLOCK)) as tmp:
+        for _, t in transposed_blocks(B, centre):
+            m = t.shape[1]
+            total += float(np.sum(sum_squares(t, out=out[:m], tmp=tmp[:m])))
+    return Normalisation(centre, float(np.sqrt(total / len(B))) or 1.0)
 
 
 def normalisation_of(B: NDArray[np.float64]) -> Normalisation:

@@ -28,9 +28,17 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..diagnostics import check_not_degenerate
 from ..errors import IdentifiabilityError
-from ._common import check_ellipsoid_options, normalise, scalar_reference
+from ._common import check_ellipsoid_options, normalisation_stats, scalar_reference
 from .base import Estimator
-from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale, power_sums, quadric_to_ellipsoid
+from .ellipsoid_fit import (
+    algebraic_ellipsoid,
+    gauge_scale,
+    power_sums,
+    power_sums_from_moments,
+    quadric_moments,
+    quadric_to_ellipsoid,
+    scatter_from_moments,
+)
 from .ml import ellipsoid_result
 
 __all__ = ["AdjustedLeastSquares", "als_scatter", "als_solve"]
@@ -46,12 +54,16 @@ _HERMITE: tuple[dict[int, float], ...] = ({0: 1.0}, {0: 1.0}, {0: 1.0, 1: -1.0},
                                           {0: 1.0, 1: -6.0, 2: 3.0})
 
 
-def als_scatter(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def als_scatter(
+    u: NDArray[np.float64] | None, *, sums: dict[tuple[int, int, int], float] | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """``(Psi_0, Psi_1, Psi_2)``: the noise-corrected scatter is ``Psi_0 + s Psi_1 + s^2 Psi_2``, ``s = sigma^2``.
 
-    ``u`` : ndarray, shape (N, 3), samples (normalised units).
+    ``u`` : ndarray, shape (N, 3), samples (normalised units); or ``sums``, their power sums
+    (:func:`~trimag.estimators.ellipsoid_fit.power_sums`), when the caller has them (``u`` is then not read).
     """
-    mom = power_sums(u)  # the 35 sums of x^p y^q z^r, p + q + r <= 4, in one pass
+    # the 35 sums of x^p y^q z^r, p + q + r <= 4, in one pass
+    mom = sums if sums is not None else power_sums(np.asarray(u, dtype=np.float64))
     P = np.zeros((3, 10, 10))
     for a in range(10):
         for b in range(a, 10):
@@ -66,9 +78,12 @@ def als_scatter(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np
     return P[0], P[1], P[2]
 
 
-def als_solve(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
-    """ALS quadric ``v`` (10,) and the estimated noise variance ``s`` (normalised units) for samples ``u``."""
-    P0, P1, P2 = als_scatter(u)
+def als_solve(
+    u: NDArray[np.float64] | None, *, sums: dict[tuple[int, int, int], float] | None = None
+) -> tuple[NDArray[np.float64], float]:
+    """ALS quadric ``v`` (10,) and the estimated noise variance ``s`` (normalised units) for samples ``u`` (or
+    their power ``sums``, as :func:`als_scatter`)."""
+    P0, P1, P2 = als_scatter(u, sums=sums)
     n = 10
     # companion linearisation of (P0 + s P1 + s^2 P2) v = 0:  A z = s B z with z = (v, s v)
     A = np.block([[np.zeros((n, n)), np.eye(n)], [-P0, -P1]])
@@ -112,9 +127,11 @@ class AdjustedLeastSquares(Estimator):
         check_ellipsoid_options(self.form)
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        u, norm = normalise(B)
-        _, _, cond = algebraic_ellipsoid(u)  # identifiability checks (raises / warns)
-        v, s = als_solve(u)
+        # one pass over the raw samples, normalised block by block (no normalised copy: memory independent of N)
+        norm = normalisation_stats(B)
+        moments = quadric_moments(B, norm)
+        _, _, cond = algebraic_ellipsoid(B, scatter=scatter_from_moments(moments))  # identifiability checks
+        v, s = als_solve(None, sums=power_sums_from_moments(moments))
         W_u, c_u = quadric_to_ellipsoid(v)
         W = W_u / norm.scale
         offset = norm.centre + norm.scale * c_u

@@ -26,7 +26,8 @@ from ._common import Normalisation, normalisation_of, scalar_reference
 from .base import Estimator
 
 __all__ = [
-    "EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "power_sums", "quadric_scatter", "quadric_to_ellipsoid",
+    "EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "power_sums", "power_sums_from_moments", "quadric_moments",
+    "quadric_scatter", "quadric_to_ellipsoid", "scatter_from_moments",
 ]
 
 _TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
@@ -88,14 +89,31 @@ def _pair_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> 
     return moments
 
 
-def power_sums(u: NDArray[np.float64], norm: Normalisation | None = None) -> dict[tuple[int, int, int], float]:
-    """``sum_i x_i^p y_i^q z_i^r`` for every ``p + q + r <= 4`` (35 sums) of ``u`` (N, 3), or of
-    ``norm.forward(u)`` (no normalised copy), in one chunked component-major pass."""
-    moments = _pair_moments(u, norm)
+def quadric_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> NDArray[np.float64]:
+    """The 35 power sums of degree <= 4 of ``u`` (N, 3), or of ``norm.forward(u)``, in one chunked pass: what
+    both :func:`quadric_scatter` and :func:`power_sums` are made of (:func:`scatter_from_moments`,
+    :func:`power_sums_from_moments`), for a caller that needs both from one pass over the data."""
+    return _pair_moments(u, norm)
+
+
+def scatter_from_moments(moments: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The quadric scatter (10, 10) of :func:`quadric_scatter` from :func:`quadric_moments`."""
+    # the design's terms are (x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1): the factors of 2
+    return np.asarray(moments[_MOMENT_INDEX] * np.outer(_FACTORS, _FACTORS), dtype=np.float64)
+
+
+def power_sums_from_moments(moments: NDArray[np.float64]) -> dict[tuple[int, int, int], float]:
+    """The power sums of :func:`power_sums` (keyed by exponents) from :func:`quadric_moments`."""
     return {
         tuple(int(e) for e in _EXPONENTS[a_] + _EXPONENTS[b_]): float(m)  # type: ignore[misc]
         for (a_, b_), m in zip(_PAIRS, moments, strict=True)
     }
+
+
+def power_sums(u: NDArray[np.float64], norm: Normalisation | None = None) -> dict[tuple[int, int, int], float]:
+    """``sum_i x_i^p y_i^q z_i^r`` for every ``p + q + r <= 4`` (35 sums) of ``u`` (N, 3), or of
+    ``norm.forward(u)`` (no normalised copy), in one chunked component-major pass."""
+    return power_sums_from_moments(_pair_moments(u, norm))
 
 
 def quadric_scatter(u: NDArray[np.float64], norm: Normalisation | None = None) -> NDArray[np.float64]:
@@ -105,17 +123,16 @@ def quadric_scatter(u: NDArray[np.float64], norm: Normalisation | None = None) -
     (no normalised copy of the samples). The 55 entries of the scatter are sums of only 35 distinct monomials
     of degree <= 4 (``sum x^2 y^2`` is both ``(x^2, y^2)`` and ``(xy, xy)``): :func:`_pair_moments`.
     """
-    S = _pair_moments(u, norm)[_MOMENT_INDEX]
-    # the design's terms are (x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1): the factors of 2
-    return np.asarray(S * np.outer(_FACTORS, _FACTORS), dtype=np.float64)
+    return scatter_from_moments(_pair_moments(u, norm))
 
 
 def algebraic_ellipsoid(
-    u: NDArray[np.float64], norm: Normalisation | None = None
+    u: NDArray[np.float64], norm: Normalisation | None = None, *, scatter: NDArray[np.float64] | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """Fit an ellipsoid to normalised points ``u`` (N, 3), or to raw samples ``u`` normalised by ``norm``.
 
-    The results are in the normalised frame either way.
+    The results are in the normalised frame either way. ``scatter``: the quadric scatter of those samples when
+    the caller has it already (:func:`scatter_from_moments`); ``u`` is then not read.
 
     Returns
     -------
@@ -126,7 +143,7 @@ def algebraic_ellipsoid(
     cond : float
         Column-normalised condition number of the design.
     """
-    S = quadric_scatter(u, norm)
+    S = quadric_scatter(u, norm) if scatter is None else scatter
     d = np.sqrt(np.diag(S))
     d[d == 0] = 1.0
     # The solution itself is the (near-)null vector of the design, so identifiability is decided by the

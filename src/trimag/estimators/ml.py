@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-from .._rowwise import scratch, sum_squares
+from .._rowwise import column_means, scratch, sum_squares
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
@@ -67,7 +67,7 @@ from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputEr
 from ..metrics import row_dot
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
-from ._common import check_ellipsoid_options, normalise, scalar_reference
+from ._common import Normalisation, check_ellipsoid_options, normalisation_stats, normalise, scalar_reference
 from ._solve import contraction, gauss_newton
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
@@ -129,8 +129,22 @@ def magnitude_jacobian(
 _RESIDUAL_BLOCK = 8192
 
 
+#: The magnitude each sample should have: one number (the same for every sample) or an array (N,).
+Target = float | NDArray[np.float64]
+
+
+def _rows(target: Target, start: int, stop: int) -> Target:
+    """``target`` for samples ``start:stop``."""
+    return target if np.ndim(target) == 0 else target[start:stop]  # type: ignore[index]
+
+
+def _take(target: Target, idx: Any) -> Target:
+    """``target`` for the samples ``idx`` (indices or a slice)."""
+    return target if np.ndim(target) == 0 else target[idx]  # type: ignore[index]
+
+
 def geometric_residual(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64]
+    u: NDArray[np.float64], p: NDArray[np.float64], target: Target
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Weighted residual ``r_i = (|W (u_i - b)| - t_i) / |W^T n_i|`` (N,) and its exact Jacobian (N, 9).
 
@@ -144,23 +158,27 @@ def geometric_residual(
     Jt = np.empty((9, n))
     for s in range(0, n, _RESIDUAL_BLOCK):
         e = min(s + _RESIDUAL_BLOCK, n)
-        _residual_block(u[s:e], W, b, target[s:e], r[s:e], Jt[:, s:e])
+        _residual_block(u[s:e], W, b, _rows(target, s, e), r[s:e], Jt[:, s:e])
     return r, Jt.T
 
 
 def _residual_block(
-    u: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64], target: NDArray[np.float64],
-    r_out: NDArray[np.float64], Jt_out: NDArray[np.float64],
+    u: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64], target: Target,
+    r_out: NDArray[np.float64], Jt_out: NDArray[np.float64], norm: Normalisation | None = None,
 ) -> None:
     """:func:`geometric_residual` of the samples ``u`` (m, 3): writes ``r`` into ``r_out`` (m,) and ``J^T`` into
-    ``Jt_out`` (9, m)."""
+    ``Jt_out`` (9, m). With ``norm``, ``u`` are raw samples, normalised here (``(x - centre) / scale``)."""
     # Component-major layout: every quantity is a (3, m) or (m,) array of contiguous rows, so each step below
     # is one pass over m numbers. All temporaries live in one reused (26, m) buffer (trimag._rowwise.scratch):
     # fresh ones would be mapped and page-faulted anew at every call.
     with scratch(26, len(u)) as ws:
         e, y, n, q, Wq, P = ws[0:3], ws[3:6], ws[6:9], ws[9:12], ws[12:15], ws[15:18]
         mag, tmp, g, qn2, qn, s, gamma, beta = ws[18:26]
-        np.subtract(u.T, b[:, None], out=e)  # (``(u - b).T`` broadcasts over rows of 3: slow)
+        if norm is None:
+            np.subtract(u.T, b[:, None], out=e)  # (``(u - b).T`` broadcasts over rows of 3: slow)
+        else:  # (x - centre) / scale - b
+            np.multiply(u.T, 1.0 / norm.scale, out=e)
+            e -= (norm.centre / norm.scale + b)[:, None]
         np.matmul(W, e, out=y)
         sum_squares(y, out=mag, tmp=tmp)
         np.sqrt(mag, out=mag)
@@ -193,7 +211,7 @@ def _residual_block(
 
 
 def weighted_ml(
-    u: NDArray[np.float64], p0: NDArray[np.float64], target: NDArray[np.float64], *, loss: str = "linear",
+    u: NDArray[np.float64], p0: NDArray[np.float64], target: Target, *, loss: str = "linear",
     max_iter: int = 100, xtol: float = 1e-12,
 ) -> tuple[NDArray[np.float64], Any, int]:
     """Magnitude-residual ML (geometric residual, exact Jacobian) from ``p0`` (upper W, b) on normalised ``u``.
@@ -215,7 +233,7 @@ def weighted_ml(
 
 
 def gauss_newton_solve(
-    u: NDArray[np.float64], p0: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 100,
+    u: NDArray[np.float64], p0: NDArray[np.float64], target: Target, *, max_steps: int = 100,
     xtol: float = 1e-12,
 ) -> OptimizeResult | None:
     """Undamped Gauss-Newton on the geometric residual from ``p0``, or None as soon as a step does not lower
@@ -231,7 +249,7 @@ def gauss_newton_solve(
 
 
 def _cached_residual(
-    u: NDArray[np.float64], target: NDArray[np.float64]
+    u: NDArray[np.float64], target: Target
 ) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], Callable[[NDArray[np.float64]], NDArray[np.float64]]]:
     """``fun`` and ``jac`` of the geometric residual that share one evaluation per point."""
     cache: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
@@ -264,11 +282,12 @@ LARGE_N = 10_000
 
 
 def _normal_equations(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, hessian: bool = True
+    u: NDArray[np.float64], p: NDArray[np.float64], target: Target, *, hessian: bool = True,
+    norm: Normalisation | None = None,
 ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64], float]:
     """``J^T J`` (9, 9; None when ``hessian`` is False), ``J^T r`` (9,) and ``sum r^2`` of the geometric residual,
     accumulated over blocks of :data:`_RESIDUAL_BLOCK` samples (cache-sized temporaries; memory independent of
-    N)."""
+    N). With ``norm``, ``u`` are the raw samples, normalised block by block (no normalised copy of the log)."""
     W, b = _unpack(p)
     JtJ = np.zeros((9, 9)) if hessian else None
     Jtr = np.zeros(9)
@@ -277,7 +296,7 @@ def _normal_equations(
         for start in range(0, len(u), _RESIDUAL_BLOCK):
             stop = min(start + _RESIDUAL_BLOCK, len(u))
             r, Jt = work[0, : stop - start], work[1:, : stop - start]
-            _residual_block(u[start:stop], W, b, target[start:stop], r, Jt)
+            _residual_block(u[start:stop], W, b, _rows(target, start, stop), r, Jt, norm)
             if JtJ is not None:
                 JtJ += Jt @ Jt.T
             Jtr += Jt @ r
@@ -297,8 +316,8 @@ POLISH_TOLERANCE = 1e-2
 
 
 def gauss_newton_polish(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], *, max_steps: int = 8,
-    tolerance: float = POLISH_TOLERANCE, contraction: float | None = None,
+    u: NDArray[np.float64], p: NDArray[np.float64], target: Target, *, max_steps: int = 8,
+    tolerance: float = POLISH_TOLERANCE, contraction: float | None = None, norm: Normalisation | None = None,
 ) -> tuple[NDArray[np.float64], float, NDArray[np.float64], int]:
     """Gauss-Newton steps on the geometric residual over all samples from a nearby start ``p``.
 
@@ -313,6 +332,8 @@ def gauss_newton_polish(
     that is below ``tolerance`` the polish stops after one evaluation. One step on well-covered logs up to a few
     1e5 samples, two above; 3-5 on poorly covered data.
 
+    With ``norm``, ``u`` are the raw samples, normalised block by block (:func:`_normal_equations`).
+
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
     point before the final step).
     """
@@ -320,7 +341,7 @@ def gauss_newton_polish(
     previous: float | None = None  # the size of the step before (no contraction estimate after the first)
     dof = max(len(u) - 9, 1)
     while True:
-        JtJ, Jtr, ss = _normal_equations(u, p, target)
+        JtJ, Jtr, ss = _normal_equations(u, p, target, norm=norm)
         assert JtJ is not None
         evaluations += 1
         try:
@@ -349,7 +370,7 @@ _LAPLACIAN_STEP = 1e-4
 
 
 def bias_correction(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: NDArray[np.float64], sigma2: float
+    u: NDArray[np.float64], p: NDArray[np.float64], target: Target, sigma2: float
 ) -> NDArray[np.float64]:
     """Second-order noise bias of the ML estimate ``p`` (to subtract), normalised units.
 
@@ -500,7 +521,7 @@ def balance_test(
     from scipy.stats import chi2 as chi2_dist
 
     n = len(B)
-    mean = (np.ones(n) @ B) / n
+    mean = column_means(B)
     d = mean - offset
     cov_d = np.asarray(cov_offset, dtype=np.float64) - (sigma**2 / n) * np.eye(3)
     evals, evecs = np.linalg.eigh(0.5 * (cov_d + cov_d.T))
@@ -599,7 +620,7 @@ def ellipsoid_result(
                 cov[:, 6:9] = 0.0
                 cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
     if balance == "always" and "balanced_offset" not in diag:  # no noise estimate or no covariance: no test
-        offset = (np.ones(len(B)) @ B) / len(B)
+        offset = column_means(B)
         diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
                                    "note": "forced by balance='always'; not tested (no noise estimate)"}
     offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
@@ -683,24 +704,32 @@ class MaximumLikelihood(Estimator):
             raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {self.balance!r}")
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        u, norm = normalise(B)
+        target: Target
         if ref.values is not None:
             f_scale = float(np.sqrt(np.mean(ref.values**2)))
             target = ref.values / f_scale
         else:
-            f_scale, target = 1.0, np.ones(len(B))
-        large = len(u) > LARGE_N and self.loss == "linear"
-        # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N)
-        sub_idx = np.linspace(0, len(u) - 1, LARGE_N).astype(np.int64) if large else slice(None)
+            f_scale, target = 1.0, 1.0
+        n_samples = len(B)
+        large = n_samples > LARGE_N and self.loss == "linear"
+        if large:
+            # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N); the
+            # polish normalises block by block, so no normalised copy of the log is made (memory independent of N)
+            norm = normalisation_stats(B)
+            sub_idx: Any = np.linspace(0, n_samples - 1, LARGE_N).astype(np.int64)
+            u_sub = norm.forward(B[sub_idx])
+        else:
+            u_sub, norm = normalise(B)
+            sub_idx = slice(None)
         # the start only has to lie in the basin of the subsample's minimum: the algebraic fit of that subsample
-        W0, c0, _ = algebraic_ellipsoid(u[sub_idx])
+        W0, c0, _ = algebraic_ellipsoid(u_sub)
         p0 = np.concatenate([W0[UPPER], c0])
         # (on the subsample a relative step of 1e-9 is close enough: the polish on all samples takes it from there)
-        p, res, nfev = weighted_ml(u[sub_idx], p0, target[sub_idx], loss=self.loss, max_iter=self.max_iter,
+        p, res, nfev = weighted_ml(u_sub, p0, _take(target, sub_idx), loss=self.loss, max_iter=self.max_iter,
                                    xtol=1e-9 if large else 1e-12)
         if large:
             p, sum_sq, JtJ, n_polish = gauss_newton_polish(
-                u, p, target, contraction=contraction(getattr(res, "step_norms", None) or [])
+                B, p, target, contraction=contraction(getattr(res, "step_norms", None) or []), norm=norm
             )
             nfev += n_polish
             cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
@@ -711,15 +740,16 @@ class MaximumLikelihood(Estimator):
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
         )
-        sigma2_u = sum_sq / max(len(u) - 9, 1)
+        sigma2_u = sum_sq / max(n_samples - 9, 1)
         if self.noise_std is not None:
             sigma2_u = (float(self.noise_std) / norm.scale) ** 2
         correction = np.zeros(9)
         if self.bias_correction and self.loss == "linear" and sigma2_u > 0:
             # the bias is a ratio of two sums over samples: an evenly spread subsample estimates it as well
             # (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself, 0.003 standard deviations)
-            bias_idx = diagnostic_subsample(len(u)) if len(u) > DIAGNOSTIC_SAMPLES else slice(None)
-            correction = bias_correction(u[bias_idx], p, target[bias_idx], sigma2_u)
+            bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
+            u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
+            correction = bias_correction(u_bias, p, _take(target, bias_idx), sigma2_u)
             p = p - correction
         W_u, b_u = _unpack(p)
         W = _positive_diagonal(W_u) * f_scale / norm.scale
