@@ -39,7 +39,7 @@ from ..diagnostics import check_condition, check_not_degenerate, design_conditio
 from ..errors import IdentifiabilityError
 from ..metrics import row_dot
 from ..models.ellipsoid import to_upper
-from ._common import check_ellipsoid_options, normalise, scalar_reference
+from ._common import Normalisation, check_ellipsoid_options, normalisation_stats, normalise, scalar_reference
 from .base import Estimator
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 from .ml import ellipsoid_result
@@ -76,11 +76,46 @@ def _design(u: NDArray[np.float64]) -> NDArray[np.float64]:
     return Lt.T
 
 
-def _blocks(u: NDArray[np.float64], rows: int) -> Any:
-    """``(start, t, work)`` per block of :func:`transposed_blocks`, ``work`` a reused (rows, m) buffer."""
+#: Measurement weights: an array (N,), or ``(b, M)`` to compute ``1 / |M (u_k - b)|^2`` block by block.
+Weights = NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]
+#: Field magnitudes: one number for every sample, or an array (N,).
+Magnitudes = float | NDArray[np.float64]
+
+
+def _blocks(u: NDArray[np.float64], rows: int, norm: Normalisation | None = None) -> Any:
+    """``(start, t, work)`` per block of :func:`transposed_blocks`, ``work`` a reused (rows, m) buffer. With
+    ``norm``, ``u`` are raw samples and ``t`` is normalised (``(x - centre) / scale``): no normalised copy."""
     with scratch(rows, min(max(len(u), 1), BLOCK)) as work:
-        for start, t in transposed_blocks(u):
+        for start, t in transposed_blocks(u, None if norm is None else norm.centre):
+            if norm is not None:
+                t *= 1.0 / norm.scale
             yield start, t, work[:, : t.shape[1]]
+
+
+def _block_weights(t: NDArray[np.float64], w: Weights, start: int, out: NDArray[np.float64],
+                   work: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The weights of the block ``t`` (3, m) starting at sample ``start`` into ``out`` (m,); ``work`` (8, m)."""
+    m = t.shape[1]
+    if not isinstance(w, tuple):
+        np.copyto(out, w[start : start + m])
+        return out
+    b, M = w
+    e = np.subtract(t, b[:, None], out=work[:3])
+    y = np.matmul(M, e, out=work[3:6])
+    q = sum_squares(y, out=work[6], tmp=work[7])
+    return np.divide(1.0, np.maximum(q, 1e-12, out=q), out=out)
+
+
+def _block_z(t: NDArray[np.float64], F: Magnitudes, start: int, out: NDArray[np.float64],
+             tmp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``z_k = |u_k|^2 - F_k^2`` of the block ``t`` (3, m) starting at sample ``start`` into ``out`` (m,)."""
+    sum_squares(t, out=out, tmp=tmp)
+    if np.ndim(F) == 0:
+        out -= float(F) ** 2
+    else:
+        Fb = F[start : start + t.shape[1]]  # type: ignore[index]
+        out -= np.multiply(Fb, Fb, out=tmp)
+    return out
 
 
 def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -88,42 +123,40 @@ def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float
     (x - b)^T M^2 (x - b) ~ |A y|^2``, shape (N,). Computed in blocks (no (N, 3) temporary)."""
     w = np.empty(len(u))
     M = np.ascontiguousarray(M)
-    for start, t, work in _blocks(u, 5):
-        t -= b[:, None]
-        y = np.matmul(M, t, out=work[:3])
-        q = sum_squares(y, out=work[3], tmp=work[4])
-        np.divide(1.0, np.maximum(q, 1e-12, out=q), out=w[start : start + t.shape[1]])
+    for start, t, work in _blocks(u, 8):
+        _block_weights(t, (b, M), start, w[start : start + t.shape[1]], work)
     return w
 
 
 def _magnitude_misfit(u: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64],
-                      F: NDArray[np.float64]) -> float:
-    """``mean((|A (u_k - b)| - F_k)^2)``, in blocks."""
+                      F: Magnitudes, norm: Normalisation | None = None) -> float:
+    """``mean((|A (u_k - b)| - F_k)^2)``, in blocks (``norm``: as :func:`_blocks`)."""
     total = 0.0
     A = np.ascontiguousarray(A)
-    for start, t, work in _blocks(u, 5):
+    for start, t, work in _blocks(u, 5, norm):
         t -= b[:, None]
         y = np.matmul(A, t, out=work[:3])
         mag = np.sqrt(sum_squares(y, out=work[3], tmp=work[4]), out=work[3])
-        mag -= F[start : start + t.shape[1]]
+        mag -= F if np.ndim(F) == 0 else F[start : start + t.shape[1]]  # type: ignore[index]
         total += float(mag @ mag)
     return total / len(u)
 
 
 def _step2_statistics(
-    u: NDArray[np.float64], w: NDArray[np.float64], z: NDArray[np.float64]
+    u: NDArray[np.float64], w: Weights, F: Magnitudes, norm: Normalisation | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float, float]:
     """``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw``, ``sw^T sw``, ``sw^T zw``, ``zw^T zw`` with ``sw = sqrt(w)``,
-    ``Lw = sw L``, ``zw = sw z``: step 2's sufficient statistics, accumulated block by block (the (N, 9) design is
-    never formed)."""
+    ``Lw = sw L``, ``zw = sw z``, ``z_k = |u_k|^2 - F_k^2``: step 2's sufficient statistics, accumulated block by
+    block (the (N, 9) design is never formed; ``norm``: as :func:`_blocks`)."""
     G, h, k = np.zeros((9, 9)), np.zeros(9), np.zeros(9)
     s0 = s1 = s2 = 0.0
-    for start, t, work in _blocks(u, 11):
-        m = t.shape[1]
+    for start, t, work in _blocks(u, 19, norm):
         Lw, sw, zw = work[:9], work[9], work[10]
+        _block_weights(t, w, start, sw, work[11:19])
+        np.sqrt(sw, out=sw)
+        _block_z(t, F, start, zw, work[11])
+        zw *= sw
         _design_rows(t, Lw)
-        np.sqrt(w[start : start + m], out=sw)
-        np.multiply(sw, z[start : start + m], out=zw)
         Lw *= sw
         G += Lw @ Lw.T
         h += Lw @ sw
@@ -133,16 +166,17 @@ def _step2_statistics(
 
 
 def _weighted_residual_sum(
-    u: NDArray[np.float64], w: NDArray[np.float64], z: NDArray[np.float64], x: NDArray[np.float64]
+    u: NDArray[np.float64], w: Weights, F: Magnitudes, x: NDArray[np.float64], norm: Normalisation | None = None
 ) -> float:
-    """``sum w_k (L_k x[:9] - x[9] - z_k)^2`` (step 1's weighted residuals), in blocks."""
+    """``sum w_k (L_k x[:9] - x[9] - z_k)^2`` (step 1's weighted residuals), in blocks (``norm``: as
+    :func:`_blocks`)."""
     total = 0.0
-    for start, t, work in _blocks(u, 9):
-        m = t.shape[1]
-        r = x[:9] @ _design_rows(t, work)
+    for start, t, work in _blocks(u, 20, norm):
+        r = np.matmul(x[:9], _design_rows(t, work[:9]), out=work[9])
         r -= x[9]
-        r -= z[start : start + m]
-        total += float(np.dot(w[start : start + m] * r, r))
+        r -= _block_z(t, F, start, work[10], work[11])
+        wb = _block_weights(t, w, start, work[11], work[12:20])
+        total += float(np.dot(np.multiply(wb, r, out=work[10]), r))
     return total
 
 
@@ -224,24 +258,35 @@ class TwoStep(Estimator):
         check_ellipsoid_options(self.form, self.noise_std)
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        u, norm = normalise(B)
+        n_samples = len(B)
+        F: Magnitudes
         if ref.values is not None:
             f_scale = float(np.sqrt(np.mean(ref.values**2)))
             F = ref.values / f_scale
         else:
-            f_scale, F = 1.0, np.ones(len(B))
-        z = row_dot(u, u) - F**2
+            f_scale, F = 1.0, 1.0
         # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
-        constant_F = float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
+        constant_F = np.ndim(F) == 0 or float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
+        w: Weights
+        src: NDArray[np.float64]  # the samples the block sums read: raw with `src_norm`, or normalised
+        src_norm: Normalisation | None
         if constant_F:
-            # with one magnitude for all samples the centred problem is degenerate (E = -I, c = 0 fits z
-            # exactly: |x|^2 is a combination of the design's columns), so step 1 starts from the algebraic fit
-            W0, c0, cond = algebraic_ellipsoid(u)  # also the identifiability check
-            M1 = float(np.mean(F)) ** 2 * (W0.T @ W0)
+            # one magnitude for every sample: z_k = |u_k|^2 - F^2 and the weights are recomputed block by block
+            # from the raw samples, so no normalised copy and no per-sample array is made (memory independent
+            # of N). The centred problem is degenerate here (E = -I, c = 0 fits z exactly: |x|^2 is a
+            # combination of the design's columns), so step 1 starts from the algebraic fit.
+            F = float(np.mean(F))
+            norm = normalisation_stats(B)
+            src, src_norm = B, norm
+            W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
+            M1 = F**2 * (W0.T @ W0)
             b1 = c0
             x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
-            w = _weights(u, b1, M1)
+            w = (b1, np.ascontiguousarray(M1))
         else:
+            u, norm = normalise(B)
+            src, src_norm = u, None
+            z = row_dot(u, u) - F**2
             A1 = np.column_stack([_design(u), -np.ones(len(u))])
             cond, _, _ = design_condition(A1)
             check_condition(cond, what="an ellipsoid (hard + soft iron)",
@@ -262,7 +307,7 @@ class TwoStep(Estimator):
         if self.noise_std is not None:
             sigma2 = (float(self.noise_std) / norm.scale) ** 2
         else:
-            sigma2 = _weighted_residual_sum(u, w, z, x1) / (4.0 * max(len(u) - 10, 1))
+            sigma2 = _weighted_residual_sum(src, w, F, x1, src_norm) / (4.0 * max(n_samples - 10, 1))
 
         # step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted
 
@@ -279,9 +324,13 @@ class TwoStep(Estimator):
             dconst[6:9] = 2 * bb
             return float(c @ bb - sigma2 * np.trace(M)), dconst
 
-        res = _gauss_newton_step2(_step2_statistics(u, w, z), x1[:9], const_and_grad, max_steps=self.max_iter)
+        res = _gauss_newton_step2(_step2_statistics(src, w, F, src_norm), x1[:9], const_and_grad,
+                                  max_steps=self.max_iter)
         if res is None:  # a step raised the cost: Levenberg-Marquardt from the same start, on the whole design
-            L, sw = _design(u), np.sqrt(w)
+            u_all = src if src_norm is None else src_norm.forward(src)
+            w_all = _weights(u_all, *w) if isinstance(w, tuple) else w
+            z = row_dot(u_all, u_all) - np.square(F)
+            L, sw = _design(u_all), np.sqrt(w_all)
 
             def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
                 return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
@@ -305,8 +354,8 @@ class TwoStep(Estimator):
         # step-1 estimate when step 2 fits the magnitudes worse
         ev1, evec1 = np.linalg.eigh(M1)
         A1m = (evec1 * np.sqrt(np.clip(ev1, 0, None))) @ evec1.T
-        fit2 = _magnitude_misfit(u, A, b_u, F)
-        fit1 = _magnitude_misfit(u, A1m, b1, F)
+        fit2 = _magnitude_misfit(src, A, b_u, F, src_norm)
+        fit1 = _magnitude_misfit(src, A1m, b1, F, src_norm)
         step2_used = bool(res.success) and fit2 <= fit1 * 1.5
         if not step2_used:
             A, b_u = A1m, b1
