@@ -57,3 +57,40 @@ def test_fit_and_in_process_trials_run_with_one_blas_thread(monkeypatch: pytest.
         trials = map_trials(_trial, range(3), progress=False)
     assert seen and all(n == 1 for n in seen[0])
     assert all(all(n == 1 for n in t) for t in trials)
+
+
+def test_the_limit_holds_until_the_last_thread_leaves() -> None:
+    """The BLAS setting is global: a thread leaving its block must not restore two threads under another thread
+    that is still fitting (Dask's threaded scheduler runs fits concurrently)."""
+    import threading
+
+    # (no outer threadpool_limits here: with OpenBLAS 0.3.31 a limit set in the main thread then hides one set
+    # in another thread from that thread)
+    before = _blas_threads()
+    if not before or all(n == 1 for n in before):
+        pytest.skip("this machine's BLAS runs one thread by default, so a limit to one cannot be seen")
+    a_in, b_in, a_out, b_done = threading.Event(), threading.Event(), threading.Event(), threading.Event()
+    seen: dict[str, list[int]] = {}
+
+    def a() -> None:
+        with one_blas_thread():
+            a_in.set()
+            b_in.wait(5)
+        a_out.set()
+
+    def b() -> None:
+        a_in.wait(5)
+        with one_blas_thread():
+            b_in.set()
+            a_out.wait(5)
+            seen["b after a left"] = _blas_threads()
+        b_done.set()
+
+    threads = [threading.Thread(target=a), threading.Thread(target=b)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert b_done.is_set()
+    assert all(n == 1 for n in seen["b after a left"])
+    assert _blas_threads() == before
