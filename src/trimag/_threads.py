@@ -8,9 +8,9 @@ thread does do is spin-wait: whenever another job holds a core, OpenBLAS's idle 
 machine 1.5-1.9 s against 1.3-1.5 s; a 1e7-sample ``ml`` fit takes the same time either way (1.12 s).
 
 :func:`one_blas_thread` limits every loaded BLAS (numpy's and scipy's OpenBLAS) to one thread for the duration
-of a ``with`` block, through ``threadpoolctl``, and restores the previous setting afterwards. The setting is
-global to the process, so blocks are counted across threads: the first to open sets the limit, the last to close
-restores it. Its controller is built on first use (about 0.7 ms); entering and leaving a block costs about 15 us.
+of a ``with`` block in the main thread, through ``threadpoolctl``, and restores the previous setting afterwards
+(in other threads it does nothing: see its docstring). Its controller is built on first use (about 0.7 ms);
+entering and leaving a block costs about 15 us.
 """
 
 from __future__ import annotations
@@ -23,8 +23,7 @@ from typing import Any
 __all__ = ["one_blas_thread"]
 
 _CONTROLLER: Any = None
-_LOCK = threading.Lock()
-_ACTIVE = 0  # blocks open in this process (all threads): the first sets the limit, the last restores it
+_DEPTH = 0  # blocks open in the main thread: the outermost sets the limit and restores it
 _LIMITER: Any = None
 
 
@@ -42,23 +41,26 @@ def _controller() -> Any:
 
 @contextlib.contextmanager
 def one_blas_thread() -> Iterator[None]:
-    """Run the block with one BLAS thread.
+    """Run the block with one BLAS thread when called from the main thread (re-entrant); elsewhere do nothing.
 
-    Re-entrant and shared by all threads of the process: the BLAS setting is global, so the first block to open
-    sets the limit and the last to close restores the previous setting (threads that fit concurrently, as
-    Dask's threaded scheduler runs them, keep one BLAS thread until all of them are done).
+    The BLAS setting belongs to the process, and OpenBLAS (0.3.31, measured) does not reliably apply a change made
+    from another thread: a limit set there may not be seen by that thread, and a restore made there may not be seen
+    by the main thread, which would leave the process on one BLAS thread after the fit. So only the main thread
+    (in-process fits and trials, the common case) changes it; Dask's threaded scheduler runs fits as before, and
+    its worker processes start with one BLAS thread anyway (:mod:`trimag.parallel`).
     """
-    global _ACTIVE, _LIMITER
-    with _LOCK:
-        if _ACTIVE == 0:
-            controller = _controller()
-            _LIMITER = controller.limit(limits=1, user_api="blas") if controller else None
-        _ACTIVE += 1
+    global _DEPTH, _LIMITER
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if _DEPTH == 0:
+        controller = _controller()
+        _LIMITER = controller.limit(limits=1, user_api="blas") if controller else None
+    _DEPTH += 1
     try:
         yield
     finally:
-        with _LOCK:
-            _ACTIVE -= 1
-            if _ACTIVE == 0 and _LIMITER is not None:
-                _LIMITER.restore_original_limits()
-                _LIMITER = None
+        _DEPTH -= 1
+        if _DEPTH == 0 and _LIMITER is not None:
+            _LIMITER.restore_original_limits()
+            _LIMITER = None
