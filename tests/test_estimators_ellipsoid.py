@@ -177,3 +177,22 @@ def test_power_sums_equal_the_direct_sums_over_several_chunks() -> None:
     assert set(sums) == set(direct) and len(sums) == 35
     for key, value in direct.items():
         assert sums[key] == pytest.approx(value, rel=1e-10, abs=1e-8 * len(u)), key
+
+
+def test_one_pass_of_moments_gives_the_scatter_and_the_power_sums() -> None:
+    """``als`` takes the algebraic fit's scatter and its own power sums from one pass (``quadric_moments``)."""
+    from trimag.estimators._common import normalisation_stats
+    from trimag.estimators.ellipsoid_fit import (
+        power_sums,
+        power_sums_from_moments,
+        quadric_moments,
+        quadric_scatter,
+        scatter_from_moments,
+    )
+
+    rng = np.random.default_rng(8)
+    raw = rng.normal(size=(3000, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]
+    norm = normalisation_stats(raw)
+    moments = quadric_moments(raw, norm)
+    np.testing.assert_array_equal(scatter_from_moments(moments), quadric_scatter(raw, norm))
+    assert power_sums_from_moments(moments) == power_sums(raw, norm)

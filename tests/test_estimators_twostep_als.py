@@ -140,3 +140,32 @@ def test_twostep_blocked_statistics_do_not_depend_on_the_block_size(monkeypatch)
     np.testing.assert_allclose(many.matrix, one.matrix, rtol=1e-11, atol=1e-14)
     np.testing.assert_allclose(many.offset, one.offset, rtol=0, atol=1e-12)
     assert many.uncertainty["noise_std"] == pytest.approx(one.uncertainty["noise_std"], rel=1e-10)
+
+
+def test_twostep_block_sums_on_raw_samples_equal_those_on_the_normalised_copy() -> None:
+    """With one magnitude for all samples ``twostep`` reads raw samples, normalises each block as it reads it and
+    computes the weights and ``z`` per block: the same sums as on a normalised copy with per-sample arrays."""
+    from trimag.estimators import twostep as ts
+    from trimag.estimators._common import normalisation_stats, normalise
+
+    rng = np.random.default_rng(9)
+    u0 = uniform_directions(3000, seed=4)
+    raw = (u0 @ D.T + B0 + rng.normal(scale=0.02, size=u0.shape)) * 480.0 + [300.0, -200.0, 100.0]
+    u, _ = normalise(raw)
+    stats = normalisation_stats(raw)
+    b = np.array([0.1, -0.05, 0.02])
+    M = np.array([[1.1, 0.02, 0.01], [0.02, 0.95, -0.03], [0.01, -0.03, 1.0]])
+    w = ts._weights(u, b, M)
+    F = 1.3
+    x = np.concatenate([rng.normal(scale=0.1, size=9), [0.2]])
+    on_copy = ts._step2_statistics(u, w, np.full(len(u), F))
+    streamed = ts._step2_statistics(raw, (b, M), F, stats)
+    for a, c in zip(on_copy, streamed, strict=True):
+        np.testing.assert_allclose(c, a, rtol=1e-10, atol=1e-9 * np.max(np.abs(a)))
+    assert ts._weighted_residual_sum(raw, (b, M), F, x, stats) == pytest.approx(
+        ts._weighted_residual_sum(u, w, np.full(len(u), F), x), rel=1e-10
+    )
+    A = np.eye(3) * 1.02
+    assert ts._magnitude_misfit(raw, A, b, F, stats) == pytest.approx(
+        ts._magnitude_misfit(u, A, b, np.full(len(u), F)), rel=1e-10
+    )
