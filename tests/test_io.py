@@ -205,3 +205,30 @@ def test_csv_reader_arrow_and_pandas_paths_agree(tmp_path, monkeypatch):
     assert (fast.n_rows, fast.n_dropped, fast.n_duplicates) == (slow.n_rows, slow.n_dropped, slow.n_duplicates)
     assert (fast.n_dropped, fast.n_duplicates) == (2, 1)
     assert fast.columns == ("bx", "by", "bz")
+
+
+@pytest.mark.parametrize(
+    ("bad_row", "dropped"),
+    [(None, 0), ("1.5,,3.0", 1), ("nan,2,3", 1), ("1.0,NA,3.0", 1), ("1.0,abc,3.0", 1), (" 1.0, 2.0, 3.0", 0)],
+)
+def test_numeric_csv_reads_as_floats_with_the_same_rows_as_the_text_path(
+    tmp_path: Path, bad_row: str | None, dropped: int
+) -> None:
+    """A CSV whose sniffed lines are plain numbers is read into float columns (no string per cell). Cells that
+    are not plain numbers (empty, NA, text, spaces) either become NaN and are dropped and counted, or send the
+    reader back to the text path: the same samples, drops and duplicates as a file that can only be read as
+    text (here: the same rows with a text column appended)."""
+    rng = np.random.default_rng(12)
+    rows = [",".join(f"{v:.3f}" for v in r) for r in rng.normal(size=(400, 3)) * 300]
+    rows += rows[:5]  # 5 duplicate rows
+    if bad_row is not None:
+        rows[350] = bad_row  # far below the sniffed head: only the reader sees it
+    numeric = _write(tmp_path / "numeric.csv", "x,y,z\n" + "\n".join(rows) + "\n")
+    text = _write(tmp_path / "text.csv", "x,y,z,label\n" + "\n".join(r + ",run-a" for r in rows) + "\n")
+    a, b = read_samples(numeric), read_samples(text)
+    if bad_row is None:
+        assert a.table["x"].dtype == np.float64  # the typed fast path
+    assert b.table["label"].dtype != np.float64  # the text path
+    np.testing.assert_array_equal(a.field, b.field)
+    assert (a.n_dropped, a.n_duplicates, a.dropped_index) == (b.n_dropped, b.n_duplicates, b.dropped_index)
+    assert a.n_dropped == dropped

@@ -106,6 +106,9 @@ class CsvLayout:
     delimiter: str | None  # None = whitespace
     preamble: tuple[str, ...] = ()
     n_fields: int = 0
+    #: every field of the data lines read while sniffing is a plain number (no spaces, not empty): the reader
+    #: may then try typed float columns first
+    all_numeric: bool = False
 
 
 def _is_number(tok: str) -> bool:
@@ -156,9 +159,10 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
             j = i - 1
             while j >= 0 and not rows[j]:
                 j -= 1
+            plain = all(t == t.strip() and _is_number(t) for r in rows[i:] for t in r)
             if j >= 0 and len(rows[j]) == len(fields) and not any(_is_number(t) for t in rows[j]):
-                return CsvLayout(j, True, delimiter, tuple(lines[:j]), len(fields))
-            return CsvLayout(i, False, delimiter, tuple(lines[:i]), len(fields))
+                return CsvLayout(j, True, delimiter, tuple(lines[:j]), len(fields), plain)
+            return CsvLayout(i, False, delimiter, tuple(lines[:i]), len(fields), plain)
     # no numeric line found: too few columns, header only, or no numbers at all
     narrow = [r for r in rows if r and all(_is_number(t) for t in r)]
     if narrow:
@@ -198,29 +202,46 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
 
 
 def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
-    """The whole file by pyarrow's multithreaded CSV reader, every column typed as a string (as pandas reads it
-    with ``dtype=str``; 10x faster on 1e7 rows). None when pyarrow refuses the file (e.g. a row with a
+    """The whole file by pyarrow's multithreaded CSV reader (10x faster than pandas on 1e7 rows).
+
+    When the sniffed data lines are all plain numbers (``layout.all_numeric``), every column is first read as
+    float64, empty cells as NaN (dropped and counted later, as on the string path): no string per cell, about
+    5x less memory. If any cell is not a plain number that read fails and the file is read again with every
+    column typed as a string (as pandas reads it with ``dtype=str``); the numbers are the same either way
+    (both use Arrow's string-to-double conversion). None when pyarrow refuses the file (e.g. a row with a
     different number of fields): the caller then uses pandas, whose messages name the problem."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
     names = [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]
-    try:
-        table = pacsv.read_csv(
-            path,
-            read_options=pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names),
-            parse_options=pacsv.ParseOptions(delimiter=layout.delimiter),
-            convert_options=pacsv.ConvertOptions(
-                column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
-                quoted_strings_can_be_null=False,
-            ),
-        )
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
-        return None
+    read_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names)
+    parse_options = pacsv.ParseOptions(delimiter=layout.delimiter)
+    table = None
+    if layout.all_numeric:
+        try:
+            table = pacsv.read_csv(
+                path, read_options=read_options, parse_options=parse_options,
+                convert_options=pacsv.ConvertOptions(
+                    column_types=dict.fromkeys(names, pa.float64()), null_values=[""], strings_can_be_null=False,
+                ),
+            )
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+            table = None
+    if table is None:
+        try:
+            table = pacsv.read_csv(
+                path, read_options=read_options, parse_options=parse_options,
+                convert_options=pacsv.ConvertOptions(
+                    column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
+                    quoted_strings_can_be_null=False,
+                ),
+            )
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+            return None
     if table.num_rows == 0:
         return None  # header only: pandas gives the same empty frame and the caller's message
     df = table.to_pandas()
-    if not all(pd.api.types.is_string_dtype(df[c]) for c in df.columns):
+    if not all(pd.api.types.is_string_dtype(df[c]) or df[c].dtype == np.float64 for c in df.columns):
         return None
     return df
 
