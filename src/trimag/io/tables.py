@@ -240,7 +240,9 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
             return None
     if table.num_rows == 0:
         return None  # header only: pandas gives the same empty frame and the caller's message
-    df = table.to_pandas()
+    # one block per column and Arrow's buffers freed as they are converted: no second copy of the log
+    df = table.to_pandas(split_blocks=True, self_destruct=True)
+    del table
     if not all(pd.api.types.is_string_dtype(df[c]) or df[c].dtype == np.float64 for c in df.columns):
         return None
     return df
@@ -461,6 +463,10 @@ def where_mask(df: pd.DataFrame, where: str) -> NDArray[np.bool_]:
     return ~mask if op == "!=" else mask
 
 
+#: Rows per block of :func:`count_duplicate_rows`.
+_HASH_BLOCK = 1 << 16
+
+
 def count_duplicate_rows(field: NDArray[np.float64]) -> int:
     """Rows of ``field`` (N, 3) equal to an earlier row (``pd.DataFrame(field).duplicated().sum()``, exact).
 
@@ -470,15 +476,19 @@ def count_duplicate_rows(field: NDArray[np.float64]) -> int:
     """
     if len(field) < 2:
         return 0
-    cols = [field[:, j] + 0.0 for j in range(field.shape[1])]  # new contiguous columns; + 0.0: -0.0 -> 0.0
-    h = pd.util.hash_array(cols[0])
-    for c in cols[1:]:
-        h = h * np.uint64(0x9E3779B97F4A7C15) ^ pd.util.hash_array(c)
+    h = np.empty(len(field), dtype=np.uint64)
+    for start in range(0, len(field), _HASH_BLOCK):  # blocks: temporaries of the block's size, not N
+        rows = field[start : start + _HASH_BLOCK]
+        hb = pd.util.hash_array(rows[:, 0] + 0.0)  # contiguous column; + 0.0: -0.0 -> 0.0
+        for j in range(1, field.shape[1]):
+            hb = hb * np.uint64(0x9E3779B97F4A7C15) ^ pd.util.hash_array(rows[:, j] + 0.0)
+        h[start : start + len(rows)] = hb
     hs = np.sort(h)
     if not np.any(hs[1:] == hs[:-1]):  # the usual case: every hash distinct, so every row distinct
         return 0
+    del hs
     repeated = pd.Series(h).duplicated(keep=False).to_numpy()
-    return int(pd.DataFrame(np.column_stack(cols)[repeated]).duplicated().sum())
+    return int(pd.DataFrame(field[repeated] + 0.0).duplicated().sum())
 
 
 def read_samples(
