@@ -133,11 +133,6 @@ _RESIDUAL_BLOCK = 8192
 Target = float | NDArray[np.float64]
 
 
-def _rows(target: Target, start: int, stop: int) -> Target:
-    """``target`` for samples ``start:stop``."""
-    return target if np.ndim(target) == 0 else target[start:stop]  # type: ignore[index]
-
-
 def _take(target: Target, idx: Any) -> Target:
     """``target`` for the samples ``idx`` (indices or a slice)."""
     return target if np.ndim(target) == 0 else target[idx]  # type: ignore[index]
@@ -158,7 +153,7 @@ def geometric_residual(
     Jt = np.empty((9, n))
     for s in range(0, n, _RESIDUAL_BLOCK):
         e = min(s + _RESIDUAL_BLOCK, n)
-        _residual_block(u[s:e], W, b, _rows(target, s, e), r[s:e], Jt[:, s:e])
+        _residual_block(u[s:e], W, b, _take(target, slice(s, e)), r[s:e], Jt[:, s:e])
     return r, Jt.T
 
 
@@ -296,7 +291,7 @@ def _normal_equations(
         for start in range(0, len(u), _RESIDUAL_BLOCK):
             stop = min(start + _RESIDUAL_BLOCK, len(u))
             r, Jt = work[0, : stop - start], work[1:, : stop - start]
-            _residual_block(u[start:stop], W, b, _rows(target, start, stop), r, Jt, norm)
+            _residual_block(u[start:stop], W, b, _take(target, slice(start, stop)), r, Jt, norm)
             if JtJ is not None:
                 JtJ += Jt @ Jt.T
             Jtr += Jt @ r
