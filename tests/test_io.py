@@ -11,7 +11,7 @@ import pytest
 import scipy.io
 
 from trimag.errors import TrimagInputError
-from trimag.io import read_samples
+from trimag.io import read_samples, read_table
 
 from _helpers import SHARED_DATA, requires_shared, simulate_ellipsoid
 
@@ -232,3 +232,22 @@ def test_numeric_csv_reads_as_floats_with_the_same_rows_as_the_text_path(
     np.testing.assert_array_equal(a.field, b.field)
     assert (a.n_dropped, a.n_duplicates, a.dropped_index) == (b.n_dropped, b.n_duplicates, b.dropped_index)
     assert a.n_dropped == dropped
+
+
+@pytest.mark.parametrize(
+    "header",
+    ["x,y,z", " x , y , z", '"mag x","mag y","mag z"', "x,x,y", "x,,z", "\ufeffx,y,z", "t,bx,by,bz", None],
+)
+def test_csv_column_names_are_those_pandas_gives(tmp_path: Path, header: str | None) -> None:
+    """The column names come from the sniffed header line when pandas would keep them as written, and from pandas
+    otherwise (duplicate or empty names, a byte-order mark): the table has pandas' names either way."""
+    width = 4 if header is not None and header.startswith("t,") else 3
+    rng = np.random.default_rng(3)
+    body = "\n".join(",".join(f"{v:.2f}" for v in r) for r in rng.normal(size=(30, width)) * 100) + "\n"
+    path = tmp_path / "log.csv"
+    path.write_text(("" if header is None else header + "\n") + body, encoding="utf-8")
+    expected = pd.read_csv(path, header=0 if header is not None else None, dtype=str)
+    names = [f"col{i}" for i in range(width)] if header is None else [str(c).strip() for c in expected.columns]
+    df = read_table(path)
+    assert list(df.columns) == names
+    np.testing.assert_array_equal(df.to_numpy(dtype=float), expected.to_numpy(dtype=float))

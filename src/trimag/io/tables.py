@@ -109,6 +109,9 @@ class CsvLayout:
     #: every field of the data lines read while sniffing is a plain number (no spaces, not empty): the reader
     #: may then try typed float columns first
     all_numeric: bool = False
+    #: the header's fields as written, when they are distinct and non-empty (the column names pandas would give
+    #: them); None otherwise (no header, or names pandas would rename: the reader then asks pandas)
+    header: tuple[str, ...] | None = None
 
 
 def _is_number(tok: str) -> bool:
@@ -120,6 +123,24 @@ def _is_number(tok: str) -> bool:
     except ValueError:
         return tok.lower() in {"nan", "inf", "-inf", "+inf"}
     return True
+
+
+#: A plain decimal number (optional sign, digits, point, exponent), no spaces: what Arrow's float64 columns read.
+#: Only decides which read is tried first (:attr:`CsvLayout.all_numeric`), so a stricter pattern than Python's
+#: ``float`` (no ``nan``, ``inf``, ``1_0``) costs at most a second read, never a different result.
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+
+
+#: Data lines :func:`_plain_numbers` looks at.
+_PLAIN_LINES = 50
+
+
+def _plain_numbers(lines: list[str], delimiter: str | None) -> bool:
+    """Every non-blank line is plain numbers joined by ``delimiter`` (whitespace when None): one match per line."""
+    num = _PLAIN_NUMBER.pattern
+    sep = r"\s+" if delimiter is None else re.escape(delimiter)
+    line_re = re.compile(rf"\s*{num}(?:{sep}{num})*\s*" if delimiter is None else f"{num}(?:{sep}{num})*")
+    return all(line_re.fullmatch(ln) is not None for ln in lines if ln.strip())
 
 
 def _split(line: str, delimiter: str | None) -> list[str]:
@@ -147,22 +168,34 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
         counts = {d: sample.count(d) for d in (",", ";", "\t")}
         best = max(counts, key=lambda d: counts[d])
         delimiter = best if counts[best] > 0 else None
-    rows = [_split(ln, delimiter) if ln.strip() else [] for ln in lines]
-    for i, fields in enumerate(rows):
-        if len(fields) < 1 or not fields:
+    # lines are split only as far as the search needs (the data usually start within the first few lines)
+    split: list[list[str] | None] = [None] * len(lines)
+
+    def row(k: int) -> list[str]:
+        fields = split[k]
+        if fields is None:
+            fields = split[k] = _split(lines[k], delimiter) if lines[k].strip() else []
+        return fields
+
+    for i in range(len(lines)):
+        fields = row(i)
+        if not fields:
             continue
         numeric = [_is_number(t) for t in fields]
-        nxt = next((r for r in rows[i + 1 :] if r), None)
+        nxt = next((r for r in map(row, range(i + 1, len(lines))) if r), None)
         same_width = nxt is None or len(nxt) == len(fields)
         if len(fields) >= 3 and sum(numeric) >= max(2, (len(fields) + 1) // 2) and same_width:
             # first data-like line; is the previous non-empty line a header of the same width?
             j = i - 1
-            while j >= 0 and not rows[j]:
+            while j >= 0 and not row(j):
                 j -= 1
-            plain = all(t == t.strip() and _is_number(t) for r in rows[i:] for t in r)
-            if j >= 0 and len(rows[j]) == len(fields) and not any(_is_number(t) for t in rows[j]):
-                return CsvLayout(j, True, delimiter, tuple(lines[:j]), len(fields), plain)
+            plain = _plain_numbers(lines[i : i + _PLAIN_LINES], delimiter)
+            if j >= 0 and len(row(j)) == len(fields) and not any(_is_number(t) for t in row(j)):
+                names = tuple(row(j))
+                distinct = len(set(names)) == len(names) and all(n.strip() and "\ufeff" not in n for n in names)
+                return CsvLayout(j, True, delimiter, tuple(lines[:j]), len(fields), plain, names if distinct else None)
             return CsvLayout(i, False, delimiter, tuple(lines[:i]), len(fields), plain)
+    rows = [row(k) for k in range(len(lines))]
     # no numeric line found: too few columns, header only, or no numbers at all
     narrow = [r for r in rows if r and all(_is_number(t) for t in r)]
     if narrow:
@@ -213,7 +246,12 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    names = [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]
+    if layout.header is not None:  # distinct, non-empty names: pandas would keep them as they are
+        names = list(layout.header)
+    elif not layout.has_header:
+        names = [str(k) for k in range(layout.n_fields)]
+    else:  # duplicate or empty names: pandas' renaming ("x.1", "Unnamed: 2")
+        names = [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]
     read_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names)
     parse_options = pacsv.ParseOptions(delimiter=layout.delimiter)
     table = None
@@ -243,7 +281,7 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
     # one block per column and Arrow's buffers freed as they are converted: no second copy of the log
     df = table.to_pandas(split_blocks=True, self_destruct=True)
     del table
-    if not all(pd.api.types.is_string_dtype(df[c]) or df[c].dtype == np.float64 for c in df.columns):
+    if not all(dtype == np.float64 or pd.api.types.is_string_dtype(dtype) for dtype in df.dtypes):
         return None
     return df
 
