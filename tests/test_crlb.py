@@ -128,3 +128,22 @@ def test_closed_form_ellipsoid_fisher_equals_generic_path(known):
     generic = fisher_information(X, lambda t: _upper_param(t), theta, 0.05, known_magnitude=known)
     assert fast.shape == ((9, 9) if known else (10, 10))
     assert np.max(np.abs(fast - generic)) <= 1e-8 * np.max(np.abs(generic))
+
+
+def test_closed_form_predicted_errors_equal_the_finite_difference_path() -> None:
+    """``predicted_errors`` in the ellipsoid's upper-triangular gauge (closed form) equals the generic path
+    (central differences of any ``theta -> (W, b)``), here forced by wrapping the same parametrisation."""
+    from trimag.crlb import _upper_param, predicted_errors
+    from trimag.diagnostics import fibonacci_sphere
+
+    rng = np.random.default_rng(5)
+    W = np.triu(rng.normal(size=(3, 3))) * 0.1 + np.eye(3)
+    b = rng.normal(size=3) * 0.2
+    theta = np.concatenate([W[np.triu_indices(3)], b])
+    X_test = 48.0 * fibonacci_sphere(300) @ np.linalg.inv(W).T + b
+    A = rng.normal(size=(9, 9))
+    cov = A @ A.T * 1e-6
+    closed = predicted_errors(cov, _upper_param, theta, X_test)
+    generic = predicted_errors(cov, lambda t: _upper_param(t), theta, X_test)
+    np.testing.assert_allclose(closed, generic, rtol=1e-8)
+    assert closed[0] > closed[1] > 0  # the vector error exceeds the magnitude error (it adds the direction)

@@ -298,6 +298,8 @@ def predicted_errors(
     """
     p = len(theta)
     C = covariance[:p, :p]
+    if param is _upper_param:  # the ellipsoid's own gauge: closed form, no finite differences
+        return _upper_predicted_errors(C, theta, X_test)
     W, b, dW, db = _derivatives(param, theta)
     G = _field_jacobian(X_test, W, b, dW, db)
     field_ms = float(np.einsum("nik,nik->", G @ C, G)) / len(G)
@@ -305,6 +307,37 @@ def predicted_errors(
     n = y / np.linalg.norm(y, axis=1, keepdims=True)
     m = np.einsum("ni,nik->nk", n, G)
     mag_ms = float(np.einsum("nk,nk->", m @ C, m)) / len(m)
+    return float(np.sqrt(max(field_ms, 0.0))), float(np.sqrt(max(mag_ms, 0.0)))
+
+
+def _upper_predicted_errors(
+    C: NDArray[np.float64], theta: NDArray[np.float64], X_test: NDArray[np.float64]
+) -> tuple[float, float]:
+    """:func:`predicted_errors` for :func:`_upper_param` (upper-triangular ``W``, then ``b``), in closed form.
+
+    The corrected field ``y = W (x - b)`` has ``dy/dW_rc = e_c u_r`` (``e = x - b``, ``u_r`` the unit vector) and
+    ``dy/db = -W``, so ``mean |dy|_C^2 = sum(C * M)`` with ``M`` built from the first two moments of ``e``:
+    ``M[rc, r'c'] = [r = r'] <e_c e_c'>``, ``M[rc, m] = -W[r, m] <e_c>``, ``M[m, m'] = (W^T W)[m, m']``. The
+    magnitude's derivatives are ``n_r e_c`` and ``-(W^T n)_m`` (``n = y / |y|``), as in :func:`ellipsoid_fisher`.
+    """
+    W, b = _upper_param(theta)
+    e = np.asarray(X_test, dtype=np.float64) - b  # (n, 3); a few hundred test points
+    k = len(e)
+    ee = e.T @ e / k
+    e_mean = e.mean(axis=0)
+    rows, cols = UPPER
+    M = np.empty((9, 9))
+    M[:6, :6] = (rows[:, None] == rows[None, :]) * ee[cols[:, None], cols[None, :]]
+    M[:6, 6:] = -W[rows, :] * e_mean[cols, None]
+    M[6:, :6] = M[:6, 6:].T
+    M[6:, 6:] = W.T @ W
+    y = e @ W.T
+    n = y / np.sqrt(row_dot(y, y))[:, None]
+    a = np.empty((k, 9))
+    a[:, :6] = n[:, rows] * e[:, cols]
+    a[:, 6:] = -(n @ W)
+    field_ms = float(np.sum(C * M))
+    mag_ms = float(np.sum((a @ C) * a)) / k
     return float(np.sqrt(max(field_ms, 0.0))), float(np.sqrt(max(mag_ms, 0.0)))
 
 

@@ -271,6 +271,9 @@ def _positive_diagonal(W: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.sign(d)[:, None] * W
 
 
+#: A condition number the Gram matrix ``J^T J`` gives to about 1e-6 relative (squaring the design loses
+#: ``cond^2`` x rounding); above it ``ml`` takes the condition of ``J`` itself (QR), as the checks need it exact.
+GRAM_CONDITION_EXACT = 1e5
 #: Above this many samples, ``ml`` solves on an evenly spread subsample first, then polishes on all samples
 #: with Gauss-Newton steps on the normal equations (9 x 9), so time and memory stay linear in N.
 LARGE_N = 10_000
@@ -365,7 +368,8 @@ _LAPLACIAN_STEP = 1e-4
 
 
 def bias_correction(
-    u: NDArray[np.float64], p: NDArray[np.float64], target: Target, sigma2: float
+    u: NDArray[np.float64], p: NDArray[np.float64], target: Target, sigma2: float,
+    *, normal_equations: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> NDArray[np.float64]:
     """Second-order noise bias of the ML estimate ``p`` (to subtract), normalised units.
 
@@ -374,9 +378,15 @@ def bias_correction(
     evaluations of ``sum_i psi_i = J^T r`` where central differences need seven. The residual depends on a
     sample only through ``x - b``, so shifting every sample by ``+h v`` is shifting the offset by ``-h v``: no
     shifted copies of the samples are made, and each sum is accumulated block by block (:func:`_normal_equations`).
+
+    ``normal_equations``: ``(J^T J, J^T r)`` of these samples at ``p`` when the caller has them (the last
+    Gauss-Newton evaluation); the first of the five evaluations is then skipped.
     """
     h = _LAPLACIAN_STEP
-    H, base, _ = _normal_equations(u, p, target)  # psi at the data, and H = J^T J: one evaluation
+    if normal_equations is None:
+        H, base, _ = _normal_equations(u, p, target)  # psi at the data, and H = J^T J: one evaluation
+    else:
+        H, base = normal_equations
     assert H is not None
     lap = -4.0 * base
     for v in _TETRAHEDRON:
@@ -707,6 +717,7 @@ class MaximumLikelihood(Estimator):
             f_scale, target = 1.0, 1.0
         n_samples = len(B)
         large = n_samples > LARGE_N and self.loss == "linear"
+        at_p: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         if large:
             # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N); the
             # polish normalises block by block, so no normalised copy of the log is made (memory independent of N)
@@ -730,7 +741,13 @@ class MaximumLikelihood(Estimator):
             cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
         else:
             sum_sq = float(np.sum(res.fun**2))
-            cond, s, vt = design_condition(res.jac)
+            J = res.jac
+            JtJ = J.T @ J
+            cond, s, vt = gram_condition(JtJ)  # (N, 9) -> (9, 9): no QR of the Jacobian ...
+            if not cond <= GRAM_CONDITION_EXACT:  # ... unless squaring it would cost digits the checks need
+                cond, s, vt = design_condition(J)
+            if getattr(res, "method", "") == "gauss-newton":  # J and r at p: the bias correction's first sums
+                at_p = (JtJ, J.T @ res.fun)
         check_condition(
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
@@ -744,7 +761,10 @@ class MaximumLikelihood(Estimator):
             # (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself, 0.003 standard deviations)
             bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
             u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
-            correction = bias_correction(u_bias, p, _take(target, bias_idx), sigma2_u)
+            correction = bias_correction(
+                u_bias, p, _take(target, bias_idx), sigma2_u,
+                normal_equations=at_p if u_bias.shape == u_sub.shape else None,
+            )
             p = p - correction
         W_u, b_u = _unpack(p)
         W = _positive_diagonal(W_u) * f_scale / norm.scale
