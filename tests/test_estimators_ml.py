@@ -116,6 +116,9 @@ def test_tetrahedral_bias_correction_equals_central_differences():
     corr = bias_correction(u, p, t, sigma2)
     assert np.linalg.norm(central) > 0
     np.testing.assert_allclose(corr, central, atol=1e-3 * np.linalg.norm(central))
+    # given the normal equations at p (as ml passes its last Gauss-Newton evaluation), the same correction
+    given = bias_correction(u, p, t, sigma2, normal_equations=(J.T @ J, J.T @ r0))
+    np.testing.assert_allclose(given, corr, rtol=1e-9, atol=1e-12 * np.linalg.norm(corr))
 
 
 def test_bias_correction_removes_the_scale_bias(strong_noise):
@@ -423,3 +426,34 @@ def test_information_relative_to_a_full_sphere_flags_two_great_circles():
             warnings.simplefilter("error", IdentifiabilityWarning)
             cal = trimag.fit(directions @ D.T + B0 + noise, method="ml")
         assert low < cal.diagnostics["identifiability"]["std_inflation_vs_full_sphere"] < high
+
+
+@pytest.mark.parametrize(("cap", "exact_path"), [(0.5, False), (0.05, True)])
+def test_condition_number_from_the_gram_matrix_equals_the_qr_one(
+    monkeypatch: pytest.MonkeyPatch, cap: float, exact_path: bool
+) -> None:
+    """``ml`` takes the condition number from ``J^T J`` and repeats it on ``J`` (QR) only above
+    GRAM_CONDITION_EXACT: the reported value is the QR one either way (to 1e-6 relative)."""
+    import trimag.estimators.ml as ml_module
+
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(3000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u = u[u[:, 2] > 1 - cap][:800]  # a cap of directions: the smaller, the worse the conditioning
+    raw = u @ np.diag([1.05, 0.97, 1.0]).T + [0.1, -0.05, 0.02] + rng.normal(scale=1e-3, size=u.shape)
+    calls: list[float] = []
+    design = ml_module.design_condition
+
+    def spy(J):
+        out = design(J)
+        calls.append(out[0])
+        return out
+
+    monkeypatch.setattr(ml_module, "design_condition", spy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cond = trimag.fit(raw, method="ml", reference=1.0).diagnostics["condition_number"]
+        assert bool(calls) == exact_path and (cond > ml_module.GRAM_CONDITION_EXACT) == exact_path
+        monkeypatch.setattr(ml_module, "GRAM_CONDITION_EXACT", 0.0)  # always QR
+        qr = trimag.fit(raw, method="ml", reference=1.0).diagnostics["condition_number"]
+    np.testing.assert_allclose(cond, qr, rtol=1e-6)
