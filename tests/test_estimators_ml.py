@@ -457,3 +457,34 @@ def test_condition_number_from_the_gram_matrix_equals_the_qr_one(
         monkeypatch.setattr(ml_module, "GRAM_CONDITION_EXACT", 0.0)  # always QR
         qr = trimag.fit(raw, method="ml", reference=1.0).diagnostics["condition_number"]
     np.testing.assert_allclose(cond, qr, rtol=1e-6)
+
+
+def test_chi2_survival_equals_scipy() -> None:
+    """The balance test's closed-form chi-square tail equals scipy.stats.chi2.sf for 1-3 degrees of freedom."""
+    from scipy.stats import chi2
+
+    from trimag.estimators.ml import chi2_survival
+
+    for dof in (1, 2, 3):
+        for x in (0.0, 1e-12, 0.3, 1.0, 3.0, 7.8, 20.0, 60.0, 300.0, np.inf):
+            np.testing.assert_allclose(chi2_survival(x, dof), chi2.sf(x, dof), rtol=1e-12, atol=1e-300)
+    assert np.isnan(chi2_survival(np.nan, 3))
+    with pytest.raises(ValueError, match="dof"):
+        chi2_survival(1.0, 4)
+
+
+def test_a_default_fit_does_not_load_scipy_optimize_or_stats() -> None:
+    """``ml`` needs scipy.optimize only when Levenberg-Marquardt takes over, and scipy.stats not at all: a plain
+    fit does not import them (together ~0.5 s of every ``trimag fit`` run and of every batch worker's start)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np, trimag\n"
+        "u = np.random.default_rng(0).normal(size=(2000, 3)); u /= np.linalg.norm(u, axis=1, keepdims=True)\n"
+        "raw = u * [1.05, 0.97, 1.0] + [0.1, -0.05, 0.02] + np.random.default_rng(1).normal(scale=1e-3, size=u.shape)\n"
+        "trimag.fit(raw, method='ml', reference=1.0)\n"
+        "print(sorted(m for m in ('scipy.optimize', 'scipy.stats') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

@@ -12,18 +12,32 @@ from the start, so the result is never worse than MINPACK's.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import OptimizeResult, least_squares
 
-__all__ = ["contraction", "gauss_newton", "gauss_newton_then_lm"]
+if TYPE_CHECKING:  # scipy.optimize is imported only when Levenberg-Marquardt runs (it costs ~0.3 s to import)
+    from scipy.optimize import OptimizeResult
+
+__all__ = ["GaussNewtonResult", "contraction", "gauss_newton", "gauss_newton_then_lm"]
 
 #: Relative step (``|delta| <= XTOL (1 + |p|)``) at which Gauss-Newton has converged: about 100 x rounding.
 XTOL = 1e-13
 #: A relative step below this after which the cost rose (by rounding only) also counts as converged.
 ROUNDING_STEP = 1e-8
+
+
+class GaussNewtonResult(dict[str, Any]):
+    """A converged :func:`gauss_newton` run: a dict whose keys are also attributes, as
+    ``scipy.optimize.OptimizeResult`` (``x``, ``fun``, ``jac``, ``nfev``, ``njev``, ``success``, ``status``,
+    ``method``, ``message``, ``step_norms``), without importing scipy.optimize."""
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
 
 
 def gauss_newton(
@@ -33,14 +47,14 @@ def gauss_newton(
     *,
     max_steps: int = 50,
     xtol: float = XTOL,
-) -> OptimizeResult | None:
+) -> GaussNewtonResult | None:
     """Undamped Gauss-Newton from ``p0``, or None as soon as a step raises ``sum fun(p)^2`` (far from the minimum)
     or ``max_steps`` pass without convergence; the caller then runs Levenberg-Marquardt.
 
     Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
     rounding only (relative step below :data:`ROUNDING_STEP`) keeps the point before it. ``fun`` is evaluated at
     every trial point and ``jac`` only at accepted ones (a caller whose ``fun`` and ``jac`` share one evaluation
-    can cache it). Returns an ``OptimizeResult`` as :func:`gauss_newton_then_lm`.
+    can cache it). Returns a :class:`GaussNewtonResult` with the fields of :func:`gauss_newton_then_lm`'s.
     """
     p = np.asarray(p0, dtype=np.float64).copy()
     r = fun(p)
@@ -87,7 +101,7 @@ def gauss_newton_then_lm(
     max_steps: int = 50,
     xtol: float = XTOL,
     lm_options: dict[str, Any] | None = None,
-) -> OptimizeResult:
+) -> GaussNewtonResult | OptimizeResult:
     """Minimise ``sum fun(p)^2`` from ``p0`` by :func:`gauss_newton`; fall back to Levenberg-Marquardt.
 
     Parameters
@@ -113,9 +127,11 @@ def gauss_newton_then_lm(
         (``"gauss-newton"`` or ``"levenberg-marquardt"``), as ``least_squares``
         returns them.
     """
-    res = gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
-    if res is not None:
-        return res
+    gn = gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
+    if gn is not None:
+        return gn
+    from scipy.optimize import least_squares
+
     res = least_squares(fun, np.asarray(p0, dtype=np.float64), jac=jac, method="lm", **(lm_options or {}))
     res.method = "levenberg-marquardt"
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
@@ -125,8 +141,8 @@ def gauss_newton_then_lm(
 def _result(
     p: NDArray[np.float64], r: NDArray[np.float64], J: NDArray[np.float64], nfev: int, njev: int, steps: int,
     xtol: float, step_norms: list[float],
-) -> OptimizeResult:
-    return OptimizeResult(
+) -> GaussNewtonResult:
+    return GaussNewtonResult(
         x=p, fun=r, jac=J, nfev=nfev, njev=njev, success=True, status=2, method="gauss-newton",
         message=f"Gauss-Newton converged in {steps} steps (relative step <= {xtol:g})",
         step_norms=step_norms,

@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
@@ -365,6 +364,8 @@ class GaussNewton(Estimator):
                 else f"not converged after max_iter={self.max_iter} iterations"
             )
             if self.fallback:
+                from scipy.optimize import least_squares
+
                 res = least_squares(
                     lambda q: residual_jacobian(x, target, q, jacobian=False)[0],
                     p,

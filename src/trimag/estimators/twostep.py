@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
 from ..calibration import Calibration
@@ -337,6 +336,9 @@ class TwoStep(Estimator):
 
             def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
                 return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
+
+            from scipy.optimize import least_squares
+
 
             res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
                                 xtol=1e-12, ftol=1e-12, gtol=1e-12)
