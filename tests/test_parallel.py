@@ -32,6 +32,25 @@ def _fail_on_three(x: int) -> int:
     return x * x
 
 
+def _sleep_and_report(x: int) -> int:
+    import os
+    import time
+
+    time.sleep(0.2)
+    return os.getpid()
+
+
+def test_worker_processes_share_the_chunks_as_they_free_up() -> None:
+    """Each idle worker process is handed one chunk at a time. (Dask's multiprocessing scheduler by default hands
+    out batches of 6 tasks fixed in advance: of 8 equal chunks one worker got 6 and the other 2, which cost the
+    batch benchmark ~20 % of its throughput; docs/performance.md.)"""
+    import collections
+
+    pids = map_trials(_sleep_and_report, list(range(8)), workers=2, chunksize=1, progress=False)
+    counts = collections.Counter(pids)
+    assert len(counts) == 2 and max(counts.values()) <= 5, counts
+
+
 def test_trial_seeds_deterministic_and_distinct() -> None:
     a = trial_seeds(7, 50)
     assert a == trial_seeds(7, 50)

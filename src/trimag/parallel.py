@@ -298,7 +298,9 @@ def _run_local(
     def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
         bar.advance(sizes.get(key if isinstance(key, str) else str(key), 0))
 
-    extra: dict[str, Any] = {"pool": _process_pool(workers)} if backend == "processes" else {}
+    # processes: one task per dispatch (Dask's default hands each idle worker a batch of 6 tasks, fixed in advance:
+    # a worker that finishes its batch early then idles while another still has several chunks to do)
+    extra: dict[str, Any] = {"pool": _process_pool(workers), "chunksize": 1} if backend == "processes" else {}
     with Callback(posttask=posttask):
         results = dask.compute(*tasks, scheduler=backend, num_workers=workers, **extra)
     return [r for chunk_result in results for r in chunk_result]
