@@ -5,7 +5,9 @@ Each sample gives one nonlinear equation (methods.md, paper B)
     r_i(p) = |T^-1 K^-1 (B_m,i - b)| - F_i = 0,     p = (b1, b2, b3, k1, k2, k3, alpha, beta, gamma)
 
 and the N equations are solved by Gauss-Newton: ``p <- p + delta`` with ``delta = argmin |J delta + r|``
-(solved by SVD, not by forming ``J^T J``), ``J`` the analytic Jacobian (:func:`residual_jacobian`).
+(solved through a QR factorisation, not by forming ``J^T J``), ``J`` the analytic Jacobian
+(:func:`residual_jacobian`). Every sum over samples is taken in blocks of :data:`_BLOCK` samples (``[J | -r]`` is
+factored block by block, :class:`._qr.BlockedQR`), so memory does not grow with N.
 
 * Start: the algebraic (linear least-squares) quadric fit ``u^T A u + v^T u = 1`` (nine unknowns, exact on
   noise-free data), scaled to the reference (:func:`algebraic_start`), reduced to the scalar9 gauge
@@ -34,17 +36,20 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .._rowwise import column_means, scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import scalar_reference
+from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = [
@@ -52,6 +57,8 @@ __all__ = [
     "GaussNewtonFallbackWarning",
     "algebraic_start",
     "gauss_newton",
+    "half_sum_squares",
+    "linearise",
     "params_text",
     "planarity",
     "residual_jacobian",
@@ -63,6 +70,9 @@ _ANGLES = ("alpha", "beta", "gamma")
 #: wobble); only then is the thickness-to-noise test applied, so that logs with a large residual (model error,
 #: disturbances) but a well-spread cloud are not mistaken for a single-axis turn.
 _FLAT = 0.2
+#: Samples per block of every sum over the log (residuals, the Jacobian's QR factorisation, the start fit): the
+#: memory of a fit is a few blocks (about 10 MB), whatever N.
+_BLOCK = 65_536
 
 
 class GaussNewtonFallbackWarning(TrimagWarning):
@@ -112,13 +122,23 @@ def residual_jacobian(
     return r, Jt.T
 
 
+def _centred_singular_values(B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Singular values (3,), largest first, of the samples ``B`` (N, 3) minus their mean, block by block (the
+    triangular factor of a blocked QR has the same singular values: :class:`._qr.BlockedQR`)."""
+    qr = BlockedQR(3)
+    zeros = np.zeros(min(max(len(B), 1), _BLOCK))
+    for _, t in transposed_blocks(B, column_means(B), block=_BLOCK):
+        qr.add(t.T, zeros[: t.shape[1]])
+    return np.asarray(np.linalg.svd(qr.R, compute_uv=False), dtype=np.float64)
+
+
 def planarity(B: NDArray[np.float64]) -> float:
     """Thinnest over widest RMS spread of the samples about their mean (0 for samples on one plane).
 
     A full turn about one axis puts the raw field on an ellipse in a plane: the ratio is then only the noise
     over the field. Turns about three axes give a ratio of order 1.
     """
-    sv = np.linalg.svd(B - B.mean(axis=0), compute_uv=False)
+    sv = _centred_singular_values(B)
     return float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
 
 
@@ -132,6 +152,9 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
     the correction ``M``, reduced to the scalar9 gauge by :func:`~trimag.models.scalar9.lq_gauge` (same
     magnitudes).
 
+    The design is accumulated block by block into a QR factorisation (:class:`._qr.BlockedQR`): memory does not
+    grow with N.
+
     Returns
     -------
     start : Scalar9
@@ -143,14 +166,33 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
     IdentifiabilityError
         When the fitted quadric is not an ellipsoid.
     """
-    centre = B.mean(axis=0)
-    scale = float(np.sqrt(np.mean(np.sum((B - centre) ** 2, axis=1)))) or 1.0
-    u = (B - centre) / scale
-    f2_mean = float(np.mean((F / scale) ** 2))
-    x, y, z = u.T
-    D = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z])
-    cond, _, _ = design_condition(D)
-    theta = np.linalg.lstsq(D, np.ones(len(u)), rcond=None)[0]
+    n = len(B)
+    centre = column_means(B)
+    total = 0.0
+    for _, t in transposed_blocks(B, centre, block=_BLOCK):
+        total += float(np.einsum("ij,ij->", t, t))
+    scale = float(np.sqrt(total / max(n, 1))) or 1.0
+    f2_mean = float(F @ F) / max(n, 1) / scale**2
+    # the design D = (x^2, y^2, z^2, 2xy, 2xz, 2yz, x, y, z) of u = (B - centre) / scale, block by block into a
+    # QR factorisation: the same minimum-norm solution and condition number as numpy.linalg.lstsq(D, 1)
+    qr = BlockedQR(9)
+    ones = np.ones(min(max(n, 1), _BLOCK))
+    with scratch(9, min(max(n, 1), _BLOCK)) as design:
+        for _, t in transposed_blocks(B, centre, block=_BLOCK):
+            t *= 1.0 / scale
+            x, y, z = t
+            d = design[:, : t.shape[1]]
+            np.multiply(x, x, out=d[0])
+            np.multiply(y, y, out=d[1])
+            np.multiply(z, z, out=d[2])
+            np.multiply(x, y, out=d[3])
+            np.multiply(x, z, out=d[4])
+            np.multiply(y, z, out=d[5])
+            d[3:6] *= 2.0
+            d[6:9] = t
+            qr.add(d.T, ones[: t.shape[1]])
+    cond, _, _ = design_condition(qr.R)  # R has the singular values and column norms of D
+    theta = qr.solve()
     a11, a22, a33, a12, a13, a23 = theta[:6]
     A = np.array([[a11, a12, a13], [a12, a22, a23], [a13, a23, a33]])
     v = theta[6:9]
@@ -165,9 +207,42 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
     return start, cond
 
 
+def _blocks(
+    B: NDArray[np.float64], F: NDArray[np.float64], scale: float
+) -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Consecutive blocks of :data:`_BLOCK` samples and their reference, both divided by ``scale``."""
+    for start in range(0, len(B), _BLOCK):
+        yield B[start : start + _BLOCK] / scale, F[start : start + _BLOCK] / scale
+
+
+def half_sum_squares(B: NDArray[np.float64], F: NDArray[np.float64], scale: float, p: NDArray[np.float64]) -> float:
+    """``0.5 sum r_i^2`` of :func:`residual_jacobian` on ``B / scale``, ``F / scale``, block by block."""
+    total = 0.0
+    for x, t in _blocks(B, F, scale):
+        r, _ = residual_jacobian(x, t, p, jacobian=False)
+        total += float(r @ r)
+    return 0.5 * total
+
+
+def linearise(
+    B: NDArray[np.float64], F: NDArray[np.float64], scale: float, p: NDArray[np.float64]
+) -> tuple[BlockedQR, float]:
+    """The Gauss-Newton system ``min |J delta + r|`` at ``p`` as a QR factorisation accumulated block by block
+    (:class:`._qr.BlockedQR` of ``[J | -r]``; ``J`` is never held whole), and ``0.5 sum r_i^2``."""
+    qr = BlockedQR(9)
+    total = 0.0
+    for x, t in _blocks(B, F, scale):
+        r, J = residual_jacobian(x, t, p)
+        assert J is not None
+        qr.add(J, -r)
+        total += float(r @ r)
+    return qr, 0.5 * total
+
+
 def gauss_newton(
-    x: NDArray[np.float64],
-    target: NDArray[np.float64],
+    B: NDArray[np.float64],
+    F: NDArray[np.float64],
+    scale: float,
     p0: NDArray[np.float64],
     *,
     max_iter: int = 50,
@@ -175,29 +250,31 @@ def gauss_newton(
     ftol: float = 1e-14,
     max_halvings: int = 20,
 ) -> dict[str, Any]:
-    """Plain Gauss-Newton with step halving on normalised data.
+    """Plain Gauss-Newton with step halving on the samples ``B`` and reference ``F`` divided by ``scale``.
+
+    Each step ``delta = argmin |J delta + r|`` comes from a QR factorisation of ``[J | -r]`` accumulated block by
+    block (:func:`linearise`): the least-squares solution of the whole system without forming ``J^T J`` or
+    holding ``J`` (N, 9), so memory does not grow with N.
 
     Returns
     -------
     dict
         ``p`` (9,), ``converged`` (bool), ``iterations`` (int), ``history`` (list of dicts with ``iteration``,
-        ``cost`` = 0.5 sum r^2, ``step_norm``, ``step_fraction``), ``stalled`` (no halving lowered the cost).
+        ``cost`` = 0.5 sum r^2, ``step_norm``, ``step_fraction``), ``stalled`` (no halving lowered the cost),
+        ``system`` (the :class:`._qr.BlockedQR` of the system at ``p``) and ``cost`` at ``p``.
     """
     p = np.array(p0, dtype=np.float64)
-    r, J = residual_jacobian(x, target, p)
-    cost = 0.5 * float(r @ r)
+    qr, cost = linearise(B, F, scale, p)
     history: list[dict[str, Any]] = [{"iteration": 0, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0}]
     converged = stalled = False
     it = 0
     for it in range(1, max_iter + 1):
-        assert J is not None
-        delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+        delta = qr.solve()
         frac = 1.0
         for _ in range(max_halvings + 1):
             trial = p + frac * delta
             try:
-                r_new, _ = residual_jacobian(x, target, trial, jacobian=False)
-                cost_new = 0.5 * float(r_new @ r_new)
+                cost_new = half_sum_squares(B, F, scale, trial)
             except (np.linalg.LinAlgError, FloatingPointError):
                 cost_new = math.inf
             if np.isfinite(cost_new) and cost_new <= cost * (1 + 1e-12):
@@ -211,15 +288,15 @@ def gauss_newton(
         p = p + step
         step_norm = float(np.linalg.norm(step))
         decrease = cost - cost_new
-        cost = cost_new
-        r, J = residual_jacobian(x, target, p)
+        qr, cost = linearise(B, F, scale, p)
         history.append({"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": frac})
         if step_norm <= xtol * (xtol + float(np.linalg.norm(p))) or (
             frac == 1.0 and decrease <= ftol * max(cost, 1e-300)
         ):
             converged = True
             break
-    return {"p": p, "converged": converged, "iterations": it, "history": history, "stalled": stalled}
+    return {"p": p, "converged": converged, "iterations": it, "history": history, "stalled": stalled,
+            "system": qr, "cost": cost}
 
 
 # ---------------------------------------------------------------------------------------------- estimator
@@ -314,9 +391,10 @@ class GaussNewton(Estimator):
             )
         F = ref.values
         assert F is not None
-        s = float(np.sqrt(np.mean(F**2)))
-        x, target = B / s, F / s
-        flatness = planarity(B)
+        s = float(np.sqrt(F @ F / len(F)))
+        # every sum over samples is taken block by block on B / s, F / s (memory independent of N)
+        sv = _centred_singular_values(B)
+        flatness = float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
         single_axis_hint = (
             f"the samples lie close to one plane (thinnest/widest spread {flatness:.2e}): this looks like a "
             "turn about a single axis, which cannot identify the 9 scalar9 parameters; record turns about at "
@@ -347,11 +425,11 @@ class GaussNewton(Estimator):
         with np.errstate(over="raise", invalid="raise", divide="raise"):
             try:
                 gn = gauss_newton(
-                    x, target, p0, max_iter=self.max_iter, xtol=self.xtol, ftol=self.ftol,
+                    B, F, s, p0, max_iter=self.max_iter, xtol=self.xtol, ftol=self.ftol,
                     max_halvings=self.max_halvings,
                 )
             except FloatingPointError:
-                gn = {"p": p0, "converged": False, "iterations": 0, "history": [], "stalled": True}
+                gn = {"p": p0, "converged": False, "iterations": 0, "history": [], "stalled": True, "system": None}
         p = gn["p"]
         history = gn["history"]
         converged = bool(gn["converged"])
@@ -366,6 +444,8 @@ class GaussNewton(Estimator):
             if self.fallback:
                 from scipy.optimize import least_squares
 
+                # (the fallback holds the whole (N, 9) Jacobian: MINPACK needs it)
+                x, target = B / s, F / s
                 res = least_squares(
                     lambda q: residual_jacobian(x, target, q, jacobian=False)[0],
                     p,
@@ -376,9 +456,10 @@ class GaussNewton(Estimator):
                 converged = bool(res.success)
                 optimizer = "gauss-newton -> levenberg-marquardt"
                 fallback_info = {"reason": why, "lm_nfev": int(res.nfev), "lm_message": str(res.message)}
-                r_lm, _ = residual_jacobian(x, target, p, jacobian=False)
+                del x, target
+                gn["system"] = None  # p moved: the system at p is recomputed below
                 history = [*history, {
-                    "iteration": len(history), "cost": 0.5 * float(r_lm @ r_lm),
+                    "iteration": len(history), "cost": half_sum_squares(B, F, s, p),
                     "step_norm": float(np.linalg.norm(res.x - gn["p"])), "step_fraction": 1.0,
                     "note": "levenberg-marquardt",
                 }]
@@ -400,26 +481,31 @@ class GaussNewton(Estimator):
                 f"the data do not identify the model. {single_axis_hint if flatness < _FLAT else ''}".strip()
             )
 
-        # ---- identifiability and uncertainty at the solution
-        r, J = residual_jacobian(x, target, p)
-        assert J is not None
-        cond, sv, vt = design_condition(J)
-        weak = weak_directions(vt, sv, PARAM_NAMES, threshold=1e4) if np.isfinite(cond) else []
+        # ---- identifiability and uncertainty at the solution (from the QR factorisation of the system at p:
+        # R has the singular values, right singular vectors and column norms of J, and J^T J = R^T R)
+        if gn.get("system") is not None:
+            system, half_ss = gn["system"], float(gn["cost"])
+        else:
+            system, half_ss = linearise(B, F, s, p)
+        R = system.R
+        cond, jsv, vt = design_condition(R)
+        weak = weak_directions(vt, jsv, PARAM_NAMES, threshold=1e4) if np.isfinite(cond) else []
         hint = single_axis_hint if flatness < _FLAT else (
             "record the sensor turning about all three axes (or tumble it through all attitudes)"
         )
         check_condition(cond, what="the scalar9 model (9 parameters)", hint=hint, weak=weak)
-        n = len(x)
+        n = len(B)
         dof = max(n - 9, 1)
-        sigma2 = float(r @ r) / dof
+        sigma2 = 2.0 * half_ss / dof
         try:
-            cov_n = sigma2 * np.linalg.inv(J.T @ J)
+            R_inv = np.linalg.inv(R)
         except np.linalg.LinAlgError:
             raise IdentifiabilityError(f"the data cannot identify the scalar9 model: {hint}") from None
+        cov_n = sigma2 * (R_inv @ R_inv.T)  # sigma^2 (J^T J)^-1
         std_n = np.sqrt(np.clip(np.diag(cov_n), 0.0, None))
         # relative spread: biases / field (normalised units already), k / 1, angles / 1 rad
         noise = math.sqrt(sigma2) * s
-        thickness = float(np.linalg.svd(B - B.mean(axis=0), compute_uv=False)[2] / math.sqrt(n))
+        thickness = float(sv[2] / math.sqrt(n))
         thickness_ratio = thickness / noise if noise > 0 else math.inf
         if thickness_ratio < self.min_thickness and flatness < _FLAT:
             raise IdentifiabilityError(
