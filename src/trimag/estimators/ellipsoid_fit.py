@@ -26,8 +26,8 @@ from ._common import Normalisation, normalisation_of, scalar_reference
 from .base import Estimator
 
 __all__ = [
-    "EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "power_sums", "power_sums_from_moments", "quadric_moments",
-    "quadric_scatter", "quadric_to_ellipsoid", "scatter_from_moments",
+    "EllipsoidFit", "algebraic_ellipsoid", "gauge_scale", "power_sums", "power_sums_from_moments", "quadratic_terms",
+    "quadric_moments", "quadric_scatter", "quadric_to_ellipsoid", "scatter_from_moments",
 ]
 
 _TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
@@ -60,6 +60,19 @@ def _moment_plan() -> tuple[list[tuple[int, int]], NDArray[np.int64]]:
 _PAIRS, _MOMENT_INDEX = _moment_plan()
 
 
+def quadratic_terms(t: NDArray[np.float64], out: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The quadratic terms ``x^2, y^2, z^2, yz, xz, xy`` of a component-major block ``t`` (3, m) into the rows of
+    ``out`` (>= 6, m), in that order (the design's first six terms, factors of 2 aside). Returns ``out``."""
+    x, y, z = t
+    np.multiply(x, x, out=out[0])
+    np.multiply(y, y, out=out[1])
+    np.multiply(z, z, out=out[2])
+    np.multiply(y, z, out=out[3])
+    np.multiply(x, z, out=out[4])
+    np.multiply(x, y, out=out[5])
+    return out
+
+
 def _pair_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> NDArray[np.float64]:
     """The 35 power sums of :data:`_PAIRS` (in that order) of ``u`` (N, 3), or of ``norm.forward(u)``, in chunks.
 
@@ -73,13 +86,7 @@ def _pair_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> 
             if norm is not None:
                 t *= 1.0 / norm.scale
             x, y, z = t
-            q = Q[:, : len(x)]
-            np.multiply(x, x, out=q[0])
-            np.multiply(y, y, out=q[1])
-            np.multiply(z, z, out=q[2])
-            np.multiply(y, z, out=q[3])
-            np.multiply(x, z, out=q[4])
-            np.multiply(x, y, out=q[5])
+            q = quadratic_terms(t, Q[:, : len(x)])
             terms = (*q, x, y, z)
             for k, (a_, b_) in enumerate(_PAIRS):
                 if b_ == 9:  # times the constant term

@@ -51,6 +51,7 @@ from ..reference import ScalarReference
 from ._common import scalar_reference
 from ._qr import BlockedQR
 from .base import Estimator, build_calibration
+from .ellipsoid_fit import quadratic_terms
 
 __all__ = [
     "GaussNewton",
@@ -173,27 +174,20 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
         total += float(np.einsum("ij,ij->", t, t))
     scale = float(np.sqrt(total / max(n, 1))) or 1.0
     f2_mean = float(F @ F) / max(n, 1) / scale**2
-    # the design D = (x^2, y^2, z^2, 2xy, 2xz, 2yz, x, y, z) of u = (B - centre) / scale, block by block into a
+    # the design D = (x^2, y^2, z^2, 2yz, 2xz, 2xy, x, y, z) of u = (B - centre) / scale, block by block into a
     # QR factorisation: the same minimum-norm solution and condition number as numpy.linalg.lstsq(D, 1)
     qr = BlockedQR(9)
     ones = np.ones(min(max(n, 1), _BLOCK))
     with scratch(9, min(max(n, 1), _BLOCK)) as design:
         for _, t in transposed_blocks(B, centre, block=_BLOCK):
             t *= 1.0 / scale
-            x, y, z = t
-            d = design[:, : t.shape[1]]
-            np.multiply(x, x, out=d[0])
-            np.multiply(y, y, out=d[1])
-            np.multiply(z, z, out=d[2])
-            np.multiply(x, y, out=d[3])
-            np.multiply(x, z, out=d[4])
-            np.multiply(y, z, out=d[5])
+            d = quadratic_terms(t, design[:, : t.shape[1]])
             d[3:6] *= 2.0
             d[6:9] = t
             qr.add(d.T, ones[: t.shape[1]])
     cond, _, _ = design_condition(qr.R)  # R has the singular values and column norms of D
     theta = qr.solve()
-    a11, a22, a33, a12, a13, a23 = theta[:6]
+    a11, a22, a33, a23, a13, a12 = theta[:6]
     A = np.array([[a11, a12, a13], [a12, a22, a23], [a13, a23, a33]])
     v = theta[6:9]
     try:
