@@ -3,9 +3,10 @@
 trimag's numerical work is elementwise numpy and small BLAS calls (3 x 3 products over blocks of samples,
 9 x 9 Gram matrices of cache-sized blocks), which a multi-threaded BLAS cannot speed up. What a second BLAS
 thread does do is spin-wait: whenever another job holds a core, OpenBLAS's idle threads burn it. Measured on the
-2-core benchmark machine (docs/performance.md, "One BLAS thread"): with one core busy, 100 ``ml`` fits of
-5000-sample files took 1.8-2.9 s with numpy's default two BLAS threads and 1.1-1.3 s with one; on an idle
-machine 1.5-1.9 s against 1.3-1.5 s; a 1e7-sample ``ml`` fit takes the same time either way (1.12 s).
+2-core benchmark machine (docs/performance-history.md, run V, "One BLAS thread during fits"): with one core
+busy, 100 ``ml`` fits of 5000-sample files took 1.8-2.9 s with numpy's default two BLAS threads and 1.1-1.3 s
+with one; on an idle machine 1.5-1.9 s against 1.3-1.5 s; a 1e7-sample ``ml`` fit takes the same time either way
+(1.12 s).
 
 :func:`one_blas_thread` limits every loaded BLAS (numpy's and scipy's OpenBLAS) to one thread for the duration
 of a ``with`` block in the main thread, through ``threadpoolctl``, and restores the previous setting afterwards
