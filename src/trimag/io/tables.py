@@ -125,10 +125,10 @@ def _is_number(tok: str) -> bool:
     return True
 
 
-#: A plain decimal number (optional sign, digits, point, exponent), no spaces: what Arrow's float64 columns read.
-#: Only decides which read is tried first (:attr:`CsvLayout.all_numeric`), so a stricter pattern than Python's
-#: ``float`` (no ``nan``, ``inf``, ``1_0``) costs at most a second read, never a different result.
-_PLAIN_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+#: A number as Python's ``float`` and Arrow's float columns read it (optional sign, digits, point, exponent; ``nan``,
+#: ``inf``), no spaces. Only decides which read is tried first (:attr:`CsvLayout.all_numeric`): a token Arrow then
+#: refuses costs a second read, never a different result.
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf(?:inity)?)", re.IGNORECASE)
 
 
 #: Data lines :func:`_plain_numbers` looks at.
@@ -138,8 +138,11 @@ _PLAIN_LINES = 50
 def _plain_numbers(lines: list[str], delimiter: str | None) -> bool:
     """Every non-blank line is plain numbers joined by ``delimiter`` (whitespace when None): one match per line."""
     num = _PLAIN_NUMBER.pattern
-    sep = r"\s+" if delimiter is None else re.escape(delimiter)
-    line_re = re.compile(rf"\s*{num}(?:{sep}{num})*\s*" if delimiter is None else f"{num}(?:{sep}{num})*")
+    if delimiter is None:
+        line_re = re.compile(rf"\s*{num}(?:\s+{num})*\s*", re.IGNORECASE)
+    else:  # a cell may be quoted, as the csv module and Arrow read it
+        cell = f'(?:{num}|"{num}")'
+        line_re = re.compile(f"{cell}(?:{re.escape(delimiter)}{cell})*", re.IGNORECASE)
     return all(line_re.fullmatch(ln) is not None for ln in lines if ln.strip())
 
 
