@@ -251,3 +251,16 @@ def test_csv_column_names_are_those_pandas_gives(tmp_path: Path, header: str | N
     df = read_table(path)
     assert list(df.columns) == names
     np.testing.assert_array_equal(df.to_numpy(dtype=float), expected.to_numpy(dtype=float))
+
+
+@pytest.mark.parametrize("first_row", ["nan,1.0,2.0", "inf,1.0,2.0", '"1.5","2.5","3.5"', "+1.5,-2.5,3e2"])
+def test_numbers_python_reads_keep_the_typed_read(tmp_path: Path, first_row: str) -> None:
+    """``nan``, ``inf``, quoted numbers, signs and exponents in the sniffed lines still take the typed (float) read,
+    with the samples and drops of the text read."""
+    rng = np.random.default_rng(4)
+    rows = [first_row] + [",".join(f"{v:.3f}" for v in r) for r in rng.normal(size=(50, 3))]
+    typed = read_samples(_write(tmp_path / "typed.csv", "x,y,z\n" + "\n".join(rows) + "\n"))
+    text = read_samples(_write(tmp_path / "text.csv", "x,y,z,k\n" + "\n".join(r + ",a" for r in rows) + "\n"))
+    assert typed.table["x"].dtype == np.float64
+    np.testing.assert_array_equal(typed.field, text.field)
+    assert (typed.n_dropped, typed.n_duplicates) == (text.n_dropped, text.n_duplicates)
