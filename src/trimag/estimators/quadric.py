@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._rowwise import column_means, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -43,6 +44,7 @@ from ..metrics import row_dot
 from ..models.zhang_cheng import ZhangCheng, quadric_terms
 from ..reference import ScalarReference
 from ._common import scalar_reference
+from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = [
@@ -69,20 +71,32 @@ _HINT = (
 )
 
 
+#: Samples per block of the sums over the log (the linear design, the physical Jacobian): memory does not grow
+#: with N (a few blocks of (65 536, 10)).
+_BLOCK = 65_536
+
+
 @dataclass
 class _Design:
-    G: NDArray[np.float64]
-    y: NDArray[np.float64]
+    """The linear problem ``G h = y`` on ``u = (V - centre) / scale``, as the QR factorisation of ``[G | y]``
+    accumulated block by block (:class:`._qr.BlockedQR`: ``G`` (N, 9) is never held whole)."""
+
+    system: BlockedQR
     centre: NDArray[np.float64]
     scale: float
 
 
 def _linear_design(V: NDArray[np.float64]) -> _Design:
-    centre = V.mean(axis=0)
-    scale = float(np.sqrt(np.mean(np.sum((V - centre) ** 2, axis=1)))) or 1.0
-    P = quadric_terms((V - centre) / scale)
-    G = np.column_stack([P[:, 0] - P[:, 2], P[:, 1] - P[:, 2], P[:, 3:]])
-    return _Design(G, -P[:, 2], centre, scale)
+    centre = column_means(V)
+    total = 0.0
+    for _, t in transposed_blocks(V, centre, block=_BLOCK):
+        total += float(np.einsum("ij,ij->", t, t))
+    scale = float(np.sqrt(total / max(len(V), 1))) or 1.0
+    system = BlockedQR(9)
+    for start in range(0, len(V), _BLOCK):
+        P = quadric_terms((V[start : start + _BLOCK] - centre) / scale)
+        system.add(np.column_stack([P[:, 0] - P[:, 2], P[:, 1] - P[:, 2], P[:, 3:]]), -P[:, 2])
+    return _Design(system, centre, scale)
 
 
 def quadric_solve(
@@ -110,9 +124,11 @@ def quadric_solve(
         The fitted quadric is not an ellipsoid (noise too large for the attitude coverage).
     """
     d = design if design is not None else _linear_design(V)
-    norms = np.linalg.norm(d.G, axis=0)
+    # G = Q R: the problem G h = y is R h = Q^T y, with G's column norms (those of R) as the scaling
+    R = d.system.R
+    norms = np.linalg.norm(R, axis=0)
     norms[norms == 0] = 1.0
-    h = np.linalg.lstsq(d.G / norms, d.y, rcond=None)[0] / norms
+    h = np.linalg.lstsq(R / norms, d.system.qtb, rcond=None)[0] / norms
     Wu = np.array([h[0], h[1], 1.0 - h[0] - h[1], *h[2:]])
     Q = np.array(
         [[Wu[0], Wu[3] / 2, Wu[4] / 2], [Wu[3] / 2, Wu[1], Wu[5] / 2], [Wu[4] / 2, Wu[5] / 2, Wu[2]]]
@@ -246,7 +262,7 @@ def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability
     sensor (no angles, equal gains matching the mean magnitude, zero offsets).
     """
     design = _linear_design(V)
-    cond, s, vt = design_condition(design.G)
+    cond, s, vt = design_condition(design.system.R)  # R: the singular values and vectors of G
     rank = _rank(s, CONDITION_ERROR)
     terms = _in_subspace(vt, s, DESIGN_TERMS, threshold=CONDITION_ERROR, share=0.05)
     estimate: ZhangCheng | None = None
@@ -258,9 +274,14 @@ def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability
             error = str(exc)
     at = estimate
     if at is None:
-        k0 = float(np.sqrt(np.mean(np.sum(V * V, axis=1)) / F2))
+        k0 = float(np.sqrt(np.einsum("ij,ij->", V, V) / len(V) / F2))
         at = ZhangCheng(kx=k0, ky=k0, kz=k0)
-    pcond, ps, pvt = design_condition(physical_jacobian(V, at))
+    physical = BlockedQR(9)  # the physical Jacobian block by block: its triangular factor has J's singular values
+    zeros = np.zeros(min(max(len(V), 1), _BLOCK))
+    for start in range(0, len(V), _BLOCK):
+        block = V[start : start + _BLOCK]
+        physical.add(physical_jacobian(block, at), zeros[: len(block)])
+    pcond, ps, pvt = design_condition(physical.R)
     prank = _rank(ps, CONDITION_ERROR)
     undetermined = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_ERROR, share=0.05)
     poorly = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_WARN, share=0.3)
