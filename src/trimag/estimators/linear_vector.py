@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from .._rowwise import count_duplicate_rows
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -57,8 +58,12 @@ def _check_attitude(attitude: Any, n: int) -> Rotation:
 
 
 def _distinct_count(H_b: NDArray[np.float64]) -> int:
+    """Distinct attitudes: rows of ``H_b`` (N, 3) that differ after rounding to 1e-9 of the largest value (rows
+    hashed, colliding ones compared exactly: :func:`~trimag._rowwise.count_duplicate_rows`; sorting whole rows
+    took 0.84 of a 1.37 s fit at N = 1e6)."""
     scale = float(np.max(np.abs(H_b))) or 1.0
-    return len(np.unique(np.round(H_b / scale, 9), axis=0))
+    rounded = np.round(H_b / scale, 9)
+    return len(rounded) - count_duplicate_rows(rounded)
 
 
 def solve_interference(

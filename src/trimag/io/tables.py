@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from .._rowwise import count_duplicate_rows
 from ..errors import TrimagInputError
 
 __all__ = [
@@ -502,34 +503,6 @@ def where_mask(df: pd.DataFrame, where: str) -> NDArray[np.bool_]:
             except ValueError:
                 pass
     return ~mask if op == "!=" else mask
-
-
-#: Rows per block of :func:`count_duplicate_rows`.
-_HASH_BLOCK = 1 << 16
-
-
-def count_duplicate_rows(field: NDArray[np.float64]) -> int:
-    """Rows of ``field`` (N, 3) equal to an earlier row (``pd.DataFrame(field).duplicated().sum()``, exact).
-
-    One 64-bit hash per row finds the candidates (a hash table of N integers instead of one of N rows: about
-    10x faster on 1e7 rows); only rows whose hash repeats are compared exactly, so a hash collision never
-    counts as a duplicate. ``-0.0`` and ``0.0`` count as equal, as in pandas.
-    """
-    if len(field) < 2:
-        return 0
-    h = np.empty(len(field), dtype=np.uint64)
-    for start in range(0, len(field), _HASH_BLOCK):  # blocks: temporaries of the block's size, not N
-        rows = field[start : start + _HASH_BLOCK]
-        hb = pd.util.hash_array(rows[:, 0] + 0.0)  # contiguous column; + 0.0: -0.0 -> 0.0
-        for j in range(1, field.shape[1]):
-            hb = hb * np.uint64(0x9E3779B97F4A7C15) ^ pd.util.hash_array(rows[:, j] + 0.0)
-        h[start : start + len(rows)] = hb
-    hs = np.sort(h)
-    if not np.any(hs[1:] == hs[:-1]):  # the usual case: every hash distinct, so every row distinct
-        return 0
-    del hs
-    repeated = pd.Series(h).duplicated(keep=False).to_numpy()
-    return int(pd.DataFrame(field[repeated] + 0.0).duplicated().sum())
 
 
 def read_samples(
