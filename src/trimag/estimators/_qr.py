@@ -39,17 +39,16 @@ class BlockedQR:
         self.rows = 0
         self._R = np.zeros((0, self.p + 1))
 
-    def add(self, A: ArrayLike, b: ArrayLike) -> None:
-        """Append rows ``A`` (m, p) with right-hand side ``b`` (m,)."""
+    def add(self, A: ArrayLike, b: ArrayLike | None = None) -> None:
+        """Append rows ``A`` (m, p) with right-hand side ``b`` (m,); zeros when None (only ``R`` wanted)."""
         A = np.asarray(A, dtype=np.float64)
-        b = np.asarray(b, dtype=np.float64)
-        k = len(self._R)
-        stacked = np.empty((k + len(b), self.p + 1))
+        k, m = len(self._R), len(A)
+        stacked = np.empty((k + m, self.p + 1))
         stacked[:k] = self._R
         stacked[k:, : self.p] = A
-        stacked[k:, self.p] = b
+        stacked[k:, self.p] = 0.0 if b is None else np.asarray(b, dtype=np.float64)
         self._R = np.asarray(np.linalg.qr(stacked, mode="r"), dtype=np.float64)
-        self.rows += len(b)
+        self.rows += m
 
     def _full(self) -> NDArray[np.float64]:
         """The factor of ``[A | b]`` padded to (p + 1, p + 1) (fewer rows while fewer than p + 1 were added)."""

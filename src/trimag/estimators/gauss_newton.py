@@ -42,13 +42,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import column_means, scratch, transposed_blocks
+from .._rowwise import BLOCK, column_means, scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
-from ._common import scalar_reference
+from ._common import normalisation_stats, scalar_reference
 from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import quadratic_terms
@@ -73,7 +73,7 @@ _ANGLES = ("alpha", "beta", "gamma")
 _FLAT = 0.2
 #: Samples per block of every sum over the log (residuals, the Jacobian's QR factorisation, the start fit): the
 #: memory of a fit is a few blocks (about 10 MB), whatever N.
-_BLOCK = 65_536
+_BLOCK = BLOCK
 
 
 class GaussNewtonFallbackWarning(TrimagWarning):
@@ -127,9 +127,8 @@ def _centred_singular_values(B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Singular values (3,), largest first, of the samples ``B`` (N, 3) minus their mean, block by block (the
     triangular factor of a blocked QR has the same singular values: :class:`._qr.BlockedQR`)."""
     qr = BlockedQR(3)
-    zeros = np.zeros(min(max(len(B), 1), _BLOCK))
     for _, t in transposed_blocks(B, column_means(B), block=_BLOCK):
-        qr.add(t.T, zeros[: t.shape[1]])
+        qr.add(t.T)
     return np.asarray(np.linalg.svd(qr.R, compute_uv=False), dtype=np.float64)
 
 
@@ -168,11 +167,8 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
         When the fitted quadric is not an ellipsoid.
     """
     n = len(B)
-    centre = column_means(B)
-    total = 0.0
-    for _, t in transposed_blocks(B, centre, block=_BLOCK):
-        total += float(np.einsum("ij,ij->", t, t))
-    scale = float(np.sqrt(total / max(n, 1))) or 1.0
+    norm = normalisation_stats(B)
+    centre, scale = norm.centre, norm.scale
     f2_mean = float(F @ F) / max(n, 1) / scale**2
     # the design D = (x^2, y^2, z^2, 2yz, 2xz, 2xy, x, y, z) of u = (B - centre) / scale, block by block into a
     # QR factorisation: the same minimum-norm solution and condition number as numpy.linalg.lstsq(D, 1)

@@ -36,14 +36,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import column_means, transposed_blocks
+from .._rowwise import BLOCK
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..metrics import row_dot
 from ..models.zhang_cheng import ZhangCheng, quadric_terms
 from ..reference import ScalarReference
-from ._common import scalar_reference
+from ._common import normalisation_stats, scalar_reference
 from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 
@@ -73,7 +73,7 @@ _HINT = (
 
 #: Samples per block of the sums over the log (the linear design, the physical Jacobian): memory does not grow
 #: with N (a few blocks of (65 536, 10)).
-_BLOCK = 65_536
+_BLOCK = BLOCK
 
 
 @dataclass
@@ -87,11 +87,8 @@ class _Design:
 
 
 def _linear_design(V: NDArray[np.float64]) -> _Design:
-    centre = column_means(V)
-    total = 0.0
-    for _, t in transposed_blocks(V, centre, block=_BLOCK):
-        total += float(np.einsum("ij,ij->", t, t))
-    scale = float(np.sqrt(total / max(len(V), 1))) or 1.0
+    norm = normalisation_stats(V)
+    centre, scale = norm.centre, norm.scale
     system = BlockedQR(9)
     for start in range(0, len(V), _BLOCK):
         P = quadric_terms((V[start : start + _BLOCK] - centre) / scale)
@@ -277,10 +274,8 @@ def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability
         k0 = float(np.sqrt(np.einsum("ij,ij->", V, V) / len(V) / F2))
         at = ZhangCheng(kx=k0, ky=k0, kz=k0)
     physical = BlockedQR(9)  # the physical Jacobian block by block: its triangular factor has J's singular values
-    zeros = np.zeros(min(max(len(V), 1), _BLOCK))
     for start in range(0, len(V), _BLOCK):
-        block = V[start : start + _BLOCK]
-        physical.add(physical_jacobian(block, at), zeros[: len(block)])
+        physical.add(physical_jacobian(V[start : start + _BLOCK], at))
     pcond, ps, pvt = design_condition(physical.R)
     prank = _rank(ps, CONDITION_ERROR)
     undetermined = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_ERROR, share=0.05)
