@@ -192,3 +192,81 @@ def test_pairing_rules_and_odd_count():
     np.testing.assert_array_equal(pair_samples(B, "random", seed=1)[2], ridx)  # seeded: reproducible
     cal = trimag.fit(paper_raw(50, 0.0, 1)[:-1], model="ortho-gain", method="pairwise")
     assert cal.stats["n_pairs"] == 49 and cal.stats["n_used"] == 98 and cal.stats["n_samples"] == 99
+
+
+def _full_phi(B1, B2, C, b):
+    e1, e2 = (B1 - b) @ C.T, (B2 - b) @ C.T
+    return float(np.sum((np.sum(e1 * e1, axis=1) - np.sum(e2 * e2, axis=1)) ** 2))
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_reduced_residuals_carry_the_whole_objective(bias):
+    """|R m|^2 of the design's factor equals the sum over every pair, for any (C, b); R's Gram matrix is W^T W."""
+    from trimag.estimators.pairwise import pair_factor, quadric_entries
+
+    rng = np.random.default_rng(5)
+    B1, B2 = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    R = pair_factor(B1, B2, bias=bias)
+    W = pairwise_design(B1, B2, bias=bias)
+    np.testing.assert_allclose(R.T @ R, W.T @ W, rtol=1e-12, atol=1e-12 * np.abs(W.T @ W).max())
+    for _ in range(3):
+        C = q_to_matrix(rng.normal(size=5))
+        b = rng.normal(size=3) if bias else np.zeros(3)
+        m, _ = quadric_entries(C, b if bias else None)
+        assert float(np.sum((R @ m) ** 2)) == pytest.approx(_full_phi(B1, B2, C, b), rel=1e-10)
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_quadric_entries_jacobian_matches_finite_differences(bias):
+    from trimag.estimators.pairwise import quadric_entries
+
+    rng = np.random.default_rng(6)
+    q, b = rng.normal(size=5), rng.normal(size=3)
+    _, dm = quadric_entries(q_to_matrix(q), b if bias else None)
+    h = 1e-6
+    fd = np.column_stack([
+        (quadric_entries(q_to_matrix(q + h * e), b if bias else None)[0]
+         - quadric_entries(q_to_matrix(q - h * e), b if bias else None)[0]) / (2 * h)
+        for e in np.eye(5)
+    ])
+    np.testing.assert_allclose(dm, fd, atol=1e-8)
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_blocked_factor_gives_the_one_block_fit(monkeypatch, bias):
+    """Blocks of 97 pairs give the fit, phi, condition numbers and uncertainty of one block, to rounding."""
+    import trimag.estimators.pairwise as pw
+
+    truth = OrthoGainBias(**PAPER.as_dict(), bx=0.3, by=-0.25, bz=0.4) if bias else PAPER
+    raw = paper_raw(1500, 1e-2, 7, model=truth, kind="random")
+    model = "ortho-gain-bias" if bias else "ortho-gain"
+    one = trimag.fit(raw, model=model, method="pairwise")
+    monkeypatch.setattr(pw, "_BLOCK", 97)
+    blocked = trimag.fit(raw, model=model, method="pairwise")
+    np.testing.assert_allclose(blocked.matrix, one.matrix, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(blocked.offset, one.offset, atol=1e-10)
+    assert blocked.stats["phi"] == pytest.approx(one.stats["phi"], rel=1e-9)
+    assert blocked.diagnostics["condition_number"] == pytest.approx(one.diagnostics["condition_number"], rel=1e-8)
+    for k, v in one.uncertainty["param_std"].items():
+        assert blocked.uncertainty["param_std"][k] == pytest.approx(v, rel=1e-8)
+
+
+def test_fit_memory_does_not_grow_with_the_number_of_pairs(monkeypatch):
+    """With blocks of 4096 pairs, 400 000 pairs peak at about what 100 000 do: memory is set by the blocks (and
+    by the 65 536-row blocks of the column means), not by N."""
+    import tracemalloc
+
+    import trimag.estimators.pairwise as pw
+
+    monkeypatch.setattr(pw, "_BLOCK", 4096)
+    peaks = []
+    for n_pairs in (100_000, 400_000):
+        B1, B2, _ = pair_samples(np.ascontiguousarray(paper_raw(n_pairs, 1e-2, 8, kind="random")))
+        tracemalloc.start()
+        try:
+            pw.solve_pairs(B1, B2, bias=True)
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+    assert peaks[1] < 1.1 * peaks[0], peaks
+    assert peaks[1] < 0.1 * 400_000 * 9 * 8, peaks  # one (N, 9) design would be 28.8 MB

@@ -34,24 +34,31 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._rowwise import BLOCK, column_means
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models import get_model
 from ..models.ortho_gain import params_from_q
 from ._common import scalar_reference
+from ._qr import BlockedQR
 from ._solve import gauss_newton_then_lm
 from .base import Estimator, build_calibration
 
 __all__ = [
     "PAIRINGS",
+    "TERM_INDEX",
     "Pairwise",
     "PairwiseSolution",
+    "closed_form_from_factor",
     "closed_form_pairs",
+    "pair_factor",
+    "pair_normalisation",
     "pair_samples",
     "pairwise_design",
     "params_covariance",
     "q_to_matrix",
+    "quadric_entries",
     "solve_pairs",
 ]
 
@@ -61,6 +68,10 @@ PAIRINGS = ("halves", "random")
 
 _Q_IDX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
 _TERMS6 = ("M11", "M22", "M33", "M12", "M23", "M13")
+#: ``(rows, cols)`` of ``M`` in the order of :data:`_TERMS6` (the columns of :func:`pairwise_design`).
+TERM_INDEX = (np.array([0, 1, 2, 0, 1, 0]), np.array([0, 1, 2, 1, 2, 2]))
+#: Pairs per block of :func:`pair_factor` (tests set it small).
+_BLOCK = BLOCK
 _TERMS9 = (*_TERMS6, "(Mb)x", "(Mb)y", "(Mb)z")
 _Q_NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")
@@ -77,10 +88,9 @@ def pair_samples(
     if pairing not in PAIRINGS:
         raise TrimagInputError(f"`pairing` must be one of {PAIRINGS}; got {pairing!r}")
     n = len(B) // 2
-    if pairing == "halves":
-        idx = np.arange(2 * n)
-    else:
-        idx = np.random.default_rng(seed).permutation(len(B))[: 2 * n]
+    if pairing == "halves":  # views of B, no copy
+        return B[:n], B[n : 2 * n], np.arange(2 * n)
+    idx = np.random.default_rng(seed).permutation(len(B))[: 2 * n]
     return B[idx[:n]], B[idx[n:]], idx
 
 
@@ -112,6 +122,56 @@ def q_to_matrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
     return C
 
 
+def pair_factor(
+    B1: NDArray[np.float64], B2: NDArray[np.float64], *, bias: bool = False,
+    centre: NDArray[np.float64] | None = None, scale: float = 1.0,
+) -> NDArray[np.float64]:
+    """Triangular factor ``R`` of the W design of the pairs ``((B1 - centre) / scale, (B2 - centre) / scale)``.
+
+    The design (:func:`pairwise_design`, (N, 6) or (N, 9)) is built and factored block by block
+    (:class:`~trimag.estimators._qr.BlockedQR`, :data:`_BLOCK` pairs at a time), so memory does not grow with N.
+    ``W^T W = R^T R``, and ``R`` has the same singular values, right singular vectors and column norms as
+    ``W``; every pair's residual is ``W_i . m`` with ``m`` the entries of ``M`` (and ``M b``), so
+    ``sum_i (W_i . m)^2 = |R m|^2`` for every ``m``: the whole objective lives in ``R``.
+
+    Returns
+    -------
+    ndarray, shape (6, 6) or (9, 9)
+    """
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
+    qr = BlockedQR(9 if bias else 6)
+    for start in range(0, len(B1), _BLOCK):
+        u1 = (B1[start : start + _BLOCK] - c) / scale
+        u2 = (B2[start : start + _BLOCK] - c) / scale
+        qr.add(pairwise_design(u1, u2, bias=bias))
+    return qr.R
+
+
+def closed_form_from_factor(
+    R: NDArray[np.float64], *, bias: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """:func:`closed_form_pairs` from the design's factor ``R`` (:func:`pair_factor`)."""
+    d = np.linalg.norm(R, axis=0)
+    d[d == 0] = 1.0
+    _, s, vt = np.linalg.svd(R / d)
+    cond = float(s[0] / s[-2]) if s[-2] > 0 else float("inf")
+    x = vt[-1] / d
+    M = np.array([[x[0], x[3], x[5]], [x[3], x[1], x[4]], [x[5], x[4], x[2]]])
+    if np.trace(M) < 0:
+        M, x = -M, -x
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        raise IdentifiabilityError(
+            "the paired samples do not determine a positive-definite field quadric (the closed-form "
+            "start failed); record full turns about all three sensor axes"
+        ) from None
+    U = L.T
+    C = U / U[2, 2]
+    b = np.linalg.solve(M, x[6:9]) if bias else np.zeros(3)
+    return C, b, cond
+
+
 def closed_form_pairs(
     B1: NDArray[np.float64], B2: NDArray[np.float64], *, bias: bool = False
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
@@ -132,32 +192,40 @@ def closed_form_pairs(
     IdentifiabilityError
         When the null vector is not a positive-definite quadratic form (no ellipsoid in the data).
     """
-    W = pairwise_design(B1, B2, bias=bias)
-    d = np.linalg.norm(W, axis=0)
-    d[d == 0] = 1.0
-    _, s, vt = np.linalg.svd(W / d, full_matrices=False)
-    cond = float(s[0] / s[-2]) if s[-2] > 0 else float("inf")
-    x = vt[-1] / d
-    M = np.array([[x[0], x[3], x[5]], [x[3], x[1], x[4]], [x[5], x[4], x[2]]])
-    if np.trace(M) < 0:
-        M, x = -M, -x
-    try:
-        L = np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        raise IdentifiabilityError(
-            "the paired samples do not determine a positive-definite field quadric (the closed-form "
-            "start failed); record full turns about all three sensor axes"
-        ) from None
-    R = L.T
-    C = R / R[2, 2]
-    b = np.linalg.solve(M, x[6:9]) if bias else np.zeros(3)
-    return C, b, cond
+    return closed_form_from_factor(pair_factor(B1, B2, bias=bias), bias=bias)
+
+
+def quadric_entries(
+    C: NDArray[np.float64], b: NDArray[np.float64] | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The unknowns ``m`` of the W design for ``M = C^T C`` (and ``M b``), and ``dM / dq`` for the upper ``q``.
+
+    Returns
+    -------
+    m : ndarray, shape (6,) or (9,)
+        ``(M11, M22, M33, M12, M23, M13)`` then ``M b`` when ``b`` is given.
+    dm_dq : ndarray, shape (6, 5) or (9, 5)
+        Derivatives with respect to ``q1..q5`` (the entries ``_Q_IDX`` of ``C``): ``dM/dC_rc = E_rc^T C +
+        C^T E_rc``.
+    """
+    M = C.T @ C
+    rows, cols = TERM_INDEX
+    dM = np.zeros((5, 3, 3))
+    for k, (r, c) in enumerate(zip(*_Q_IDX, strict=True)):
+        dM[k, c, :] += C[r, :]
+        dM[k, :, c] += C[r, :]
+    m = M[rows, cols]
+    dm = dM[:, rows, cols].T
+    if b is None:
+        return m, dm
+    return np.concatenate([m, M @ b]), np.vstack([dm, (dM @ b).T])
 
 
 @dataclass(frozen=True)
 class PairwiseSolution:
     """Result of :func:`solve_pairs`: ``C`` = Gamma^-1 (3, 3), offset ``b`` (3,), ``q`` (5,), the final
-    ``phi`` (the objective, data unit^4), the closed-form ``start_cond``, and the optimizer result."""
+    ``phi`` (the objective, data unit^4), the closed-form ``start_cond``, the optimizer result (on the
+    reduced residuals ``R m``: :func:`solve_pairs`), the number of pairs and the internal data scale."""
 
     C: NDArray[np.float64]
     b: NDArray[np.float64]
@@ -165,10 +233,26 @@ class PairwiseSolution:
     phi: float
     start_cond: float
     result: Any
+    n_pairs: int = 0
+    scale: float = 1.0
 
 
 def _unpack(p: NDArray[np.float64], bias: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return q_to_matrix(p[:5]), (p[5:8] if bias else np.zeros(3))
+
+
+def pair_normalisation(
+    B1: NDArray[np.float64], B2: NDArray[np.float64], *, bias: bool = False
+) -> tuple[NDArray[np.float64], float]:
+    """Centre (the mean of both groups with ``bias``, else 0) and scale (RMS distance from it) of the pairs."""
+    n = 2 * len(B1)
+    centre = (column_means(B1) + column_means(B2)) / 2 if bias else np.zeros(3)
+    total = 0.0
+    for group in (B1, B2):
+        for start in range(0, len(group), _BLOCK):
+            e = group[start : start + _BLOCK] - centre
+            total += float(np.einsum("ij,ij->", e, e))
+    return centre, float(np.sqrt(total / n)) or 1.0
 
 
 def solve_pairs(
@@ -183,34 +267,32 @@ def solve_pairs(
     The data are scaled (and, with ``bias``, centred) internally; ``C`` is invariant to that, ``b`` is
     mapped back. Start: :func:`closed_form_pairs`; then Gauss-Newton with the analytic Jacobian, falling back to
     Levenberg-Marquardt.
-    """
-    both = np.vstack([B1, B2])
-    centre = both.mean(axis=0) if bias else np.zeros(3)
-    scale = float(np.sqrt(np.mean(np.sum((both - centre) ** 2, axis=1)))) or 1.0
-    u1, u2 = (B1 - centre) / scale, (B2 - centre) / scale
-    C0, b0, cond = closed_form_pairs(u1, u2, bias=bias)
-    p0 = np.concatenate([C0[_Q_IDX], b0]) if bias else C0[_Q_IDX].copy()
 
-    # component-major copies (3, N): every product below is one contiguous pass (trimag._rowwise)
-    u1t, u2t = np.ascontiguousarray(u1.T), np.ascontiguousarray(u2.T)
+    Every pair's residual is linear in the entries ``m`` of ``M = C^T C`` (and ``M b``): ``r = W m(p)`` with
+    the fixed design ``W`` (:func:`pairwise_design`). With ``W = Q R`` the objective ``|W m|^2 = |R m|^2``,
+    so the iterations run on the 6 (or 9) residuals ``R m(p)`` with the Jacobian ``R dm/dp``
+    (:func:`quadric_entries`): the same minimum, steps, singular values and ``J^T J`` as on the N residuals,
+    one pass over the data (:func:`pair_factor`) and memory independent of N. ``result.fun`` and
+    ``result.jac`` are those reduced residuals and Jacobian; ``n_pairs`` counts the pairs.
+    """
+    centre, scale = pair_normalisation(B1, B2, bias=bias)
+    R = pair_factor(B1, B2, bias=bias, centre=centre, scale=scale)
+    C0, b0, cond = closed_form_from_factor(R, bias=bias)
+    p0 = np.concatenate([C0[_Q_IDX], b0]) if bias else C0[_Q_IDX].copy()
 
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)
-        y1, y2 = C @ (u1t - b[:, None]), C @ (u2t - b[:, None])
-        return np.asarray(np.sum(y1 * y1 - y2 * y2, axis=0), dtype=np.float64)
+        m, _ = quadric_entries(C, b if bias else None)
+        return np.asarray(R @ m, dtype=np.float64)
 
     def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
         C, b = _unpack(p, bias)
-        e1, e2 = u1t - b[:, None], u2t - b[:, None]
-        y1, y2 = C @ e1, C @ e2
-        Jt = np.empty((8 if bias else 5, e1.shape[1]))
-        for k, (r, c) in enumerate(zip(*_Q_IDX, strict=True)):
-            np.multiply(y1[r], e1[c], out=Jt[k])
-            Jt[k] -= y2[r] * e2[c]
-        Jt[:5] *= 2.0
-        if bias:
-            Jt[5:] = -2.0 * (C.T @ (y1 - y2))
-        return Jt.T
+        if not bias:
+            return np.asarray(R @ quadric_entries(C)[1], dtype=np.float64)
+        _, dm_dq = quadric_entries(C, b)
+        dm_db = np.zeros((9, 3))
+        dm_db[6:] = C.T @ C  # d(M b)/db = M
+        return np.asarray(R @ np.hstack([dm_dq, dm_db]), dtype=np.float64)
 
     res = gauss_newton_then_lm(
         fun, jac, p0, max_steps=max_iter,
@@ -218,7 +300,7 @@ def solve_pairs(
     )
     C, b_u = _unpack(res.x, bias)
     phi = float(np.sum(res.fun**2)) * scale**4
-    return PairwiseSolution(C, centre + scale * b_u, res.x[:5].copy(), phi, cond, res)
+    return PairwiseSolution(C, centre + scale * b_u, res.x[:5].copy(), phi, cond, res, len(B1), scale)
 
 
 class Pairwise(Estimator):
@@ -283,7 +365,7 @@ class Pairwise(Estimator):
         )
         model_cls = get_model(model)
         instance = model_cls.from_matrix_offset(sol.C, sol.b)
-        uncertainty = _uncertainty(sol, bias, B1, B2)
+        uncertainty = _uncertainty(sol, bias)
         return build_calibration(
             B, sol.C, sol.b, model=model, method=self.name, units=units, reference=ref,
             params=instance.as_dict(), iterations=int(sol.result.nfev), converged=bool(sol.result.success),
@@ -313,17 +395,15 @@ def params_covariance(q: NDArray[np.float64], cov_u: NDArray[np.float64], extra_
     return A @ cov_u @ A.T
 
 
-def _uncertainty(sol: PairwiseSolution, bias: bool, B1: NDArray, B2: NDArray) -> dict[str, Any]:
+def _uncertainty(sol: PairwiseSolution, bias: bool) -> dict[str, Any]:
     """Parameter standard deviations from the Jacobian at the solution (``cov = s^2 (J^T J)^-1``, the residual
-    variance ``s^2`` estimated from the pairs), propagated to the physical parameters."""
+    variance ``s^2 = Phi / (n_pairs - p)`` estimated from the pairs), propagated to the physical parameters.
+    ``J^T J`` and ``Phi`` are those of the N pair residuals (the reduced ones of :func:`solve_pairs` have both)."""
     J = sol.result.jac
-    n, p = J.shape
-    s2 = float(np.sum(sol.result.fun**2)) / max(n - p, 1)
+    p = J.shape[1]
+    s2 = float(np.sum(sol.result.fun**2)) / max(sol.n_pairs - p, 1)
     cov_u = s2 * np.linalg.pinv(J.T @ J)
-    both = np.vstack([B1, B2])
-    centre = both.mean(axis=0) if bias else np.zeros(3)
-    scale = float(np.sqrt(np.mean(np.sum((both - centre) ** 2, axis=1)))) or 1.0
-    cov = params_covariance(sol.q, cov_u, np.full(3 if bias else 0, scale))
+    cov = params_covariance(sol.q, cov_u, np.full(3 if bias else 0, sol.scale))
     names = ["theta", "phi", "psi", "kxz", "kyz", *(_B_NAMES if bias else ())]
     return {
         "param_std": dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),

@@ -39,12 +39,11 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..metrics import row_dot
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, normalised_upper
 from ._common import scalar_reference
 from .base import Estimator, build_calibration
-from .pairwise import PAIRINGS, closed_form_pairs, pair_samples
+from .pairwise import PAIRINGS, TERM_INDEX, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples
 
 __all__ = ["Wen2008", "Wen2008Model", "WenSolution", "solve_wen_pairs", "wen_params_from_matrix"]
 
@@ -178,22 +177,69 @@ class WenSolution:
     result: Any
 
 
+def _distortion_and_derivatives(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``D`` (3, 3) of :meth:`Wen2008Model.in_gauge` at ``p = (k1, k2, alpha, gamma)`` and ``dD/dp`` (4, 3, 3).
+
+    ``D = diag(k1, k2, 1) [X'; Y'; Z']`` with ``X' = (ca, sa cg, sa sg)``, ``Y' = (cb, sb, 0)`` and the gauge
+    ``beta = arccot(t)``, ``t = tan(alpha) cos(gamma)``: ``dbeta/dalpha = -cg / (ca^2 (1 + t^2))``,
+    ``dbeta/dgamma = tan(alpha) sg / (1 + t^2)``.
+    """
+    k1, k2, alpha, gamma = (float(v) for v in p)
+    ca, sa, cg, sg = np.cos(alpha), np.sin(alpha), np.cos(gamma), np.sin(gamma)
+    t = np.tan(alpha) * cg
+    beta = float(np.arctan2(1.0, t))
+    cb, sb = np.cos(beta), np.sin(beta)
+    dbeta_dalpha = -cg / (ca * ca * (1.0 + t * t))
+    dbeta_dgamma = np.tan(alpha) * sg / (1.0 + t * t)
+    x_axis = np.array([ca, sa * cg, sa * sg])
+    y_axis = np.array([cb, sb, 0.0])
+    dy_dbeta = np.array([-sb, cb, 0.0])
+    D = np.array([k1 * x_axis, k2 * y_axis, [0.0, 0.0, 1.0]])
+    dD = np.zeros((4, 3, 3))
+    dD[0, 0] = x_axis
+    dD[1, 1] = y_axis
+    dD[2, 0] = k1 * np.array([-sa, ca * cg, ca * sg])
+    dD[2, 1] = k2 * dy_dbeta * dbeta_dalpha
+    dD[3, 0] = k1 * np.array([0.0, -sa * sg, sa * cg])
+    dD[3, 1] = k2 * dy_dbeta * dbeta_dgamma
+    return D, dD
+
+
+def _gram_entries(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The unknowns ``m`` (6,) of the pair design for ``M = C^T C = (D D^T)^-1`` at ``p`` and ``dm/dp`` (6, 4):
+    ``dM = -M dG M`` with ``dG = dD D^T + D dD^T``."""
+    D, dD = _distortion_and_derivatives(p)
+    M = np.linalg.inv(D @ D.T)
+    dG = dD @ D.T
+    dG = dG + dG.transpose(0, 2, 1)
+    dM = -M @ dG @ M  # (4, 3, 3)
+    rows, cols = TERM_INDEX
+    return M[rows, cols], dM[:, rows, cols].T
+
+
 def solve_wen_pairs(B1: NDArray[np.float64], B2: NDArray[np.float64], *, max_iter: int = 100) -> WenSolution:
-    """Fit the reconstructed Wen (2008) model to pairs ``(B1[i], B2[i])`` (both (N, 3)), no validation."""
-    both = np.vstack([B1, B2])
-    scale = float(np.sqrt(np.mean(np.sum(both**2, axis=1)))) or 1.0
-    u1, u2 = B1 / scale, B2 / scale
-    C0, _, cond = closed_form_pairs(u1, u2)
+    """Fit the reconstructed Wen (2008) model to pairs ``(B1[i], B2[i])`` (both (N, 3)), no validation.
+
+    As in :func:`~trimag.estimators.pairwise.solve_pairs`, every pair's residual ``|C u1|^2 - |C u2|^2`` is
+    ``W_i . m`` with ``m`` the entries of ``M = C^T C``: Levenberg-Marquardt runs on the 6 residuals ``R m(p)``
+    (``R`` the triangular factor of the design, one pass over the data) with the analytic Jacobian
+    ``R dm/dp`` (:func:`_gram_entries`). The objective, minimum, singular values and ``J^T J`` are those of the
+    N pair residuals.
+    """
+    _, scale = pair_normalisation(B1, B2)
+    R = pair_factor(B1, B2, scale=scale)
+    C0, _, cond = closed_form_from_factor(R)
     start = wen_params_from_matrix(C0)
 
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        C = Wen2008Model.in_gauge(*p).correction()[0]
-        y1, y2 = u1 @ C.T, u2 @ C.T
-        return row_dot(y1, y1) - row_dot(y2, y2)
+        return np.asarray(R @ _gram_entries(p)[0], dtype=np.float64)
+
+    def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(R @ _gram_entries(p)[1], dtype=np.float64)
 
     p0 = np.array([start.k1, start.k2, start.alpha, start.gamma])
     res = least_squares(
-        fun, p0, jac="3-point", method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10
+        fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10
     )
     model = Wen2008Model.in_gauge(*res.x)
     return WenSolution(model, start, float(np.sum(res.fun**2)) * scale**4, cond, res)
