@@ -102,3 +102,16 @@ def test_bfgs_reports_optimizer() -> None:
 def test_needs_reference(cls: type) -> None:
     with pytest.raises(TrimagInputError, match="field magnitude"):
         cls().fit(sphere_samples(), None)
+
+
+def test_bfgs_objective_in_blocks_gives_the_one_block_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The objective and gradient summed in blocks of 97 samples give the fit of one block, to rounding."""
+    import trimag.estimators.bfgs as bfgs_module
+
+    rng = np.random.default_rng(3)
+    B = sphere_samples(1000, seed=2) + rng.normal(scale=1e-3, size=(1000, 3))
+    one = BFGS().fit(B, 1.0).calibration_
+    monkeypatch.setattr(bfgs_module, "_BLOCK", 97)
+    blocked = BFGS().fit(B, 1.0).calibration_
+    np.testing.assert_allclose(blocked.matrix, one.matrix, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(blocked.offset, one.offset, atol=1e-8)
