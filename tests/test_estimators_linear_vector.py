@@ -8,14 +8,17 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 import trimag
 from trimag.attitude import ENU_TO_NED, body_field, from_euler
 from trimag.calibration import Calibration
+from trimag.diagnostics import design_condition
 from trimag.errors import IdentifiabilityError, NotFittedError, TrimagInputError
 from trimag.estimators import get_estimator
-from trimag.estimators.linear_vector import LinearVector, fit_with_background
+from trimag.estimators import linear_vector as lv
+from trimag.estimators.linear_vector import LinearVector, fit_with_background, solve_interference
 from trimag.models.interference12 import Interference12
 
 from _helpers import run_trimag
@@ -171,3 +174,151 @@ def test_cli_fit_interference12_end_to_end(tmp_path):
                       "--background-ned", bg, "--attitude-columns", "yaw,pitch,roll")
     assert proc.returncode == 3
     assert "at least 4" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# --- joint background fit on the 13-row factor of [D10 | B] (variable projection, analytic Jacobian) -----------
+
+
+def _noisy_vehicle(n: int, noise: float, seed: int, random_attitudes: bool = True) -> tuple[np.ndarray, Rotation]:
+    truth = _truth(seed)
+    R = Rotation.random(n, random_state=seed) if random_attitudes else _attitudes(n, seed=seed + 1)
+    rng = np.random.default_rng(seed + 100)
+    return truth.distort(body_field(R, H_N)) + rng.normal(scale=noise, size=(n, 3)), R
+
+
+def _full_residual(H_m: np.ndarray, R: Rotation, h: np.ndarray) -> np.ndarray:
+    """``B - A(h) X(h)`` on all N samples (N, 3), ``A(h) = [C_i^T h, 1]``."""
+    A = np.column_stack([R.inv().apply(h), np.ones(len(H_m))])
+    X, *_ = np.linalg.lstsq(A, H_m, rcond=None)
+    return H_m - A @ X
+
+
+def _reference_fit(H_m: np.ndarray, R: Rotation, magnitude: float, max_iter: int = 50):
+    """The straightforward full-data fit (the implementation before the 13-row reduction): the (N, 10) linear start,
+    then variable projection over all 3N residuals with a finite-difference Jacobian."""
+    B = np.asarray(H_m, dtype=np.float64)
+    D = np.column_stack([R.inv().as_matrix().reshape(len(B), 9), np.ones(len(B))])
+    cond_lin, _, _ = design_condition(D)
+    X, *_ = np.linalg.lstsq(D, B, rcond=None)
+    u, sv, vt = np.linalg.svd(X[:9].T.reshape(9, 3), full_matrices=False)
+    h0 = vt[0] if np.linalg.det((sv[0] * u[:, 0]).reshape(3, 3)) >= 0 else -vt[0]
+    e1, e2 = lv._orthonormal_complement(h0)
+
+    def direction(p: np.ndarray) -> np.ndarray:
+        v = h0 + p[0] * e1 + p[1] * e2
+        return v / np.linalg.norm(v)
+
+    res = least_squares(lambda p: _full_residual(B, R, magnitude * direction(p)).ravel(), np.zeros(2),
+                        method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3)
+    H_n = magnitude * direction(res.x)
+    K, c, info = solve_interference(B, R.inv().apply(H_n))
+    if np.linalg.det(K) < 0:
+        H_n = -H_n
+        K, c, info = solve_interference(B, R.inv().apply(H_n))
+    info.update({"linear_condition_number": cond_lin, "iterations": int(res.nfev), "converged": bool(res.success),
+                 "background_start": (magnitude * h0).tolist()})
+    return K, c, H_n, info
+
+
+def _projection(H_m: np.ndarray, R: Rotation, block: int | None = None) -> lv._ReducedProjection:
+    Rf = lv._factor_background_design(H_m, R, block=block)
+    X, *_ = np.linalg.lstsq(Rf[:10, :10], Rf[:10, 10:], rcond=None)
+    h0 = np.linalg.svd(X[:9].T.reshape(9, 3))[2][0]
+    return lv._ReducedProjection(Rf, float(np.linalg.norm(H_N)), h0)
+
+
+def _rel(a, b) -> float:
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+@pytest.mark.parametrize("block", [None, 97])
+def test_reduced_residual_norm_equals_full_residual_norm(block):
+    H_m, R = _noisy_vehicle(1000, 3.0, seed=21)
+    proj = _projection(H_m, R, block=block)
+    assert proj.Bs.shape == (13, 3)
+    rng = np.random.default_rng(22)
+    F = np.linalg.norm(H_N)
+    for h in [H_N, H_N + rng.normal(scale=50.0, size=3), *(F * rng.normal(size=(6, 3)))]:
+        full = np.linalg.norm(_full_residual(H_m, R, h))
+        reduced = np.linalg.norm(proj.residual_matrix(h))
+        assert reduced == pytest.approx(full, rel=1e-10)
+    # the linear start from R: the (N, 10) least squares and its condition number
+    D = np.column_stack([R.inv().as_matrix().reshape(len(H_m), 9), np.ones(len(H_m))])
+    Rf = lv._factor_background_design(H_m, R, block=block)
+    X_full, *_ = np.linalg.lstsq(D, H_m, rcond=None)
+    np.testing.assert_allclose(np.linalg.lstsq(Rf[:10, :10], Rf[:10, 10:], rcond=None)[0], X_full, rtol=0,
+                               atol=1e-10 * np.abs(X_full).max())
+    assert design_condition(Rf[:10, :10])[0] == pytest.approx(design_condition(D)[0], rel=1e-10)
+
+
+def test_analytic_jacobian_matches_finite_differences():
+    H_m, R = _noisy_vehicle(600, 300.0, seed=23)
+    proj = _projection(H_m, R)
+    rng = np.random.default_rng(24)
+    for p in [np.zeros(2), *(0.05 * rng.normal(size=(4, 2)))]:
+        J = proj.jacobian(p)
+        assert J.shape == (39, 2)
+        step = 1e-6
+        J_fd = np.column_stack([(proj.residual(p + step * e) - proj.residual(p - step * e)) / (2 * step)
+                                for e in np.eye(2)])
+        np.testing.assert_allclose(J, J_fd, rtol=0, atol=1e-6 * np.abs(J).max())
+        # the same Gauss-Newton quantities as a finite-difference Jacobian of the full 3N residuals
+        full = np.column_stack([(_full_residual(H_m, R, proj.background(p + step * e))
+                                 - _full_residual(H_m, R, proj.background(p - step * e))).ravel() / (2 * step)
+                                for e in np.eye(2)])
+        np.testing.assert_allclose(J.T @ J, full.T @ full, rtol=1e-6)
+        r, r_full = proj.residual(p), _full_residual(H_m, R, proj.background(p)).ravel()
+        np.testing.assert_allclose(J.T @ r, full.T @ r_full, rtol=0,
+                                   atol=1e-6 * np.linalg.norm(J) * np.linalg.norm(r))
+
+
+@pytest.mark.parametrize(
+    ("n", "noise", "seed", "random_attitudes", "block"),
+    [
+        (200, 3.0, 31, True, None),
+        (2000, 300.0, 32, True, None),
+        (5000, 30.0, 33, False, None),
+        (3000, 100.0, 34, True, 211),  # many blocks
+        (40, 3.0, 6, False, None),
+    ],
+)
+def test_fit_with_background_equals_full_data_reference(monkeypatch, n, noise, seed, random_attitudes, block):
+    if block is not None:
+        monkeypatch.setattr(lv, "_BLOCK", block)
+    H_m, R = _noisy_vehicle(n, noise, seed, random_attitudes)
+    F = float(np.linalg.norm(H_N))
+    K, c, H_n, info = fit_with_background(H_m, R, F)
+    K0, c0, H0, info0 = _reference_fit(H_m, R, F)
+    assert _rel(K, K0) < 1e-8 and _rel(c, c0) < 1e-8 and _rel(H_n, H0) < 1e-8
+    assert info.keys() == info0.keys()
+    assert info["iterations"] == info0["iterations"] and info["converged"] == info0["converged"]
+    assert info["n_attitudes"] == info0["n_attitudes"] == n
+    for key in ("linear_condition_number", "condition_number", "background_start"):
+        assert _rel(info[key], info0[key]) < 1e-9, key
+    # the total residual is stationary at the optimum, each axis's is not: a 1e-10 change of direction (the
+    # reference's finite-difference Jacobian stops there) moves the per-axis RMS by ~F / rms times that
+    rms, rms0 = np.array(info["residual_rms_axis"]), np.array(info0["residual_rms_axis"])
+    assert np.sum(rms**2) == pytest.approx(np.sum(rms0**2), rel=1e-12)
+    assert _rel(rms, rms0) < 1e-8
+    assert _rel(list(info["param_std"].values()), list(info0["param_std"].values())) < 1e-8
+
+
+@pytest.mark.parametrize("n", [8, 12])
+def test_fit_with_background_fewer_samples_than_columns(n):
+    """Fewer than 13 (or 10) samples: R is trapezoidal, the linear start the minimum-norm one as before."""
+    H_m, R = _noisy_vehicle(n, 3.0, seed=41)
+    F = float(np.linalg.norm(H_N))
+    K, c, H_n, info = fit_with_background(H_m, R, F)
+    K0, c0, H0, info0 = _reference_fit(H_m, R, F)
+    assert _rel(K, K0) < 1e-8 and _rel(c, c0) < 1e-8 and _rel(H_n, H0) < 1e-8
+    assert _rel(info["linear_condition_number"], info0["linear_condition_number"]) < 1e-9
+    assert _rel(info["background_start"], info0["background_start"]) < 1e-9
+
+
+def test_fit_with_background_input_checks():
+    H_m, R = _noisy_vehicle(50, 3.0, seed=42)
+    with pytest.raises(TrimagInputError, match="one attitude per sample"):
+        fit_with_background(H_m, R[:49], 5e4)
+    with pytest.raises(TrimagInputError, match=r"\(N, 3\)"):
+        fit_with_background(H_m[:, :2], R, 5e4)

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .._rowwise import count_duplicate_rows
+from .._rowwise import BLOCK, count_duplicate_rows
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -39,6 +39,8 @@ from .base import Estimator, build_calibration
 __all__ = ["LinearVector", "fit_with_background", "solve_interference"]
 
 _NAMES_A = ("H_b x", "H_b y", "H_b z", "c")
+#: Rows per block of the QR factorisation of the joint-background design (:func:`fit_with_background`).
+_BLOCK = BLOCK
 _HINT = (
     "record at least 4 attitudes whose body-frame background fields are not coplanar "
     "(tilt the vehicle in pitch and roll as well as turning it in heading)"
@@ -133,6 +135,120 @@ def _orthonormal_complement(u: NDArray[np.float64]) -> tuple[NDArray[np.float64]
     return e1, np.cross(u, e1)
 
 
+def _factor_background_design(
+    B: NDArray[np.float64], attitude: Rotation, *, block: int | None = None
+) -> NDArray[np.float64]:
+    """Triangular factor ``R`` of ``[D10 | B]`` (N, 13), ``D10 = [vec(C_i^T), 1]``, by a blocked QR factorisation.
+
+    Each block of rows (its ``C_i^T`` computed from its own attitudes) is stacked under the factor of the rows
+    before and factored again (TSQR, as :class:`._qr.BlockedQR` does), so only (block, 13) arrays are formed.
+
+    Parameters
+    ----------
+    B : ndarray, shape (N, 3)
+        Measured fields.
+    attitude : Rotation, N rotations (body -> NED)
+    block : int, optional
+        Rows per block (default :data:`trimag._rowwise.BLOCK`).
+
+    Returns
+    -------
+    ndarray, shape (min(N, 13), 13)
+        Upper-triangular (trapezoidal when N < 13) ``R`` with ``[D10 | B] = Q R``, ``Q`` (N, min(N, 13)) with
+        orthonormal columns: ``R[:10, :10]`` is the factor of ``D10`` (same singular values and column norms) and
+        ``R[:10, 10:] = Q_1^T B``.
+    """
+    n = len(B)
+    step = max(1, int(block or _BLOCK))
+    R = np.zeros((0, 13))
+    for s in range(0, n, step):
+        m = min(step, n - s)
+        k = len(R)
+        stacked = np.empty((k + m, 13))
+        stacked[:k] = R
+        stacked[k:, :9] = attitude[s : s + m].inv().as_matrix().reshape(m, 9)  # rows (b, j) of C^T
+        stacked[k:, 9] = 1.0
+        stacked[k:, 10:] = B[s : s + m]
+        R = np.asarray(np.linalg.qr(stacked, mode="r"), dtype=np.float64)
+    return R
+
+
+class _ReducedProjection:
+    """Variable projection of the background direction on the 13-row factor of ``[D10 | B]``.
+
+    ``A(h) = [C_i^T h, 1] = D10 E(h)`` with ``E(h)`` (10, 4) linear in ``h``; with ``[D10 | B] = Q R`` (``Q``
+    orthonormal columns spanning both), ``B - A(h) X = Q (R[:, 10:] - R[:, :10] E(h) X)`` for every ``h`` and
+    ``X``: the least-squares ``X``, the residual norm and the Jacobian (up to the same ``Q``) follow from the
+    13 x 4 matrix ``A_s(h) = R[:, :10] E(h)``. Nothing here depends on N.
+
+    Parameters
+    ----------
+    R : ndarray, shape (r, 13)
+        From :func:`_factor_background_design`.
+    magnitude : float
+        ``|H_n|``.
+    h0 : ndarray, shape (3,)
+        Unit start direction; ``p = (p0, p1)`` parametrises ``h(p) = magnitude v / |v|``,
+        ``v = h0 + p0 e1 + p1 e2`` (``e1``, ``e2`` orthonormal, perpendicular to ``h0``).
+    """
+
+    def __init__(self, R: NDArray[np.float64], magnitude: float, h0: NDArray[np.float64]) -> None:
+        self.G = np.ascontiguousarray(R[:, :9]).reshape(len(R), 3, 3)  # A_s[:, b] = G[:, b, :] @ h
+        self.ones = R[:, 9].copy()  # the constant column of A_s (E's last column is e_9)
+        self.Bs = R[:, 10:].copy()  # Q^T B
+        self.magnitude = float(magnitude)
+        self.h0 = np.asarray(h0, dtype=np.float64)
+        self.e1, self.e2 = _orthonormal_complement(self.h0)
+
+    def design(self, h: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``A_s(h) = R[:, :10] E(h)``, shape (r, 4)."""
+        return np.column_stack([self.G @ h, self.ones])
+
+    def background(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``h(p) = magnitude v / |v|``, shape (3,)."""
+        v = self.h0 + p[0] * self.e1 + p[1] * self.e2
+        return np.asarray(self.magnitude * (v / np.linalg.norm(v)), dtype=np.float64)
+
+    def background_derivative(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``dh / dp_k`` as rows, shape (2, 3): ``magnitude (I - u u^T) e_k / |v|`` with ``u = v / |v|``."""
+        v = self.h0 + p[0] * self.e1 + p[1] * self.e2
+        nv = float(np.linalg.norm(v))
+        u = v / nv
+        E = np.stack([self.e1, self.e2])  # (2, 3)
+        return np.asarray(self.magnitude * (E - np.outer(E @ u, u)) / nv, dtype=np.float64)
+
+    def residual_matrix(self, h: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``R[:, 10:] - A_s(h) X(h)`` (r, 3), ``X(h)`` the least-squares solution: its Frobenius norm equals
+        ``min_X |B - A(h) X|_F`` on the full data."""
+        A = self.design(h)
+        X, *_ = np.linalg.lstsq(A, self.Bs, rcond=None)
+        return np.asarray(self.Bs - A @ X, dtype=np.float64)
+
+    def residual(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The projected residual at ``p`` as a vector (3 r,)."""
+        return self.residual_matrix(self.background(p)).ravel()
+
+    def jacobian(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Exact variable-projection Jacobian (Golub & Pereyra 1973) of :meth:`residual`, shape (3 r, 2).
+
+        For every right-hand side ``b`` (column of ``R[:, 10:]``) with ``x = A^+ b`` and ``r = b - A x``:
+        ``dr / dp_k = -(P_perp dA_k x + (A^+)^T dA_k^T r)``, ``P_perp = I - A A^+``,
+        ``dA_k = [G dh_k, 0]`` (the constant column does not move).
+        """
+        h = self.background(p)
+        A = self.design(h)
+        pinv = np.linalg.pinv(A)  # (4, r)
+        X = pinv @ self.Bs  # (4, 3)
+        res = self.Bs - A @ X  # (r, 3)
+        P_perp = np.eye(len(A)) - A @ pinv
+        dh = self.background_derivative(p)
+        J = np.empty((res.size, 2))
+        for k in range(2):
+            dA = np.column_stack([self.G @ dh[k], np.zeros(len(A))])
+            J[:, k] = -(P_perp @ (dA @ X) + pinv.T @ (dA.T @ res)).ravel()
+        return J
+
+
 def fit_with_background(
     H_m: ArrayLike, attitude: Rotation, magnitude: float, *, max_iter: int = 50
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
@@ -141,7 +257,21 @@ def fit_with_background(
     ``K C_i^T H_n`` is linear in the 27 products ``K[a, b] H_n[j]``: a 10-unknown linear least squares per
     axis on the entries of ``C_i^T`` gives them, and the rank-1 factorisation (SVD) of the 9 x 3 matrix
     ``vec(K) H_n^T`` gives the start. The direction of ``H_n`` is then refined by variable projection
-    (``K``, ``c`` solved linearly for each trial direction; ``scipy.optimize.least_squares``).
+    (``K``, ``c`` solved linearly for each trial direction; ``scipy.optimize.least_squares``, Levenberg-Marquardt).
+
+    Both steps work on one blocked QR factorisation ``[D10 | B] = Q R`` (N x 13, ``D10 = [vec(C_i^T), 1]``;
+    :func:`_factor_background_design`), taken once: memory O(block x 13), and every later step is independent
+    of N. The linear start is ``R11 X = R12`` (the least-squares solution of ``D10 X = B``; ``R11`` has the
+    singular values and column norms of ``D10``, so also its condition number). As ``A(h) = [C_i^T h, 1] =
+    D10 E(h)`` with ``E(h)`` (10 x 4) linear in ``h``, ``min_X |B - A(h) X|_F = min_X |R[:, 10:] -
+    R[:, :10] E(h) X|_F``: the projected residual has 13 x 3 entries instead of N x 3 (``Q`` times the small one,
+    so the same norm, Jacobian products ``J^T J``, ``J^T r`` and Levenberg-Marquardt steps).
+
+    The Jacobian is analytic: the exact variable-projection Jacobian of Golub & Pereyra,
+    ``J_k = -(P_perp dA_k X + (A^+)^T dA_k^T r)`` (see :class:`_ReducedProjection`), not Kaufman's approximation
+    (which drops the second term). Kaufman's has the same gradient ``J^T r`` and so the same minimum, but a
+    different ``J^T J``, hence other Levenberg-Marquardt steps and iteration counts than the finite-difference
+    Jacobian of the exact residual used before; on a 13 x 4 system the second term costs nothing.
 
     Parameters
     ----------
@@ -151,48 +281,47 @@ def fit_with_background(
     magnitude : float
         ``|H_n|``, in the unit of ``H_m`` (the scale gauge).
     max_iter : int
+        At most ``3 max_iter`` residual evaluations of the refinement (``least_squares``' ``max_nfev``;
+        Jacobian evaluations are not counted).
 
     Returns
     -------
     K (3, 3), c (3,), H_n (3,), info
         ``info``: ``linear_condition_number`` (the 10-column design), ``condition_number`` (final
-        ``[H_b, 1]``), ``iterations``, ``background_start`` and the :func:`solve_interference` entries.
+        ``[H_b, 1]``), ``iterations`` (residual evaluations of the refinement), ``converged``,
+        ``background_start`` and the :func:`solve_interference` entries.
 
     Raises
     ------
+    TrimagInputError
+        ``H_m`` not (N, 3), or ``attitude`` not N rotations.
     IdentifiabilityError
         The attitudes cannot separate ``K`` from ``H_n`` (too few or too similar).
     """
     B = np.asarray(H_m, dtype=np.float64)
-    M = attitude.inv().as_matrix().reshape(len(B), 9)  # rows (b, j) of C^T
-    D = np.column_stack([M, np.ones(len(B))])
-    cond_lin, _, _ = design_condition(D)
+    if B.ndim != 2 or B.shape[1] != 3:
+        raise TrimagInputError(f"H_m must have shape (N, 3), got {B.shape}")
+    _check_attitude(attitude, len(B))
+    R = _factor_background_design(B, attitude)
+    R11, R12 = R[:10, :10], R[:10, 10:]  # fewer rows when N < 10: the same singular values as D10
+    cond_lin, _, _ = design_condition(R11)
     if not np.isfinite(cond_lin) or cond_lin > CONDITION_ERROR:
         raise IdentifiabilityError(
             f"the attitudes cannot separate K from the background field (condition number {cond_lin:.3g}); "
             "record the vehicle turning about all three axes, or give the background vector"
         )
-    X, *_ = np.linalg.lstsq(D, B, rcond=None)  # (10, 3)
+    X, *_ = np.linalg.lstsq(R11, R12, rcond=None)  # (10, 3): lstsq(D10, B)
     Z = X[:9].T.reshape(9, 3)  # rows (a, b), columns j: K[a, b] * H_n[j]
     u, sv, vt = np.linalg.svd(Z, full_matrices=False)
     h0 = vt[0]
     K0 = (sv[0] * u[:, 0]).reshape(3, 3)
     if np.linalg.det(K0) < 0:
         h0 = -h0
-    e1, e2 = _orthonormal_complement(h0)
-
-    def direction(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        v = h0 + p[0] * e1 + p[1] * e2
-        return v / np.linalg.norm(v)
-
-    def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        H_b = attitude.inv().apply(magnitude * direction(p))
-        A = np.column_stack([H_b, np.ones(len(B))])
-        Xp, *_ = np.linalg.lstsq(A, B, rcond=None)
-        return (B - A @ Xp).ravel()
-
-    res = least_squares(residual, np.zeros(2), method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3)
-    H_n = magnitude * direction(res.x)
+    proj = _ReducedProjection(R, magnitude, h0)
+    res = least_squares(
+        proj.residual, np.zeros(2), jac=proj.jacobian, method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
+    )
+    H_n = proj.background(res.x)
     K, c, info = solve_interference(B, attitude.inv().apply(H_n))
     if np.linalg.det(K) < 0:  # sign gauge: det(K) > 0
         H_n = -H_n
