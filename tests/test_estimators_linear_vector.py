@@ -322,3 +322,28 @@ def test_fit_with_background_input_checks():
         fit_with_background(H_m, R[:49], 5e4)
     with pytest.raises(TrimagInputError, match=r"\(N, 3\)"):
         fit_with_background(H_m[:, :2], R, 5e4)
+
+
+def test_solve_interference_in_blocks_matches_the_whole_least_squares(monkeypatch):
+    """Blocks of 7 rows: K, c, residuals, standard errors and singular values of the one-shot [H_b, 1] fit."""
+    import trimag.estimators.linear_vector as lv
+    from trimag.estimators.linear_vector import solve_interference
+
+    rng = np.random.default_rng(11)
+    H_b = Rotation.random(300, random_state=3).inv().apply([30000.0, 2000.0, 40000.0])
+    K = np.array([[1.02, 0.01, -0.02], [0.03, 0.97, 0.01], [0.0, 0.02, 1.01]])
+    H_m = H_b @ K.T + [200.0, -100.0, 50.0] + rng.normal(scale=30.0, size=H_b.shape)
+    monkeypatch.setattr(lv, "_BLOCK", 7)
+    K_fit, c_fit, info = solve_interference(H_m, H_b)
+    A = np.column_stack([H_b, np.ones(len(H_b))])
+    X, *_ = np.linalg.lstsq(A, H_m, rcond=None)
+    np.testing.assert_allclose(K_fit, X[:3].T, rtol=1e-10)
+    np.testing.assert_allclose(c_fit, X[3], rtol=1e-9)
+    resid = H_m - A @ X
+    np.testing.assert_allclose(info["residual_rms_axis"], np.sqrt(np.mean(resid**2, axis=0)), rtol=1e-9)
+    s2 = np.sum(resid**2, axis=0) / (len(A) - 4)
+    std = np.sqrt(np.outer(s2, np.diag(np.linalg.inv(A.T @ A))))
+    assert info["param_std"]["k12"] == pytest.approx(std[0, 1], rel=1e-9)
+    assert info["param_std"]["c3"] == pytest.approx(std[2, 3], rel=1e-9)
+    d = np.linalg.norm(A, axis=0)
+    np.testing.assert_allclose(info["singular_values"], np.linalg.svd(A / d, compute_uv=False), rtol=1e-10)

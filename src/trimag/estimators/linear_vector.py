@@ -34,6 +34,7 @@ from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, we
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.interference12 import Interference12
 from ..reference import ScalarReference, as_vector
+from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = ["LinearVector", "fit_with_background", "solve_interference"]
@@ -97,8 +98,20 @@ def solve_interference(
             f"only {n_att} distinct attitude(s): the 12 interference coefficients need at least 4 attitudes "
             f"(each sensor axis is a 4-unknown problem); {_HINT}"
         )
-    A = np.column_stack([H_b, np.ones(len(H_b))])
-    cond, s, vt = design_condition(A)
+    # [H_b, 1 | H_m] = Q R block by block (trimag.estimators._qr.BlockedQR): R11 (4, 4) has the singular values
+    # and column norms of A = [H_b, 1], R11 X = R12 is the least-squares solution, and R22's column norms are
+    # the per-axis residual norms; no (N, 4) design is formed
+    qr = BlockedQR(7)
+    for start in range(0, len(H_b), _BLOCK):
+        m = min(_BLOCK, len(H_b) - start)
+        block = np.empty((m, 7))
+        block[:, :3] = H_b[start : start + m]
+        block[:, 3] = 1.0
+        block[:, 4:] = H_m[start : start + m]
+        qr.add(block)
+    R = qr.R
+    R11, R12, R22 = R[:4, :4], R[:4, 4:], R[4:, 4:]
+    cond, s, vt = design_condition(R11)
     if not np.isfinite(cond) or cond > CONDITION_ERROR:
         raise IdentifiabilityError(
             f"the body-frame background fields of the {n_att} attitudes are coplanar (condition number of "
@@ -108,13 +121,13 @@ def solve_interference(
         cond, what="the 12 interference coefficients", hint=_HINT,
         weak=weak_directions(vt, s, _NAMES_A, threshold=1e4),
     )
-    X, *_ = np.linalg.lstsq(A, H_m, rcond=None)  # (4, 3): column a = (K[a, :], c_a)
+    X, *_ = np.linalg.lstsq(R11, R12, rcond=None)  # (4, 3): column a = (K[a, :], c_a)
     K = np.asarray(X[:3].T, dtype=np.float64).copy()
     c = np.asarray(X[3], dtype=np.float64).copy()
-    resid = H_m - A @ X
-    dof = max(len(A) - 4, 1)
-    s2 = np.sum(resid**2, axis=0) / dof  # (3,) per-axis residual variance
-    inv_ata = np.linalg.pinv(A.T @ A)
+    resid_ss = np.sum(R22**2, axis=0)  # (3,) per-axis residual sum of squares
+    dof = max(len(H_b) - 4, 1)
+    s2 = resid_ss / dof  # (3,) per-axis residual variance
+    inv_ata = np.linalg.pinv(R11.T @ R11)
     std = np.sqrt(np.outer(s2, np.diag(inv_ata)))  # (3 axes, 4 unknowns)
     names = [f"k{a + 1}{b + 1}" for a in range(3) for b in range(3)] + ["c1", "c2", "c3"]
     stds = np.concatenate([std[:, :3].ravel(), std[:, 3]])
@@ -122,10 +135,25 @@ def solve_interference(
         "condition_number": cond,
         "n_attitudes": n_att,
         "singular_values": s.tolist(),
-        "residual_rms_axis": np.sqrt(np.mean(resid**2, axis=0)).tolist(),
+        "residual_rms_axis": np.sqrt(resid_ss / len(H_b)).tolist(),
         "param_std": dict(zip(names, stds.tolist(), strict=True)),
     }
     return K, c, info
+
+
+def _vector_sum_squares(
+    B: NDArray[np.float64], H_b: NDArray[np.float64], matrix: NDArray[np.float64], offset: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-axis sums of squares (3,) of ``B - H_b`` and of ``matrix (B - offset) - H_b`` (rows of ``B``, ``H_b``
+    (N, 3)), block by block: the vector errors before and after compensation without (N, 3) temporaries."""
+    before, after = np.zeros(3), np.zeros(3)
+    for start in range(0, len(B), _BLOCK):
+        b, h = B[start : start + _BLOCK], H_b[start : start + _BLOCK]
+        e = b - h
+        before += np.einsum("ij,ij->j", e, e)
+        e = (b - offset) @ matrix.T - h
+        after += np.einsum("ij,ij->j", e, e)
+    return before, after
 
 
 def _orthonormal_complement(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -396,16 +424,15 @@ class LinearVector(Estimator):
             K, c, H_n, info = fit_with_background(B, att, magnitude, max_iter=self.max_iter)
             source = f"fitted background NED {np.round(H_n, 6).tolist()} (|H_n| fixed: {scale_src})"
             diag["background_given"] = None if reference is None else as_vector(reference).tolist()
+            H_b = att.inv().apply(H_n)
         else:
             H_n = as_vector(reference)
-            K, c, info = solve_interference(B, att.inv().apply(H_n))
+            H_b = att.inv().apply(H_n)
+            K, c, info = solve_interference(B, H_b)
             source = f"background NED {np.round(H_n, 6).tolist()}"
         F = float(np.linalg.norm(H_n))
-        H_b = att.inv().apply(H_n)
         matrix = np.linalg.inv(K)
-        corrected = (B - c) @ matrix.T
-        vec_before = B - H_b
-        vec_after = corrected - H_b
+        ss_before, ss_after = _vector_sum_squares(B, H_b, matrix, c)
         diag.update(
             {
                 "condition_number": info["condition_number"],
@@ -417,11 +444,12 @@ class LinearVector(Estimator):
         for key in ("linear_condition_number", "background_start"):
             if key in info:
                 diag[key] = info[key]
+        n = len(B)
         extra = {
-            "vector_rms_before_axis": np.sqrt(np.mean(vec_before**2, axis=0)).tolist(),
-            "vector_rms_after_axis": np.sqrt(np.mean(vec_after**2, axis=0)).tolist(),
-            "vector_rms_before": float(np.sqrt(np.mean(np.sum(vec_before**2, axis=1)))),
-            "vector_rms_after": float(np.sqrt(np.mean(np.sum(vec_after**2, axis=1)))),
+            "vector_rms_before_axis": np.sqrt(ss_before / n).tolist(),
+            "vector_rms_after_axis": np.sqrt(ss_after / n).tolist(),
+            "vector_rms_before": float(np.sqrt(np.sum(ss_before) / n)),
+            "vector_rms_after": float(np.sqrt(np.sum(ss_after) / n)),
         }
         ref = ScalarReference(np.full(len(B), F), source, units)
         return build_calibration(
