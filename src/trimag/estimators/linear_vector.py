@@ -431,7 +431,7 @@ class LinearVector(Estimator):
             K, c, info = solve_interference(B, H_b)
             source = f"background NED {np.round(H_n, 6).tolist()}"
         F = float(np.linalg.norm(H_n))
-        matrix = np.linalg.inv(K)
+        matrix = np.asarray(np.linalg.inv(K), dtype=np.float64)
         ss_before, ss_after = _vector_sum_squares(B, H_b, matrix, c)
         diag.update(
             {
