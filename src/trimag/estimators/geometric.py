@@ -10,24 +10,33 @@ axis's unit. For white isotropic noise that is small against ``h`` this is the m
 noise sample enters once, through one residual, where the pairwise objective mixes two samples' noise in each
 squared-magnitude difference. Start: a linear least-squares fit of the quadric ``B'^T A B' + 2 g^T B' = 1``
 (``g = 0`` for ``ortho-gain``), reduced to ``Gamma^-1`` by the upper Cholesky factor scaled to ``C[2, 2] ==
-1``. Then Gauss-Newton with the analytic Jacobian (a few 6 x 6 or 9 x 9 solves), Levenberg-Marquardt when a
-step raises the cost (:mod:`trimag.estimators._solve`).
+1``. Then Gauss-Newton with the analytic Jacobian, Levenberg-Marquardt when a step raises the cost (the rule of
+:func:`trimag.estimators._solve.gauss_newton_then_lm`).
+
+Every sum over samples (the normalisation, the start's design, the residuals, the Jacobian and the cost) is taken
+in blocks of :data:`_BLOCK` samples: the start's design and each Gauss-Newton system ``[J | -r]`` are factored
+block by block (:class:`._qr.BlockedQR`), so memory does not grow with N. Only the rare Levenberg-Marquardt
+fallback holds the whole (N, p) Jacobian (MINPACK needs it).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .._rowwise import BLOCK, column_means, scratch, sum_squares, transposed_blocks
+from .._threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError
 from ..models import get_model
 from ._common import scalar_reference
-from ._solve import gauss_newton_then_lm
+from ._qr import BlockedQR
+from ._solve import ROUNDING_STEP, XTOL, GaussNewtonResult
 from .base import Estimator, build_calibration
 from .pairwise import params_covariance, q_to_matrix
 
@@ -36,12 +45,47 @@ __all__ = ["Geometric", "GeometricSolution", "solve_geometric"]
 _Q_IDX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
 _NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")
+#: Samples per block of every sum over the log (the start's design, residuals, the Jacobian's QR factorisation):
+#: the memory of a fit is a few blocks (about 20 MB), whatever N.
+_BLOCK = BLOCK
+
+#: The Gauss-Newton system at a point: its :class:`._qr.BlockedQR` of ``[J | -r]`` (None when a residual is not
+#: finite) and ``sum r^2``.
+_System = tuple[BlockedQR | None, float]
 
 
 @dataclass(frozen=True)
 class GeometricSolution:
-    """Result of :func:`solve_geometric`: ``C`` = Gamma^-1 (3, 3), offset ``b`` (3,), field magnitude ``h``
-    (Z-axis unit), ``q`` (5,), the start's condition number and the optimizer result."""
+    """Result of :func:`solve_geometric`.
+
+    Attributes
+    ----------
+    C : ndarray, shape (3, 3)
+        ``Gamma^-1``.
+    b : ndarray, shape (3,)
+        Offset (data unit; zeros without bias).
+    h : float
+        Field magnitude (Z-axis unit).
+    q : ndarray, shape (5,)
+        ``(q1..q5)``.
+    start_cond : float
+        Column-normalised condition number of the linear start's design.
+    result : dict
+        The optimizer's summary, as ``scipy.optimize.OptimizeResult``: ``x`` (normalised parameters), ``nfev``,
+        ``njev``, ``success``, ``status``, ``method``, ``message``. The (N,) residuals and (N, p) Jacobian are
+        not kept: see ``R``, ``rss`` and ``n``.
+    R : ndarray, shape (p, p)
+        Upper-triangular factor of the Jacobian ``J`` (N, p) at the solution, in the normalised parameters
+        ``(q1..q5, [b / scale], h / scale)``: the same singular values, right singular vectors and column norms
+        as ``J``, and ``R^T R = J^T J``.
+    rss : float
+        ``sum r_i^2`` at the solution (normalised units: data unit / ``scale``, squared).
+    n : int
+        Number of samples (residuals).
+    centre, scale : ndarray (3,), float
+        The normalisation ``u = (B - centre) / scale`` of the fit (``centre`` = the mean with bias, else zeros;
+        ``scale`` = the RMS of ``|B - centre|``).
+    """
 
     C: NDArray[np.float64]
     b: NDArray[np.float64]
@@ -49,83 +93,298 @@ class GeometricSolution:
     q: NDArray[np.float64]
     start_cond: float
     result: Any
+    R: NDArray[np.float64]
+    rss: float
+    n: int
+    centre: NDArray[np.float64]
+    scale: float
+
+
+def _normalisation(B: NDArray[np.float64], bias: bool) -> tuple[NDArray[np.float64], float]:
+    """``centre`` (the mean of ``B`` with bias, else zeros) and ``scale`` = RMS ``|B - centre|`` (1 if zero), block
+    by block."""
+    n = len(B)
+    centre = column_means(B) if bias else np.zeros(3)
+    total = 0.0
+    m0 = min(max(n, 1), _BLOCK)
+    with scratch(m0) as out, scratch(m0) as tmp:
+        for _, t in transposed_blocks(B, centre, block=_BLOCK):
+            m = t.shape[1]
+            total += float(np.sum(sum_squares(t, out=out[:m], tmp=tmp[:m])))
+    return centre, float(np.sqrt(total / max(n, 1))) or 1.0
+
+
+def _unit_blocks(
+    B: NDArray[np.float64], centre: NDArray[np.float64], scale: float
+) -> Iterator[NDArray[np.float64]]:
+    """Consecutive blocks ``((B - centre) / scale).T`` (3, m) of :data:`_BLOCK` samples, component-major, in a
+    reused buffer (use each before asking for the next)."""
+    for _, t in transposed_blocks(B, centre, block=_BLOCK):
+        np.divide(t, scale, out=t)
+        yield t
 
 
 def _start(
-    u: NDArray[np.float64], bias: bool
+    B: NDArray[np.float64], centre: NDArray[np.float64], scale: float, bias: bool
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float, float]:
-    """Linear start: fit ``u^T A u + 2 g^T u = 1`` (``g = 0`` without bias) by least squares, then
-    ``c = -A^-1 g``, ``M = A / (1 + c^T A c)``, ``Gamma^-1 = R / R[2, 2]`` with ``M = R^T R``; returns
-    ``(C, c, h, cond)``."""
-    x, y, z = u.T
-    cols = [x * x, y * y, z * z, 2 * x * y, 2 * y * z, 2 * x * z]
-    if bias:
-        cols += [2 * x, 2 * y, 2 * z]
-    D = np.column_stack(cols)
-    d = np.linalg.norm(D, axis=0)
-    d[d == 0] = 1.0
-    sol, *_ = np.linalg.lstsq(D / d, np.ones(len(u)), rcond=None)
-    sv = np.linalg.svd(D / d, compute_uv=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    """Linear start on ``u = (B - centre) / scale``.
+
+    Fits ``u^T A u + 2 g^T u = 1`` (``g = 0`` without bias) by least squares, then ``c = -A^-1 g``,
+    ``M = A / (1 + c^T A c)``, ``Gamma^-1 = R / R[2, 2]`` with ``M = R^T R``. The design is accumulated block by
+    block into a QR factorisation (:class:`._qr.BlockedQR`): its ``R`` has the singular values and column norms
+    of the design, so the column-normalised solution (with ``numpy.linalg.lstsq``'s cut-off for N rows) and
+    condition number are those of the whole design.
+
+    Returns
+    -------
+    C : ndarray, shape (3, 3)
+    c : ndarray, shape (3,)
+        Centre of the ellipsoid in ``u``.
+    h : float
+        Field magnitude in ``u``'s unit.
+    cond : float
+        Column-normalised condition number of the design.
+
+    Raises
+    ------
+    IdentifiabilityError
+        When the design is ill-conditioned or the quadric is not an ellipsoid.
+    """
+    n = len(B)
+    p = 9 if bias else 6
+    qr = BlockedQR(p)
+    m0 = min(max(n, 1), _BLOCK)
+    with scratch(p, m0) as design, scratch(m0) as ones:
+        ones.fill(1.0)
+        for t in _unit_blocks(B, centre, scale):
+            m = t.shape[1]
+            d = design[:, :m]
+            x, y, z = t
+            np.multiply(x, x, out=d[0])
+            np.multiply(y, y, out=d[1])
+            np.multiply(z, z, out=d[2])
+            np.multiply(x, y, out=d[3])
+            np.multiply(y, z, out=d[4])
+            np.multiply(x, z, out=d[5])
+            d[3:6] *= 2.0
+            if bias:
+                np.multiply(t, 2.0, out=d[6:9])
+            qr.add(d.T, ones[:m])
+    R = qr.R
+    cond, _, _ = design_condition(R)  # R has the singular values and column norms of the design
     model = "ortho-gain-bias" if bias else "ortho-gain"
     check_condition(
         cond, what=f"the {model} model from field magnitudes",
         hint="record full turns about all three sensor axes",
     )
-    m = sol / d
+    d_norm = np.linalg.norm(R, axis=0)
+    d_norm[d_norm == 0] = 1.0
+    # the cut-off numpy.linalg.lstsq(rcond=None) applies to the whole (N, p) design
+    rcond = float(np.finfo(np.float64).eps) * max(n, p)
+    sol = np.linalg.lstsq(R / d_norm, qr.qtb, rcond=rcond)[0]
+    m = sol / d_norm
     A = np.array([[m[0], m[3], m[5]], [m[3], m[1], m[4]], [m[5], m[4], m[2]]])
     c = -np.linalg.solve(A, m[6:9]) if bias else np.zeros(3)
     k = 1.0 + float(c @ A @ c)
     try:
         if k <= 0:
             raise np.linalg.LinAlgError
-        R = np.linalg.cholesky(A / k).T
+        U = np.linalg.cholesky(A / k).T
     except np.linalg.LinAlgError:
         raise IdentifiabilityError(
             "the samples do not describe an ellipsoid (the fitted quadric is not positive definite); "
             "record full turns about all three sensor axes"
         ) from None
-    return R / R[2, 2], c, 1.0 / R[2, 2], cond
+    return U / U[2, 2], c, 1.0 / U[2, 2], cond
 
 
-def solve_geometric(B: NDArray[np.float64], *, bias: bool = False, max_iter: int = 100) -> GeometricSolution:
-    """Fit ``|Gamma^-1 (B - b)| = h`` on all samples ``B`` (N, 3) without validation."""
-    centre = B.mean(axis=0) if bias else np.zeros(3)
-    scale = float(np.sqrt(np.mean(np.sum((B - centre) ** 2, axis=1)))) or 1.0
-    u = (B - centre) / scale
-    C0, b0, h0, cond = _start(u, bias)
-    nb = 3 if bias else 0
-    p0 = np.concatenate([C0[_Q_IDX], b0[:nb], [h0]])
+def _unpack(p: NDArray[np.float64], bias: bool) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """``(Gamma^-1, b, h)`` from the parameters ``(q1..q5, [b], h)``."""
+    return q_to_matrix(p[:5]), (p[5:8] if bias else np.zeros(3)), float(p[-1])
 
-    def unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
-        return q_to_matrix(p[:5]), (p[5:8] if bias else np.zeros(3)), float(p[-1])
 
-    ut = np.ascontiguousarray(u.T)  # component-major (3, N): contiguous passes (trimag._rowwise)
+def _system_block(
+    e: NDArray[np.float64], C: NDArray[np.float64], h: float, bias: bool,
+    out: NDArray[np.float64], y: NDArray[np.float64],
+) -> None:
+    """Rows of ``[J | -r]^T`` for one block into ``out`` (p + 1, m): the Jacobian ``J^T`` (p, m) then ``-r``.
+
+    ``e = u - b`` (3, m); ``y`` (3, m) is scratch. With ``y = C e`` and ``n = y / |y|``, the residual is
+    ``r = |y| - h`` and ``dr/dq_k = n_row e_col`` for ``q_k = C[row, col]``, ``dr/db = -C^T n``, ``dr/dh = -1``.
+    """
+    p = len(out) - 1
+    np.matmul(C, e, out=y)
+    neg_r = out[p]
+    sum_squares(y, out=neg_r, tmp=out[0])
+    np.sqrt(neg_r, out=neg_r)  # |y|
+    y /= neg_r  # n
+    for k, (row, col) in enumerate(zip(*_Q_IDX, strict=True)):
+        np.multiply(y[row], e[col], out=out[k])
+    if bias:
+        np.matmul(C.T, y, out=out[5:8])
+        np.negative(out[5:8], out=out[5:8])
+    out[p - 1] = -1.0
+    np.subtract(h, neg_r, out=neg_r)  # -r = h - |y|
+
+
+def _linearise(
+    B: NDArray[np.float64], centre: NDArray[np.float64], scale: float, bias: bool, p: NDArray[np.float64]
+) -> _System:
+    """The Gauss-Newton system ``min |J delta + r|`` at ``p``: a :class:`._qr.BlockedQR` of ``[J | -r]`` accumulated
+    block by block (``J`` is never held whole) and ``sum r_i^2``; ``(None, inf)`` as soon as a residual is not
+    finite."""
+    C, b, h = _unpack(p, bias)
+    npar = len(p)
+    n = len(B)
+    m0 = min(max(n, 1), _BLOCK)
+    qr = BlockedQR(npar)
+    rss = 0.0
+    with scratch(npar + 1, m0) as system, scratch(3, m0) as y:
+        for t in _unit_blocks(B, centre, scale):
+            m = t.shape[1]
+            t -= b[:, None]
+            out = system[:, :m]
+            _system_block(t, C, h, bias, out, y[:, :m])
+            part = float(out[npar] @ out[npar])
+            if not np.isfinite(part):
+                return None, float("inf")
+            rss += part
+            qr.add(out[:npar].T, out[npar])
+    return qr, rss
+
+
+def _gauss_newton(
+    system: Callable[[NDArray[np.float64]], _System], p0: NDArray[np.float64], *, max_steps: int, xtol: float = XTOL
+) -> tuple[GaussNewtonResult, BlockedQR, float] | None:
+    """Undamped Gauss-Newton from ``p0`` by the rule of :func:`trimag.estimators._solve.gauss_newton`, each step
+    from the QR factorisation of ``[J | -r]`` (``system(p)``) instead of the normal equations; None when a step
+    raises ``sum r^2`` (far from the minimum) or ``max_steps`` pass without convergence.
+
+    Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
+    rounding only (relative step below :data:`~trimag.estimators._solve.ROUNDING_STEP`) keeps the point before it.
+    The system is linearised at every trial point (a rejected trial ends the run). Returns the result (fields of
+    ``scipy.optimize.OptimizeResult`` without ``fun`` and ``jac``), the system at the solution and its ``sum r^2``.
+    """
+    p = np.asarray(p0, dtype=np.float64).copy()
+    qr, rss = system(p)
+    nfev = njev = 1
+    step_norms: list[float] = []
+
+    def done(steps: int) -> tuple[GaussNewtonResult, BlockedQR, float]:
+        assert qr is not None
+        result = GaussNewtonResult(
+            x=p, nfev=nfev, njev=njev, success=True, status=2, method="gauss-newton",
+            message=f"Gauss-Newton converged in {steps} steps (relative step <= {xtol:g})", step_norms=step_norms,
+        )
+        return result, qr, rss
+
+    for step_no in range(1, max_steps + 1):
+        if qr is None or not np.isfinite(rss):
+            return None
+        R = qr.R
+        d = np.linalg.norm(R, axis=0)  # the column norms of J
+        if not np.all(np.isfinite(d)) or np.any(d == 0):
+            return None
+        try:  # Jacobi-scaled (columns of very different size stay well conditioned)
+            delta = np.linalg.solve(R / d, qr.qtb) / d
+        except np.linalg.LinAlgError:
+            return None
+        p_new = p + delta
+        qr_new, rss_new = system(p_new)
+        nfev += 1
+        step_norm = float(np.linalg.norm(delta))
+        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
+        if not np.isfinite(rss_new) or rss_new > rss * (1.0 + 1e-12):
+            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
+                return done(step_no)
+            return None
+        p, qr, rss = p_new, qr_new, rss_new
+        step_norms.append(step_norm)
+        njev += 1
+        if rel_step <= xtol:
+            return done(step_no)
+    return None
+
+
+def _levenberg_marquardt(
+    B: NDArray[np.float64], centre: NDArray[np.float64], scale: float, bias: bool, p0: NDArray[np.float64],
+    max_iter: int,
+) -> tuple[Any, BlockedQR, float]:
+    """``scipy.optimize.least_squares(method="lm")`` from ``p0`` on all samples at once (the fallback: MINPACK
+    holds the (N, p) Jacobian). Returns the result without ``fun`` and ``jac``, the QR factorisation of
+    ``[J | -r]`` at the solution and ``sum r^2``."""
+    from scipy.optimize import least_squares
+
+    n, npar = len(B), len(p0)
+    ut = np.empty((3, n))  # component-major (3, N): contiguous passes (trimag._rowwise)
+    for start, t in transposed_blocks(B, centre, block=_BLOCK):
+        np.divide(t, scale, out=ut[:, start : start + t.shape[1]])
 
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        C, b, h = unpack(p)
+        C, b, h = _unpack(p, bias)
         y = C @ (ut - b[:, None])
         return np.asarray(np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) - h, dtype=np.float64)
 
     def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        C, b, _ = unpack(p)
-        e = ut - b[:, None]
-        y = C @ e
-        n = y / np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
-        Jt = np.empty((6 + nb, e.shape[1]))
-        for k, (r, c) in enumerate(zip(*_Q_IDX, strict=True)):
-            np.multiply(n[r], e[c], out=Jt[k])
-        if bias:
-            Jt[5:8] = -(C.T @ n)
-        Jt[-1] = -1.0
-        return Jt.T
+        C, b, h = _unpack(p, bias)
+        out = np.empty((npar + 1, n))
+        _system_block(ut - b[:, None], C, h, bias, out, np.empty((3, n)))
+        return out[:npar].T
 
-    res = gauss_newton_then_lm(
-        fun, jac, p0, max_steps=max_iter,
-        lm_options={"xtol": 1e-15, "ftol": 1e-15, "gtol": 1e-15, "max_nfev": max_iter * 10},
+    res = least_squares(
+        fun, np.asarray(p0, dtype=np.float64), jac=jac, method="lm",
+        xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10,
     )
-    C, b_u, h = unpack(res.x)
-    return GeometricSolution(C, centre + scale * b_u, h * scale, res.x[:5].copy(), cond, res)
+    res.method = "levenberg-marquardt"
+    res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
+    J, r = res.pop("jac"), res.pop("fun")
+    qr = BlockedQR(npar)
+    for start in range(0, n, _BLOCK):
+        qr.add(J[start : start + _BLOCK], -r[start : start + _BLOCK])
+    return res, qr, float(r @ r)
+
+
+def solve_geometric(B: NDArray[np.float64], *, bias: bool = False, max_iter: int = 100) -> GeometricSolution:
+    """Fit ``|Gamma^-1 (B - b)| = h`` on all samples ``B`` (N, 3) without validation.
+
+    Parameters
+    ----------
+    B : ndarray, shape (N, 3)
+        Raw samples.
+    bias : bool
+        Fit the offset ``b`` too (``ortho-gain-bias``).
+    max_iter : int
+        Gauss-Newton steps before Levenberg-Marquardt takes over (with ``10 max_iter`` function evaluations).
+
+    Returns
+    -------
+    GeometricSolution
+
+    Notes
+    -----
+    The fit runs on ``u = (B - centre) / scale`` block by block: memory does not grow with N, except in the
+    Levenberg-Marquardt fallback (taken when a Gauss-Newton step raises the cost), which holds the whole (N, p)
+    Jacobian. Called from the main thread it runs with one BLAS thread (:func:`trimag._threads.one_blas_thread`).
+    """
+    def system(p: NDArray[np.float64]) -> _System:
+        return _linearise(B, centre, scale, bias, p)
+
+    # small QR factorisations per block: a second BLAS thread would only spin-wait (trimag._threads)
+    with one_blas_thread():
+        centre, scale = _normalisation(B, bias)
+        C0, b0, h0, cond = _start(B, centre, scale, bias)
+        nb = 3 if bias else 0
+        p0 = np.concatenate([C0[_Q_IDX], b0[:nb], [h0]])
+        gn = _gauss_newton(system, p0, max_steps=max_iter)
+        if gn is not None:
+            res, qr, rss = gn
+        else:
+            res, qr, rss = _levenberg_marquardt(B, centre, scale, bias, p0, max_iter)
+    x = np.asarray(res.x, dtype=np.float64)
+    C, b_u, h = _unpack(x, bias)
+    return GeometricSolution(
+        C, centre + scale * b_u, h * scale, x[:5].copy(), cond, res, qr.R, rss, len(B), centre, scale
+    )
 
 
 class Geometric(Estimator):
@@ -164,7 +423,10 @@ class Geometric(Estimator):
         bias = model == "ortho-gain-bias"
         sol = solve_geometric(B, bias=bias, max_iter=int(self.max_iter))
         names = (*_NAMES, *(_B_NAMES if bias else ()), "h")
-        cond, s, vt = design_condition(sol.result.jac)
+        # R (p, p) stands for the Jacobian (N, p) at the solution: the same singular values, right singular vectors
+        # and column norms, and R^T R = J^T J
+        R = sol.R
+        cond, s, vt = design_condition(R)
         check_condition(
             cond,
             what=f"the {model} model from field magnitudes",
@@ -172,18 +434,16 @@ class Geometric(Estimator):
             weak=weak_directions(vt, s, names, threshold=1e4) if np.isfinite(cond) else [],
         )
         instance = get_model(model).from_matrix_offset(sol.C, sol.b)
-        J = sol.result.jac
-        dof = max(J.shape[0] - J.shape[1], 1)
-        s2 = float(np.sum(sol.result.fun**2)) / dof
-        centre = B.mean(axis=0) if bias else np.zeros(3)
-        scale = float(np.sqrt(np.mean(np.sum((B - centre) ** 2, axis=1)))) or 1.0
-        cov = params_covariance(sol.q, s2 * np.linalg.pinv(J.T @ J), np.full(J.shape[1] - 5, scale))
+        npar = R.shape[1]
+        dof = max(sol.n - npar, 1)
+        s2 = sol.rss / dof
+        cov = params_covariance(sol.q, s2 * np.linalg.pinv(R.T @ R), np.full(npar - 5, sol.scale))
         out_names = [*get_model(model).param_names(), "h"]
         uncertainty = {
             "param_std": dict(zip(out_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),
             "covariance": cov.tolist(),
             "covariance_order": out_names,
-            "noise_std": float(np.sqrt(s2) * scale),
+            "noise_std": float(np.sqrt(s2) * sol.scale),
         }
         return build_calibration(
             B, sol.C, sol.b, model=model, method=self.name, units=units, reference=ref,
