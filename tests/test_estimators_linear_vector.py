@@ -285,7 +285,7 @@ def test_analytic_jacobian_matches_finite_differences():
 )
 def test_fit_with_background_equals_full_data_reference(monkeypatch, n, noise, seed, random_attitudes, block):
     if block is not None:
-        monkeypatch.setattr(lv, "_BLOCK", block)
+        monkeypatch.setattr(lv, "_QR_BLOCK", block)
     H_m, R = _noisy_vehicle(n, noise, seed, random_attitudes)
     F = float(np.linalg.norm(H_N))
     K, c, H_n, info = fit_with_background(H_m, R, F)

@@ -41,3 +41,24 @@ def test_fewer_rows_than_columns_so_far() -> None:
     qr = BlockedQR(3)
     qr.add([[1.0, 2.0, 3.0]], [1.0])
     assert qr.R.shape == (3, 3) and qr.residual_sum_squares == 0.0
+
+
+def test_blocks_are_factored_in_panels_with_the_same_result(monkeypatch):
+    """A block larger than a panel is factored panel by panel (here 64 rows): the same R (up to row signs),
+    solution and residual as a QR of the whole system."""
+    import trimag.estimators._qr as qr_module
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(1000, 5)) * [1.0, 1e3, 1e-3, 10.0, 1.0]
+    b = A @ [1.0, -2.0, 3.0, 0.5, 4.0] + rng.normal(size=1000)
+    monkeypatch.setattr(qr_module, "QR_PANEL_BYTES", 64 * 8 * 6)
+    qr = qr_module.BlockedQR(5)
+    assert qr.rows_per_qr == 64
+    qr.add(A[:700], b[:700])
+    qr.add(A[700:], b[700:])
+    assert qr.rows == 1000
+    R_whole = np.linalg.qr(A, mode="r")
+    np.testing.assert_allclose(np.abs(qr.R), np.abs(R_whole), rtol=1e-10, atol=1e-10 * np.abs(R_whole).max())
+    x, res, *_ = np.linalg.lstsq(A, b, rcond=None)
+    np.testing.assert_allclose(qr.solve(), x, rtol=1e-10)
+    assert qr.residual_sum_squares == pytest.approx(float(res[0]), rel=1e-10)

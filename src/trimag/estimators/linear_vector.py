@@ -34,14 +34,17 @@ from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, we
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.interference12 import Interference12
 from ..reference import ScalarReference, as_vector
-from ._qr import BlockedQR
+from ._qr import QR_PANEL_BYTES, BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = ["LinearVector", "fit_with_background", "solve_interference"]
 
 _NAMES_A = ("H_b x", "H_b y", "H_b z", "c")
-#: Rows per block of the QR factorisation of the joint-background design (:func:`fit_with_background`).
+#: Rows per block of the sums over samples.
 _BLOCK = BLOCK
+#: Rows per block of the QR factorisation of the joint-background design (:func:`fit_with_background`): a panel of
+#: 13 columns within :data:`trimag.estimators._qr.QR_PANEL_BYTES` (factored from cache).
+_QR_BLOCK = QR_PANEL_BYTES // (8 * 13)
 _HINT = (
     "record at least 4 attitudes whose body-frame background fields are not coplanar "
     "(tilt the vehicle in pitch and roll as well as turning it in heading)"
@@ -177,7 +180,7 @@ def _factor_background_design(
         Measured fields.
     attitude : Rotation, N rotations (body -> NED)
     block : int, optional
-        Rows per block (default :data:`trimag._rowwise.BLOCK`).
+        Rows per block (default :data:`_QR_BLOCK`).
 
     Returns
     -------
@@ -187,12 +190,12 @@ def _factor_background_design(
         ``R[:10, 10:] = Q_1^T B``.
     """
     n = len(B)
-    step = max(1, int(block or _BLOCK))
+    step = max(1, int(block or _QR_BLOCK))
     R = np.zeros((0, 13))
     for s in range(0, n, step):
         m = min(step, n - s)
         k = len(R)
-        stacked = np.empty((k + m, 13))
+        stacked = np.empty((k + m, 13), order="F")  # LAPACK's layout
         stacked[:k] = R
         stacked[k:, :9] = attitude[s : s + m].inv().as_matrix().reshape(m, 9)  # rows (b, j) of C^T
         stacked[k:, 9] = 1.0
