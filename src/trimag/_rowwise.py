@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import numpy as np
@@ -111,20 +111,28 @@ def column_means(B: NDArray[np.float64]) -> NDArray[np.float64]:
 _HASH_BLOCK = 1 << 16
 
 
-def count_duplicate_rows(field: NDArray[np.float64]) -> int:
+def count_duplicate_rows(
+    field: NDArray[np.float64], prepare: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None
+) -> int:
     """Rows of ``field`` (N, 3) equal to an earlier row (``pd.DataFrame(field).duplicated().sum()``, exact).
 
     One 64-bit hash per row finds the candidates (a hash table of N integers instead of one of N rows: about
     10x faster on 1e7 rows); only rows whose hash repeats are compared exactly, so a hash collision never
-    counts as a duplicate. ``-0.0`` and ``0.0`` count as equal, as in pandas.
+    counts as a duplicate. ``-0.0`` and ``0.0`` count as equal, as in pandas. ``prepare`` (rows (m, 3) ->
+    rows (m, 3), e.g. rounding) is applied block by block before the rows are hashed or compared: the rows of
+    ``prepare(field)`` are counted without a prepared copy of the whole ``field``.
     """
     if len(field) < 2:
         return 0
     import pandas as pd  # (here: the fit path of an array needs no pandas otherwise)
 
+    def rows_of(start: int, stop: int) -> NDArray[np.float64]:
+        rows = field[start:stop]
+        return rows if prepare is None else prepare(rows)
+
     h = np.empty(len(field), dtype=np.uint64)
     for start in range(0, len(field), _HASH_BLOCK):  # blocks: temporaries of the block's size, not N
-        rows = field[start : start + _HASH_BLOCK]
+        rows = rows_of(start, start + _HASH_BLOCK)
         hb = pd.util.hash_array(rows[:, 0] + 0.0)  # contiguous column; + 0.0: -0.0 -> 0.0
         for j in range(1, field.shape[1]):
             hb = hb * np.uint64(0x9E3779B97F4A7C15) ^ pd.util.hash_array(rows[:, j] + 0.0)
@@ -134,4 +142,7 @@ def count_duplicate_rows(field: NDArray[np.float64]) -> int:
         return 0
     del hs
     repeated = pd.Series(h).duplicated(keep=False).to_numpy()
-    return int(pd.DataFrame(field[repeated] + 0.0).duplicated().sum())
+    candidates = field[repeated]
+    if prepare is not None:
+        candidates = prepare(candidates)
+    return int(pd.DataFrame(candidates + 0.0).duplicated().sum())
