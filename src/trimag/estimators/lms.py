@@ -32,6 +32,9 @@ from .quadric import check_identifiable, identifiability_report, require_magnitu
 
 __all__ = ["LMS", "dual_lms"]
 
+#: Samples converted to Python floats at a time by :func:`dual_lms`.
+_CHUNK = 65_536
+
 
 def dual_lms(
     u: NDArray[np.float64],
@@ -66,41 +69,44 @@ def dual_lms(
         RMS error ``sqrt(mean(err_i^2))`` of each epoch (errors seen during the pass).
     """
     m11, m12, m13, m22, m23, m33, bx, by, bz = (float(v) for v in p0)
-    rows = u.tolist()
-    targets = t.tolist()
+    n = len(u)
     eps = 1e-300
     history: list[float] = []
     epochs = 0
     for ep in range(n_epochs):
-        idx = range(len(rows)) if order is None else order[ep].tolist()
         sq = 0.0
-        for i in idx:
-            ux, uy, uz = rows[i]
-            ex, ey, ez = ux - bx, uy - by, uz - bz
-            y1 = m11 * ex + m12 * ey + m13 * ez
-            y2 = m22 * ey + m23 * ez
-            y3 = m33 * ez
-            mag = math.sqrt(y1 * y1 + y2 * y2 + y3 * y3)
-            if not mag > 0 or not math.isfinite(mag):
-                return np.full(9, np.nan), ep + 1, history
-            n1, n2, n3 = y1 / mag, y2 / mag, y3 / mag
-            err = targets[i] - mag
-            sq += err * err
-            g = (n1 * ex, n1 * ey, n1 * ez, n2 * ey, n2 * ez, n3 * ez)
-            gb = (-n1 * m11, -(n1 * m12 + n2 * m22), -(n1 * m13 + n2 * m23 + n3 * m33))
-            sm = mu_matrix * err / (sum(v * v for v in g) + eps)
-            sb = mu_offset * err / (gb[0] ** 2 + gb[1] ** 2 + gb[2] ** 2 + eps)
-            m11 += sm * g[0]
-            m12 += sm * g[1]
-            m13 += sm * g[2]
-            m22 += sm * g[3]
-            m23 += sm * g[4]
-            m33 += sm * g[5]
-            bx += sb * gb[0]
-            by += sb * gb[1]
-            bz += sb * gb[2]
+        for start in range(0, n, _CHUNK):  # Python floats for one chunk at a time (24 bytes each), not all N
+            if order is None:
+                rows, targets = u[start : start + _CHUNK].tolist(), t[start : start + _CHUNK].tolist()
+            else:
+                sel = order[ep, start : start + _CHUNK]
+                rows, targets = u[sel].tolist(), t[sel].tolist()
+            for (ux, uy, uz), target in zip(rows, targets, strict=True):
+                ex, ey, ez = ux - bx, uy - by, uz - bz
+                y1 = m11 * ex + m12 * ey + m13 * ez
+                y2 = m22 * ey + m23 * ez
+                y3 = m33 * ez
+                mag = math.sqrt(y1 * y1 + y2 * y2 + y3 * y3)
+                if not mag > 0 or not math.isfinite(mag):
+                    return np.full(9, np.nan), ep + 1, history
+                n1, n2, n3 = y1 / mag, y2 / mag, y3 / mag
+                err = target - mag
+                sq += err * err
+                g = (n1 * ex, n1 * ey, n1 * ez, n2 * ey, n2 * ez, n3 * ez)
+                gb = (-n1 * m11, -(n1 * m12 + n2 * m22), -(n1 * m13 + n2 * m23 + n3 * m33))
+                sm = mu_matrix * err / (sum(v * v for v in g) + eps)
+                sb = mu_offset * err / (gb[0] ** 2 + gb[1] ** 2 + gb[2] ** 2 + eps)
+                m11 += sm * g[0]
+                m12 += sm * g[1]
+                m13 += sm * g[2]
+                m22 += sm * g[3]
+                m23 += sm * g[4]
+                m33 += sm * g[5]
+                bx += sb * gb[0]
+                by += sb * gb[1]
+                bz += sb * gb[2]
         epochs = ep + 1
-        history.append(math.sqrt(sq / len(rows)))
+        history.append(math.sqrt(sq / n))
         if history[-1] < tol:
             break
     return np.array([m11, m12, m13, m22, m23, m33, bx, by, bz]), epochs, history
