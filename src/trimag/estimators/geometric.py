@@ -38,6 +38,7 @@ from ._common import scalar_reference
 from ._qr import BlockedQR
 from ._solve import ROUNDING_STEP, XTOL, GaussNewtonResult
 from .base import Estimator, build_calibration
+from .ellipsoid_fit import quadratic_terms
 from .pairwise import params_covariance, q_to_matrix
 
 __all__ = ["Geometric", "GeometricSolution", "solve_geometric"]
@@ -159,13 +160,7 @@ def _start(
         for t in _unit_blocks(B, centre, scale):
             m = t.shape[1]
             d = design[:, :m]
-            x, y, z = t
-            np.multiply(x, x, out=d[0])
-            np.multiply(y, y, out=d[1])
-            np.multiply(z, z, out=d[2])
-            np.multiply(x, y, out=d[3])
-            np.multiply(y, z, out=d[4])
-            np.multiply(x, z, out=d[5])
+            quadratic_terms(t, d)  # x^2, y^2, z^2, yz, xz, xy
             d[3:6] *= 2.0
             if bias:
                 np.multiply(t, 2.0, out=d[6:9])
@@ -183,7 +178,7 @@ def _start(
     rcond = float(np.finfo(np.float64).eps) * max(n, p)
     sol = np.linalg.lstsq(R / d_norm, qr.qtb, rcond=rcond)[0]
     m = sol / d_norm
-    A = np.array([[m[0], m[3], m[5]], [m[3], m[1], m[4]], [m[5], m[4], m[2]]])
+    A = np.array([[m[0], m[5], m[4]], [m[5], m[1], m[3]], [m[4], m[3], m[2]]])
     c = -np.linalg.solve(A, m[6:9]) if bias else np.zeros(3)
     k = 1.0 + float(c @ A @ c)
     try:
