@@ -42,10 +42,11 @@ def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisatio
     return u, Normalisation(centre, scale)
 
 
-def normalisation_stats(B: NDArray[np.float64]) -> Normalisation:
+def normalisation_stats(B: NDArray[np.float64], centre: NDArray[np.float64] | None = None) -> Normalisation:
     """The centre and scale of :func:`normalise` without the normalised copy of ``B`` (N, 3): two passes block by
-    block, memory independent of N. The same values to rounding (the sums are taken in another order)."""
-    centre = column_means(B)
+    block, memory independent of N. The same values to rounding (the sums are taken in another order). With
+    ``centre`` given (e.g. zeros for a model without offsets), the scale is the RMS distance from it."""
+    centre = column_means(B) if centre is None else np.asarray(centre, dtype=np.float64)
     total = 0.0
     with scratch(min(max(len(B), 1), BLOCK)) as out, scratch(min(max(len(B), 1), BLOCK)) as tmp:
         for _, t in transposed_blocks(B, centre):

@@ -28,13 +28,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, column_means, scratch, sum_squares, transposed_blocks
+from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
 from .._threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError
 from ..models import get_model
-from ._common import scalar_reference
+from ._common import normalisation_stats, scalar_reference
 from ._qr import BlockedQR
 from ._solve import ROUNDING_STEP, XTOL, GaussNewtonResult
 from .base import Estimator, build_calibration
@@ -103,16 +103,9 @@ class GeometricSolution:
 
 def _normalisation(B: NDArray[np.float64], bias: bool) -> tuple[NDArray[np.float64], float]:
     """``centre`` (the mean of ``B`` with bias, else zeros) and ``scale`` = RMS ``|B - centre|`` (1 if zero), block
-    by block."""
-    n = len(B)
-    centre = column_means(B) if bias else np.zeros(3)
-    total = 0.0
-    m0 = min(max(n, 1), _BLOCK)
-    with scratch(m0) as out, scratch(m0) as tmp:
-        for _, t in transposed_blocks(B, centre, block=_BLOCK):
-            m = t.shape[1]
-            total += float(np.sum(sum_squares(t, out=out[:m], tmp=tmp[:m])))
-    return centre, float(np.sqrt(total / max(n, 1))) or 1.0
+    by block (:func:`._common.normalisation_stats`)."""
+    norm = normalisation_stats(B, centre=None if bias else np.zeros(3))
+    return norm.centre, norm.scale
 
 
 def _unit_blocks(
