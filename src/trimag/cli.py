@@ -62,6 +62,17 @@ def _add_reference_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--reference-column", metavar="NAME", help="per-sample magnitude from this column")
 
 
+def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
+    g = p.add_argument_group("aircraft compensation (model tolles-lawson; docs/method-tolles-lawson.md)")
+    g.add_argument("--scalar-column", metavar="S", help="scalar magnetometer column to compensate (nT)")
+    g.add_argument("--time-column", metavar="T", help="time column, seconds (gives the sample rate)")
+    g.add_argument("--rate", type=float, metavar="HZ", help="sample rate, Hz (when there is no time column)")
+    g.add_argument("--segments", metavar="T0:T1[,T0:T1...]", help="time ranges (s) of calibration manoeuvres")
+    if fit:
+        g.add_argument("--tl-attitude-columns", metavar="YAW,PITCH,ROLL",
+                       help="attitude columns (degrees), only to report the manoeuvre content")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``trimag`` command."""
     parser = _Parser(prog="trimag", description="Calibrate tri-axial magnetometers.")
@@ -72,7 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA")
     _add_data_options(p)
     p.add_argument("--model", default="ellipsoid",
-                   help="error model: ellipsoid, ortho-gain, ortho-gain-bias, scalar9, interference12, zhang-cheng")
+                   help="error model: ellipsoid, ortho-gain, ortho-gain-bias, scalar9, interference12, zhang-cheng, "
+                        "tolles-lawson")
     p.add_argument("--method", help="identification method (default: the model's default)")
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
@@ -85,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="navigation frame the quaternions refer to")
     g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
     g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
+    _add_tolles_lawson_options(p)
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -97,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output file (.csv, .parquet or .npz)")
     _add_data_options(p, selection=False)
     p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+    p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
@@ -106,6 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA")
     _add_data_options(p)
     _add_reference_options(p)
+    _add_tolles_lawson_options(p, fit=False)
     p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
@@ -178,8 +193,70 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
         _say(f"wrote {what}: {path}", args)
 
 
+def _split_list(text: str | None) -> list[str] | None:
+    return None if text is None else [c.strip() for c in text.split(",") if c.strip()]
+
+
+def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
+    from .aircraft import TollesLawsonFitRequest, fit_compensation_file, parse_segments
+    from .workflow import parse_options
+
+    if not args.columns or not args.scalar_column:
+        raise TrimagInputError("model tolles-lawson needs --columns FX,FY,FZ (vector magnetometer) and "
+                               "--scalar-column S (scalar magnetometer)")
+    if args.out is not None:
+        _check_writable(args.out)
+    request = TollesLawsonFitRequest(
+        data=Path(args.data), vector_columns=_split_list(args.columns) or [], scalar_column=args.scalar_column,
+        time_column=args.time_column, rate_hz=args.rate, segments=parse_segments(args.segments), fmt=args.fmt,
+        var=args.var, units=args.units, attitude_columns=_split_list(args.tl_attitude_columns),
+        options=parse_options(args.option),
+    )
+    comp, messages = fit_compensation_file(request)
+    for msg in messages:
+        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    written = {"compensation": str(comp.to_file(args.out))} if args.out else {}
+    if args.json:
+        print(json.dumps({**comp.as_dict(), "outputs": written}, allow_nan=False))
+        return EXIT_OK
+    st = comp.stats
+    _say(f"model tolles-lawson: {len(comp.names)} terms, ridge {comp.ridge:.3g}, {st['n_filtered_rows']} band-passed "
+         f"samples in {len(st['segments'])} segment(s), condition number {comp.diagnostics['condition_number']:.3g}",
+         args)
+    _say(f"{'segment':>10}{'rows':>16}{'std before':>12}{'std after':>12}{'ratio':>9}   [nT, band-passed]", args)
+    for k, seg in enumerate(st["segments"]):
+        ratio = seg["improvement_ratio"]
+        _say(f"{k:>10}{seg['rows'][0]:>8}-{seg['rows'][1]:<7}{seg['std_before_nT']:12.4g}{seg['std_after_nT']:12.4g}"
+             f"{ratio if ratio is not None else float('nan'):9.3g}", args)
+    _say(f"{'term':>10}{'coefficient':>14}{'std':>12}{'formal std':>12}", args)
+    for name, value in zip(comp.names, comp.coefficients, strict=True):
+        _say(f"{name:>10}{value:14.6g}{comp.uncertainty['std'][name]:12.4g}"
+             f"{comp.uncertainty['formal_std'][name]:12.4g}", args)
+    for what, path in written.items():
+        _say(f"wrote {what}: {path}", args)
+    return EXIT_OK
+
+
+def _check_writable(path: str) -> None:
+    """Refuse an output path that cannot be written, before any work is done."""
+    target = Path(path)
+    if target.is_dir():
+        raise TrimagInputError(f"{path} is a folder; give a file name for the output")
+    parent = target.parent if str(target.parent) else Path(".")
+    probe = parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    import os
+
+    if not os.access(probe, os.W_OK):
+        raise TrimagInputError(f"cannot write {path}: no write permission in {probe}")
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     from .workflow import fit_file, parse_options
+
+    if args.model == "tolles-lawson":
+        return _cmd_fit_tolles_lawson(args)
 
     result = fit_file(
         args.data, fmt=args.fmt, columns=args.columns, var=args.var, units=args.units, rows=args.rows,
@@ -203,7 +280,22 @@ def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable
 
 
 def _cmd_apply(args: argparse.Namespace) -> int:
+    from .aircraft import apply_compensation_file, is_compensation_file
     from .workflow import apply_to_file
+
+    if is_compensation_file(args.calibration):
+        r = apply_compensation_file(args.calibration, args.data, args.out, fmt=args.fmt, var=args.var,
+                                    columns=_split_list(args.columns), scalar_column=args.scalar_column,
+                                    units=args.units)
+        if r["n_uncorrected"]:
+            _err(f"{r['n_uncorrected']} of {r['n_rows']} rows could not be compensated (missing values or a "
+                 "segment of one row); their compensated cells are empty")
+        if args.json:
+            print(json.dumps(r))
+        else:
+            _say(f"compensated {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows (nT); appended "
+                 f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
+        return EXIT_OK
 
     update, close = _progress(args)
     try:
@@ -224,8 +316,34 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
+    _say(f"{r['n_samples']} samples, {r['n_segments']} segment(s), band {r['band_hz'][0]:g}-{r['band_hz'][1]:g} Hz "
+         f"at {r['rate_hz']:g} Hz; scalar {r['scalar_column']}", args)
+    _say(f"{'segment':>8}{'t0 [s]':>10}{'t1 [s]':>10}{'std before':>12}{'std after':>12}{'ratio':>9}   [nT]", args)
+    for k, seg in enumerate(r["segments"]):
+        if seg["std_before_nT"] is None:
+            _say(f"{k:>8}{seg['t0_s']:10.1f}{seg['t1_s']:10.1f}   too short to band-pass", args)
+            continue
+        _say(f"{k:>8}{seg['t0_s']:10.1f}{seg['t1_s']:10.1f}{seg['std_before_nT']:12.4g}{seg['std_after_nT']:12.4g}"
+             f"{seg['improvement_ratio']:9.3g}", args)
+    _say(f"{'all':>8}{'':20}{r['std_before_nT']:12.4g}{r['std_after_nT']:12.4g}{r['improvement_ratio']:9.3g}", args)
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .aircraft import evaluate_compensation_file, is_compensation_file
     from .workflow import evaluate_file
+
+    if is_compensation_file(args.calibration):
+        r = evaluate_compensation_file(
+            args.calibration, args.data, fmt=args.fmt, var=args.var, columns=_split_list(args.columns),
+            scalar_column=args.scalar_column, units=args.units, time_column=args.time_column, rate_hz=args.rate,
+            segments=args.segments,
+        )
+        if args.json:
+            print(json.dumps(r, allow_nan=False))
+        else:
+            _print_tl_evaluation(r, args)
+        return EXIT_OK
 
     update, close = _progress(args)
     try:

@@ -156,3 +156,108 @@ def simulate(
     raw = add_noise(truth.distort(true), noise, rng)
     settings = {"n": len(raw), "noise": noise, "field_nav": np.asarray(field_nav, dtype=float).tolist()}
     return Simulation(raw, true, att, truth, settings)
+
+
+@dataclass(frozen=True)
+class AircraftSimulation:
+    """A simulated aeromagnetic calibration box (:func:`simulate_aircraft`).
+
+    Attributes
+    ----------
+    time_s : ndarray, shape (N,)
+    vector_nT : ndarray, shape (N, 3)
+        Vector magnetometer (the Earth's field in the body frame, forward-right-down, plus noise).
+    scalar_nT : ndarray, shape (N,)
+        Scalar magnetometer: |Earth field| + slow geology + the aircraft's TL field + noise.
+    attitude_deg : ndarray, shape (N, 3)
+        Yaw, pitch, roll (degrees; Z-Y-X, body -> NED).
+    coefficients : ndarray, shape (p,)
+        True TL coefficients (MagNav.jl order and scale, terms ``terms``).
+    terms : tuple of str
+    segments : list of (start, stop)
+        Row ranges of the four straight legs (the turns between them are not in any segment).
+    rate_hz : float
+    """
+
+    time_s: NDArray[np.float64]
+    vector_nT: NDArray[np.float64]
+    scalar_nT: NDArray[np.float64]
+    attitude_deg: NDArray[np.float64]
+    coefficients: NDArray[np.float64]
+    terms: tuple[str, ...]
+    segments: list[tuple[int, int]]
+    rate_hz: float
+
+
+def simulate_aircraft(
+    seconds_per_heading: float = 120.0,
+    *,
+    rate_hz: float = 10.0,
+    terms: str | tuple[str, ...] | None = None,
+    coefficients: ArrayLike | None = None,
+    earth_ned_nT: ArrayLike = (18_000.0, 1_000.0, 46_000.0),
+    scalar_noise_nT: float = 0.01,
+    vector_noise_nT: float = 0.0,
+    amplitude_deg: tuple[float, float, float] = (5.0, 5.0, 10.0),
+    turn_seconds: float = 20.0,
+    seed: int = 0,
+) -> AircraftSimulation:
+    """A calibration box: four headings (N, E, S, W) joined by smooth turns, flown with yaw, pitch, roll manoeuvres.
+
+    The manoeuvres are sums of sines (periods 4-12 s, the band that a Tolles–Lawson fit keeps), the geology a slow
+    drift below 0.05 Hz that the band-pass removes. The scalar magnetometer reads
+    ``|H_earth| + geology + A(vector) @ coefficients + noise`` (equation (1) of
+    :mod:`trimag.models.tolles_lawson`), with the design computed from the noise-free vector field.
+
+    Parameters
+    ----------
+    seconds_per_heading : float
+        Length of each heading's manoeuvres, s.
+    coefficients : array_like, optional
+        True TL coefficients; default: random, of realistic size (permanent and induced ~10 nT, eddy ~100 nT).
+    amplitude_deg : (yaw, pitch, roll)
+        Manoeuvre amplitudes, degrees.
+    """
+    from .models.tolles_lawson import design, parse_terms, term_names
+
+    groups = parse_terms(terms)
+    names = term_names(groups)
+    rng = np.random.default_rng(seed)
+    if coefficients is None:
+        scale = np.array([100.0 if n.startswith("eddy") else 10.0 for n in names])
+        coef = rng.normal(size=len(names)) * scale
+    else:
+        coef = np.asarray(coefficients, dtype=np.float64)
+        if coef.shape != (len(names),):
+            raise TrimagInputError(f"{len(names)} coefficients expected for terms {groups}; got {coef.shape}")
+    n_leg = round(seconds_per_heading * rate_hz)
+    n_turn = round(turn_seconds * rate_hz)
+    n = 4 * n_leg + 3 * n_turn
+    t = np.arange(n) / rate_hz
+    yaw_base = np.zeros(n)
+    segments = []
+    for k in range(4):
+        start = k * (n_leg + n_turn)
+        segments.append((start, start + n_leg))
+        yaw_base[start : start + n_leg] = 90.0 * k
+        if k < 3:  # a smooth 90-degree turn to the next heading
+            ramp = 0.5 - 0.5 * np.cos(np.pi * np.arange(1, n_turn + 1) / (n_turn + 1))
+            yaw_base[start + n_leg : start + n_leg + n_turn] = 90.0 * (k + ramp)
+    angles = []
+    for amp in amplitude_deg:
+        periods = rng.uniform(4.0, 12.0, size=3)
+        phases = rng.uniform(0, 2 * np.pi, size=3)
+        angles.append(amp * np.sin(2 * np.pi * t[:, None] / periods + phases).sum(axis=1) / np.sqrt(1.5))
+    attitude = np.column_stack([yaw_base + angles[0], angles[1], angles[2]])
+    rot = Rotation.from_euler("ZYX", attitude, degrees=True)
+    earth = np.asarray(earth_ned_nT, dtype=np.float64)
+    body = rot.inv().apply(earth)
+    time_s = t
+    A = design(body, groups)
+    geology = 3.0 * np.sin(2 * np.pi * time_s / 200.0) + 1.0 * np.sin(2 * np.pi * time_s / 47.0)
+    scalar = np.linalg.norm(earth) + geology + A @ coef + rng.normal(scale=scalar_noise_nT, size=n)
+    vector = body + (rng.normal(scale=vector_noise_nT, size=body.shape) if vector_noise_nT else 0.0)
+    return AircraftSimulation(time_s, vector, scalar, attitude, coef, groups, segments, rate_hz)
+
+
+__all__ += ["AircraftSimulation", "simulate_aircraft"]

@@ -327,12 +327,33 @@ def _pick_variable(candidates: dict[str, Any], var: str | None, path: Path) -> s
     )
 
 
+def _struct_table(value: Any, name: str, path: Path) -> pd.DataFrame:
+    """A MATLAB struct's vector fields of the common (longest) length as columns ``NAME.FIELD``."""
+    record = np.asarray(value).ravel()[0]
+    fields: dict[str, NDArray[np.float64]] = {}
+    for field_name in np.asarray(value).dtype.names or ():
+        arr = np.asarray(record[field_name])
+        if arr.dtype.kind not in "fiub":
+            continue
+        arr = np.squeeze(arr)
+        if arr.ndim == 1 and len(arr) > 1:
+            fields[f"{name}.{field_name}"] = arr.astype(np.float64)
+    if not fields:
+        raise TrimagInputError(f"{path}: struct {name!r} has no numeric vector fields")
+    n = max(len(a) for a in fields.values())
+    return pd.DataFrame({k: a for k, a in fields.items() if len(a) == n})
+
+
 def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
     import scipy.io
 
     try:
         data = scipy.io.loadmat(path)
         candidates = {k: v for k, v in data.items() if not k.startswith("__")}
+        structs = {k: v for k, v in candidates.items() if getattr(np.asarray(v).dtype, "names", None)}
+        if structs and (var in structs or (var is None and len(structs) == len(candidates) == 1)):
+            name = var if var is not None else next(iter(structs))
+            return _struct_table(structs[name], name, path)
         name = _pick_variable(candidates, var, path)
         return _array_table(candidates[name], name, path)
     except NotImplementedError:
@@ -561,7 +582,7 @@ def read_samples(
     n_dup = count_duplicate_rows(field_arr)
     return Samples(
         field=np.ascontiguousarray(field_arr),
-        table=kept.reset_index(drop=True),
+        table=pd.DataFrame(kept).reset_index(drop=True),
         columns=cols,
         column_note=note,
         n_rows=len(df),

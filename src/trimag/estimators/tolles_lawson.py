@@ -1,0 +1,404 @@
+"""Tolles–Lawson fit: band-passed (ridge) least squares of the TL design on a scalar magnetometer.
+
+Equations (docs/method-tolles-lawson.md): with ``A`` the TL design of each contiguous segment
+(:func:`trimag.models.tolles_lawson.design`) and ``S`` the scalar magnetometer, both band-passed segment by
+segment and trimmed (:class:`trimag.filtering.BandPass`), then stacked into ``A_f`` and ``S_f``:
+
+    c = (A_f' A_f + lambda I)^-1 A_f' S_f                                      (MagNav.jl create_TL_coef)
+
+``lambda`` is given, 0 (ordinary least squares), or chosen by time-blocked cross-validation (``"cv"``: the
+stacked rows cut into ``k`` contiguous blocks; each block predicted from the others; lambda minimising the
+held-out error on a log grid). The compensated scalar is ``S - A c`` (the unfiltered design).
+
+Uncertainty. The formal covariance ``s^2 H^-1 A_f'A_f H^-1`` (``H = A_f'A_f + lambda I``, ``s^2`` the residual
+variance) assumes white residuals; band-passed residuals are strongly correlated and the aircraft's field is
+not exactly the model, so the formal sigmas understate the spread between calibration segments. A moving-block
+bootstrap over time blocks (default 10 s, about one manoeuvre) refits ``c`` on resampled blocks; the reported
+``std`` is the larger of the two.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..compensation import ScalarCompensation
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..filtering import BandPass, finite_runs
+from ..models.tolles_lawson import TERM_KINDS, TollesLawsonTerms, parse_terms
+
+__all__ = ["FilteredSums", "filtered_sums", "fit_tolles_lawson", "manoeuvre_content", "segment_std"]
+
+
+@dataclass(frozen=True)
+class FilteredSums:
+    """The band-passed TL system reduced to sums over consecutive time blocks (bounded memory).
+
+    Each segment is designed, band-passed and trimmed on its own, then cut into blocks of ``block_rows`` rows
+    (its remainder joins its last block; no block straddles two segments) and kept only as the block sums below:
+    every later step (solve, residual variance, cross-validation, bootstrap, per-segment statistics,
+    collinearity) works on these sums, so memory does not grow with the band-passed design.
+
+    Attributes
+    ----------
+    G : ndarray, shape (n_blocks, p, p)
+        ``A_b' A_b`` of each block of the band-passed design.
+    g : ndarray, shape (n_blocks, p)
+        ``A_b' y_b``.
+    yy, y_sum, n : ndarray, shape (n_blocks,)
+        ``y_b' y_b``, ``sum(y_b)`` and the number of rows of each block.
+    A_sum : ndarray, shape (n_blocks, p)
+        Column sums of each block.
+    segment_of_block : ndarray of int, shape (n_blocks,)
+        Index (into ``segments``) of each block's segment.
+    segments : list of (start, stop)
+        Row ranges of the input used (after skipping the too-short ones).
+    n_skipped_segments, n_skipped_rows : int
+        Segments too short for the filter, and their rows.
+    """
+
+    G: NDArray[np.float64]
+    g: NDArray[np.float64]
+    yy: NDArray[np.float64]
+    y_sum: NDArray[np.float64]
+    A_sum: NDArray[np.float64]
+    n: NDArray[np.int64]
+    segment_of_block: NDArray[np.int64]
+    segments: list[tuple[int, int]]
+    n_skipped_segments: int
+    n_skipped_rows: int
+
+    def total(self, mask: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+        """``(A'A, A'y, y'y)`` summed over the blocks in ``mask`` (all by default)."""
+        m = slice(None) if mask is None else mask
+        return self.G[m].sum(axis=0), self.g[m].sum(axis=0), float(self.yy[m].sum())
+
+    def rss(self, coef: NDArray[np.float64], mask: NDArray[np.bool_] | None = None) -> float:
+        """Residual sum of squares ``|y - A c|^2`` over the blocks in ``mask``."""
+        G, g, yy = self.total(mask)
+        return float(yy - 2.0 * coef @ g + coef @ G @ coef)
+
+    def residual_std(self, coef: NDArray[np.float64] | None, mask: NDArray[np.bool_] | None = None) -> float:
+        """Std of ``y - A c`` (of ``y`` when ``coef`` is None) over the blocks in ``mask``."""
+        m = slice(None) if mask is None else mask
+        n = float(self.n[m].sum())
+        if coef is None:
+            ss, s1 = float(self.yy[m].sum()), float(self.y_sum[m].sum())
+        else:
+            ss, s1 = self.rss(coef, mask), float(self.y_sum[m].sum() - coef @ self.A_sum[m].sum(axis=0))
+        return float(np.sqrt(max(ss / n - (s1 / n) ** 2, 0.0)))
+
+
+def _block_sums(A: NDArray[np.float64], y: NDArray[np.float64], block_rows: int) -> tuple[NDArray[np.float64], ...]:
+    """Sums of consecutive blocks of rows (the remainder joins the last block), vectorised over blocks."""
+    n, p = A.shape
+    nb = max(n // block_rows, 1)
+    L = n // nb if nb == 1 else block_rows
+    full = (nb - 1) * L
+    head_A = A[:full].reshape(nb - 1, L, p)
+    head_y = y[:full].reshape(nb - 1, L)
+    G = np.concatenate([np.einsum("bli,blj->bij", head_A, head_A), (A[full:].T @ A[full:])[None]])
+    g = np.concatenate([np.einsum("bli,bl->bi", head_A, head_y), (A[full:].T @ y[full:])[None]])
+    yy = np.concatenate([np.einsum("bl,bl->b", head_y, head_y), [y[full:] @ y[full:]]])
+    y_sum = np.concatenate([head_y.sum(axis=1), [y[full:].sum()]])
+    A_sum = np.concatenate([head_A.sum(axis=1), A[full:].sum(axis=0)[None]])
+    counts = np.concatenate([np.full(nb - 1, L), [n - full]]).astype(np.int64)
+    return G, g, yy, y_sum, A_sum, counts
+
+
+def filtered_sums(
+    vector_nT: NDArray[np.float64],
+    scalar_nT: NDArray[np.float64],
+    segments: Sequence[tuple[int, int]],
+    terms: TollesLawsonTerms,
+    bandpass: BandPass,
+    block_rows: int,
+) -> FilteredSums:
+    """Design and target of every segment, band-passed and trimmed segment by segment, reduced to block sums."""
+    parts: list[tuple[NDArray[np.float64], ...]] = []
+    owner: list[NDArray[np.int64]] = []
+    used: list[tuple[int, int]] = []
+    n_skip = n_skip_rows = 0
+    for start, stop in segments:
+        if stop - start < bandpass.min_length:
+            n_skip += 1
+            n_skip_rows += stop - start
+            continue
+        A_f = bandpass.apply(terms.design(vector_nT[start:stop], scalar_nT[start:stop]))
+        y_f = bandpass.apply(scalar_nT[start:stop])
+        parts.append(_block_sums(A_f, y_f, block_rows))
+        owner.append(np.full(len(parts[-1][0]), len(used), dtype=np.int64))
+        used.append((start, stop))
+    if not used:
+        raise IdentifiabilityError(
+            f"no segment is long enough for the band-pass filter (each needs >= {bandpass.min_length} samples "
+            f"= {bandpass.min_length / bandpass.rate_hz:.0f} s at {bandpass.rate_hz:g} Hz without gaps); "
+            "record longer calibration manoeuvres or give longer segments"
+        )
+    G, g, yy, y_sum, A_sum, counts = (np.concatenate([part[k] for part in parts]) for k in range(6))
+    return FilteredSums(G, g, yy, y_sum, A_sum, counts.astype(np.int64), np.concatenate(owner), used, n_skip,
+                        n_skip_rows)
+
+
+def _solve_gram(G: NDArray[np.float64], g: NDArray[np.float64], lam: float) -> NDArray[np.float64]:
+    """Ridge normal equations ``(G + lam I) c = g`` (least squares when singular)."""
+    H = G + lam * np.eye(G.shape[0]) if lam else G
+    try:
+        return np.asarray(np.linalg.solve(H, g), dtype=np.float64)
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(H, g, rcond=None)[0], dtype=np.float64)
+
+
+def _cv_lambda(sums: FilteredSums, folds: int = 5) -> tuple[float, dict[str, Any]]:
+    """Ridge lambda by time-blocked cross-validation: ``folds`` contiguous folds of the blocks, in time order."""
+    nb = len(sums.n)
+    folds = max(min(folds, nb), 2)
+    labels = np.minimum(np.arange(nb) * folds // nb, folds - 1)
+    G_all, g_all, _ = sums.total()
+    p = G_all.shape[0]
+    grid = float(np.trace(G_all)) / p * np.logspace(-10, 0, 21)
+    scores = []
+    for lam in grid:
+        sse = 0.0
+        for k in range(folds):
+            test = labels == k
+            G_k, g_k, _ = sums.total(test)
+            sse += sums.rss(_solve_gram(G_all - G_k, g_all - g_k, float(lam)), test)
+        scores.append(sse / float(sums.n.sum()))
+    best = int(np.argmin(scores))
+    return float(grid[best]), {"grid": grid.tolist(), "cv_mse": scores, "folds": folds, "chosen": float(grid[best])}
+
+
+def _formal_std(sums: FilteredSums, coef: NDArray[np.float64], lam: float) -> NDArray[np.float64]:
+    """Sigmas of ``s^2 H^-1 G H^-1`` (white residuals assumed), ``s^2`` on the effective degrees of freedom."""
+    G, _, _ = sums.total()
+    H_inv = np.linalg.pinv(G + lam * np.eye(G.shape[0]))
+    dof = float(np.trace(H_inv @ G))
+    s2 = sums.rss(coef) / max(float(sums.n.sum()) - dof, 1.0)
+    return np.sqrt(np.clip(np.diag(s2 * H_inv @ G @ H_inv), 0.0, None))
+
+
+def _block_bootstrap_std(sums: FilteredSums, lam: float, n_boot: int, seed: int) -> NDArray[np.float64]:
+    """Std of the coefficients over a block bootstrap: time blocks drawn with replacement, the fit redone."""
+    nb = len(sums.n)
+    rng = np.random.default_rng(seed)
+    counts = np.stack([np.bincount(rng.integers(0, nb, nb), minlength=nb) for _ in range(n_boot)]).astype(float)
+    Gs = np.tensordot(counts, sums.G, axes=1)
+    gs = counts @ sums.g
+    coefs = np.stack([_solve_gram(Gs[b], gs[b], lam) for b in range(n_boot)])
+    return np.asarray(coefs.std(axis=0, ddof=1), dtype=np.float64)
+
+
+def _collinear_terms(sums: FilteredSums, names: list[str]) -> dict[str, Any]:
+    """Condition of the band-passed design, variance inflation factors and the near-collinear term groups."""
+    G, _, _ = sums.total()
+    n = float(sums.n.sum())
+    scale = np.sqrt(np.diag(G))
+    scale[scale == 0] = 1.0
+    Gn = G / np.outer(scale, scale)
+    eigval, eigvec = np.linalg.eigh(Gn)
+    eigval = np.clip(eigval[::-1], 0.0, None)
+    eigvec = eigvec[:, ::-1]
+    sv = np.sqrt(eigval)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    mean = sums.A_sum.sum(axis=0) / n
+    cov = G / n - np.outer(mean, mean)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    sd[sd == 0] = 1.0
+    vif = np.diag(np.linalg.pinv(cov / np.outer(sd, sd)))
+    groups = []
+    for k in np.flatnonzero(sv < sv[0] * 1e-3):
+        members = [names[j] for j in np.flatnonzero(np.abs(eigvec[:, k]) > 0.25)]
+        groups.append({"singular_value_ratio": float(sv[k] / sv[0]), "terms": members})
+    out: dict[str, Any] = {
+        "condition_number": cond,
+        "vif": dict(zip(names, vif.tolist(), strict=True)),
+        "collinear_groups": groups,
+    }
+    diag = [names.index(x) for x in ("ind_xx", "ind_yy", "ind_zz") if x in names]
+    if len(diag) == 3:
+        w = np.zeros(len(names))
+        w[diag] = 1.0
+        total_sd = float(np.sqrt(max(w @ cov @ w, 0.0)))
+        out["induced_diagonal_sum_ratio"] = total_sd / max(float(sd[diag].max()), 1e-300)
+    return out
+
+
+def manoeuvre_content(
+    vector_nT: NDArray[np.float64], attitude_deg: NDArray[np.float64] | None = None
+) -> dict[str, float]:
+    """Peak-to-peak manoeuvre amplitude of one segment, degrees.
+
+    With attitudes (yaw, pitch, roll in degrees) their peak-to-peak (yaw unwrapped); without, the peak-to-peak of
+    the field direction's angles in the body frame: ``asin(u_x)``, ``asin(u_y)`` (about the pitch and roll axes
+    for a field near the vertical) and ``atan2(u_y, u_x)`` (heading-like).
+    """
+    if attitude_deg is not None:
+        yaw = np.degrees(np.unwrap(np.radians(attitude_deg[:, 0])))
+        return {"yaw_p2p_deg": float(np.ptp(yaw)), "pitch_p2p_deg": float(np.ptp(attitude_deg[:, 1])),
+                "roll_p2p_deg": float(np.ptp(attitude_deg[:, 2]))}
+    u = vector_nT / np.linalg.norm(vector_nT, axis=1, keepdims=True)
+    heading = np.degrees(np.unwrap(np.arctan2(u[:, 1], u[:, 0])))
+    return {
+        "direction_x_p2p_deg": float(np.ptp(np.degrees(np.arcsin(np.clip(u[:, 0], -1, 1))))),
+        "direction_y_p2p_deg": float(np.ptp(np.degrees(np.arcsin(np.clip(u[:, 1], -1, 1))))),
+        "direction_heading_p2p_deg": float(np.ptp(heading)),
+    }
+
+
+def segment_std(
+    signal_nT: NDArray[np.float64], segments: Sequence[tuple[int, int]], bandpass: BandPass
+) -> list[float | None]:
+    """Std of the band-passed, trimmed signal of each segment (None when a segment is too short)."""
+    out: list[float | None] = []
+    for start, stop in segments:
+        x = signal_nT[start:stop]
+        out.append(float(np.std(bandpass.apply(x))) if stop - start >= bandpass.min_length else None)
+    return out
+
+
+def fit_tolles_lawson(
+    vector_nT: ArrayLike,
+    scalar_nT: ArrayLike,
+    *,
+    rate_hz: float,
+    segments: Sequence[tuple[int, int]] | None = None,
+    terms: str | Sequence[str] | None = None,
+    band_hz: tuple[float, float] = (0.1, 0.9),
+    poles: int = 4,
+    trim: int = 20,
+    ridge: float | str = 0.0,
+    Bt_source: str = "vector",
+    Bt_scale: float = 50_000.0,
+    derivative_scheme: str = "central",
+    bootstrap: int = 200,
+    bootstrap_block_s: float = 10.0,
+    seed: int = 0,
+    attitude_deg: ArrayLike | None = None,
+    sensors: dict[str, Any] | None = None,
+) -> ScalarCompensation:
+    """Fit Tolles–Lawson coefficients (see the module docstring for the equations).
+
+    Parameters
+    ----------
+    vector_nT : array_like, shape (N, 3)
+        Vector magnetometer (fluxgate), nT, in time order.
+    scalar_nT : array_like, shape (N,)
+        Scalar magnetometer to compensate, nT.
+    rate_hz : float
+        Sample rate, Hz.
+    segments : sequence of (start, stop), optional
+        Contiguous row ranges to fit on (calibration-box manoeuvres); default: the runs of finite rows.
+    terms : str or sequence, optional
+        Term groups (default permanent, induced, eddy: 18 coefficients, as MagNav.jl).
+    band_hz, poles, trim : filter (default 0.1-0.9 Hz, 4 poles, 20 samples trimmed per segment end).
+    ridge : float or "cv"
+        Ridge lambda (MagNav.jl's default in its examples: 1e-3 on its scale), 0 for least squares, or "cv".
+    Bt_source : {"vector", "scalar"}
+        Magnitude used for the direction cosines.
+    bootstrap : int
+        Block-bootstrap replicates for the coefficient uncertainty (0: formal only).
+    attitude_deg : array_like, shape (N, 3), optional
+        Yaw, pitch, roll (degrees) for the manoeuvre-content report.
+
+    Returns
+    -------
+    ScalarCompensation
+
+    Raises
+    ------
+    TrimagInputError
+        Shapes, non-physical inputs, a bad option.
+    IdentifiabilityError
+        No segment long enough, fewer filtered rows than coefficients.
+    """
+    B = np.asarray(vector_nT, dtype=np.float64)
+    S = np.asarray(scalar_nT, dtype=np.float64)
+    if B.ndim != 2 or B.shape[1] != 3 or S.shape != (len(B),):
+        raise TrimagInputError(f"need a vector (N, 3) and a scalar (N,) series; got {B.shape} and {S.shape}")
+    if Bt_source not in ("vector", "scalar"):
+        raise TrimagInputError(f"Bt_source must be 'vector' or 'scalar'; got {Bt_source!r}")
+    model_terms = TollesLawsonTerms(parse_terms(terms), float(Bt_scale), derivative_scheme, Bt_source)
+    bandpass = BandPass(float(band_hz[0]), float(band_hz[1]), float(rate_hz), int(poles), int(trim))
+    ok = np.isfinite(B).all(axis=1) & np.isfinite(S)
+    if segments is None:
+        segments = finite_runs(ok)
+    else:
+        segments = [run for a, b in segments for run in ((a + s, a + e) for s, e in finite_runs(ok[a:b]))]
+    block_rows = max(round(bootstrap_block_s * rate_hz), 10)
+    sums = filtered_sums(B, S, segments, model_terms, bandpass, block_rows)
+    names = model_terms.names
+    n, p = int(sums.n.sum()), len(names)
+    if n <= p:
+        raise IdentifiabilityError(
+            f"{n} band-passed samples cannot identify {p} Tolles–Lawson coefficients; record a longer calibration"
+        )
+    cv_info: dict[str, Any] | None = None
+    if isinstance(ridge, str):
+        if ridge.strip().lower() != "cv":
+            raise TrimagInputError(f"ridge must be a number >= 0 or 'cv'; got {ridge!r}")
+        lam, cv_info = _cv_lambda(sums)
+    else:
+        lam = float(ridge)
+        if not (lam >= 0 and np.isfinite(lam)):
+            raise TrimagInputError(f"ridge must be a number >= 0 or 'cv'; got {ridge!r}")
+    G_all, g_all, _ = sums.total()
+    coef = _solve_gram(G_all, g_all, lam)
+    formal = _formal_std(sums, coef, lam)
+    uncertainty: dict[str, Any] = {"formal_std": dict(zip(names, formal.tolist(), strict=True))}
+    std = formal
+    if bootstrap:
+        boot = _block_bootstrap_std(sums, lam, int(bootstrap), seed)
+        std = np.maximum(formal, boot)
+        uncertainty.update({
+            "bootstrap_std": dict(zip(names, boot.tolist(), strict=True)),
+            "bootstrap": {"replicates": int(bootstrap), "block_s": bootstrap_block_s, "block_rows": block_rows,
+                          "blocks": len(sums.n), "seed": seed},
+        })
+    uncertainty["std"] = dict(zip(names, std.tolist(), strict=True))
+    uncertainty["note"] = ("std = max(formal, block bootstrap); formal sigmas assume white residuals and "
+                           "understate the spread between calibration segments")
+    att = None if attitude_deg is None else np.asarray(attitude_deg, dtype=np.float64)
+    per_segment = []
+    for k, (start, stop) in enumerate(sums.segments):
+        mask = sums.segment_of_block == k
+        sb, sa = sums.residual_std(None, mask), sums.residual_std(coef, mask)
+        entry: dict[str, Any] = {"rows": [start, stop], "n": stop - start, "std_before_nT": sb, "std_after_nT": sa,
+                                 "improvement_ratio": (sb / sa) if sa > 0 else None}
+        entry.update(manoeuvre_content(B[start:stop], None if att is None else att[start:stop]))
+        per_segment.append(entry)
+    y_std = sums.residual_std(None)
+    r_std = sums.residual_std(coef)
+    stats = {
+        "n_samples": len(B),
+        "n_used": int(sum(b - a for a, b in sums.segments)),
+        "n_filtered_rows": int(n),
+        "n_dropped_rows": int((~ok).sum()),
+        "n_skipped_segments": sums.n_skipped_segments,
+        "n_skipped_rows": sums.n_skipped_rows,
+        "std_before_nT": y_std,
+        "std_after_nT": r_std,
+        "improvement_ratio": y_std / r_std if r_std > 0 else None,
+        "segments": per_segment,
+    }
+    diagnostics: dict[str, Any] = {"term_kinds": {g: TERM_KINDS[g] for g in model_terms.terms}}
+    diagnostics.update(_collinear_terms(sums, names))
+    if cv_info is not None:
+        diagnostics["ridge_cv"] = cv_info
+    warnings_list = []
+    if diagnostics["collinear_groups"]:
+        groups = "; ".join(" + ".join(g["terms"]) for g in diagnostics["collinear_groups"])
+        warnings_list.append(
+            f"near-collinear terms (their coefficients are not separately identified, only their sum): {groups}"
+        )
+    if y_std > 0 and r_std >= y_std:
+        warnings_list.append("the compensation does not reduce the band-passed scalar: check the columns and units")
+    diagnostics["warnings"] = warnings_list
+    return ScalarCompensation(
+        terms=model_terms, coefficients=coef, bandpass=bandpass, ridge=lam, sensors=dict(sensors or {}),
+        uncertainty=uncertainty, stats=stats, diagnostics=diagnostics,
+    )
