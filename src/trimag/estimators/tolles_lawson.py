@@ -93,7 +93,7 @@ class FilteredSums:
         return float(np.sqrt(max(ss / n - (s1 / n) ** 2, 0.0)))
 
 
-def _block_sums(A: NDArray[np.float64], y: NDArray[np.float64], block_rows: int) -> tuple[NDArray[np.float64], ...]:
+def _block_sums(A: NDArray[np.float64], y: NDArray[np.float64], block_rows: int) -> tuple[NDArray[Any], ...]:
     """Sums of consecutive blocks of rows (the remainder joins the last block), vectorised over blocks."""
     n, p = A.shape
     nb = max(n // block_rows, 1)
@@ -179,7 +179,7 @@ def _formal_std(sums: FilteredSums, coef: NDArray[np.float64], lam: float) -> ND
     H_inv = np.linalg.pinv(G + lam * np.eye(G.shape[0]))
     dof = float(np.trace(H_inv @ G))
     s2 = sums.rss(coef) / max(float(sums.n.sum()) - dof, 1.0)
-    return np.sqrt(np.clip(np.diag(s2 * H_inv @ G @ H_inv), 0.0, None))
+    return np.asarray(np.sqrt(np.clip(np.diag(s2 * H_inv @ G @ H_inv), 0.0, None)), dtype=np.float64)
 
 
 def _block_bootstrap_std(sums: FilteredSums, lam: float, n_boot: int, seed: int) -> NDArray[np.float64]:
@@ -223,7 +223,7 @@ def _collinear_terms(sums: FilteredSums, names: list[str]) -> dict[str, Any]:
     if len(diag) == 3:
         w = np.zeros(len(names))
         w[diag] = 1.0
-        total_sd = float(np.sqrt(max(w @ cov @ w, 0.0)))
+        total_sd = float(np.sqrt(max(float(w @ cov @ w), 0.0)))
         out["induced_diagonal_sum_ratio"] = total_sd / max(float(sd[diag].max()), 1e-300)
     return out
 
