@@ -19,6 +19,7 @@ bootstrap over time blocks (default 10 s, about one manoeuvre) refits ``c`` on r
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -191,6 +192,44 @@ def _block_bootstrap_std(sums: FilteredSums, lam: float, n_boot: int, seed: int)
     gs = counts @ sums.g
     coefs = np.stack([_solve_gram(Gs[b], gs[b], lam) for b in range(n_boot)])
     return np.asarray(coefs.std(axis=0, ddof=1), dtype=np.float64)
+
+
+def _segment_consistency(sums: FilteredSums, lam: float, n_boot: int, seed: int) -> dict[str, Any] | None:
+    """Predicted against observed spread of the coefficients between segments fitted one by one.
+
+    Each segment long enough (more band-passed rows than coefficients, at least 4 blocks) is fitted alone; for
+    consecutive pairs ``z = (c_i - c_j) / sqrt(s_i^2 + s_j^2)``, with formal and with block-bootstrap sigmas.
+    An RMS z near 1 means the sigmas predict the spread; the formal one is typically several times larger.
+    """
+    p = sums.G.shape[1]
+    fits = []
+    for k in range(len(sums.segments)):
+        mask = sums.segment_of_block == k
+        if int(sums.n[mask].sum()) <= 2 * p or int(mask.sum()) < 4:
+            continue
+        sub = FilteredSums(sums.G[mask], sums.g[mask], sums.yy[mask], sums.y_sum[mask], sums.A_sum[mask],
+                           sums.n[mask], np.zeros(int(mask.sum()), dtype=np.int64), [sums.segments[k]], 0, 0)
+        G, g, _ = sub.total()
+        c = _solve_gram(G, g, lam)
+        fits.append((k, c, _formal_std(sub, c, lam), _block_bootstrap_std(sub, lam, n_boot, seed) if n_boot else None))
+    if len(fits) < 2:
+        return None
+    pairs, z_f, z_b = [], [], []
+    for (i, ci, fi, bi), (j, cj, fj, bj) in itertools.pairwise(fits):
+        zf = (ci - cj) / np.sqrt(fi**2 + fj**2)
+        z_f.append(zf)
+        entry: dict[str, Any] = {"segments": [i, j], "rms_z_formal": float(np.sqrt(np.mean(zf**2)))}
+        if bi is not None and bj is not None:
+            zb = (ci - cj) / np.sqrt(np.maximum(fi, bi) ** 2 + np.maximum(fj, bj) ** 2)
+            z_b.append(zb)
+            entry["rms_z_reported"] = float(np.sqrt(np.mean(zb**2)))
+        pairs.append(entry)
+    out: dict[str, Any] = {"pairs": pairs, "rms_z_formal": float(np.sqrt(np.mean(np.square(z_f))))}
+    if z_b:
+        out["rms_z_reported"] = float(np.sqrt(np.mean(np.square(z_b))))
+    out["note"] = ("z = difference of two segments' coefficients over its predicted sigma: ~1 when the sigmas hold; "
+                   "'reported' uses max(formal, bootstrap), as the fit reports")
+    return out
 
 
 def _collinear_terms(sums: FilteredSums, names: list[str]) -> dict[str, Any]:
@@ -389,6 +428,9 @@ def fit_tolles_lawson(
     diagnostics.update(_collinear_terms(sums, names))
     if cv_info is not None:
         diagnostics["ridge_cv"] = cv_info
+    consistency = _segment_consistency(sums, lam, min(int(bootstrap), 100), seed)
+    if consistency is not None:
+        diagnostics["segment_consistency"] = consistency
     warnings_list = []
     if diagnostics["collinear_groups"]:
         groups = "; ".join(" + ".join(g["terms"]) for g in diagnostics["collinear_groups"])
