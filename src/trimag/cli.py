@@ -41,8 +41,12 @@ def _say(msg: str, args: argparse.Namespace) -> None:
 
 def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
     g = p.add_argument_group("data")
-    g.add_argument("--format", dest="fmt", choices=["csv", "txt", "npz", "mat", "parquet"],
-                   help="file format (default: from the extension)")
+    g.add_argument("--format", dest="fmt",
+                   choices=["csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log"],
+                   help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
+    g.add_argument("--sensor", metavar="N|NAME",
+                   help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "
+                        "with the most samples)")
     g.add_argument("--columns", help="x,y,z columns: header names or 0-based indices (default: recognised)")
     g.add_argument("--var", help="variable name inside an NPZ or MAT file")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (recorded in every output)")
@@ -111,6 +115,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_data_options(p, selection=False)
     p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
     p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = sub.add_parser("export", help="write a calibration as firmware parameters",
+                       description="Write a calibration in a firmware's or tool's own convention "
+                                   "(docs/autopilot.md).")
+    p.add_argument("calibration", metavar="CAL.json")
+    p.add_argument("--to", required=True, dest="target",
+                   choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
+    p.add_argument("--instance", type=int, default=1,
+                   help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
+    p.add_argument("-o", "--out", required=True, metavar="FILE")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
@@ -265,7 +281,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         reference_column=args.reference_column, attitude_columns=args.attitude_columns,
         quaternion_columns=args.quaternion_columns, quaternion_order=args.quaternion_order,
         quaternion_frame=args.quaternion_frame, background_ned=args.background_ned,
-        background_run=args.background_run, out=args.out, report=args.report,
+        background_run=args.background_run, out=args.out, report=args.report, sensor=args.sensor,
     )
     _print_fit(result, args)
     return EXIT_OK
@@ -370,6 +386,26 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from .calibration import Calibration
+    from .io.export import export_calibration, write_export
+
+    _check_writable(args.out)
+    cal = Calibration.from_file(args.calibration)
+    exp = export_calibration(cal, args.target, instance=args.instance - 1)
+    path = write_export(exp, args.out)
+    for note in exp.notes:
+        _say(f"note: {note}", args)
+    for v in exp.violations:
+        _err(f"warning: outside the firmware's limits: {v}")
+    if args.json:
+        print(json.dumps({"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
+                          "violations": exp.violations}))
+    else:
+        _say(f"wrote {args.target} parameters: {path}", args)
+    return EXIT_OK
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from .workflow import simulate_to_file
 
@@ -451,6 +487,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "fit": _cmd_fit,
         "apply": _cmd_apply,
         "evaluate": _cmd_evaluate,
+        "export": _cmd_export,
         "simulate": _cmd_simulate,
         "demo": _cmd_demo,
         "batch": _cmd_batch,

@@ -181,6 +181,64 @@ def _drop_rows_without_attitude(
     return kept, n_bad
 
 
+def _refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
+    """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
+    from .errors import IdentifiabilityError
+
+    B = samples.field
+    n = len(B)
+    name = log_info["sensor"]
+    if n < 30:
+        raise IdentifiabilityError(
+            f"{name} has only {n} samples in this log: too few to calibrate. Log the magnetometer faster or longer "
+            "and turn the vehicle through all headings and attitudes"
+        )
+    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    mean = u.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    cone = float(np.degrees(np.arccos(np.clip(u @ mean, -1.0, 1.0))).max())
+    if cone < 30.0:
+        raise IdentifiabilityError(
+            f"{name}: the field direction stayed within {cone:.0f} deg of its mean over {n} samples: the vehicle "
+            "barely turned. Record a calibration: rotate the vehicle through all headings, nose up and down and on "
+            "each side (on the ground or in flight), then fit that log"
+        )
+
+
+def _refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[str, Any]) -> None:
+    """Refuse (exit 3) a fit of an autopilot log that the rotation recorded cannot identify.
+
+    A vehicle that turns about its vertical axis with little tilt (a rover, a boat, a level flight) leaves the
+    field directions in a narrow band: the full 3-D calibration is then not identified, and an autopilot would be
+    given parameters that are wrong in the unseen directions.
+    """
+    from .errors import IdentifiabilityError
+
+    ident = cal.diagnostics.get("identifiability") or {}
+    inflation = ident.get("std_inflation_vs_full_sphere")
+    coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
+    converged = cal.stats.get("converged", True)
+    if converged and (inflation is None or inflation <= 100.0):
+        return
+    B = samples.field
+    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    axis = u.mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    angle = np.degrees(np.arccos(np.clip(u @ axis, -1.0, 1.0)))
+    detail = [f"the field directions cover {100 * coverage:.0f}% of the sphere" if coverage is not None else "",
+              f"they stay {angle.min():.0f}..{angle.max():.0f} deg from their mean direction "
+              f"{np.round(axis, 2).tolist()} (body frame)",
+              "the fit did not converge" if not converged else
+              f"its parameters would be {inflation:.3g}x less certain than from a full tumble"]
+    raise IdentifiabilityError(
+        f"{log_info['sensor']}: this log turned the vehicle mostly about one axis "
+        f"({'; '.join(d for d in detail if d)}): "
+        "a 3-D calibration cannot be identified from it. Record a calibration with the vehicle also pitched "
+        "nose up and down and rolled on each side; a vehicle that cannot tilt needs an earlier full calibration "
+        "whose offsets are refitted"
+    )
+
+
 def fit_file(
     path: str | Path,
     *,
@@ -205,12 +263,35 @@ def fit_file(
     background_run: str | None = None,
     out: str | Path | None = None,
     report: str | Path | None = None,
+    sensor: str | None = None,
 ) -> FitResult:
     """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked."""
-    unit = normalise_unit(units)
     estimator = make_estimator(model, method, options)
-    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=rows, where=where, strict=strict)
+    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=rows, where=where, strict=strict,
+                           sensor=sensor)
     messages: list[str] = []
+    log_info = samples.log_info
+    if log_info is not None:
+        messages += [m for m in log_info["messages"] if not m.startswith("warning:")]
+        messages += [m for m in log_info["messages"] if m.startswith("warning:")]
+        if units is not None and normalise_unit(units) != log_info["unit"] and columns is None:
+            raise TrimagInputError(
+                f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
+            )
+        units = units or log_info["unit"]
+        given_ref = any(x is not None for x in (reference, igrf_spec, reference_column, background_ned,
+                                                background_run))
+        gps = log_info.get("gps")
+        if not given_ref and gps and gps.get("date"):
+            igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
+            messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
+        if estimator.reference_kind == "vector" and attitude_columns is None and quaternion_columns is None:
+            if not log_info.get("has_attitude"):
+                raise TrimagInputError(f"model {model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
+            attitude_columns = "yaw_deg,pitch_deg,roll_deg"
+        if columns is None:
+            _refuse_static_log(samples, log_info)
+    unit = normalise_unit(units)
     if samples.column_note:
         messages.append(samples.column_note)
     if samples.selection:
@@ -264,6 +345,8 @@ def fit_file(
         warnings.simplefilter("always", TrimagWarning)
         estimator.fit(samples.field, ref, units=unit, attitude=attitude)
     cal = estimator.calibration_
+    if log_info is not None and columns is None:
+        _refuse_unidentified_log(cal, samples, log_info)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
     if warn_texts:

@@ -35,7 +35,8 @@ __all__ = [
     "select_rows",
 ]
 
-FORMATS = ("csv", "txt", "npz", "mat", "parquet")
+FORMATS = ("csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log")
+LOG_KINDS = ("dataflash", "tlog", "ulog", "px4log")
 
 _AXIS_RE = re.compile(
     r"^(?:(?:imu[\s_\-.]*)?(?:mag(?:netometer|netic)?|compass|field|m|b|h)[\s_\-.]*)?([xyz])(?:[\s_\-.(\[].*)?$"
@@ -81,10 +82,17 @@ class Samples:
     selection: str = ""
     source: str = ""
     n_total_rows: int = 0
+    #: what an autopilot log told (unit, magnetometer, GPS, messages), None for other files
+    log_info: dict[str, Any] | None = None
 
 
 def guess_format(path: str | Path, fmt: str | None = None) -> str:
-    """The format named by ``fmt`` or, when None, by the file's extension."""
+    """The format named by ``fmt`` or, when None, by the file's extension (autopilot logs included)."""
+    from .logs import log_format
+
+    kind = log_format(path, fmt.lower().lstrip(".") if fmt else None)
+    if kind is not None:
+        return kind
     if fmt:
         f = fmt.lower().lstrip(".")
         if f not in FORMATS:
@@ -384,7 +392,34 @@ def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
     return _array_table(candidates[name], name, path)
 
 
-def read_table(path: str | Path, *, fmt: str | None = None, var: str | None = None) -> pd.DataFrame:
+def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFrame:
+    """An autopilot log as a table of one magnetometer with the other streams aligned (``io.logs``).
+
+    ``df.attrs["trimag_log"]`` carries what the fit needs from the log: the unit, the magnetometer used, what was
+    undone, the GPS fix (for IGRF) and the messages for the user.
+    """
+    from .logs import read_log
+
+    log = read_log(p, kind)
+    mag = log.choose(sensor)
+    df, messages = log.table(sensor)
+    df.attrs["trimag_log"] = {
+        "format": log.format,
+        "unit": mag.unit,
+        "sensor": mag.name,
+        "instance": mag.instance,
+        "device_id": mag.device_id,
+        "gps": log.gps,
+        "messages": log.summary_lines(sensor) + messages,
+        "channels": [c for c in df.columns if c not in ("time_s",) and not c.startswith("mag_")],
+        "has_attitude": "yaw_deg" in df.columns,
+    }
+    return df
+
+
+def read_table(
+    path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
+) -> pd.DataFrame:
     """Read a whole log into a DataFrame (text cells stay strings; see :func:`read_samples`)."""
     p = Path(path)
     if not p.exists():
@@ -392,6 +427,8 @@ def read_table(path: str | Path, *, fmt: str | None = None, var: str | None = No
     if p.is_dir():
         raise TrimagInputError(f"{p}: is a folder; give a data file")
     kind = guess_format(p, fmt)
+    if kind in LOG_KINDS:
+        return _read_vehicle_log(p, kind, sensor)
     if kind in ("csv", "txt"):
         return _read_delimited(p, kind)[0]
     if kind == "npz":
@@ -535,6 +572,7 @@ def read_samples(
     rows: str | None = None,
     where: str | None = None,
     strict: bool = False,
+    sensor: str | int | None = None,
 ) -> Samples:
     """Read a magnetometer log and return its finite field samples with provenance.
 
@@ -558,11 +596,16 @@ def read_samples(
         Missing file, empty file, header only, fewer than 3 numeric columns, unknown columns, no valid rows.
     """
     p = Path(path)
-    df = read_table(p, fmt=fmt, var=var)
+    df = read_table(p, fmt=fmt, var=var, sensor=sensor)
+    log_info = df.attrs.get("trimag_log")
     n_total = len(df)
     if n_total == 0:
         raise TrimagInputError(f"{p}: the file has a header but no data rows")
-    cols, note = resolve_columns(df, columns)
+    if log_info is not None and columns is None:
+        cols = ("mag_x", "mag_y", "mag_z")
+        note = f"using {log_info['sensor']} (calibration undone: mag_x, mag_y, mag_z)"
+    else:
+        cols, note = resolve_columns(df, columns)
     df, selection = select_rows(df, rows, where)
     xyz = np.column_stack([_numeric(df[c]) for c in cols])
     ok = np.isfinite(xyz).all(axis=1)
@@ -592,6 +635,7 @@ def read_samples(
         selection=selection,
         source=str(p),
         n_total_rows=n_total,
+        log_info=log_info,
     )
 
 

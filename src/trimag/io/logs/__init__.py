@@ -1,0 +1,255 @@
+"""Readers of autopilot logs: one :class:`VehicleLog` per file (docs/autopilot.md).
+
+Formats: ArduPilot DataFlash (``.bin``, ``.log``) and MAVLink telemetry (``.tlog``), PX4 ULog (``.ulg``) and sdlog2
+(``.px4log``). They need the optional extra ``trimag[logs]`` (pymavlink, pyulog); a missing one is named in a
+one-line error.
+
+Every reader returns the magnetometers it found (each with its time stamps, the field in a stated unit and, where
+the autopilot logs its readings after its own calibration, that calibration undone and described), the vehicle's
+attitude, battery current, throttle, temperature and GPS fix where the log has them, and the parameters.
+:meth:`VehicleLog.table` aligns everything to one magnetometer's time stamps (linear interpolation, attitude by
+slerp) and counts what it dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from ...errors import TrimagInputError
+
+__all__ = [
+    "LOG_FORMATS",
+    "Channel",
+    "MagnetometerStream",
+    "VehicleLog",
+    "log_format",
+    "read_log",
+]
+
+#: extension -> log format
+LOG_FORMATS: dict[str, str] = {
+    ".bin": "dataflash",
+    ".log": "dataflash",
+    ".tlog": "tlog",
+    ".ulg": "ulog",
+    ".px4log": "px4log",
+}
+
+
+def log_format(path: str | Path, fmt: str | None = None) -> str | None:
+    """The autopilot log format of ``path`` (from ``fmt`` or the extension), or None for other files."""
+    if fmt in set(LOG_FORMATS.values()):
+        return fmt
+    if fmt is not None:
+        return None
+    suffix = Path(path).suffix.lower()
+    kind = LOG_FORMATS.get(suffix)
+    if kind == "dataflash" and suffix == ".log":
+        # a text DataFlash log starts with FMT lines; any other .log is left to the table readers
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(256)
+        except OSError:
+            return None
+        if not (head.startswith(b"FMT") or head[:2] == b"\xa3\x95"):
+            return None
+    return kind
+
+
+def require(module: str) -> Any:
+    """Import an optional dependency of the log readers, or raise a one-line error naming the extra."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise TrimagInputError(
+            f"reading autopilot logs needs the optional package {module.split('.')[0]!r}: "
+            'pip install "trimag[logs]"'
+        ) from None
+
+
+@dataclass
+class Channel:
+    """A logged time series: ``time_s`` (N,) and ``values`` (N,) or (N, k), with a unit."""
+
+    time_s: NDArray[np.float64]
+    values: NDArray[np.float64]
+    unit: str = ""
+    source: str = ""
+
+
+@dataclass
+class MagnetometerStream:
+    """One magnetometer of a log.
+
+    Attributes
+    ----------
+    name : str
+        How the log names it (``MAG[0]``, ``MAG2``, ``sensor_mag device 592905``, ``IMU1.Mag``).
+    instance : int
+        0-based instance (ArduPilot compass number, PX4 calibration slot).
+    time_s : ndarray, shape (N,)
+    field : ndarray, shape (N, 3)
+        The reading with the onboard calibration undone (the raw reading in the autopilot's body frame), ``unit``.
+    logged : ndarray, shape (N, 3)
+        The reading as logged.
+    unit : str
+    undone : list of str
+        What was undone, for the user (empty when the log holds raw readings).
+    device_id : int or None
+    onboard : dict
+        The onboard calibration parameters that were undone.
+    """
+
+    name: str
+    instance: int
+    time_s: NDArray[np.float64]
+    field: NDArray[np.float64]
+    logged: NDArray[np.float64]
+    unit: str
+    undone: list[str] = dataclasses.field(default_factory=list)
+    device_id: int | None = None
+    onboard: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate, Hz (0 for fewer than 2 samples)."""
+        dt = np.diff(self.time_s)
+        dt = dt[dt > 0]
+        return float(1.0 / np.median(dt)) if len(dt) else 0.0
+
+    def describe(self) -> str:
+        """One line for the user: name, samples, rate, unit."""
+        dev = f", device id {self.device_id}" if self.device_id else ""
+        return f"{self.name}: {len(self.time_s)} samples at {self.rate_hz:.3g} Hz, {self.unit}{dev}"
+
+
+@dataclass
+class VehicleLog:
+    """What trimag reads of an autopilot log."""
+
+    path: str
+    format: str
+    magnetometers: list[MagnetometerStream]
+    attitude: Channel | None = None  # yaw, pitch, roll in degrees (Z-Y-X, body -> NED)
+    channels: dict[str, Channel] = field(default_factory=dict)  # current_A, throttle, temperature_C, ...
+    gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
+    parameters: dict[str, float] = field(default_factory=dict)
+    messages: list[str] = field(default_factory=list)
+
+    def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
+        """The magnetometer named by ``sensor`` (instance number, name or device id), or the best one.
+
+        Without ``sensor``: the magnetometer with the most samples (the first on a tie).
+        """
+        if not self.magnetometers:
+            raise TrimagInputError(f"{self.path}: the log has no magnetometer readings")
+        if sensor is None:
+            return max(self.magnetometers, key=lambda m: len(m.time_s))
+        text = str(sensor).strip()
+        for m in self.magnetometers:
+            if text in (str(m.instance), m.name, str(m.device_id)):
+                return m
+        names = ", ".join(f"{m.instance} ({m.name})" for m in self.magnetometers)
+        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with sensor)")
+
+    def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
+        """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
+
+        Columns: ``time_s``, ``mag_x``, ``mag_y``, ``mag_z`` (calibration undone), ``mag_logged_x..z``, then
+        ``yaw_deg``, ``pitch_deg``, ``roll_deg`` (slerp) and the channels (linear interpolation). A channel
+        sample outside its stream's time span is left empty (NaN) and counted.
+
+        Returns
+        -------
+        table, messages
+        """
+        from scipy.spatial.transform import Rotation, Slerp
+
+        mag = self.choose(sensor)
+        t = mag.time_s
+        cols: dict[str, NDArray[np.float64]] = {"time_s": t}
+        for k, a in enumerate("xyz"):
+            cols[f"mag_{a}"] = mag.field[:, k]
+        for k, a in enumerate("xyz"):
+            cols[f"mag_logged_{a}"] = mag.logged[:, k]
+        messages: list[str] = []
+        outside: dict[str, int] = {}
+        at = self.attitude
+        ta = np.zeros(0)
+        if at is not None:
+            good = np.isfinite(at.time_s) & np.isfinite(at.values).all(axis=1)
+            order = np.argsort(at.time_s[good], kind="stable")
+            ta, keep = np.unique(at.time_s[good][order], return_index=True)
+            ang = at.values[good][order][keep]
+        if at is not None and len(ta) >= 2:
+            rot = Rotation.from_euler("ZYX", ang, degrees=True)
+            inside = (t >= ta[0]) & (t <= ta[-1])
+            ypr = np.full((len(t), 3), np.nan)
+            if inside.any():
+                ypr[inside] = Slerp(ta, rot)(t[inside]).as_euler("ZYX", degrees=True)
+            ypr[:, 0] = np.mod(ypr[:, 0], 360.0)
+            cols["yaw_deg"], cols["pitch_deg"], cols["roll_deg"] = ypr[:, 0], ypr[:, 1], ypr[:, 2]
+            if (~inside).sum():
+                outside["attitude"] = int((~inside).sum())
+        for name, ch in self.channels.items():
+            if len(ch.time_s) < 2:
+                continue
+            order = np.argsort(ch.time_s, kind="stable")
+            tc = ch.time_s[order]
+            vals = ch.values[order]
+            inside = (t >= tc[0]) & (t <= tc[-1])
+            v = np.interp(t, tc, vals)
+            v[~inside] = np.nan
+            cols[name] = v
+            if (~inside).sum():
+                outside[name] = int((~inside).sum())
+        if outside:
+            messages.append(
+                f"aligned to {mag.name}'s {len(t)} time stamps; left empty where outside the stream's logged span: "
+                + ", ".join(f"{name} {n}" for name, n in outside.items())
+            )
+        df = pd.DataFrame(cols)
+        return df, messages
+
+    def summary_lines(self, sensor: str | int | None = None) -> list[str]:
+        """What the user should know: the magnetometers, what was undone, what else the log offers."""
+        chosen = self.choose(sensor)
+        lines = [f"{self.format} log with {len(self.magnetometers)} magnetometer(s): "
+                 + "; ".join(("* " if m is chosen else "") + m.describe() for m in self.magnetometers)
+                 + " (* = used; choose another with sensor)"]
+        lines += [f"{chosen.name}: {u}" for u in chosen.undone]
+        offered = list(self.channels)
+        if offered:
+            lines.append(f"channels for regressors: {', '.join(offered)}")
+        lines += self.messages
+        return lines
+
+
+def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
+    """Read an autopilot log (format from ``fmt`` or the extension)."""
+    p = Path(path)
+    if not p.is_file():
+        raise TrimagInputError(f"{p}: no such file" if not p.exists() else f"{p}: is a folder; give a log file")
+    kind = log_format(p, fmt)
+    if kind in ("dataflash", "tlog"):
+        from .ardupilot import read_ardupilot
+
+        return read_ardupilot(p, kind)
+    if kind == "ulog":
+        from .px4 import read_ulog
+
+        return read_ulog(p)
+    if kind == "px4log":
+        from .px4 import read_px4log
+
+        return read_px4log(p)
+    raise TrimagInputError(f"{p}: not an autopilot log (.bin, .log, .tlog, .ulg, .px4log)")

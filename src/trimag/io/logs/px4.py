@@ -1,0 +1,218 @@
+"""PX4 logs: ULog (``.ulg``, read with pyulog) and the older sdlog2 format (``.px4log``, read with pymavlink).
+
+Calibration PX4 applies, by era (the reader says which it undid):
+
+- sdlog2 and ULog up to v1.11: the driver logs ``m = (r - off) * scale`` per axis (``CAL_MAGn_xOFF``, gauss,
+  subtracted; ``CAL_MAGn_xSCALE``), after rotating ``r`` to the board frame; undone as ``r = m / scale + off``.
+  On a ULog that also holds ``vehicle_magnetometer`` the reader checks it: the prime sensor's ``sensor_mag`` equals
+  ``vehicle_magnetometer`` when ``sensor_mag`` is calibrated.
+- ULog from v1.12: ``sensor_mag`` is the raw reading; ``sensor_calibration::Magnetometer`` (PX4-Autopilot
+  src/lib/sensor_calibration/Magnetometer.cpp) applies ``rotation * (S_sym * ((r + power * comp) - off))``
+  afterwards, so nothing is undone.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...errors import TrimagInputError
+from . import Channel, MagnetometerStream, VehicleLog, require
+
+__all__ = ["read_px4log", "read_ulog", "undo_px4_legacy"]
+
+_SLOW_HZ = 5.0
+
+
+def _cal(params: dict[str, float], slot: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    off = np.array([float(params.get(f"CAL_MAG{slot}_{a}OFF", 0.0)) for a in "XYZ"])
+    scale = np.array([float(params.get(f"CAL_MAG{slot}_{a}SCALE", 1.0)) for a in "XYZ"])
+    return off, np.where(scale == 0, 1.0, scale)
+
+
+def undo_px4_legacy(logged_G: NDArray[np.float64], params: dict[str, float], slot: int
+                    ) -> tuple[NDArray[np.float64], list[str], dict[str, float]]:
+    """Raw reading (gauss, board frame) behind a driver-calibrated PX4 reading ``m = (r - off) * scale``."""
+    off, scale = _cal(params, slot)
+    raw = logged_G / scale + off
+    undone = [f"CAL_MAG{slot}_xSCALE = {np.round(scale, 5).tolist()} divided out, "
+              f"CAL_MAG{slot}_xOFF = {np.round(off, 5).tolist()} G added back (PX4 subtracts it)"]
+    onboard = {f"CAL_MAG{slot}_{a}OFF": float(v) for a, v in zip("XYZ", off, strict=True)}
+    onboard.update({f"CAL_MAG{slot}_{a}SCALE": float(v) for a, v in zip("XYZ", scale, strict=True)})
+    return raw, undone, onboard
+
+
+def _slow_warning(stream: MagnetometerStream) -> str | None:
+    if 0 < stream.rate_hz < _SLOW_HZ:
+        return (f"warning: {stream.name} is logged at only {stream.rate_hz:.2g} Hz (PX4's default logging profile): "
+                "too few samples to calibrate from a short flight; add 'Estimator replay (EKF2)' (+2) or 'Sensor "
+                "comparison' (+64) to SDLOG_PROFILE to log the magnetometer faster")
+    return None
+
+
+def _ulog_version_minor(ulog: Any) -> int | None:
+    branch = str(ulog.msg_info_dict.get("ver_sw_branch", ""))
+    m = re.search(r"v1\.(\d+)", branch)
+    if m:
+        return int(m.group(1))
+    release = ulog.msg_info_dict.get("ver_sw_release")
+    if isinstance(release, int) and release > 0:
+        return (release >> 16) & 0xFF
+    return None
+
+
+def read_ulog(path: Path) -> VehicleLog:
+    """Read a PX4 ULog file."""
+    pyulog = require("pyulog")
+    try:
+        ulog = pyulog.ULog(str(path))
+    except Exception as exc:
+        raise TrimagInputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {exc})") from None
+    params = {k: float(v) for k, v in ulog.initial_parameters.items()}
+    data = {(d.name, d.multi_id): d.data for d in ulog.data_list}
+    slot_of = {int(params[f"CAL_MAG{k}_ID"]): k for k in range(8) if params.get(f"CAL_MAG{k}_ID")}
+    vm = data.get(("vehicle_magnetometer", 0))
+    minor = _ulog_version_minor(ulog)
+    mags: list[MagnetometerStream] = []
+    messages: list[str] = []
+    prime = int(params.get("CAL_MAG_PRIME", 0))
+    calibrated_in_log: bool | None = None
+    if vm is not None and prime in slot_of:
+        for (name, _), d in data.items():
+            if name == "sensor_mag" and int(d["device_id"][0]) == prime:
+                idx = np.clip(np.searchsorted(vm["timestamp"], d["timestamp"]), 0, len(vm["timestamp"]) - 1)
+                vmx = np.column_stack([vm[f"magnetometer_ga[{i}]"][idx] for i in range(3)])
+                smx = np.column_stack([d[a] for a in "xyz"])
+                calibrated_in_log = bool(np.abs(vmx - smx).max() < 1e-6)
+    if calibrated_in_log is None:
+        calibrated_in_log = minor is not None and minor <= 11
+    for (name, multi), d in sorted(data.items(), key=lambda kv: kv[0][1]):
+        if name != "sensor_mag":
+            continue
+        dev = int(d["device_id"][0])
+        slot = slot_of.get(dev, multi)
+        logged = np.column_stack([d[a] for a in "xyz"]).astype(np.float64)
+        t = d["timestamp"].astype(np.float64) * 1e-6
+        if calibrated_in_log:
+            raw, undone, onboard = undo_px4_legacy(logged, params, slot)
+        else:
+            raw, undone, onboard = logged, ["sensor_mag is the raw reading (PX4 v1.12+): nothing undone"], {}
+        mags.append(MagnetometerStream(f"sensor_mag[{multi}]", slot, t, raw, logged, "G", undone, dev, onboard))
+    if vm is not None and prime in slot_of:
+        logged = np.column_stack([vm[f"magnetometer_ga[{i}]"] for i in range(3)]).astype(np.float64)
+        slot = slot_of[prime]
+        raw, undone, onboard = undo_px4_legacy(logged, params, slot)
+        if not calibrated_in_log:
+            undone.append("warning: this log's vehicle_magnetometer may also hold CAL_MAGn_ROT and power "
+                          "compensation, which were not undone")
+        mags.append(MagnetometerStream("vehicle_magnetometer", slot, vm["timestamp"].astype(np.float64) * 1e-6, raw,
+                                       logged, "G", undone, prime, onboard))
+    log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
+    att = data.get(("vehicle_attitude", 0))
+    if att is not None:
+        from scipy.spatial.transform import Rotation
+
+        q = np.column_stack([att[f"q[{i}]"] for i in range(4)])
+        ok = np.linalg.norm(q, axis=1) > 0.5
+        ypr = Rotation.from_quat(q[ok][:, [1, 2, 3, 0]]).as_euler("ZYX", degrees=True)
+        log.attitude = Channel(att["timestamp"][ok] * 1e-6, ypr, "deg", "vehicle_attitude.q")
+    bat = data.get(("battery_status", 0))
+    if bat is not None:
+        log.channels["current_A"] = Channel(bat["timestamp"] * 1e-6, bat["current_a"].astype(np.float64), "A",
+                                            "battery_status.current_a")
+    act = data.get(("actuator_controls_0", 0))
+    if act is not None and "control[3]" in act:
+        log.channels["throttle"] = Channel(act["timestamp"] * 1e-6, act["control[3]"].astype(np.float64), "",
+                                           "actuator_controls_0.control[3]")
+    for (name, multi), d in data.items():
+        if name == "sensor_mag" and "temperature" in d and np.isfinite(d["temperature"]).any():
+            log.channels[f"temperature_C_mag{multi}"] = Channel(d["timestamp"] * 1e-6,
+                                                                 d["temperature"].astype(np.float64), "degC",
+                                                                 f"sensor_mag[{multi}].temperature")
+    gps = data.get(("vehicle_gps_position", 0))
+    if gps is not None and len(gps["timestamp"]):
+        fix = gps.get("fix_type", np.full(len(gps["timestamp"]), 3))
+        good = np.flatnonzero(fix >= 3)
+        if len(good):
+            k = good[len(good) // 2]
+            scale = 1e-7 if np.issubdtype(gps["lat"].dtype, np.integer) else 1.0
+            utc = int(gps["time_utc_usec"][k]) if "time_utc_usec" in gps else 0
+            log.gps = {"lat_deg": float(gps["lat"][k]) * scale, "lon_deg": float(gps["lon"][k]) * scale,
+                       "alt_m": float(gps["alt"][k]) * (1e-3 if scale == 1e-7 else 1.0),
+                       "date": _dt.datetime.fromtimestamp(utc / 1e6, _dt.UTC).date().isoformat() if utc else None}
+    for m in mags:
+        w = _slow_warning(m)
+        if w:
+            messages.append(w)
+    log.messages = messages
+    if not mags:
+        raise TrimagInputError(f"{path}: the log has no sensor_mag or vehicle_magnetometer messages")
+    return log
+
+
+def read_px4log(path: Path) -> VehicleLog:
+    """Read a PX4 sdlog2 ``.px4log`` file (``IMU``, ``IMU1``, ``IMU2``: ``MagX..Z`` in gauss, calibrated)."""
+    mavutil = require("pymavlink.mavutil")
+    try:
+        conn = mavutil.mavlink_connection(str(path))
+    except Exception as exc:
+        raise TrimagInputError(f"{path}: not a readable px4log file ({type(exc).__name__}: {exc})") from None
+    rows: dict[str, list[dict[str, Any]]] = {}
+    params: dict[str, float] = {}
+    now_s = float("nan")
+    while True:
+        try:
+            msg = conn.recv_match(type=["TIME", "IMU", "IMU1", "IMU2", "ATT", "BATT", "GPS", "PARM", "OUT0"])
+        except Exception as exc:
+            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+        if msg is None:
+            break
+        name = msg.get_type()
+        if name == "PARM":
+            params.setdefault(str(msg.Name), float(msg.Value))
+            continue
+        if name == "TIME":  # sdlog2 writes the time (us since boot) before each group of messages
+            now_s = float(msg.StartTime) * 1e-6
+            continue
+        d = msg.to_dict()
+        d["_t"] = now_s
+        rows.setdefault(name, []).append(d)
+
+    def arr(rs: list[dict[str, Any]], keys: list[str]) -> NDArray[np.float64]:
+        return np.array([[float(r[k]) for k in keys] for r in rs], dtype=np.float64)
+
+    mags = []
+    for slot, name in enumerate(("IMU", "IMU1", "IMU2")):
+        rs = rows.get(name, [])
+        if not rs or "MagX" not in rs[0]:
+            continue
+        logged = arr(rs, ["MagX", "MagY", "MagZ"])
+        raw, undone, onboard = undo_px4_legacy(logged, params, slot)
+        dev = params.get(f"CAL_MAG{slot}_ID")
+        mags.append(MagnetometerStream(f"{name}.Mag", slot, arr(rs, ["_t"])[:, 0], raw, logged, "G", undone,
+                                       int(dev) if dev else None, onboard))
+    if not mags:
+        raise TrimagInputError(f"{path}: the log has no IMU magnetometer fields (IMU.MagX..)")
+    log = VehicleLog(str(path), "PX4 sdlog2", mags, parameters=params)
+    for slot, name in enumerate(("IMU", "IMU1", "IMU2")):
+        rs = rows.get(name, [])
+        if rs and "tM" in rs[0]:
+            log.channels[f"temperature_C_mag{slot}"] = Channel(arr(rs, ["_t"])[:, 0], arr(rs, ["tM"])[:, 0], "degC",
+                                                               f"{name}.tM")
+    if rows.get("ATT"):
+        att = rows["ATT"]
+        log.attitude = Channel(arr(att, ["_t"])[:, 0], np.degrees(arr(att, ["Yaw", "Pitch", "Roll"])), "deg", "ATT")
+    if rows.get("BATT"):
+        b = rows["BATT"]
+        log.channels["current_A"] = Channel(arr(b, ["_t"])[:, 0], arr(b, ["C"])[:, 0], "A", "BATT.C")
+    gps = [r for r in rows.get("GPS", []) if r.get("Fix", 0) >= 3]
+    if gps:
+        g = gps[len(gps) // 2]
+        log.gps = {"lat_deg": float(g["Lat"]), "lon_deg": float(g["Lon"]), "alt_m": float(g["Alt"]),
+                   "date": _dt.datetime.fromtimestamp(float(g["GPSTime"]) / 1e6, _dt.UTC).date().isoformat()}
+    return log
