@@ -86,16 +86,33 @@ def _gps_date(week: float, ms: float) -> str:
     return t.date().isoformat()
 
 
-def _collect(path: Path, kind: str) -> tuple[dict[str, list[dict[str, Any]]], dict[str, float]]:
+Columns = dict[str, dict[str, NDArray[Any]]]
+
+
+def _collect(path: Path, kind: str) -> tuple[Columns, dict[str, float]]:
+    """Every wanted message type as columns, and the parameters (first value of each)."""
+    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES
+    if kind == "dataflash":
+        with path.open("rb") as fh:
+            binary = fh.read(2) == b"\xa3\x95"
+        if binary:
+            from .dataflash import read_dataflash
+
+            cols = read_dataflash(path, types)
+            params: dict[str, float] = {}
+            parm = cols.pop("PARM", None)
+            if parm is not None:
+                for name, value in zip(parm["Name"].tolist(), parm["Value"].tolist(), strict=True):
+                    params.setdefault(str(name), float(value))
+            return cols, params
     mavutil = require("pymavlink.mavutil")
     try:
         conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if kind == "tlog" else \
             mavutil.mavlink_connection(str(path))
     except Exception as exc:  # pymavlink raises many kinds on a damaged file
         raise TrimagInputError(f"{path}: not a readable {kind} log ({type(exc).__name__}: {exc})") from None
-    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES
     rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    params: dict[str, float] = {}
+    params = {}
     while True:
         try:
             msg = conn.recv_match(type=types)
@@ -112,49 +129,62 @@ def _collect(path: Path, kind: str) -> tuple[dict[str, list[dict[str, Any]]], di
             d = msg.to_dict()
             d["_timestamp"] = getattr(msg, "_timestamp", None)
             rows[name].append(d)
-    return rows, params
+    return {name: _columns(rs) for name, rs in rows.items()}, params
 
 
-def _array(rows: list[dict[str, Any]], keys: list[str]) -> NDArray[np.float64]:
-    values = [[float(r.get(k, np.nan)) for k in keys] for r in rows]
-    return np.array(values, dtype=np.float64).reshape(len(rows), len(keys))
+def _columns(rows: list[dict[str, Any]]) -> dict[str, NDArray[Any]]:
+    """Messages (dicts) -> one array per numeric field."""
+    out: dict[str, NDArray[Any]] = {}
+    for key in rows[0]:
+        values = [r.get(key) for r in rows]
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            out[key] = np.asarray(values, dtype=np.float64)
+    return out
 
 
-def _time_s(rows: list[dict[str, Any]], *, receipt: bool = False) -> NDArray[np.float64]:
+def _array(cols: dict[str, NDArray[Any]], keys: list[str]) -> NDArray[np.float64]:
+    return np.column_stack([np.asarray(cols[k], dtype=np.float64) for k in keys])
+
+
+def _n(cols: dict[str, NDArray[Any]] | None) -> int:
+    return 0 if not cols else len(next(iter(cols.values())))
+
+
+def _take(cols: dict[str, NDArray[Any]], mask: NDArray[np.bool_]) -> dict[str, NDArray[Any]]:
+    return {k: v[mask] for k, v in cols.items()}
+
+
+def _time_s(cols: dict[str, NDArray[Any]], *, receipt: bool = False) -> NDArray[np.float64]:
     """Time of each message, s: the autopilot's clock, or (``receipt``, telemetry logs) the time it was received."""
-    if not rows:
-        return np.zeros(0)
     if receipt:
-        return _array(rows, ["_timestamp"])[:, 0]
+        return np.asarray(cols["_timestamp"], dtype=np.float64)
     for key, factor in (("TimeUS", 1e-6), ("time_usec", 1e-6), ("TimeMS", 1e-3), ("time_boot_ms", 1e-3)):
-        if key in rows[0]:
-            return _array(rows, [key])[:, 0] * factor
-    return _array(rows, ["_timestamp"])[:, 0]
+        if key in cols:
+            return np.asarray(cols[key], dtype=np.float64) * factor
+    return np.asarray(cols["_timestamp"], dtype=np.float64)
 
 
-def _dataflash(path: Path, rows: dict[str, list[dict[str, Any]]], params: dict[str, float]) -> VehicleLog:
+def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     mags: list[MagnetometerStream] = []
-    streams: list[tuple[int, str, list[dict[str, Any]]]] = []
+    streams: list[tuple[int, str, dict[str, NDArray[Any]]]] = []
     for name in ("MAG", "MAG2", "MAG3"):
-        if not rows.get(name):
+        cols = rows.get(name)
+        if not _n(cols):
             continue
-        if "I" in rows[name][0]:
-            by_inst: dict[int, list[dict[str, Any]]] = defaultdict(list)
-            for r in rows[name]:
-                by_inst[int(r["I"])].append(r)
-            streams += [(i, f"MAG[{i}]", rs) for i, rs in sorted(by_inst.items())]
+        assert cols is not None
+        if "I" in cols:
+            inst_col = np.asarray(cols["I"]).astype(int)
+            streams += [(int(i), f"MAG[{int(i)}]", _take(cols, inst_col == i)) for i in np.unique(inst_col)]
         else:
-            inst = 0 if name == "MAG" else int(name[-1]) - 1
-            streams.append((inst, name, rows[name]))
+            streams.append((0 if name == "MAG" else int(name[-1]) - 1, name, cols))
     for inst, label, rs in streams:
         logged = _array(rs, ["MagX", "MagY", "MagZ"])
-        mot_keys = ["MOX", "MOY", "MOZ"] if "MOX" in rs[0] else ["MOfsX", "MOfsY", "MOfsZ"]
-        mot = np.nan_to_num(_array(rs, mot_keys)) if mot_keys[0] in rs[0] else None
+        mot_keys = ["MOX", "MOY", "MOZ"] if "MOX" in rs else ["MOfsX", "MOfsY", "MOfsZ"]
+        mot = np.nan_to_num(_array(rs, mot_keys)) if mot_keys[0] in rs else None
         raw, undone, onboard = undo_ardupilot(logged, params, inst, mot, motor_before_matrix=mot_keys[0] == "MOfsX")
-        ofs_logged = _array(rs, ["OfsX", "OfsY", "OfsZ"]) if "OfsX" in rs[0] else None
-        if ofs_logged is not None and params:
-            ofs_param = onboard_matrix(params, inst)[0]
-            if np.abs(ofs_logged - ofs_param).max() > 1.0:
+        if "OfsX" in rs and params:
+            ofs_logged = _array(rs, ["OfsX", "OfsY", "OfsZ"])
+            if np.abs(ofs_logged - onboard_matrix(params, inst)[0]).max() > 1.0:
                 undone.append("warning: the logged offsets OfsX..Z change during the log or differ from "
                               "COMPASS_OFS*: the parameters at the start of the log were used")
         if not params:
@@ -165,67 +195,81 @@ def _dataflash(path: Path, rows: dict[str, list[dict[str, Any]]], params: dict[s
         mags.append(MagnetometerStream(label, inst, _time_s(rs), raw, logged, "mG", undone,
                                        int(dev) if dev else None, onboard))
     log = VehicleLog(str(path), "ArduPilot DataFlash", mags, parameters=params)
-    if rows.get("ATT"):
-        log.attitude = Channel(_time_s(rows["ATT"]), _array(rows["ATT"], ["Yaw", "Pitch", "Roll"]), "deg", "ATT")
-    bat = rows.get("BAT") or rows.get("CURR") or []
-    if bat:
-        key = "Inst" if "Inst" in bat[0] else ("Instance" if "Instance" in bat[0] else None)
-        first = [r for r in bat if key is None or int(r[key]) == 0]
-        log.channels["current_A"] = Channel(_time_s(first), _array(first, ["Curr"])[:, 0], "A", "BAT.Curr")
-        if "Volt" in first[0]:
-            log.channels["voltage_V"] = Channel(_time_s(first), _array(first, ["Volt"])[:, 0], "V", "BAT.Volt")
-    if rows.get("CTUN") and "ThO" in rows["CTUN"][0]:
-        log.channels["throttle"] = Channel(_time_s(rows["CTUN"]), _array(rows["CTUN"], ["ThO"])[:, 0], "", "CTUN.ThO")
-    if rows.get("RCOU"):
-        rc = rows["RCOU"]
+    att = rows.get("ATT")
+    if _n(att):
+        assert att is not None
+        log.attitude = Channel(_time_s(att), _array(att, ["Yaw", "Pitch", "Roll"]), "deg", "ATT")
+    bat = rows.get("BAT") if _n(rows.get("BAT")) else rows.get("CURR")
+    if _n(bat):
+        assert bat is not None
+        key = "Inst" if "Inst" in bat else ("Instance" if "Instance" in bat else None)
+        first = bat if key is None else _take(bat, np.asarray(bat[key]).astype(int) == 0)
+        if _n(first):
+            log.channels["current_A"] = Channel(_time_s(first), _array(first, ["Curr"])[:, 0], "A", "BAT.Curr")
+            if "Volt" in first:
+                log.channels["voltage_V"] = Channel(_time_s(first), _array(first, ["Volt"])[:, 0], "V", "BAT.Volt")
+    ctun = rows.get("CTUN")
+    if _n(ctun) and ctun is not None and "ThO" in ctun:
+        log.channels["throttle"] = Channel(_time_s(ctun), _array(ctun, ["ThO"])[:, 0], "", "CTUN.ThO")
+    rc = rows.get("RCOU")
+    if _n(rc) and rc is not None:
         for k in range(1, 15):
             key = f"C{k}"
-            if key in rc[0]:
+            if key in rc:
                 v = _array(rc, [key])[:, 0]
                 if np.ptp(v) > 0:
                     log.channels[f"rcou_{key}"] = Channel(_time_s(rc), v, "us", f"RCOU.{key}")
-    gps = [r for r in rows.get("GPS", []) if int(r.get("Status", 0)) >= 3]
-    if gps:
-        g = gps[len(gps) // 2]
-        log.gps = {"lat_deg": float(g["Lat"]), "lon_deg": float(g["Lng"]), "alt_m": float(g["Alt"]),
-                   "date": _gps_date(g["GWk"], g["GMS"]) if "GWk" in g else None}
+    gps = rows.get("GPS")
+    if _n(gps) and gps is not None and "Status" in gps:
+        good = np.flatnonzero(np.asarray(gps["Status"]) >= 3)
+        if len(good):
+            k = int(good[len(good) // 2])
+            log.gps = {"lat_deg": float(gps["Lat"][k]), "lon_deg": float(gps["Lng"][k]), "alt_m": float(gps["Alt"][k]),
+                       "date": _gps_date(gps["GWk"][k], gps["GMS"][k]) if "GWk" in gps else None}
     return log
 
 
-def _tlog(path: Path, rows: dict[str, list[dict[str, Any]]], params: dict[str, float]) -> VehicleLog:
+def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     mags: list[MagnetometerStream] = []
     for inst, name in enumerate(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")):
-        rs = [r for r in rows.get(name, []) if any(r.get(k) for k in ("xmag", "ymag", "zmag"))]
-        if not rs:
+        cols = rows.get(name)
+        if not _n(cols) or cols is None or "xmag" not in cols:
             continue
-        logged = _array(rs, ["xmag", "ymag", "zmag"])
+        logged_all = _array(cols, ["xmag", "ymag", "zmag"])
+        keep = np.any(logged_all != 0, axis=1)
+        if not keep.any():
+            continue
+        rs = _take(cols, keep)
+        logged = logged_all[keep]
         raw, undone, onboard = undo_ardupilot(logged, params, inst) if params else (logged, [
             "warning: no PARAM_VALUE messages: the onboard calibration cannot be undone"], {})
         dev = params.get(f"COMPASS_DEV_ID{_suffix(inst)}")
         mags.append(MagnetometerStream(name, inst, _time_s(rs, receipt=True), raw, logged, "mG", undone,
                                        int(dev) if dev else None, onboard))
     log = VehicleLog(str(path), "MAVLink telemetry", mags, parameters=params)
-    if rows.get("ATTITUDE"):
-        att = np.degrees(_array(rows["ATTITUDE"], ["yaw", "pitch", "roll"]))
-        log.attitude = Channel(_time_s(rows["ATTITUDE"], receipt=True), att, "deg", "ATTITUDE")
-    bat = rows.get("BATTERY_STATUS") or []
-    if bat:
-        amps = _array(bat, ["current_battery"])[:, 0] / 100.0  # cA
-        log.channels["current_A"] = Channel(_time_s(bat, receipt=True), amps, "A", "BATTERY_STATUS.current_battery")
-    elif rows.get("SYS_STATUS"):
-        ss = rows["SYS_STATUS"]
-        amps = _array(ss, ["current_battery"])[:, 0] / 100.0
-        log.channels["current_A"] = Channel(_time_s(ss, receipt=True), amps, "A", "SYS_STATUS.current_battery")
-    if rows.get("VFR_HUD"):
-        hud = rows["VFR_HUD"]
+    att = rows.get("ATTITUDE")
+    if _n(att) and att is not None:
+        log.attitude = Channel(_time_s(att, receipt=True), np.degrees(_array(att, ["yaw", "pitch", "roll"])), "deg",
+                               "ATTITUDE")
+    for name in ("BATTERY_STATUS", "SYS_STATUS"):
+        bat = rows.get(name)
+        if _n(bat) and bat is not None and "current_battery" in bat:
+            amps = _array(bat, ["current_battery"])[:, 0] / 100.0  # cA
+            log.channels["current_A"] = Channel(_time_s(bat, receipt=True), amps, "A", f"{name}.current_battery")
+            break
+    hud = rows.get("VFR_HUD")
+    if _n(hud) and hud is not None:
         log.channels["throttle"] = Channel(_time_s(hud, receipt=True), _array(hud, ["throttle"])[:, 0], "%",
                                            "VFR_HUD.throttle")
-    pos = [r for r in rows.get("GLOBAL_POSITION_INT", []) if r.get("lat")]
-    if pos:
-        g = pos[len(pos) // 2]
-        ts = g.get("_timestamp")
-        log.gps = {"lat_deg": g["lat"] * 1e-7, "lon_deg": g["lon"] * 1e-7, "alt_m": g["alt"] * 1e-3,
-                   "date": _dt.datetime.fromtimestamp(ts, _dt.UTC).date().isoformat() if ts else None}
+    pos = rows.get("GLOBAL_POSITION_INT")
+    if _n(pos) and pos is not None:
+        good = np.flatnonzero(np.asarray(pos["lat"]) != 0)
+        if len(good):
+            k = int(good[len(good) // 2])
+            ts = float(pos["_timestamp"][k]) if "_timestamp" in pos else None
+            log.gps = {"lat_deg": float(pos["lat"][k]) * 1e-7, "lon_deg": float(pos["lon"][k]) * 1e-7,
+                       "alt_m": float(pos["alt"][k]) * 1e-3,
+                       "date": _dt.datetime.fromtimestamp(ts, _dt.UTC).date().isoformat() if ts else None}
     return log
 
 
