@@ -95,7 +95,7 @@ def _to_unit(cal: Calibration, value: NDArray[np.float64], unit: str) -> NDArray
 
 def _param_file(params: dict[str, float], header: list[str]) -> str:
     lines = [f"# {h}" for h in header]
-    lines += [f"{name},{value:.9g}" for name, value in params.items()]
+    lines += [f"{name},{value:.9g}" for name, value in sorted(params.items())]  # sorted, as MAGFit's files
     return "\n".join(lines) + "\n"
 
 
