@@ -279,13 +279,23 @@ def _constrained_inverse(J: NDArray[np.float64], grad: NDArray[np.float64] | Non
         _, _, vt = np.linalg.svd(grad[None, :])
         U = vt[1:].T
     M = U.T @ J @ U
-    ev = np.linalg.eigvalsh(M)
+    # Jacobi scaling before the singularity test: parameters in different units (a dimensionless matrix, offsets
+    # in nT or uT) give eigenvalues that differ by the unit's square, so an unscaled threshold depended on the unit
+    d = np.sqrt(np.clip(np.diag(M), 0.0, None))
+    if not np.all(d > 0):
+        raise IdentifiabilityError(
+            "the Fisher information is singular: the directions given cannot identify the model's "
+            "parameters; add directions turning the sensor about all three axes"
+        )
+    Ms = M / np.outer(d, d)
+    ev = np.linalg.eigvalsh(Ms)
     if ev[0] <= ev[-1] * 1e-14:
         raise IdentifiabilityError(
             "the Fisher information is singular: the directions given cannot identify the model's "
             "parameters; add directions turning the sensor about all three axes"
         )
-    return np.asarray(U @ np.linalg.solve(M, U.T), dtype=np.float64)
+    inv = np.linalg.solve(Ms, np.eye(len(Ms))) / np.outer(d, d)
+    return np.asarray(U @ inv @ U.T, dtype=np.float64)
 
 
 def predicted_errors(

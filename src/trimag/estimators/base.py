@@ -19,6 +19,7 @@ from .._threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import diagnostic_subsample, sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
+from ..honesty import honest_uncertainty
 from ..metrics import before_after_stats, row_norms
 from ..models import get_model
 from ..reference import ScalarReference
@@ -136,6 +137,7 @@ class Estimator:
         unit = normalise_unit(units)
         with one_blas_thread():  # small BLAS calls only: a second thread would just spin-wait (trimag._threads)
             cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
+            cal = honest_uncertainty(cal, X, reference)  # repeated rows, correlated residuals, few samples
         self.calibration_ = cal
         self.n_samples_ = int(X.shape[0])
         # residuals_ is computed on first access (trimag.fit never needs it: one pass less over the data)
