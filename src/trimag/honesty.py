@@ -9,8 +9,8 @@ residual per sample. Real logs break that in three ways, each corrected here aft
 2. **Correlated residuals.** Residuals of real logs are mostly slowly varying model error, not white noise:
    consecutive samples carry much less than independent information. The covariance is multiplied by the integrated
    autocorrelation time ``tau = 1 + 2 sum_k rho_k`` of the magnitude residuals in sample order, summed while
-   ``rho_k`` is significant (above ``2 / sqrt(m)``), up to lag ``m / 4``, measured (by FFT) on the whole log or,
-   above 16 384 samples, on two windows of 16 384 consecutive samples (the larger of the two). On white
+   ``rho_k`` is significant (above ``2 / sqrt(m)``), up to lag ``m / 4``, measured (by FFT) on 4 096 consecutive
+   samples in the middle of the log, or on 32 768 when the residuals are still correlated at a quarter of that. On white
    noise ``tau`` is 1 (the Cramér–Rao bound and the coverage of simulations are unchanged).
 3. **Drift.** The offset is refitted on the first and on the second half of the log (the matrix fixed, one
    linearised step each, on up to 1 000 evenly spread samples per half); when the two differ by more than 4 of
@@ -31,20 +31,21 @@ from .calibration import Calibration
 
 __all__ = ["correlation_time", "count_repeated_rows", "drift_check", "honest_uncertainty"]
 
-_WINDOW = 16_384
-_N_WINDOWS = 2
+_SHORT = 4_096
+_LONG = 32_768
 _EXACT_DUPLICATES_UP_TO = 20_000  # rows checked for repeats (the first ones of a longer log)
 _DRIFT_SAMPLES = 1_000  # per half, evenly spread
 
 
-def _windows(n: int) -> list[tuple[int, int]]:
-    if n <= _WINDOW * _N_WINDOWS:
+def _windows(n: int, length: int) -> list[tuple[int, int]]:
+    """One window of ``length`` consecutive samples in the middle of the log (the whole log when shorter)."""
+    if n <= length:
         return [(0, n)]
-    starts = np.linspace(0, n - _WINDOW, _N_WINDOWS + 2).astype(int)[1:-1]  # inside the log, not at its ends
-    return [(int(s), int(s) + _WINDOW) for s in starts]
+    start = (n - length) // 2
+    return [(start, start + length)]
 
 
-def correlation_time(residuals: NDArray[np.float64]) -> float:
+def correlation_time(residuals: NDArray[np.float64], *, truncated: list[bool] | None = None) -> float:
     """Integrated autocorrelation time ``1 + 2 sum rho_k`` of a series (1 for white noise), summed while significant.
 
     Parameters
@@ -63,6 +64,8 @@ def correlation_time(residuals: NDArray[np.float64]) -> float:
     rho = acf[1:] / acf[0]
     below = np.flatnonzero(rho < 2.0 / np.sqrt(m))  # summed up to the first insignificant lag
     stop = int(below[0]) if len(below) else len(rho)
+    if truncated is not None:
+        truncated.append(not len(below))
     return float(max(1.0, 1.0 + 2.0 * rho[:stop].sum()))
 
 
@@ -79,10 +82,12 @@ def count_repeated_rows(X: NDArray[np.float64]) -> int:
     return int(np.all(X[order[same + 1]] == X[order[same]], axis=1).sum())
 
 
-def _magnitude_residuals(cal: Calibration, X: NDArray[np.float64], reference: Any) -> list[NDArray[np.float64]]:
+def _magnitude_residuals(
+    cal: Calibration, X: NDArray[np.float64], reference: Any, length: int
+) -> list[NDArray[np.float64]]:
     out = []
     ref = getattr(reference, "values", reference)
-    for a, b in _windows(len(X)):
+    for a, b in _windows(len(X), length):
         block = X[a:b]
         fresh = np.ones(len(block), dtype=bool)
         fresh[1:] = np.any(block[1:] != block[:-1], axis=1)  # a row repeating the previous one is counted as such
@@ -181,8 +186,10 @@ def honest_uncertainty(
     if n_duplicates:
         factors["repeated_rows"] = n / max(n - n_duplicates, 1)
     if cal.model != "interference12":
-        taus = [correlation_time(r) for r in _magnitude_residuals(cal, X, reference)]
-        tau = float(np.max(taus))
+        truncated: list[bool] = []
+        tau = max(correlation_time(r, truncated=truncated) for r in _magnitude_residuals(cal, X, reference, _SHORT))
+        if any(truncated) and len(X) > _SHORT:  # correlated beyond a quarter of the window: look at a longer one
+            tau = max(correlation_time(r) for r in _magnitude_residuals(cal, X, reference, _LONG))
         if tau > 1.0:
             factors["correlated_residuals"] = tau
     total = float(np.prod(list(factors.values()))) if factors else 1.0
