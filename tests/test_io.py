@@ -45,13 +45,17 @@ def test_header_recognition(tmp_path: Path, header: str, expected: tuple[str, st
     assert s.columns == expected
 
 
-def test_first_three_numeric_columns_skip_time(tmp_path: Path) -> None:
+def test_three_candidate_columns_skip_time_and_four_are_not_guessed(tmp_path: Path) -> None:
+    # issue 22: columns are never guessed silently; with four candidates the user chooses (exit 2)
     data = np.column_stack([np.arange(20) * 0.1, np.random.default_rng(0).normal(size=(20, 4))])
     p = tmp_path / "n.csv"
     np.savetxt(p, data, delimiter=",", header="time,a,b,c,d", comments="")
+    with pytest.raises(TrimagInputError, match=r"several columns could be .*a, b, c, d.*--columns"):
+        read_samples(p)
+    np.savetxt(p, data[:, :4], delimiter=",", header="time,a,b,c", comments="")
     s = read_samples(p)
     assert s.columns == ("a", "b", "c")
-    assert "first three numeric" in s.column_note and "time" in s.column_note
+    assert "only three" in s.column_note and "time" in s.column_note
 
 
 def test_columns_by_name_and_index(tmp_path: Path) -> None:

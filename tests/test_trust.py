@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import trimag
 
-from _helpers import ellipsoid_truth, simulate_ellipsoid
+from _helpers import ellipsoid_truth, run_trimag, simulate_ellipsoid
 
 
 def _cone(n: int, half_deg: float, seed: int = 0, F: float = 50_000.0, noise: float = 5.0) -> np.ndarray:
@@ -80,3 +82,50 @@ def test_a_log_whose_offset_changes_halfway_is_flagged_with_the_size_of_the_chan
     assert moved.diagnostics["drift"]["drift"] is True
     assert moved.diagnostics["drift"]["offset_change"][0] == pytest.approx(150.0, rel=0.1)
     assert any("changed during the log" in w for w in moved.diagnostics["warnings"])
+
+
+def _wide_log(path: Path, n: int = 400) -> None:
+    """A robot log as the finding's: counters and time stamps before the field, accelerometer columns beside it."""
+    rng = np.random.default_rng(0)
+    mag = simulate_ellipsoid(n, noise=0.2, seed=3, F=50.0)
+    cols = {
+        "loop_index": np.arange(n), "last_step_ns": rng.integers(900_000, 1_100_000, n),
+        "imu_time_ns": 1_000_000 * np.arange(n) + 5, "unix_time": 1.7e9 + 0.02 * np.arange(n),
+        "imu_ax": rng.normal(size=n), "imu_ay": rng.normal(size=n), "imu_az": 9.8 + rng.normal(size=n),
+        "mag_X_uT": mag[:, 0], "mag_Y_uT": mag[:, 1], "mag_Z_uT": mag[:, 2], "battery_V": 12 + 0 * mag[:, 0],
+    }
+    header = ",".join(cols)
+    np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=header, comments="", fmt="%.9g")
+
+
+def test_wide_log_columns_are_not_guessed_from_counters_or_accelerometers(tmp_path: Path):
+    """Finding: without --columns, fit took loop_index, last_step_ns, imu_time_ns (or unix_time, imu_ax, imu_ay)."""
+    from trimag.io import read_samples
+
+    p = tmp_path / "robot.csv"
+    _wide_log(p)
+    s = read_samples(p)
+    assert s.columns == ("mag_X_uT", "mag_Y_uT", "mag_Z_uT")
+
+
+@pytest.mark.parametrize("header,expected", [("ax,ay,az", "needs three"), ("count,v_min,v_max", "needs three")])
+def test_accelerometer_and_statistics_files_are_refused(tmp_path: Path, header: str, expected: str):
+    """Finding (field-check): an accelerometer log and a statistics table were fitted as if magnetometers."""
+    p = tmp_path / "log.csv"
+    rng = np.random.default_rng(1)
+    np.savetxt(p, rng.normal(size=(200, 3)) + np.array([0, 0, 9.8]), delimiter=",", header=header, comments="")
+    r = run_trimag("fit", p)
+    assert r.returncode == 2 and expected in r.stderr and "--columns" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_evaluate_and_apply_on_a_wide_log_use_the_field_columns(tmp_path: Path):
+    """Finding: evaluate and apply exited 0 with |B| mean 1.5e18 (they took counters and time stamps)."""
+    p = tmp_path / "robot.csv"
+    _wide_log(p)
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", p, "--units", "uT", "-o", cal).returncode == 0
+    r = run_trimag("evaluate", cal, p, "--json")
+    assert r.returncode == 0, r.stderr
+    ev = json.loads(r.stdout)
+    assert ev["columns"] == ["mag_X_uT", "mag_Y_uT", "mag_Z_uT"] and ev["mean_norm_after"] < 100

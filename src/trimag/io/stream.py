@@ -190,7 +190,7 @@ def open_chunks(
         head.columns = [str(c).strip() for c in head.columns]
         if len(head) == 0:
             raise TrimagInputError(f"{p}: the file has a header but no data rows")
-        cols, note = resolve_columns(head, columns)
+        cols, note = resolve_columns(head, columns, str(path))
         names = list(head.columns)
         source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names)
 
@@ -251,7 +251,7 @@ def open_chunks(
         head = first.to_pandas() if first is not None else pd.DataFrame(columns=names)
         if len(head) == 0:
             raise TrimagInputError(f"{p}: the file has no data rows")
-        cols, note = resolve_columns(head, columns)
+        cols, note = resolve_columns(head, columns, str(path))
         source = ChunkSource(kind, cols, note, all_columns=names)
 
         def gen_parquet() -> Iterator[Chunk]:
@@ -262,7 +262,7 @@ def open_chunks(
 
         return source, gen_parquet()
     df = read_table(p, fmt=kind, var=var)
-    cols, note = resolve_columns(df, columns)
+    cols, note = resolve_columns(df, columns, str(path))
     source = ChunkSource(kind, cols, note, all_columns=list(df.columns))
 
     def gen_whole() -> Iterator[Chunk]:

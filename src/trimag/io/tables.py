@@ -461,7 +461,7 @@ def _numeric(series: pd.Series) -> NDArray[np.float64]:
 
 
 def resolve_columns(
-    df: pd.DataFrame, columns: str | Sequence[str | int] | None
+    df: pd.DataFrame, columns: str | Sequence[str | int] | None, source: str | None = None
 ) -> tuple[tuple[str, str, str], str]:
     """Choose the x, y, z columns: given names or 0-based indices, else x/y/z-like header names, else the first
     three numeric non-time columns. Returns the names and a note saying how they were chosen."""
@@ -495,28 +495,69 @@ def resolve_columns(
     if all(len(v) == 1 for v in by_axis.values()):
         chosen3 = (by_axis["x"][0], by_axis["y"][0], by_axis["z"][0])
         return chosen3, f"using columns {', '.join(chosen3)} (recognised from the header)"
-    numeric_cols = []
-    skipped = []
+    return _columns_by_content(df, names, source)
+
+
+#: header words that name something other than a magnetometer axis
+_NOT_FIELD = re.compile(
+    r"(acc|gyr|gyro|rate|temp|time|stamp|_ns\b|_us\b|_ms\b|index|idx|count|loop|step|seq|frame|lat|lon|alt|"
+    r"roll|pitch|yaw|heading|quat|\bq[wxyz0-3]\b|volt|curr|press|baro|min\b|max\b|mean|std|var\b|\bg[xyz]\b|"
+    r"\ba[xyz]\b|vel|pos|speed|gps|thr|pwm|rc)", re.I
+)
+_NOT_FIELD_FILE = re.compile(r"(accel|gyro|temperature|stats)", re.I)
+
+
+def _columns_by_content(
+    df: pd.DataFrame, names: list[str], source: str | None
+) -> tuple[tuple[str, str, str], str]:
+    """The x, y, z columns when the header does not name them: never a guess between several candidates.
+
+    A column is excluded when its name says it is something else (accelerometer, gyroscope, time, counter,
+    attitude, statistics...), or its numbers do: constant, mostly missing, increasing at every row (a clock or an
+    index). Exactly three left: used, and said so. More: the user chooses (exit 2, candidates listed). Fewer: exit 2.
+    """
+    candidates: list[str] = []
+    skipped: dict[str, list[str]] = {}
+
+    def skip(name: str, why: str) -> None:
+        skipped.setdefault(why, []).append(name)
+
     for name in names:
         values = _numeric(df[name])
         finite = values[np.isfinite(values)]
         if len(finite) < max(1, 0.5 * len(values)):
-            continue
-        if name.strip().lower() in _TIME_NAMES or (
-            len(finite) > 10 and np.all(np.diff(finite) > 0)
-        ):
-            skipped.append(name)
-            continue
-        numeric_cols.append(name)
-    if len(numeric_cols) < 3:
+            continue  # not numeric
+        label = name.strip().lower()
+        if label in _TIME_NAMES or (len(finite) > 10 and np.all(np.diff(finite) > 0)):
+            skip(name, "time or counter")
+        elif not re.fullmatch(r"col\d+", label) and _NOT_FIELD.search(label):
+            skip(name, "named as another quantity")
+        elif len(finite) > 1 and np.ptp(finite) == 0:
+            skip(name, "constant")
+        else:
+            candidates.append(name)
+    skipped_txt = "; ".join(f"{why}: {', '.join(cols)}" for why, cols in skipped.items())
+    headerless = all(re.fullmatch(r"col\d+", n) for n in names)
+    if headerless and source and _NOT_FIELD_FILE.search(Path(source).name):
         raise TrimagInputError(
-            f"found only {len(numeric_cols)} numeric field column(s) ({', '.join(numeric_cols) or 'none'}); "
-            "a magnetometer log needs three (x, y, z); name them with --columns"
+            f"the file name says this is not a magnetometer log ({Path(source).name}); if it is one, name the x, y, "
+            "z columns with --columns"
         )
-    chosen3 = (numeric_cols[0], numeric_cols[1], numeric_cols[2])
-    note = f"using columns {', '.join(chosen3)} (the first three numeric columns"
-    note += f"; skipped time-like {', '.join(skipped)})" if skipped else ")"
-    return chosen3, note + "; choose others with --columns"
+    if len(candidates) == 3:
+        chosen3 = (candidates[0], candidates[1], candidates[2])
+        note = f"using columns {', '.join(chosen3)} (the only three that can be a field"
+        note += f"; skipped {skipped_txt})" if skipped_txt else ")"
+        return chosen3, note + "; choose others with --columns"
+    if len(candidates) > 3:
+        raise TrimagInputError(
+            f"several columns could be the magnetometer's x, y, z ({', '.join(candidates)}); "
+            "name them with --columns X,Y,Z"
+        )
+    raise TrimagInputError(
+        f"found {len(candidates)} column(s) that can be a magnetometer axis ({', '.join(candidates) or 'none'}"
+        f"{'; skipped ' + skipped_txt if skipped_txt else ''}); a magnetometer log needs three (x, y, z): "
+        "name them with --columns"
+    )
 
 
 def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = None) -> tuple[pd.DataFrame, str]:
@@ -605,7 +646,7 @@ def read_samples(
         cols = ("mag_x", "mag_y", "mag_z")
         note = f"using {log_info['sensor']} (calibration undone: mag_x, mag_y, mag_z)"
     else:
-        cols, note = resolve_columns(df, columns)
+        cols, note = resolve_columns(df, columns, str(p))
     df, selection = select_rows(df, rows, where)
     xyz = np.column_stack([_numeric(df[c]) for c in cols])
     ok = np.isfinite(xyz).all(axis=1)
