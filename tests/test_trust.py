@@ -129,3 +129,27 @@ def test_evaluate_and_apply_on_a_wide_log_use_the_field_columns(tmp_path: Path):
     assert r.returncode == 0, r.stderr
     ev = json.loads(r.stdout)
     assert ev["columns"] == ["mag_X_uT", "mag_Y_uT", "mag_Z_uT"] and ev["mean_norm_after"] < 100
+
+
+def _log(path: Path, B: np.ndarray, header: str = "x,y,z") -> Path:
+    np.savetxt(path, B, delimiter=",", header=header, comments="", fmt="%.6f")
+    return path
+
+
+def test_nT_data_declared_as_uT_is_warned_and_refused_against_a_reference(tmp_path: Path):
+    """Finding: nT data declared as uT was accepted silently (F = 49776.9 uT), and gave +-inf against --igrf."""
+    p = _log(tmp_path / "log.csv", simulate_ellipsoid(600, noise=5.0, seed=1, F=49_800.0))
+    r = run_trimag("fit", p, "--units", "uT")
+    assert r.returncode == 0 and "not a plausible Earth field in uT" in r.stderr and "nT" in r.stderr
+    r = run_trimag("fit", p, "--units", "uT", "--igrf", "52.5,13.4,40,2024-06-01")
+    assert r.returncode == 2 and "not in uT" in r.stderr and "look like nT" in r.stderr
+    assert run_trimag("fit", p, "--units", "nT", "--igrf", "52.5,13.4,40,2024-06-01").returncode == 0
+
+
+def test_unit_in_the_header_is_checked_against_units(tmp_path: Path):
+    """Finding: a unit in a header (Mx (uT)) was not checked against --units."""
+    p = _log(tmp_path / "log.csv", simulate_ellipsoid(600, noise=0.005, seed=1, F=49.8), "Mx (uT),My (uT),Mz (uT)")
+    r = run_trimag("fit", p, "--units", "nT")
+    assert r.returncode == 2 and "headers say uT" in r.stderr
+    r = run_trimag("fit", p, "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["units"] == "uT"

@@ -87,3 +87,33 @@ def convert(value: float, from_unit: str, to_unit: str) -> float:
     if normalise_unit(from_unit) == normalise_unit(to_unit):
         return float(value)
     return float(value) * nT_per_unit(from_unit) / nT_per_unit(to_unit)
+
+
+#: magnitudes of a raw Earth-field reading that a calibration can start from, nT: the weakest main field (~22 uT)
+#: with a strong hard iron against it, up to the strongest (~67 uT) with a strong hard iron adding to it
+EARTH_RAW_RANGE_NT = (5_000.0, 300_000.0)
+
+
+
+def plausible_units(median_norm: float) -> list[str]:
+    """Physical units in which a raw magnitude of ``median_norm`` is a plausible Earth-field reading."""
+    lo, hi = EARTH_RAW_RANGE_NT
+    return [u for u, f in UNITS.items() if f is not None and u != "1e4nT" and lo <= median_norm * f <= hi]
+
+
+def header_unit(names: list[str]) -> str | None:
+    """The unit written in the x, y, z column headers (``Mx (uT)``, ``mag_x_nT``, ``Bx[G]``), if one and the same."""
+    import re
+
+    pattern = re.compile(r"(?:[\(\[]\s*|[_\s])(nT|uT|µT|μT|mG|mGauss|G|gauss|Gauss)\s*[\)\]]?\s*$")
+    found = set()
+    for name in names:
+        m = pattern.search(str(name))
+        if m is None:
+            return None
+        token = m.group(1)
+        found.add(normalise_unit("mG" if token.lower() == "mgauss" else token))
+    return found.pop() if len(found) == 1 else None
+
+
+__all__ += ["EARTH_RAW_RANGE_NT", "header_unit", "plausible_units"]

@@ -181,6 +181,59 @@ def _drop_rows_without_attitude(
     return kept, n_bad
 
 
+def _check_unit(
+    samples: Samples, units: str | None, reference: str | float | None, igrf_spec: str | None
+) -> tuple[str | None, list[str]]:
+    """The data's unit, checked against the column headers, Earth-field ranges and the reference (issue 22).
+
+    A unit in the headers that contradicts ``units`` is refused (exit 2); without ``units`` it is used. A median
+    magnitude that is not a plausible Earth field in the declared unit is a warning naming the likely unit, and
+    an error when a reference (a number or IGRF) makes the contradiction certain.
+    """
+    from .units import EARTH_RAW_RANGE_NT, header_unit, nT_per_unit, plausible_units
+
+    messages: list[str] = []
+    in_header = header_unit(list(samples.columns))
+    if in_header is not None:
+        if units is not None and normalise_unit(units) != in_header:
+            raise TrimagInputError(
+                f"the column headers say {in_header} ({', '.join(samples.columns)}) but units={units!r}; "
+                "give the data's real unit"
+            )
+        if units is None:
+            units = in_header
+            messages.append(f"unit {in_header} (from the column headers)")
+    unit = normalise_unit(units)
+    if unit in ("unknown", "counts") or not len(samples.field):
+        return units, messages
+    median = float(np.median(np.linalg.norm(samples.field, axis=1)))
+    lo, hi = (v / nT_per_unit(unit) for v in EARTH_RAW_RANGE_NT)
+    if lo <= median <= hi:
+        return units, messages
+    likely = plausible_units(median)
+    guess = f"; the numbers look like {' or '.join(likely)}" if likely else ""
+    F_nT: float | None = None
+    if igrf_spec is not None:
+        F_nT = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT)
+    elif reference is not None and str(reference).strip().lower() != "mean":
+        try:
+            F_nT = float(reference) * nT_per_unit(unit)
+        except ValueError:
+            F_nT = None
+    if F_nT is not None:
+        ratio = median * nT_per_unit(unit) / F_nT
+        if not 0.2 <= ratio <= 5.0:
+            raise TrimagInputError(
+                f"the data's median |B| is {median:.6g} {unit}, {ratio:.3g}x the reference field "
+                f"({F_nT / nT_per_unit(unit):.6g} {unit}): the data are not in {unit}{guess}; give the right unit"
+            )
+    messages.append(
+        f"warning: the data's median |B| = {median:.6g} {unit} is not a plausible Earth field in {unit} "
+        f"({lo:.3g}-{hi:.3g}){guess}; check the unit"
+    )
+    return units, messages
+
+
 def _refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
     from .errors import IdentifiabilityError
@@ -291,6 +344,8 @@ def fit_file(
             attitude_columns = "yaw_deg,pitch_deg,roll_deg"
         if columns is None:
             _refuse_static_log(samples, log_info)
+    units, unit_messages = _check_unit(samples, units, reference, igrf_spec)
+    messages += unit_messages
     unit = normalise_unit(units)
     if samples.column_note:
         messages.append(samples.column_note)
