@@ -153,3 +153,90 @@ def test_unit_in_the_header_is_checked_against_units(tmp_path: Path):
     assert r.returncode == 2 and "headers say uT" in r.stderr
     r = run_trimag("fit", p, "--json")
     assert r.returncode == 0 and json.loads(r.stdout)["units"] == "uT"
+
+
+@pytest.fixture
+def fitted(tmp_path: Path) -> tuple[Path, Path]:
+    log = _log(tmp_path / "log.csv", simulate_ellipsoid(1500, noise=5.0, seed=1))
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", log, "--units", "nT", "-o", cal).returncode == 0
+    return log, cal
+
+
+def test_user_mistakes_exit_2_with_one_line(tmp_path: Path, fitted: tuple[Path, Path]):
+    """Finding: unwritable output, a folder as calibration, a non-numeric matrix entry, a latin-1 header and a row
+    with an extra field exited 1 ("internal error, please report")."""
+    log, cal = fitted
+    bad = json.loads(cal.read_text())
+    bad["matrix"][0][0] = "abc"
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes("x\xe9,y,z\n".encode("latin-1") + log.read_bytes().split(b"\n", 1)[1])
+    extra = tmp_path / "extra.csv"
+    extra.write_text("x,y,z\n1,2,3\n4,5,6,7\n" + log.read_text().split("\n", 1)[1])
+    cases = [
+        ("fit", log, "--units", "nT", "-o", log / "cal.json"),
+        ("apply", tmp_path, log, "-o", tmp_path / "o.csv"),
+        ("apply", tmp_path / "bad.json", log, "-o", tmp_path / "o.csv"),
+        ("apply", cal, latin, "-o", tmp_path / "o.csv"),
+        ("apply", cal, extra, "-o", tmp_path / "o.csv"),
+        ("apply", cal, log, "-o", tmp_path / "out.json"),
+    ]
+    for args in cases:
+        r = run_trimag(*args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr and "internal" not in r.stderr
+    assert "line 3 has 4 fields" in run_trimag("apply", cal, extra, "-o", tmp_path / "o.csv").stderr
+    assert not (tmp_path / "o.csv").exists() and not (tmp_path / "out.json").exists()
+
+
+def test_outputs_appear_together_or_not_at_all(tmp_path: Path, fitted: tuple[Path, Path]):
+    """Finding: the calibration JSON was left behind when --report failed."""
+    log, _ = fitted
+    out = tmp_path / "new.json"
+    r = run_trimag("fit", log, "--units", "nT", "-o", out, "--report", log / "r.png")
+    assert r.returncode == 2 and not out.exists()
+
+
+def test_unknown_model_in_a_calibration_file_is_refused(tmp_path: Path, fitted: tuple[Path, Path]):
+    """Finding: an unknown model name in a calibration file was used silently."""
+    log, cal = fitted
+    data = json.loads(cal.read_text())
+    data["model"] = "nonsense"
+    (tmp_path / "unk.json").write_text(json.dumps(data))
+    r = run_trimag("evaluate", tmp_path / "unk.json", log)
+    assert r.returncode == 2 and "unknown model 'nonsense'" in r.stderr
+
+
+def test_calibration_records_its_source_and_columns(fitted: tuple[Path, Path]):
+    log, cal = fitted
+    stats = json.loads(cal.read_text())["stats"]
+    assert stats["source"] == str(log) and stats["columns"] == ["x", "y", "z"]
+
+
+def test_sigterm_during_apply_leaves_no_temporary_file(tmp_path: Path, fitted: tuple[Path, Path], monkeypatch):
+    """Finding: SIGTERM during apply left a hidden 71 MB temporary file."""
+    import os
+    import signal
+
+    import trimag.io.stream as stream
+    from trimag.cli import main
+
+    log, cal = fitted
+    real = stream._correct
+    calls = {"n": 0}
+
+    def correct_then_terminate(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stream, "_correct", correct_then_terminate)
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        code = main(["apply", str(cal), str(log), "-o", str(tmp_path / "o.csv"), "--chunk-rows", "100", "-q"])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert code == 143
+    assert not list(tmp_path.glob(".o.csv*")) and not (tmp_path / "o.csv").exists()

@@ -306,6 +306,14 @@ class Calibration:
             from .io.legacy import migrate
 
             data = migrate(data)
+        from .models import MODELS
+
+        model = str(data.get("model", "affine"))
+        if model not in MODELS and model != "affine":
+            raise CalibrationFormatError(
+                f"calibration file names an unknown model {model!r} (known: affine, {', '.join(MODELS)}); "
+                "it was not written by this trimag or was edited"
+            )
         try:
             return cls(
                 matrix=_frozen_array(data["matrix"], (3, 3), "matrix"),
@@ -324,6 +332,8 @@ class Calibration:
             )
         except KeyError as exc:
             raise CalibrationFormatError(f"calibration file lacks the entry {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise CalibrationFormatError(f"calibration file has a non-numeric or misshapen entry: {exc}") from None
 
     @classmethod
     def from_json(cls, text: str) -> Calibration:
@@ -338,6 +348,8 @@ class Calibration:
     def from_file(cls, path: str | os.PathLike[str]) -> Calibration:
         """Read a calibration JSON file."""
         p = Path(path)
+        if p.is_dir():
+            raise TrimagInputError(f"{p} is a folder; give a calibration file (.json)")
         if not p.is_file():
             raise TrimagInputError(f"calibration file {str(p)!r} does not exist")
         return cls.from_json(p.read_text(encoding="utf-8"))

@@ -22,6 +22,10 @@ __all__ = ["build_parser", "main"]
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_IDENTIFIABILITY = 0, 1, 2, 3
 
 
+class _Terminated(BaseException):
+    """Raised by the SIGTERM handler so that ``finally`` and cleanup code run (no stray temporary files)."""
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> Any:  # one line, exit 2
         sys.stderr.write(f"trimag: error: {message} (see `{self.prog} --help`)\n")
@@ -253,17 +257,23 @@ def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _check_writable(path: str) -> None:
-    """Refuse an output path that cannot be written, before any work is done."""
+def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None) -> None:
+    """Refuse an output path that cannot be written (or has the wrong extension), before any work is done."""
+    import os
+
+    if path is None:
+        return
     target = Path(path)
     if target.is_dir():
         raise TrimagInputError(f"{path} is a folder; give a file name for the output")
-    parent = target.parent if str(target.parent) else Path(".")
-    probe = parent
+    if suffixes is not None and target.suffix.lower() not in suffixes:
+        raise TrimagInputError(f"cannot write {target.suffix or 'extension-less'} files here ({path}); use one of "
+                               f"{', '.join(suffixes)}")
+    probe = target.parent if str(target.parent) else Path(".")
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
-    import os
-
+    if not probe.is_dir():
+        raise TrimagInputError(f"cannot write {path}: {probe} is a file, not a folder")
     if not os.access(probe, os.W_OK):
         raise TrimagInputError(f"cannot write {path}: no write permission in {probe}")
 
@@ -271,6 +281,8 @@ def _check_writable(path: str) -> None:
 def _cmd_fit(args: argparse.Namespace) -> int:
     from .workflow import fit_file, parse_options
 
+    _check_writable(args.out)
+    _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
     if args.model == "tolles-lawson":
         return _cmd_fit_tolles_lawson(args)
 
@@ -299,6 +311,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     from .aircraft import apply_compensation_file, is_compensation_file
     from .workflow import apply_to_file
 
+    _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
     if is_compensation_file(args.calibration):
         r = apply_compensation_file(args.calibration, args.data, args.out, fmt=args.fmt, var=args.var,
                                     columns=_split_list(args.columns), scalar_column=args.scalar_column,
@@ -494,8 +507,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         "reproduce": lambda a: _cmd_experiment(a, "reproduce"),
         "bench": lambda a: _cmd_experiment(a, "bench"),
     }
+    import signal
+
+    def _terminate(signum: int, frame: Any) -> None:  # SIGTERM unwinds like Ctrl-C: temporary files are removed
+        raise _Terminated()
+
+    try:
+        signal.signal(signal.SIGTERM, _terminate)
+    except ValueError:  # not the main thread (main() called from a thread): keep the default
+        pass
     try:
         return handlers[args.command](args)
+    except _Terminated:
+        _err("terminated")
+        return 143
+    except UnicodeDecodeError as exc:
+        _err(f"error: the file is not UTF-8 text (byte {exc.object[exc.start:exc.start + 1]!r} at position "
+             f"{exc.start}); save it as UTF-8")
+        return EXIT_INPUT
+    except OSError as exc:  # the user's files: missing, unreadable, unwritable, a folder, a full disk
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        _err(f"error: cannot read or write{where}: {exc.strerror or exc}")
+        return EXIT_INPUT
     except IdentifiabilityError as exc:
         _err(f"cannot identify the model: {exc}")
         return EXIT_IDENTIFIABILITY

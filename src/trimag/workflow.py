@@ -409,14 +409,20 @@ def fit_file(
     summary = fit_summary(cal, samples)
     summary["warnings"] = warn_texts
     written: dict[str, str] = {}
-    if out is not None:
-        written["calibration"] = str(cal.to_file(out))
-    if report is not None:
-        from .report import fit_report, save_figure
+    try:  # the outputs appear together or not at all: the report first (it can fail), then the calibration
+        if report is not None:
+            from .report import fit_report, save_figure
 
-        notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
-        title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"
-        written["report"] = str(save_figure(fit_report(samples.field, cal, title=title, notes=notes), report))
+            notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
+            title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"
+            written["report"] = str(save_figure(fit_report(samples.field, cal, title=title, notes=notes), report))
+        if out is not None:
+            cal = cal.with_stats(source=str(path), columns=list(samples.columns))
+            written["calibration"] = str(cal.to_file(out))
+    except BaseException:
+        for done in written.values():
+            Path(done).unlink(missing_ok=True)
+        raise
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
 

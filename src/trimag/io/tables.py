@@ -201,6 +201,13 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
             j = i - 1
             while j >= 0 and not row(j):
                 j -= 1
+            numeric_before = [k for k in range(i) if len(row(k)) >= 2 and all(_is_number(t) for t in row(k))]
+            if numeric_before:  # rows of numbers before the data block: a malformed row, never skipped silently
+                bad = next((k for k in range(numeric_before[0], i) if len(row(k)) != len(fields)), numeric_before[0])
+                raise TrimagInputError(
+                    f"{p}: line {bad + 1} has {len(row(bad))} fields where the data rows have {len(fields)}; "
+                    "fix or remove that line"
+                )
             plain = _plain_numbers(lines[i : i + _PLAIN_LINES], delimiter)
             if j >= 0 and len(row(j)) == len(fields) and not any(_is_number(t) for t in row(j)):
                 names = tuple(row(j))
