@@ -240,3 +240,35 @@ def test_sigterm_during_apply_leaves_no_temporary_file(tmp_path: Path, fitted: t
         signal.signal(signal.SIGTERM, previous)
     assert code == 143
     assert not list(tmp_path.glob(".o.csv*")) and not (tmp_path / "o.csv").exists()
+
+
+@pytest.fixture
+def vector_log(tmp_path: Path) -> Path:
+    from scipy.spatial.transform import Rotation
+
+    params = tmp_path / "p.json"
+    params.write_text(json.dumps({"k11": 1.02, "k12": 0.03, "k13": -0.01, "k21": 0.02, "k22": 0.97, "k23": 0.04,
+                                  "k31": -0.03, "k32": 0.01, "k33": 1.05, "c1": 300, "c2": -200, "c3": 150}))
+    sim = tmp_path / "s.csv"
+    r = run_trimag("simulate", "--model", "interference12", "--params", params, "--n", "600", "--noise", "20",
+                   "--field", "50000", "--units", "nT", "-o", sim, "-q")
+    assert r.returncode == 0, r.stderr
+    import pandas as pd
+
+    d = pd.read_csv(sim)
+    ypr = Rotation.from_quat(d[["qx", "qy", "qz", "qw"]].to_numpy()).as_euler("ZYX", degrees=True)
+    d["yaw"], d["pitch"], d["roll"] = ypr.T
+    d.to_csv(sim, index=False)
+    return sim
+
+
+def test_attitudes_in_the_wrong_order_are_refused_naming_the_right_one(vector_log: Path):
+    """Finding: attitudes in the wrong order were accepted with exit 0 while the correction was 88x worse than raw;
+    transposed attitudes gave det(K) < 0, also silently."""
+    common = ("--columns", "x,y,z", "--model", "interference12", "--background-ned", "50000,0,0", "--units", "nT")
+    assert run_trimag("fit", vector_log, *common, "--attitude-columns", "yaw,pitch,roll").returncode == 0
+    r = run_trimag("fit", vector_log, *common, "--attitude-columns", "roll,pitch,yaw")
+    assert r.returncode == 2 and "cannot be right" in r.stderr and "yaw,pitch,roll" in r.stderr
+    r = run_trimag("fit", vector_log, *common[2:], "--columns", "x,y,z", "--quaternion-columns", "qw,qx,qy,qz",
+                   "--quaternion-order", "xyzw")
+    assert r.returncode == 2 and "order wxyz" in r.stderr

@@ -20,7 +20,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from .calibration import Calibration, atomic_write_text
-from .errors import TrimagInputError, TrimagWarning
+from .errors import TrimagError, TrimagInputError, TrimagWarning
 from .estimators import make_estimator
 from .io import MagnitudeAccumulator, Samples, apply_file, column_values, open_chunks, read_samples
 from .io.tables import where_mask
@@ -234,6 +234,85 @@ def _check_unit(
     return units, messages
 
 
+def _worse_than_raw(cal: Calibration) -> bool:
+    before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
+    return before is not None and after is not None and float(after) > float(before)
+
+
+def _attitude_alternatives(
+    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None, quaternion_order: str,
+    quaternion_frame: str,
+) -> list[tuple[str, Any]]:
+    """The usual mistakes of an attitude convention, each as (what to give instead, attitudes)."""
+    from itertools import permutations
+
+    from . import attitude as _attitude
+
+    out: list[tuple[str, Any]] = []
+
+    def build(label: str, **kwargs: Any) -> None:
+        try:
+            rot = _attitude.attitude_from_table(samples.table, **kwargs)
+        except TrimagInputError:
+            return
+        out.append((label, rot))
+        out.append((f"{label} with the rotation inverted (navigation -> body)", rot.inv()))
+
+    if attitude_columns is not None:
+        names = [c.strip() for c in attitude_columns.split(",")]
+        for perm in permutations(names):
+            build(f"attitude columns {','.join(perm)}", euler_columns=",".join(perm))
+    if quaternion_columns is not None:
+        for order in ("wxyz", "xyzw"):
+            for frame in ("ned", "enu"):
+                build(f"quaternion order {order}, frame {frame}", quaternion_columns=quaternion_columns,
+                      scalar_first=order == "wxyz", frame=frame)
+    return out
+
+
+def _refuse_impossible_vector_fit(
+    cal: Calibration, samples: Samples, ref: Any, unit: str, model: str, method: str | None,
+    options: dict[str, Any] | None, attitude_columns: str | None, quaternion_columns: str | None,
+    quaternion_order: str, quaternion_frame: str,
+) -> None:
+    """Refuse an attitude-based fit that cannot be right: worse than the raw data, or a reflection (det < 0).
+
+    The usual convention mistakes (Euler column order, an inverted rotation, quaternion scalar first/last, ENU
+    for NED) are tried; a much better one is named (exit 2), else the fit is refused as unidentified (exit 3).
+    """
+    from .errors import IdentifiabilityError
+
+    det = float(np.linalg.det(np.asarray(cal.matrix)))
+    if not (_worse_than_raw(cal) or det <= 0):
+        return
+    before, after = float(cal.stats["rms_before"]), float(cal.stats["rms_after"])
+    what = f"RMS {after:.4g} {unit} after against {before:.4g} before" + ("; det(K) < 0, a reflection" if det <= 0
+                                                                         else "")
+    best: tuple[float, str] | None = None
+    for label, rot in _attitude_alternatives(samples, attitude_columns, quaternion_columns, quaternion_order,
+                                             quaternion_frame):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                alt = make_estimator(model, method, options).fit(samples.field, ref, units=unit, attitude=rot)
+        except TrimagError:
+            continue
+        alt_cal = alt.calibration_
+        alt_after = float(alt_cal.stats["rms_after"])
+        if np.linalg.det(np.asarray(alt_cal.matrix)) > 0 and (best is None or alt_after < best[0]):
+            best = (alt_after, label)
+    if best is not None and best[0] < 0.5 * min(before, after):
+        raise TrimagInputError(
+            f"the correction fitted with these attitudes cannot be right ({what}); with {best[1]} it reaches "
+            f"RMS {best[0]:.4g} {unit}: the attitudes are probably in that convention (docs/conventions-attitude.md)"
+        )
+    raise IdentifiabilityError(
+        f"the correction fitted with these attitudes cannot be right ({what}), and no usual convention mistake "
+        "explains it: check the attitudes (Z-Y-X yaw, pitch, roll in degrees, body -> NED), the background field "
+        "and the unit"
+    )
+
+
 def _refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
     from .errors import IdentifiabilityError
@@ -402,6 +481,13 @@ def fit_file(
     cal = estimator.calibration_
     if log_info is not None and columns is None:
         _refuse_unidentified_log(cal, samples, log_info)
+    if estimator.reference_kind == "vector":
+        _refuse_impossible_vector_fit(cal, samples, ref, unit, model, method, options, attitude_columns,
+                                      quaternion_columns, quaternion_order, quaternion_frame)
+    elif _worse_than_raw(cal):
+        messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
+                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
+                        "reference and the unit")
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
     if warn_texts:
