@@ -272,3 +272,18 @@ def test_attitudes_in_the_wrong_order_are_refused_naming_the_right_one(vector_lo
     r = run_trimag("fit", vector_log, *common[2:], "--columns", "x,y,z", "--quaternion-columns", "qw,qx,qy,qz",
                    "--quaternion-order", "xyzw")
     assert r.returncode == 2 and "order wxyz" in r.stderr
+
+
+def test_apply_numbers_equal_the_calibration_files_formula(tmp_path: Path, fitted: tuple[Path, Path]):
+    """Gap found by a mutation spot-check: apply's numbers were never checked (writing the inverse map passed)."""
+    import pandas as pd
+
+    log, cal = fitted
+    out = tmp_path / "out.csv"
+    assert run_trimag("apply", cal, log, "-o", out).returncode == 0
+    data = json.loads(cal.read_text())
+    raw = pd.read_csv(log)[["x", "y", "z"]].to_numpy()
+    expected = (raw - np.array(data["offset"])) @ np.array(data["matrix"]).T
+    got = pd.read_csv(out)[["x_cal", "y_cal", "z_cal"]].to_numpy()
+    assert len(raw) > 1000
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
