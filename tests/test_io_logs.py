@@ -149,3 +149,66 @@ def test_simulated_tumble_from_tlog_to_ardupilot_param(tmp_path: Path):
                   [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
                   [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]]])
     np.testing.assert_allclose(M, W, atol=5e-3)
+
+
+def _tumble_uT(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    hard_iron = np.array([12.0, -8.0, 30.0])
+    return 49.0 * u + hard_iron + rng.normal(scale=0.05, size=u.shape), hard_iron
+
+
+def test_phone_sensor_logger_export_is_read_in_uT_and_fitted(tmp_path: Path):
+    field, hard_iron = _tumble_uT(800)
+    t = np.arange(len(field)) * 0.01
+    path = tmp_path / "MagnetometerUncalibrated.csv"
+    cols = np.column_stack([(1.7e18 + t * 1e9), t, field[:, 2], field[:, 1], field[:, 0]])
+    np.savetxt(path, cols, delimiter=",", header="time,seconds_elapsed,z,y,x", comments="", fmt="%.9g")
+    log = read_log(path)
+    assert log.format == "phone sensor logger" and log.choose().unit == "uT"
+    np.testing.assert_allclose(log.choose().field, field, atol=1e-6)
+    r = run_trimag("fit", path, "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    d = json.loads(r.stdout)
+    assert d["units"] == "uT"
+    np.testing.assert_allclose(d["offset"], hard_iron, atol=0.1)
+
+
+def test_ros2_bag_magnetic_field_in_tesla_and_imu_attitude(tmp_path: Path):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    from scipy.spatial.transform import Rotation
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    MF, Imu = ts.types["sensor_msgs/msg/MagneticField"], ts.types["sensor_msgs/msg/Imu"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    V3, Q = ts.types["geometry_msgs/msg/Vector3"], ts.types["geometry_msgs/msg/Quaternion"]
+    field, _ = _tumble_uT(200)
+    # the IMU faces east, level: in ROS's ENU world / FLU body that is yaw 0; in NED / FRD it is yaw 90 deg
+    q_enu = Rotation.identity().as_quat()
+    bag = tmp_path / "bag"
+    with Writer(bag, version=8) as w:
+        cm = w.add_connection("/imu/mag", MF.__msgtype__, typestore=ts)
+        ci = w.add_connection("/imu/data", Imu.__msgtype__, typestore=ts)
+        for i, f in enumerate(field):
+            stamp = Time(sec=100 + i // 10, nanosec=(i % 10) * 100_000_000)
+            h = Header(stamp=stamp, frame_id="imu")
+            t_ns = (100 + i // 10) * 10**9 + (i % 10) * 10**8
+            m = MF(header=h, magnetic_field=V3(x=f[0] * 1e-6, y=f[1] * 1e-6, z=f[2] * 1e-6),
+                   magnetic_field_covariance=np.zeros(9))
+            w.write(cm, t_ns, ts.serialize_cdr(m, MF.__msgtype__))
+            imu = Imu(header=h, orientation=Q(x=q_enu[0], y=q_enu[1], z=q_enu[2], w=q_enu[3]),
+                      orientation_covariance=np.zeros(9), angular_velocity=V3(x=0, y=0, z=0),
+                      angular_velocity_covariance=np.zeros(9), linear_acceleration=V3(x=0, y=0, z=9.81),
+                      linear_acceleration_covariance=np.zeros(9))
+            w.write(ci, t_ns, ts.serialize_cdr(imu, Imu.__msgtype__))
+    log = read_log(bag)
+    mag = log.choose()
+    assert mag.unit == "uT" and mag.name == "/imu/mag"
+    np.testing.assert_allclose(mag.field, field, rtol=1e-9)
+    df, _ = log.table()
+    np.testing.assert_allclose(df["yaw_deg"].to_numpy(), 90.0, atol=1e-6)
+    np.testing.assert_allclose(df[["pitch_deg", "roll_deg"]].to_numpy(), 0.0, atol=1e-6)

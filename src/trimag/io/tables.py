@@ -35,8 +35,8 @@ __all__ = [
     "select_rows",
 ]
 
-FORMATS = ("csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log")
-LOG_KINDS = ("dataflash", "tlog", "ulog", "px4log")
+FORMATS = ("csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log", "rosbag", "phone")
+LOG_KINDS = ("dataflash", "tlog", "ulog", "px4log", "rosbag", "phone")
 
 _AXIS_RE = re.compile(
     r"^(?:(?:imu[\s_\-.]*)?(?:mag(?:netometer|netic)?|compass|field|m|b|h)[\s_\-.]*)?([xyz])(?:[\s_\-.(\[].*)?$"
@@ -431,9 +431,9 @@ def read_table(
     p = Path(path)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
-    if p.is_dir():
-        raise TrimagInputError(f"{p}: is a folder; give a data file")
     kind = guess_format(p, fmt)
+    if p.is_dir() and kind != "rosbag":
+        raise TrimagInputError(f"{p}: is a folder; give a data file")
     if kind in LOG_KINDS:
         return _read_vehicle_log(p, kind, sensor)
     if kind in ("csv", "txt"):

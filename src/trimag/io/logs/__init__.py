@@ -1,8 +1,9 @@
-"""Readers of autopilot logs: one :class:`VehicleLog` per file (docs/autopilot.md).
+"""Readers of vehicle logs: one :class:`VehicleLog` per file (docs/autopilot.md).
 
 Formats: ArduPilot DataFlash (``.bin``, ``.log``) and MAVLink telemetry (``.tlog``), PX4 ULog (``.ulg``) and sdlog2
-(``.px4log``). They need the optional extra ``trimag[logs]`` (pymavlink, pyulog); a missing one is named in a
-one-line error.
+(``.px4log``), ROS 1/2 bags and MCAP (``.bag``, ROS 2 folders, ``.mcap``), phone sensor-logger exports
+(``Magnetometer.csv``, ``MagnetometerUncalibrated.csv``). They need the optional extra ``trimag[logs]`` (pymavlink,
+pyulog, rosbags); a missing one is named in a one-line error.
 
 Every reader returns the magnetometers it found (each with its time stamps, the field in a stated unit and, where
 the autopilot logs its readings after its own calibration, that calibration undone and described), the vehicle's
@@ -44,12 +45,21 @@ LOG_FORMATS: dict[str, str] = {
 
 
 def log_format(path: str | Path, fmt: str | None = None) -> str | None:
-    """The autopilot log format of ``path`` (from ``fmt`` or the extension), or None for other files."""
-    if fmt in set(LOG_FORMATS.values()):
+    """The log format of ``path`` (from ``fmt``, the extension or the name), or None for other files."""
+    if fmt in {*LOG_FORMATS.values(), "rosbag", "phone"}:
         return fmt
     if fmt is not None:
         return None
-    suffix = Path(path).suffix.lower()
+    p = Path(path)
+    if p.is_dir():
+        return "rosbag" if (p / "metadata.yaml").exists() else None
+    from .phone import PHONE_NAME
+
+    if PHONE_NAME.match(p.name):
+        return "phone"
+    suffix = p.suffix.lower()
+    if suffix in (".bag", ".mcap"):
+        return "rosbag"
     kind = LOG_FORMATS.get(suffix)
     if kind == "dataflash" and suffix == ".log":
         # a text DataFlash log starts with FMT lines; any other .log is left to the table readers
@@ -237,9 +247,19 @@ class VehicleLog:
 def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
     """Read an autopilot log (format from ``fmt`` or the extension)."""
     p = Path(path)
-    if not p.is_file():
-        raise TrimagInputError(f"{p}: no such file" if not p.exists() else f"{p}: is a folder; give a log file")
     kind = log_format(p, fmt)
+    if not p.exists():
+        raise TrimagInputError(f"{p}: no such file")
+    if p.is_dir() and kind != "rosbag":
+        raise TrimagInputError(f"{p}: is a folder; give a log file")
+    if kind == "rosbag":
+        from .ros import read_ros
+
+        return read_ros(p)
+    if kind == "phone":
+        from .phone import read_phone
+
+        return read_phone(p)
     if kind in ("dataflash", "tlog"):
         from .ardupilot import read_ardupilot
 
@@ -252,4 +272,4 @@ def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
         from .px4 import read_px4log
 
         return read_px4log(p)
-    raise TrimagInputError(f"{p}: not an autopilot log (.bin, .log, .tlog, .ulg, .px4log)")
+    raise TrimagInputError(f"{p}: not a vehicle log (.bin, .log, .tlog, .ulg, .px4log, .bag, .mcap, ROS 2 folder)")
