@@ -36,7 +36,7 @@ def read_ros(path: Path) -> VehicleLog:
             wanted = [c for c in reader.connections
                       if c.msgtype in ("sensor_msgs/msg/MagneticField", "sensor_msgs/msg/Imu")]
             for conn, _, raw in reader.messages(connections=wanted):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg: Any = reader.deserialize(raw, conn.msgtype)
                 t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
                 if conn.msgtype.endswith("MagneticField"):
                     m = mags.setdefault(conn.topic, {"t": [], "v": []})
