@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-if not SHARED_DATA.exists():  # CI clones beside shared/; a developer may point elsewhere
-    SHARED_DATA = Path(os.environ.get("TRIMAG_SHARED_DATA", "/work/shared/data"))
+# the folder beside the repository (CI clones beside shared/), or where TRIMAG_SHARED_DATA points; nothing else
+SHARED_DATA = Path(os.environ.get("TRIMAG_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 
 requires_shared = pytest.mark.skipif(
     not SHARED_DATA.exists(), reason="../shared/data absent (larger real logs are not bundled in the repo)"

@@ -1,6 +1,6 @@
-"""Where the experiments find the larger real logs (not bundled): ``$TRIMAG_SHARED_DATA``, else
-``../shared/data`` beside the current folder, else ``/work/shared/data``. Parts that need them are skipped,
-with the reason in the summary, when the folder is absent."""
+"""Where the experiments find the larger real logs (not bundled): ``$TRIMAG_SHARED_DATA``, else ``shared/data``
+beside the repository (for a source checkout) or beside / in the current folder. Parts that need them are
+skipped, with the reason in the summary, when the folder is absent."""
 
 from __future__ import annotations
 
@@ -15,7 +15,12 @@ def shared_data_dir() -> Path:
     env = os.environ.get("TRIMAG_SHARED_DATA")
     if env:
         return Path(env)
-    for candidate in (Path.cwd().parent / "shared" / "data", Path.cwd() / "shared" / "data"):
+    candidates = (
+        Path(__file__).resolve().parents[4] / "shared" / "data",  # beside the repository of a source checkout
+        Path.cwd().parent / "shared" / "data",
+        Path.cwd() / "shared" / "data",
+    )
+    for candidate in candidates:
         if candidate.is_dir():
             return candidate
-    return Path("/work/shared/data")
+    return candidates[0]
