@@ -56,6 +56,29 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     return target
 
 
+def file_major_version(data: Any, kind: str, current: str) -> int:
+    """The major format version of a trimag ``kind`` file's content (``"calibration"``, ``"compensation"``).
+
+    Raises
+    ------
+    CalibrationFormatError
+        Not such a file, an unreadable version, or a major version newer than ``current``'s.
+    """
+    if not isinstance(data, Mapping) or data.get("format") != f"trimag-{kind}":
+        raise CalibrationFormatError(f'not a trimag {kind} file (no "format": "trimag-{kind}" entry)')
+    version = str(data.get("format_version", ""))
+    try:
+        major = int(version.split(".")[0])
+    except ValueError:
+        raise CalibrationFormatError(f"{kind} file has an unreadable format_version {version!r}") from None
+    if major > int(current.split(".")[0]):
+        raise CalibrationFormatError(
+            f"{kind} file has format_version {version}, newer than this trimag understands ({current}); "
+            "upgrade trimag (pip install -U trimag)"
+        )
+    return major
+
+
 def _jsonable(obj: Any) -> Any:
     """Convert numpy scalars/arrays (nested in dicts and lists) to plain JSON types; NaN/inf become None."""
     if isinstance(obj, Mapping):
@@ -288,20 +311,7 @@ class Calibration:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Calibration:
         """Rebuild from :meth:`as_dict` output; checks the format and its version."""
-        if not isinstance(data, Mapping) or data.get("format") != "trimag-calibration":
-            raise CalibrationFormatError(
-                "not a trimag calibration file (no \"format\": \"trimag-calibration\" entry)"
-            )
-        version = str(data.get("format_version", ""))
-        try:
-            major = int(version.split(".")[0])
-        except ValueError:
-            raise CalibrationFormatError(f"calibration file has an unreadable format_version {version!r}") from None
-        if major > _FORMAT_MAJOR:
-            raise CalibrationFormatError(
-                f"calibration file has format_version {version}, newer than this trimag understands "
-                f"({FORMAT_VERSION}); upgrade trimag (pip install -U trimag)"
-            )
+        major = file_major_version(data, "calibration", FORMAT_VERSION)
         if major < _FORMAT_MAJOR:
             from .io.legacy import migrate
 

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._version import __version__
-from .calibration import _jsonable, atomic_write_text
+from .calibration import _jsonable, atomic_write_text, file_major_version
 from .errors import CalibrationFormatError, TrimagInputError
 from .filtering import BandPass, finite_runs
 from .models.tolles_lawson import TollesLawsonTerms
@@ -33,7 +33,6 @@ from .models.tolles_lawson import TollesLawsonTerms
 __all__ = ["COMPENSATION_FORMAT_VERSION", "ScalarCompensation"]
 
 COMPENSATION_FORMAT_VERSION = "1.0.0"
-_MAJOR = 1
 _APPLY_BLOCK = 65_536  # rows of design built at a time by apply (bounded memory)
 
 
@@ -185,18 +184,7 @@ class ScalarCompensation:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ScalarCompensation:
         """Rebuild from :meth:`as_dict` output; checks the format and its version."""
-        if not isinstance(data, Mapping) or data.get("format") != "trimag-compensation":
-            raise CalibrationFormatError("not a trimag compensation file (no \"format\": \"trimag-compensation\")")
-        version = str(data.get("format_version", ""))
-        try:
-            major = int(version.split(".")[0])
-        except ValueError:
-            raise CalibrationFormatError(f"compensation file has an unreadable format_version {version!r}") from None
-        if major > _MAJOR:
-            raise CalibrationFormatError(
-                f"compensation file has format_version {version}, newer than this trimag understands "
-                f"({COMPENSATION_FORMAT_VERSION}); upgrade trimag"
-            )
+        file_major_version(data, "compensation", COMPENSATION_FORMAT_VERSION)
         try:
             terms = TollesLawsonTerms(
                 terms=tuple(data["terms"]),

@@ -86,6 +86,24 @@ def require(module: str) -> Any:
         ) from None
 
 
+def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
+    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error."""
+    mavutil = require("pymavlink.mavutil")
+    try:
+        conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
+            mavutil.mavlink_connection(str(path))
+    except Exception as exc:  # pymavlink raises many kinds on a damaged file
+        raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
+    while True:
+        try:
+            msg = conn.recv_match(type=types)
+        except Exception as exc:
+            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+        if msg is None:
+            return
+        yield msg
+
+
 @dataclass
 class Channel:
     """A logged time series: ``time_s`` (N,) and ``values`` (N,) or (N, k), with a unit."""

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog, require
+from . import Channel, MagnetometerStream, VehicleLog, mavlink_messages
 
 __all__ = ["onboard_matrix", "read_ardupilot", "undo_ardupilot"]
 
@@ -105,21 +105,9 @@ def _collect(path: Path, kind: str) -> tuple[Columns, dict[str, float]]:
                 for name, value in zip(parm["Name"].tolist(), parm["Value"].tolist(), strict=True):
                     params.setdefault(str(name), float(value))
             return cols, params
-    mavutil = require("pymavlink.mavutil")
-    try:
-        conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if kind == "tlog" else \
-            mavutil.mavlink_connection(str(path))
-    except Exception as exc:  # pymavlink raises many kinds on a damaged file
-        raise TrimagInputError(f"{path}: not a readable {kind} log ({type(exc).__name__}: {exc})") from None
     rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
     params = {}
-    while True:
-        try:
-            msg = conn.recv_match(type=types)
-        except Exception as exc:
-            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
-        if msg is None:
-            break
+    for msg in mavlink_messages(path, types, robust=kind == "tlog"):
         name = msg.get_type()
         if name == "PARM":
             params.setdefault(str(msg.Name), float(msg.Value))

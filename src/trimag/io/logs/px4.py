@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog, require
+from . import Channel, MagnetometerStream, VehicleLog, mavlink_messages, require
 
 __all__ = ["read_px4log", "read_ulog", "undo_px4_legacy"]
 
@@ -157,21 +157,10 @@ def read_ulog(path: Path) -> VehicleLog:
 
 def read_px4log(path: Path) -> VehicleLog:
     """Read a PX4 sdlog2 ``.px4log`` file (``IMU``, ``IMU1``, ``IMU2``: ``MagX..Z`` in gauss, calibrated)."""
-    mavutil = require("pymavlink.mavutil")
-    try:
-        conn = mavutil.mavlink_connection(str(path))
-    except Exception as exc:
-        raise TrimagInputError(f"{path}: not a readable px4log file ({type(exc).__name__}: {exc})") from None
     rows: dict[str, list[dict[str, Any]]] = {}
     params: dict[str, float] = {}
     now_s = float("nan")
-    while True:
-        try:
-            msg = conn.recv_match(type=["TIME", "IMU", "IMU1", "IMU2", "ATT", "BATT", "GPS", "PARM", "OUT0"])
-        except Exception as exc:
-            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
-        if msg is None:
-            break
+    for msg in mavlink_messages(path, ["TIME", "IMU", "IMU1", "IMU2", "ATT", "BATT", "GPS", "PARM", "OUT0"]):
         name = msg.get_type()
         if name == "PARM":
             params.setdefault(str(msg.Name), float(msg.Value))
