@@ -287,3 +287,48 @@ def test_apply_numbers_equal_the_calibration_files_formula(tmp_path: Path, fitte
     got = pd.read_csv(out)[["x_cal", "y_cal", "z_cal"]].to_numpy()
     assert len(raw) > 1000
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+
+
+def test_attitude_columns_by_index(vector_log: Path):
+    """Finding: --columns took indices, --attitude-columns did not."""
+    import pandas as pd
+
+    names = list(pd.read_csv(vector_log, nrows=1).columns)
+    idx = ",".join(str(names.index(c)) for c in ("yaw", "pitch", "roll"))
+    r = run_trimag("fit", vector_log, "--columns", "0,1,2", "--model", "interference12", "--attitude-columns", idx,
+                   "--background-ned", "50000,0,0", "--units", "nT")
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("kind", ["gzip", "bz2", "xz", "zip", "decimal-comma"])
+def test_compressed_and_decimal_comma_inputs_are_read(tmp_path: Path, kind: str):
+    """Finding: gzip'ed CSV ("no rows of numbers found") and ';' with decimal commas were refused."""
+    import bz2
+    import gzip
+    import lzma
+    import zipfile
+
+    B = simulate_ellipsoid(600, noise=0.005, seed=1, F=49.8)
+    text = "x,y,z\n" + "\n".join(",".join(f"{v:.6f}" for v in row) for row in B) + "\n"
+    if kind == "decimal-comma":
+        path = tmp_path / "log.csv"
+        path.write_text(text.replace(",", ";").replace(".", ","))
+    elif kind == "zip":
+        path = tmp_path / "log.zip"
+        with zipfile.ZipFile(path, "w") as zf:
+            zf.writestr("log.csv", text)
+    else:
+        opener = {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}[kind]
+        path = tmp_path / f"log.csv.{ {'gzip': 'gz'}.get(kind, kind)}"
+        with opener(path, "wt") as fh:
+            fh.write(text)
+    from trimag.io import read_samples
+
+    s = read_samples(path)
+    assert s.n_rows == 600
+    np.testing.assert_allclose(s.field, np.round(B, 6), atol=1e-9)
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", path, "--units", "uT", "-o", cal).returncode == 0
+    r = run_trimag("evaluate", cal, path, "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["n_used"] == 600

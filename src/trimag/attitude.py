@@ -203,6 +203,9 @@ def attitude_from_table(
     )
     assert cols is not None
     available = [str(c) for c in getattr(table, "columns", [])]
+    # 0-based indices are accepted wherever a column is named (as --columns does)
+    cols = [available[int(c)] if c not in available and c.isdigit() and int(c) < len(available) else c
+            for c in cols]
     missing = [c for c in cols if c not in available]
     if missing:
         raise TrimagInputError(f"attitude column(s) {missing} not found; the table has columns {available}")

@@ -172,6 +172,10 @@ def open_chunks(
     p = Path(path)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
+    if fmt is None or fmt in ("csv", "txt"):
+        from .normalise import plain_path
+
+        p = plain_path(p)  # compressed text, decimal commas
     if chunk_rows < 1:
         raise TrimagInputError(f"--chunk-rows must be a positive number of rows; got {chunk_rows}")
     kind = guess_format(p, fmt)

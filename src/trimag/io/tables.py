@@ -431,6 +431,10 @@ def read_table(
     p = Path(path)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
+    if fmt is None or fmt in ("csv", "txt"):
+        from .normalise import plain_path
+
+        p = plain_path(p)  # compressed text, decimal commas
     kind = guess_format(p, fmt)
     if p.is_dir() and kind != "rosbag":
         raise TrimagInputError(f"{p}: is a folder; give a data file")
