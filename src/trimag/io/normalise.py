@@ -21,6 +21,7 @@ import shutil
 import tempfile
 import zipfile
 from pathlib import Path
+from typing import Any
 
 from ..errors import TrimagInputError
 
@@ -29,6 +30,8 @@ __all__ = ["plain_path"]
 _MAGIC = {b"\x1f\x8b": "gzip", b"BZh": "bzip2", b"\xfd7zXZ\x00": "xz", b"PK\x03\x04": "zip"}
 _SUFFIXES = {".gz", ".gzip", ".bz2", ".xz", ".zip"}
 _DECIMAL_COMMA = re.compile(r"^\s*[-+]?\d+(,\d+)?(\s*;\s*[-+]?\d+(,\d+)?)+\s*$")
+_BINARY = {".npz", ".npy", ".mat", ".parquet", ".pq", ".bin", ".ulg", ".tlog", ".px4log", ".bag", ".mcap", ".h5",
+           ".hdf5", ".xlsx"}  # formats of their own (an .npz is a zip file): never touched
 _tmpdir: Path | None = None
 
 
@@ -65,7 +68,7 @@ def _decompress(path: Path, kind: str) -> Path:
                 with zf.open(members[0]) as src, out.open("wb") as dst:
                     shutil.copyfileobj(src, dst)
         else:
-            opener = {"gzip": gzip.open, "bzip2": bz2.open, "xz": lzma.open}[kind]
+            opener: Any = {"gzip": gzip.open, "bzip2": bz2.open, "xz": lzma.open}[kind]
             with opener(path, "rb") as src, out.open("wb") as dst:
                 shutil.copyfileobj(src, dst)
     except (OSError, EOFError, zipfile.BadZipFile, lzma.LZMAError) as exc:
@@ -93,7 +96,7 @@ def _decimal_comma(path: Path) -> Path | None:
 def plain_path(path: str | Path) -> Path:
     """``path``, or a normalised copy of it (see the module docstring)."""
     p = Path(path)
-    if not p.is_file():
+    if not p.is_file() or p.suffix.lower() in _BINARY:
         return p
     kind = _compression(p)
     if kind is not None:
