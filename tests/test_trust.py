@@ -332,3 +332,18 @@ def test_compressed_and_decimal_comma_inputs_are_read(tmp_path: Path, kind: str)
     r = run_trimag("evaluate", cal, path, "--json")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["n_used"] == 600
+
+
+def test_evaluate_judges_a_vector_calibration_by_vector_and_angular_error(tmp_path: Path, vector_log: Path):
+    """Finding: evaluate had no attitude options: an interference12 calibration could only be judged on |B|."""
+    cal = tmp_path / "cal.json"
+    common = ("--columns", "x,y,z", "--attitude-columns", "yaw,pitch,roll", "--background-ned", "50000,0,0")
+    fit = run_trimag("fit", vector_log, *common, "--model", "interference12", "--units", "nT", "-o", cal)
+    assert fit.returncode == 0, fit.stderr
+    r = run_trimag("evaluate", cal, vector_log, *common, "--json")
+    assert r.returncode == 0, r.stderr
+    ev = json.loads(r.stdout)
+    assert ev["after"]["rms_vector"] < 0.1 * ev["before"]["rms_vector"]
+    assert ev["after"]["angular_error_rms_deg"] < 0.1 and len(ev["after"]["rms_axis"]) == 3
+    text = run_trimag("evaluate", cal, vector_log, *common)
+    assert text.returncode == 0 and "angular error RMS" in text.stdout

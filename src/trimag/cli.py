@@ -71,6 +71,19 @@ def _add_reference_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--reference-column", metavar="NAME", help="per-sample magnitude from this column")
 
 
+def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
+    g = p.add_argument_group("attitudes and background (model interference12)")
+    g.add_argument("--attitude-columns", metavar="YAW,PITCH,ROLL", help="Euler angles in degrees (Z-Y-X, NED)")
+    g.add_argument("--quaternion-columns", metavar="W,X,Y,Z", help="attitude quaternion columns")
+    g.add_argument("--quaternion-order", choices=["wxyz", "xyzw"], default="wxyz",
+                   help="scalar first (wxyz, default) or last (xyzw)")
+    g.add_argument("--quaternion-frame", choices=["ned", "enu"], default="ned",
+                   help="navigation frame the quaternions refer to")
+    g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
+    if fit:
+        g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
+
+
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
     g = p.add_argument_group("aircraft compensation (model tolles-lawson; docs/method-tolles-lawson.md)")
     g.add_argument("--scalar-column", metavar="S", help="scalar magnetometer column to compensate (nT)")
@@ -97,15 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="identification method (default: the model's default)")
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
-    g = p.add_argument_group("attitudes and background (model interference12)")
-    g.add_argument("--attitude-columns", metavar="YAW,PITCH,ROLL", help="Euler angles in degrees (Z-Y-X, NED)")
-    g.add_argument("--quaternion-columns", metavar="W,X,Y,Z", help="attitude quaternion columns")
-    g.add_argument("--quaternion-order", choices=["wxyz", "xyzw"], default="wxyz",
-                   help="scalar first (wxyz, default) or last (xyzw)")
-    g.add_argument("--quaternion-frame", choices=["ned", "enu"], default="ned",
-                   help="navigation frame the quaternions refer to")
-    g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
-    g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
+    _add_attitude_options(p)
     _add_tolles_lawson_options(p)
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
@@ -141,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA")
     _add_data_options(p)
     _add_reference_options(p)
+    _add_attitude_options(p, fit=False)
     _add_tolles_lawson_options(p, fit=False)
     p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -360,9 +366,32 @@ def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .aircraft import evaluate_compensation_file, is_compensation_file
     from .workflow import evaluate_file
 
+    if args.attitude_columns or args.quaternion_columns:
+        from .workflow import evaluate_vector_file
+
+        v = evaluate_vector_file(
+            args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var, rows=args.rows,
+            where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
+            quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
+            background_ned=args.background_ned, igrf_spec=args.igrf_spec,
+        )
+        if args.json:
+            print(json.dumps(v, allow_nan=False))
+            return EXIT_OK
+        _say(f"{v['n_used']} samples; background NED {np.round(v['background']['ned'], 3).tolist()} {v['units']} "
+             f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
+        _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
+        for k, axis in enumerate("xyz"):
+            _say(f"{'RMS error ' + axis:22}{v['before']['rms_axis'][k]:14.6g}{v['after']['rms_axis'][k]:14.6g}", args)
+        for label, key in (("RMS vector error", "rms_vector"), ("angular error RMS", "angular_error_rms_deg"),
+                           ("angular error max", "angular_error_max_deg")):
+            _say(f"{label:22}{v['before'][key]:14.6g}{v['after'][key]:14.6g}", args)
+        return EXIT_OK
     if is_compensation_file(args.calibration):
         r = evaluate_compensation_file(
             args.calibration, args.data, fmt=args.fmt, var=args.var, columns=_split_list(args.columns),
