@@ -347,3 +347,18 @@ def test_evaluate_judges_a_vector_calibration_by_vector_and_angular_error(tmp_pa
     assert ev["after"]["angular_error_rms_deg"] < 0.1 and len(ev["after"]["rms_axis"]) == 3
     text = run_trimag("evaluate", cal, vector_log, *common)
     assert text.returncode == 0 and "angular error RMS" in text.stdout
+
+
+def test_planar_data_diagnosis_describes_the_geometry_and_both_causes():
+    """Finding: a robot log turned about all axes in a distorted environment was told only 'turned about a single
+    axis'; the message now gives the observed spread and both possible causes."""
+    from trimag.errors import IdentifiabilityError
+
+    rng = np.random.default_rng(0)
+    phi = rng.uniform(0, 2 * np.pi, 800)
+    B = np.column_stack([40 * np.cos(phi), 40 * np.sin(phi), 5 + rng.normal(scale=0.05, size=800)])
+    B[:, :2] += rng.normal(scale=0.05, size=(800, 2))
+    with pytest.raises(IdentifiabilityError) as info:
+        trimag.fit(B, model="ellipsoid", units="uT")
+    text = str(info.value)
+    assert "principal axes" in text and "changed during the log" in text and "single axis" in text

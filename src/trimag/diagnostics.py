@@ -266,9 +266,12 @@ def check_not_planar_within_noise(
         return float("inf")
     ratio = float((principal_std(B)[0] if std is None else std)[2] / sigma)
     if ratio < PLANE_NOISE_RATIO:
+        st = principal_std(B)[0] if std is None else std
         raise IdentifiabilityError(
-            f"all samples lie in one plane within the noise (RMS distance from the plane {ratio:.2g} x the noise "
-            "level): the sensor turned about a single axis, or not at all, so the field across that plane is never "
-            "seen; record rotations about at least two more axes (or tumble the sensor through all attitudes)"
+            f"all samples lie in one plane within the noise (spread along the three principal axes "
+            f"{st[0]:.4g}, {st[1]:.4g}, {st[2]:.4g}; across the plane {ratio:.2g} x the noise level): either the "
+            "sensor turned about a single axis (or not at all), so the field across that plane is never seen: "
+            "record rotations about at least two more axes; or, if it did turn about several axes, the field "
+            "around it changed during the log (nearby or moving iron): record again away from it"
         )
     return ratio
