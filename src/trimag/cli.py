@@ -19,7 +19,7 @@ from .errors import IdentifiabilityError, TrimagError, TrimagInputError
 
 __all__ = ["build_parser", "main"]
 
-EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_IDENTIFIABILITY = 0, 1, 2, 3
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_IDENTIFIABILITY, EXIT_POLICY = 0, 1, 2, 3, 4
 
 
 class _Terminated(BaseException):
@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reference_options(p)
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
+    p.add_argument("--policy", metavar="FILE.toml|default",
+                   help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -301,8 +303,18 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         quaternion_columns=args.quaternion_columns, quaternion_order=args.quaternion_order,
         quaternion_frame=args.quaternion_frame, background_ned=args.background_ned,
         background_run=args.background_run, out=args.out, report=args.report, sensor=args.sensor,
+        policy=args.policy,
     )
     _print_fit(result, args)
+    verdict = result.summary.get("acceptance")
+    if verdict is not None:
+        if verdict["not_evaluated"]:
+            _err(f"warning: policy rules not evaluated (the data cannot measure them): "
+                 f"{', '.join(verdict['not_evaluated'])}")
+        if not verdict["accepted"]:
+            failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
+            _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
+            return EXIT_POLICY
     return EXIT_OK
 
 

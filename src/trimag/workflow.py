@@ -234,6 +234,19 @@ def _check_unit(
     return units, messages
 
 
+def _acceptance(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
+    """The acceptance policy's verdict (:func:`trimag.policy.check_policy`) with the site's inclination and F."""
+    from .policy import check_policy
+
+    inclination = None
+    if igrf_spec is not None:
+        north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+        inclination = float(np.degrees(np.arctan2(down, np.hypot(north, east))))
+    values = getattr(ref, "values", None)
+    F = float(np.mean(values)) if values is not None else None
+    return check_policy(cal, limits, inclination_deg=inclination, reference_F=F)
+
+
 def _worse_than_raw(cal: Calibration) -> bool:
     before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
     return before is not None and after is not None and float(after) > float(before)
@@ -396,8 +409,17 @@ def fit_file(
     out: str | Path | None = None,
     report: str | Path | None = None,
     sensor: str | None = None,
+    policy: str | None = None,
 ) -> FitResult:
-    """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked."""
+    """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked.
+
+    With ``policy`` (a TOML file or ``"default"``, :mod:`trimag.policy`) the calibration is checked against its
+    limits; the result is in ``summary["acceptance"]`` and in the written file (a rejected calibration is still
+    written, marked so).
+    """
+    from .policy import read_policy
+
+    limits = read_policy(policy) if policy is not None else None
     estimator = make_estimator(model, method, options)
     samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=rows, where=where, strict=strict,
                            sensor=sensor)
@@ -492,8 +514,21 @@ def fit_file(
     cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
     if warn_texts:
         cal = cal.with_diagnostics(warnings=warn_texts)
+    if limits is not None:
+        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
     summary = fit_summary(cal, samples)
     summary["warnings"] = warn_texts
+    if limits is not None:
+        summary["acceptance"] = cal.diagnostics["acceptance"]
+    if igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None and model == "ellipsoid":
+        from .heading import predicted_heading_sigma
+
+        north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+        heading = predicted_heading_sigma(cal, float(np.degrees(np.arctan2(down, np.hypot(north, east)))))
+        summary["predicted_heading_sigma_deg"] = {k: heading[k] for k in ("rms_deg", "max_deg", "inclination_deg")}
+        messages.append(f"predicted heading error of a level sensor here (inclination "
+                        f"{heading['inclination_deg']:.1f} deg): {heading['rms_deg']:.3g} deg RMS over headings, "
+                        f"{heading['max_deg']:.3g} deg at worst (1 sigma)")
     written: dict[str, str] = {}
     try:  # the outputs appear together or not at all: the report first (it can fail), then the calibration
         if report is not None:
