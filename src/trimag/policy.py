@@ -84,7 +84,9 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
             measured["max_heading_sigma_deg"] = predicted_heading_sigma(cal, inclination_deg)["max_deg"]
         except TrimagInputError:
             pass
-    failed, passed, not_evaluated = [], [], []
+    failed: list[dict[str, Any]] = []
+    passed: list[dict[str, Any]] = []
+    not_evaluated: list[str] = []
     for rule, limit in limits.items():
         value = measured.get(rule)
         if value is None or not np.isfinite(value):
