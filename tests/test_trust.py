@@ -362,3 +362,16 @@ def test_planar_data_diagnosis_describes_the_geometry_and_both_causes():
         trimag.fit(B, model="ellipsoid", units="uT")
     text = str(info.value)
     assert "principal axes" in text and "changed during the log" in text and "single axis" in text
+
+
+def test_messages_never_dump_arrays():
+    """Finding: passing a per-sample background vector (N, 3) dumped the whole array (a 537 235-character message)."""
+    from trimag.errors import TrimagInputError
+    from trimag.reference import as_vector
+
+    with pytest.raises(TrimagInputError) as info:
+        as_vector(np.ones((50_000, 3)))
+    assert len(str(info.value)) < 300 and "shape (50000, 3)" in str(info.value)
+    with pytest.raises(TrimagInputError) as info2:
+        trimag.Calibration.from_matrix_offset(np.full((3, 3), np.nan), [0, 0, 0])
+    assert len(str(info2.value)) < 300

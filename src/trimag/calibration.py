@@ -102,7 +102,8 @@ def _frozen_array(a: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np
     if arr.shape != shape:
         raise TrimagInputError(f"`{name}` must have shape {shape}; got {arr.shape}")
     if not np.isfinite(arr).all():
-        raise TrimagInputError(f"`{name}` must be finite; got {arr.tolist()}")
+        bad = int((~np.isfinite(arr)).sum())
+        raise TrimagInputError(f"`{name}` must be finite; got {bad} non-finite value(s) of {arr.size}")
     arr.setflags(write=False)
     return arr
 

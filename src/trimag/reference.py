@@ -199,5 +199,8 @@ def as_vector(value: ArrayLike, *, name: str = "background") -> NDArray[np.float
     """Validate a field vector of shape (3,)."""
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != (3,) or not np.isfinite(arr).all():
-        raise TrimagInputError(f"`{name}` must be 3 finite numbers (N, E, D); got {np.asarray(value).tolist()}")
+        got = np.asarray(value).tolist() if arr.size <= 3 else f"an array of shape {arr.shape}"
+        hint = ("; a per-sample background (one vector per row) is not supported yet: give one (N, E, D) vector"
+                if arr.ndim == 2 and arr.shape[-1] == 3 else "")
+        raise TrimagInputError(f"`{name}` must be 3 finite numbers (N, E, D); got {got}{hint}")
     return arr
