@@ -116,3 +116,28 @@ def test_plane_noise_ratio_of_a_sphere_and_of_a_slab():
     with pytest.raises(IdentifiabilityError, match="1 x the noise"):
         check_not_planar_within_noise(slab, 0.01)
     assert check_not_planar_within_noise(slab, 0.0) == np.inf
+
+
+def test_direction_geometry_cone_rim_plane_and_surround():
+    """The cone half-angle, its kind and the direction never seen, on directions of known shape."""
+    from trimag.diagnostics import describe_directions
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    z = rng.uniform(np.cos(np.radians(35.0)), 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - z**2)
+    cone = np.column_stack([s * np.cos(phi), s * np.sin(phi), z]) @ np.diag([1.0, -1.0, -1.0])  # about -z
+    g = sphere_coverage(cone)
+    assert g["shape"] == "cone" and g["cone_half_angle_deg"] == pytest.approx(35.0, abs=1.5)
+    np.testing.assert_allclose(g["cone_axis"], [0, 0, -1], atol=0.02)
+    assert g["never_seen_axis"][2] > 0.95 and g["never_seen_within_deg"] > 120
+    assert "cone of half-angle 35 deg about the sensor's -z axis" in describe_directions(g)
+    rim = np.column_stack([0.6 * np.cos(phi), 0.6 * np.sin(phi), np.full(n, 0.8)])  # a turn about z: 37 deg
+    r = sphere_coverage(rim)
+    assert r["shape"] == "rim" and "single axis" in describe_directions(r)
+    great = np.column_stack([np.cos(phi), np.zeros(n), np.sin(phi)])  # a turn about y, field across it
+    p = sphere_coverage(great)
+    assert p["shape"] == "plane" and "across the sensor's +y axis" in describe_directions(p).replace("-y", "+y")
+    full = sphere_coverage(uniform_directions(5000, seed=0))
+    assert full["shape"] == "surround" and full["never_seen_axis"] is None

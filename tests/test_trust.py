@@ -11,7 +11,7 @@ import pytest
 
 import trimag
 
-from _helpers import ellipsoid_truth, run_trimag, simulate_ellipsoid
+from _helpers import SHARED_DATA, ellipsoid_truth, run_trimag, simulate_ellipsoid
 
 
 def _cone(n: int, half_deg: float, seed: int = 0, F: float = 50_000.0, noise: float = 5.0) -> np.ndarray:
@@ -362,6 +362,55 @@ def test_planar_data_diagnosis_describes_the_geometry_and_both_causes():
         trimag.fit(B, model="ellipsoid", units="uT")
     text = str(info.value)
     assert "principal axes" in text and "changed during the log" in text and "single axis" in text
+    assert "turned through 3" in text and "+z axis" in text  # the observed turn: its angle and axis
+
+
+def test_scalar9_refusal_of_a_narrow_cone_describes_the_cone_not_a_single_axis_turn():
+    """Finding: scalar9 refused an aircraft calibration box as a "single-axis turn" when the body-frame field
+    stayed in a cone of 20-45 deg; the message now describes the cone, the covered fraction, the side never seen."""
+    import re
+
+    from trimag.errors import IdentifiabilityError
+
+    with pytest.raises(IdentifiabilityError) as info:
+        trimag.fit(_cone(2000, 20.0), model="scalar9", reference=50_000.0, units="nT")
+    text = str(info.value)
+    assert "single axis" not in text
+    cone = re.search(r"within a cone of half-angle (\d+) deg about the sensor's \+z axis \((\d+)% of the sphere", text)
+    assert cone is not None, text
+    assert 17 <= int(cone.group(1)) <= 23 and 5 <= int(cone.group(2)) <= 10
+    assert "-z axis" in text and "tilt the sensor further" in text
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "magnav-tl" / "test_data_TL.mat").exists(),
+                    reason="../shared/data/magnav-tl absent (SGL data may not be copied into the repository)")
+def test_scalar9_refusal_of_a_real_aircraft_box_describes_its_cone():
+    """The finding's case on real data: the SGL survey aircraft's fluxgate in flight (MagNav.jl's test segment)."""
+    import re
+
+    import scipy.io
+
+    from trimag.errors import IdentifiabilityError
+
+    d = scipy.io.loadmat(SHARED_DATA / "magnav-tl" / "test_data_TL.mat", squeeze_me=True,
+                         struct_as_record=False)["TL_data"]
+    B = np.column_stack([d.flux_a_x, d.flux_a_y, d.flux_a_z]).astype(float)
+    with pytest.raises(IdentifiabilityError) as info:
+        trimag.fit(B, model="scalar9", reference=np.asarray(d.mag_1_uc, float), units="nT")
+    text = str(info.value)
+    cone = re.search(r"within a cone of half-angle (\d+) deg", text)
+    assert cone is not None and 20 <= int(cone.group(1)) <= 45 and "single axis" not in text, text
+
+
+def test_poorly_covered_ellipsoid_warning_names_the_cone():
+    """Diagnoses describe the observed geometry: the cone half-angle and the direction never seen."""
+    from trimag.errors import IdentifiabilityWarning
+
+    with pytest.warns(IdentifiabilityWarning, match=r"within a cone of half-angle (29|3\d) deg about the sensor's "
+                      r"\+z axis .*no sample within \d+ deg of its -z axis"):
+        cal = trimag.fit(_cone(3000, 30.0), model="ellipsoid", reference=50_000.0, units="nT")
+    geometry = cal.diagnostics["coverage"]
+    assert geometry["shape"] == "cone" and geometry["cone_half_angle_deg"] == pytest.approx(30.0, abs=2.0)
 
 
 def test_messages_never_dump_arrays():

@@ -24,12 +24,18 @@ __all__ = [
     "PLANE_NOISE_RATIO",
     "check_not_degenerate",
     "check_not_planar_within_noise",
+    "coverage_advice",
+    "describe_directions",
     "design_condition",
     "diagnostic_subsample",
+    "direction_geometry",
     "fibonacci_sphere",
     "gram_condition",
     "principal_std",
+    "raw_direction_geometry",
+    "single_axis_turn",
     "sphere_coverage",
+    "turn_about_axis",
     "weak_directions",
 ]
 
@@ -117,8 +123,169 @@ def sphere_coverage(
         "n_cells": n_cells,
         "min_count": int(min_count),
         "n_used": len(u),
+        **direction_geometry(u, counts >= min_count, centres_t.T),
         "cell_counts": counts.tolist(),
     }
+
+
+#: Share of the samples inside the reported cone (the rest, e.g. a few stray samples, are left out).
+CONE_QUANTILE = 0.98
+#: Directions within a cone of half-angle below this (degrees) are described as a cone about their mean.
+CONE_MAX_DEG = 100.0
+#: A cone whose inner angle (the 2 % quantile) is at least this share of its half-angle is a rim: the directions
+#: of a turn about a single axis, all at one angle from it.
+RIM_RATIO = 0.75
+#: Directions whose isotropy (3 x smallest eigenvalue of their mean outer product) is below this lie near a plane.
+PLANE_ISOTROPY = 0.1
+
+
+def direction_geometry(
+    u: NDArray[np.float64], covered: NDArray[np.bool_], centres: NDArray[np.float64]
+) -> dict[str, Any]:
+    """The shape of a set of field directions: the cone they stay in and the direction they never reach.
+
+    Parameters
+    ----------
+    u : ndarray, shape (N, 3)
+        Unit field directions (body frame).
+    covered : ndarray of bool, shape (n_cells,)
+        Which cells of :func:`sphere_coverage` count as covered.
+    centres : ndarray, shape (n_cells, 3)
+        The cells' centres (:func:`fibonacci_sphere`).
+
+    Returns
+    -------
+    dict
+        ``shape`` ("cone": within a cone of half-angle below :data:`CONE_MAX_DEG`; "rim": on its surface only, a
+        turn about one axis (:data:`RIM_RATIO`); "plane": near a great circle (:data:`PLANE_ISOTROPY`), also a turn
+        about one axis; "surround"), ``cone_axis`` (unit vector, the mean direction), ``cone_half_angle_deg`` (the
+        angle from it within which :data:`CONE_QUANTILE` of the directions lie; 180 when they surround the
+        sensor), ``cone_inner_angle_deg`` (the angle from it within which ``1 - CONE_QUANTILE`` lie),
+        ``plane_normal`` (the direction with the least spread of the directions: the axis of a single-axis turn),
+        ``never_seen_axis`` (the centre of the empty cell farthest from every covered cell, None when every cell
+        is covered) and ``never_seen_within_deg`` (the angle from it to the nearest covered cell's centre).
+    """
+    if not len(u) or not covered.any():
+        return {"shape": None, "cone_axis": None, "cone_half_angle_deg": None, "cone_inner_angle_deg": None,
+                "plane_normal": None, "never_seen_axis": None, "never_seen_within_deg": None}
+    mean = u.sum(axis=0) / len(u)
+    norm = float(np.linalg.norm(mean))
+    axis = mean / norm if norm > 1e-12 else np.array([0.0, 0.0, 1.0])
+    angles = np.degrees(np.arccos(np.clip(u @ axis, -1.0, 1.0)))
+    inner, half = (float(v) for v in np.quantile(angles, [1.0 - CONE_QUANTILE, CONE_QUANTILE]))
+    ev, vecs = np.linalg.eigh(u.T @ u / len(u))
+    normal = vecs[:, 0]
+    if half < CONE_MAX_DEG:
+        shape = "rim" if inner >= RIM_RATIO * half else "cone"
+    else:
+        shape = "plane" if 3.0 * ev[0] < PLANE_ISOTROPY else "surround"
+    never, within = None, None
+    if not covered.all():
+        empty, full = centres[~covered], centres[covered]
+        nearest = np.degrees(np.arccos(np.clip((empty @ full.T).max(axis=1), -1.0, 1.0)))
+        k = int(np.argmax(nearest))
+        never, within = empty[k].tolist(), float(nearest[k])
+    return {"shape": shape, "cone_axis": axis.tolist(), "cone_half_angle_deg": half, "cone_inner_angle_deg": inner,
+            "plane_normal": normal.tolist(), "never_seen_axis": never, "never_seen_within_deg": within}
+
+
+def _axis_name(v: Any) -> str:
+    """``+z``, ``-x`` ... when ``v`` is within 20 degrees of a sensor axis, else its components."""
+    a = np.asarray(v, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    k = int(np.argmax(np.abs(a)))
+    if abs(a[k]) >= np.cos(np.radians(20.0)):
+        return f"{'+' if a[k] > 0 else '-'}{'xyz'[k]} axis"
+    return "direction [" + ", ".join(f"{c:.2f}" for c in a) + "]"
+
+
+def describe_directions(geometry: dict[str, Any]) -> str:
+    """One sentence on the field directions a log saw (from :func:`sphere_coverage` or
+    :func:`raw_direction_geometry`): the cone they stay in, the covered fraction and the direction never seen."""
+    half, axis, kind = geometry.get("cone_half_angle_deg"), geometry.get("cone_axis"), geometry.get("shape")
+    if half is None or axis is None:
+        return "no field direction could be measured"
+    if kind == "rim":
+        shape = f"the field directions seen stay on the rim of a cone of half-angle {half:.0f} deg about the " \
+                f"sensor's {_axis_name(axis)}, as in a turn about that single axis"
+    elif kind == "cone":
+        shape = f"the field directions seen stay within a cone of half-angle {half:.0f} deg about the sensor's " \
+                f"{_axis_name(axis)}"
+    elif kind == "plane":
+        shape = f"the field directions seen lie close to one plane, across the sensor's " \
+                f"{_axis_name(geometry['plane_normal'])}, as in a turn about that single axis"
+    else:
+        shape = "the field directions seen surround the sensor"
+    text = f"{shape} ({100 * geometry['fraction']:.0f}% of the sphere of directions covered"
+    if geometry.get("never_seen_axis") is not None:
+        text += f"; no sample within {geometry['never_seen_within_deg']:.0f} deg of its " \
+                f"{_axis_name(geometry['never_seen_axis'])}"
+    return text + ")"
+
+
+#: Samples the offset estimate of :func:`raw_direction_geometry` uses (evenly spread).
+_GEOMETRY_SAMPLES = 2_000
+
+
+def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -> dict[str, Any] | None:
+    """:func:`sphere_coverage` (with its cone and never-seen direction) of raw samples before any calibration.
+
+    The offset is that of the sphere that fits the samples best: of radius ``field`` (the reference magnitude,
+    data unit) when given, else of free radius. The soft iron is ignored, so the angles are approximate (a few
+    degrees for a few per cent of soft iron). None when no sphere is determined (a free radius on samples in one
+    plane: describe them with :func:`turn_about_axis` instead).
+
+    Parameters
+    ----------
+    B : ndarray, shape (N, 3)
+        Raw samples.
+    field : float, optional
+        The field magnitude in the samples' unit.
+    """
+    from scipy.optimize import least_squares
+
+    x = np.asarray(B, dtype=np.float64)[:: max(1, len(B) // _GEOMETRY_SAMPLES)]
+    centroid = x.mean(axis=0)
+    xc = x - centroid
+    if len(x) < 4:
+        return None
+    if field is None or not np.isfinite(field) or field <= 0:
+        A = np.column_stack([2.0 * xc, np.ones(len(xc))])
+        cond, _, _ = design_condition(A)
+        if not np.isfinite(cond) or cond > 1e6:
+            return None
+        sol = np.linalg.lstsq(A, row_dot(xc, xc), rcond=None)[0]
+        centre = centroid + sol[:3]
+    else:
+        normal = np.linalg.eigh(xc.T @ xc)[1][:, 0]
+        depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
+        best = None
+        for sign in (1.0, -1.0):
+            res = least_squares(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal)
+            if best is None or res.cost < best.cost:
+                best = res
+        assert best is not None
+        centre = centroid + best.x
+    d = x - centre
+    if not np.all(np.isfinite(d)):
+        return None
+    return sphere_coverage(d, min_count=1)
+
+
+def turn_about_axis(B: NDArray[np.float64]) -> dict[str, Any]:
+    """Raw samples seen as a turn about one axis: the axis (least spread), the angle turned about it (degrees,
+    360 minus the largest gap of the in-plane angles about the fitted circle's centre) and the RMS spread of the
+    samples along it (data unit)."""
+    x = np.asarray(B, dtype=np.float64)[:: max(1, len(B) // _GEOMETRY_SAMPLES)]
+    xc = x - x.mean(axis=0)
+    vecs = np.linalg.eigh(xc.T @ xc)[1]
+    normal = vecs[:, 0]
+    p = xc @ vecs[:, 1:]
+    sol = np.linalg.lstsq(np.column_stack([2.0 * p, np.ones(len(p))]), row_dot(p, p), rcond=None)[0]
+    ang = np.sort(np.degrees(np.arctan2(p[:, 1] - sol[1], p[:, 0] - sol[0])))
+    gaps = np.diff(np.concatenate([ang, [ang[0] + 360.0]])) if len(ang) else np.array([360.0])
+    return {"axis": normal.tolist(), "turned_deg": float(360.0 - gaps.max()),
+            "along_std": float(np.sqrt(np.mean((xc @ normal) ** 2)))}
 
 
 def design_condition(A: ArrayLike) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
@@ -267,11 +434,45 @@ def check_not_planar_within_noise(
     ratio = float((principal_std(B)[0] if std is None else std)[2] / sigma)
     if ratio < PLANE_NOISE_RATIO:
         st = principal_std(B)[0] if std is None else std
+        turn = turn_about_axis(B)
         raise IdentifiabilityError(
-            f"all samples lie in one plane within the noise (spread along the three principal axes "
-            f"{st[0]:.4g}, {st[1]:.4g}, {st[2]:.4g}; across the plane {ratio:.2g} x the noise level): either the "
-            "sensor turned about a single axis (or not at all), so the field across that plane is never seen: "
+            f"all samples lie in one plane within the noise: they turned through {turn['turned_deg']:.0f} deg about "
+            f"the sensor's {_axis_name(turn['axis'])}, and across that plane they spread only {ratio:.2g} x the "
+            f"noise level (spread along the three principal axes {st[0]:.4g}, {st[1]:.4g}, {st[2]:.4g}): either "
+            "the sensor turned about that single axis (or not at all), so the field across the plane is never seen: "
             "record rotations about at least two more axes; or, if it did turn about several axes, the field "
             "around it changed during the log (nearby or moving iron): record again away from it"
         )
     return ratio
+
+
+def coverage_advice(B: NDArray[np.float64], field: float | None = None, *, what: str) -> str:
+    """What the raw samples ``B`` (N, 3) saw, and what to record so that they identify ``what`` (e.g. "the 9
+    scalar9 parameters"): the cone of field directions, its covered fraction and the direction never seen
+    (:func:`raw_direction_geometry`, with the reference magnitude ``field`` when known), or, for samples in one
+    plane, the axis they turned about (:func:`turn_about_axis`)."""
+    geometry = raw_direction_geometry(B, field)
+    if geometry is None or geometry.get("cone_half_angle_deg") is None:
+        return single_axis_turn(B, what)
+    text = describe_directions(geometry)
+    if geometry["shape"] in ("rim", "plane"):
+        return f"{text}: a turn about a single axis cannot identify {what}; record turns about at least two more axes"
+    if geometry["shape"] == "cone":
+        never = geometry.get("never_seen_axis")
+        towards = f" and near its {_axis_name(never)}" if never is not None else ""
+        return (
+            f"{text}: a cone this narrow cannot identify {what}; tilt the sensor further, so that the field is also "
+            f"seen from the side{towards} (turn it over); a vehicle that cannot tilt that far can use a vector fit "
+            "with attitudes and the background field (--model interference12), which needs much less tilt"
+        )
+    return f"{text}: record the sensor turning about all three axes (or tumble it through all attitudes)"
+
+
+def single_axis_turn(B: NDArray[np.float64], what: str) -> str:
+    """Samples ``B`` (N, 3) in one plane described as the turn they are (:func:`turn_about_axis`), with advice."""
+    turn = turn_about_axis(B)
+    return (
+        f"the samples turned through {turn['turned_deg']:.0f} deg about the sensor's {_axis_name(turn['axis'])} "
+        f"and hardly along it (RMS spread {turn['along_std']:.4g}): a turn about a single axis cannot identify "
+        f"{what}; record turns about at least two more axes"
+    )

@@ -44,7 +44,16 @@ from numpy.typing import NDArray
 
 from .._rowwise import BLOCK, column_means, scratch, transposed_blocks
 from ..calibration import Calibration
-from ..diagnostics import CONDITION_ERROR, check_condition, check_not_degenerate, design_condition, weak_directions
+from ..diagnostics import (
+    CONDITION_ERROR,
+    CONDITION_WARN,
+    check_condition,
+    check_not_degenerate,
+    coverage_advice,
+    design_condition,
+    single_axis_turn,
+    weak_directions,
+)
 from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
@@ -385,11 +394,13 @@ class GaussNewton(Estimator):
         # every sum over samples is taken block by block on B / s, F / s (memory independent of N)
         sv = _centred_singular_values(B)
         flatness = float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
-        single_axis_hint = (
-            f"the samples lie close to one plane (thinnest/widest spread {flatness:.2e}): this looks like a "
-            "turn about a single axis, which cannot identify the 9 scalar9 parameters; record turns about at "
-            "least two different axes (the paper pools turns about X, Y and Z) and fit them together"
-        )
+
+        def geometry_hint() -> str:
+            """What the samples saw (the cone of field directions, or the axis they turned about) and what to
+            record (trimag.diagnostics.coverage_advice): computed only when a message needs it."""
+            return coverage_advice(B, s, what="the 9 scalar9 parameters") + (
+                " (the paper pools turns about X, Y and Z and fits them together)"
+            )
 
         # ---- start
         if self.start is not None:
@@ -400,11 +411,11 @@ class GaussNewton(Estimator):
                 start, start_cond = algebraic_start(B, F)
             except IdentifiabilityError as exc:
                 raise IdentifiabilityError(
-                    f"the data cannot identify the scalar9 model: {single_axis_hint} ({exc})"
+                    f"the data cannot identify the scalar9 model: {geometry_hint()} ({exc})"
                 ) from None
             if not np.isfinite(start_cond) or start_cond > CONDITION_ERROR:
                 raise IdentifiabilityError(
-                    f"the data cannot identify the scalar9 model: {single_axis_hint} (condition number of "
+                    f"the data cannot identify the scalar9 model: {geometry_hint()} (condition number of "
                     f"the linear start fit {start_cond:.3g})"
                 )
             start_kind = "linear quadric fit u^T A u + v^T u = 1 scaled to F, scalar9 gauge"
@@ -468,7 +479,7 @@ class GaussNewton(Estimator):
         if p[3:6].min() <= 0 or np.abs(p[6:9]).max() >= math.pi / 2:
             raise IdentifiabilityError(
                 "the scalar9 fit left the valid region (a scale factor <= 0 or an angle beyond 90 degrees): "
-                f"the data do not identify the model. {single_axis_hint if flatness < _FLAT else ''}".strip()
+                f"the data do not identify the model. {geometry_hint() if flatness < _FLAT else ''}".strip()
             )
 
         # ---- identifiability and uncertainty at the solution (from the QR factorisation of the system at p:
@@ -480,9 +491,14 @@ class GaussNewton(Estimator):
         R = system.R
         cond, jsv, vt = design_condition(R)
         weak = weak_directions(vt, jsv, PARAM_NAMES, threshold=1e4) if np.isfinite(cond) else []
-        hint = single_axis_hint if flatness < _FLAT else (
-            "record the sensor turning about all three axes (or tumble it through all attitudes)"
-        )
+        # the hint (what the samples saw, a least-squares sphere fit) is only made when a message needs it
+
+        def advice() -> str:
+            return geometry_hint() if flatness < _FLAT else (
+                "record the sensor turning about all three axes (or tumble it through all attitudes)"
+            )
+
+        hint = advice() if not np.isfinite(cond) or cond > CONDITION_WARN else ""
         check_condition(cond, what="the scalar9 model (9 parameters)", hint=hint, weak=weak)
         n = len(B)
         dof = max(n - 9, 1)
@@ -490,7 +506,7 @@ class GaussNewton(Estimator):
         try:
             R_inv = np.linalg.inv(R)
         except np.linalg.LinAlgError:
-            raise IdentifiabilityError(f"the data cannot identify the scalar9 model: {hint}") from None
+            raise IdentifiabilityError(f"the data cannot identify the scalar9 model: {hint or advice()}") from None
         cov_n = sigma2 * (R_inv @ R_inv.T)  # sigma^2 (J^T J)^-1
         std_n = np.sqrt(np.clip(np.diag(cov_n), 0.0, None))
         # relative spread: biases / field (normalised units already), k / 1, angles / 1 rad
@@ -501,15 +517,14 @@ class GaussNewton(Estimator):
             raise IdentifiabilityError(
                 "the data cannot identify the scalar9 model: the samples' spread out of their best plane "
                 f"({thickness:.4g} {units} RMS) is no larger than the fit's residual noise "
-                f"({noise:.4g} {units}); "
-                f"{single_axis_hint}"
+                f"({noise:.4g} {units}); {single_axis_turn(B, 'the 9 scalar9 parameters')}"
             )
         too_loose = [name for name, v in zip(PARAM_NAMES, std_n, strict=True) if v > self.max_rel_std]
         if too_loose:
             raise IdentifiabilityError(
                 "the data cannot identify the scalar9 model: the predicted standard deviation of "
                 f"{', '.join(too_loose)} exceeds {self.max_rel_std:g} (relative to the field / 1 / 1 rad); "
-                f"{hint}"
+                f"{hint or advice()}"
             )
 
         # ---- back to data units

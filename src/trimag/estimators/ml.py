@@ -56,6 +56,7 @@ from ..diagnostics import (
     check_condition,
     check_not_degenerate,
     check_not_planar_within_noise,
+    describe_directions,
     design_condition,
     diagnostic_subsample,
     fibonacci_sphere,
@@ -450,7 +451,8 @@ def identifiability(
     if cond > CONDITION_WARN:
         reasons.append(f"condition number {cond:.3g}")
     if coverage.get("fraction") is not None and coverage["fraction"] < coverage_warn:
-        reasons.append(f"the data cover {100 * coverage['fraction']:.0f}% of the sphere of directions")
+        reasons.append(describe_directions(coverage) if coverage.get("cone_axis") is not None
+                       else f"the data cover {100 * coverage['fraction']:.0f}% of the sphere of directions")
     if bad:
         reasons.append(f"poorly determined: {', '.join(bad)} (variance inflated more than {vif_warn:g}x by the "
                        "correlation with the other parameters)")
