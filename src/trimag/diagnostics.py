@@ -113,9 +113,10 @@ def sphere_coverage(
     if len(u):
         scatter = (u.T @ u) / len(u)
         isotropy = float(3.0 * np.linalg.eigvalsh(scatter)[0])
-        mean_norm = float(np.linalg.norm((np.ones(len(u)) @ u) / len(u)))
+        mean_vector = (np.ones(len(u)) @ u) / len(u)
+        mean_norm = float(np.linalg.norm(mean_vector))
     else:
-        isotropy, mean_norm = 0.0, 0.0
+        isotropy, mean_norm, scatter, mean_vector = 0.0, 0.0, None, None
     return {
         "fraction": float(np.mean(counts >= min_count)),
         "isotropy": isotropy,
@@ -123,7 +124,7 @@ def sphere_coverage(
         "n_cells": n_cells,
         "min_count": int(min_count),
         "n_used": len(u),
-        **direction_geometry(u, counts >= min_count, centres_t.T),
+        **direction_geometry(u, counts >= min_count, centres_t.T, mean=mean_vector, scatter=scatter),
         "cell_counts": counts.tolist(),
     }
 
@@ -140,7 +141,8 @@ PLANE_ISOTROPY = 0.1
 
 
 def direction_geometry(
-    u: NDArray[np.float64], covered: NDArray[np.bool_], centres: NDArray[np.float64]
+    u: NDArray[np.float64], covered: NDArray[np.bool_], centres: NDArray[np.float64], *,
+    mean: NDArray[np.float64] | None = None, scatter: NDArray[np.float64] | None = None,
 ) -> dict[str, Any]:
     """The shape of a set of field directions: the cone they stay in and the direction they never reach.
 
@@ -152,6 +154,8 @@ def direction_geometry(
         Which cells of :func:`sphere_coverage` count as covered.
     centres : ndarray, shape (n_cells, 3)
         The cells' centres (:func:`fibonacci_sphere`).
+    mean, scatter : ndarray, shape (3,) and (3, 3), optional
+        The mean of ``u`` and of its outer products, when already computed.
 
     Returns
     -------
@@ -168,12 +172,15 @@ def direction_geometry(
     if not len(u) or not covered.any():
         return {"shape": None, "cone_axis": None, "cone_half_angle_deg": None, "cone_inner_angle_deg": None,
                 "plane_normal": None, "never_seen_axis": None, "never_seen_within_deg": None}
-    mean = u.sum(axis=0) / len(u)
+    mean = (np.ones(len(u)) @ u) / len(u) if mean is None else mean
+    scatter = (u.T @ u) / len(u) if scatter is None else scatter
     norm = float(np.linalg.norm(mean))
     axis = mean / norm if norm > 1e-12 else np.array([0.0, 0.0, 1.0])
-    angles = np.degrees(np.arccos(np.clip(u @ axis, -1.0, 1.0)))
-    inner, half = (float(v) for v in np.quantile(angles, [1.0 - CONE_QUANTILE, CONE_QUANTILE]))
-    ev, vecs = np.linalg.eigh(u.T @ u / len(u))
+    cosines = u @ axis  # the angle's quantiles are those of the cosine, in reverse (one partition, no arccos)
+    k_half, k_inner = int((1.0 - CONE_QUANTILE) * (len(u) - 1)), int(CONE_QUANTILE * (len(u) - 1))
+    part = np.partition(cosines, (k_half, k_inner))
+    half, inner = (float(np.degrees(np.arccos(np.clip(part[k], -1.0, 1.0)))) for k in (k_half, k_inner))
+    ev, vecs = np.linalg.eigh(scatter)
     normal = vecs[:, 0]
     if half < CONE_MAX_DEG:
         shape = "rim" if inner >= RIM_RATIO * half else "cone"
