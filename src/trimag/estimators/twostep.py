@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
 from ..calibration import Calibration
-from ..diagnostics import check_condition, check_not_degenerate, design_condition
+from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
 from ..metrics import row_dot
 from ..models.ellipsoid import to_upper
@@ -125,6 +125,29 @@ def _weights(u: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float
     for start, t, work in _blocks(u, 8):
         _block_weights(t, (b, M), start, w[start : start + t.shape[1]], work)
     return w
+
+
+def _centred_start(
+    u: NDArray[np.float64], F: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """TWOSTEP's centred linear estimate ``(M, b)`` of normalised samples ``u`` (N, 3) with per-sample magnitudes
+    ``F`` (N,): weighted least squares of ``z_k`` on the design and a constant, with one reweighting. None when the
+    design is degenerate (F nearly constant) or the estimate is not an ellipsoid."""
+    z = row_dot(u, u) - F**2
+    A1 = np.column_stack([_design(u), -np.ones(len(u))])
+    cond, _, _ = design_condition(A1)
+    if not np.isfinite(cond) or cond > CONDITION_WARN:
+        return None
+    w = np.ones(len(u))
+    for _ in range(2):
+        sw = np.sqrt(w)
+        x1, *_ = np.linalg.lstsq(A1 * sw[:, None], z * sw, rcond=None)
+        M1 = np.eye(3) + _sym(x1[:6])
+        if np.any(np.linalg.eigvalsh(M1) <= 0):
+            return None
+        b1 = np.linalg.solve(M1, x1[6:9])
+        w = _weights(u, b1, M1)
+    return M1, b1
 
 
 def _magnitude_misfit(u: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64],
@@ -282,27 +305,30 @@ class TwoStep(Estimator):
             b1 = c0
             x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
             w = (b1, np.ascontiguousarray(M1))
+            start = "algebraic"
         else:
             u, norm = normalise(B)
             src, src_norm = u, None
-            z = row_dot(u, u) - F**2
-            A1 = np.column_stack([_design(u), -np.ones(len(u))])
-            cond, _, _ = design_condition(A1)
-            check_condition(cond, what="an ellipsoid (hard + soft iron)",
-                            hint="record the sensor in more attitudes, turning it about all three axes")
-            w = np.ones(len(u))
-            for _ in range(2):
-                sw = np.sqrt(w)
-                x1, *_ = np.linalg.lstsq(A1 * sw[:, None], z * sw, rcond=None)
-                E1, c1 = _sym(x1[:6]), x1[6:9]
-                M1 = np.eye(3) + E1
-                if np.any(np.linalg.eigvalsh(M1) <= 0):
-                    raise IdentifiabilityError(
-                        "TWOSTEP's linear step found no ellipsoid; record the sensor turning through many "
-                        "more attitudes (or use --method ml)"
-                    )
-                b1 = np.linalg.solve(M1, c1)
-                w = _weights(u, b1, M1)
+            # the algebraic start (scaled to the mean magnitude) is always made; the centred linear estimate
+            # only replaces it when it fits the per-sample magnitudes better. When F varies little (a
+            # per-sample IGRF or scalar-magnetometer reference over a survey) the centred problem is as
+            # degenerate as with one magnitude (E = -I, c = 0 nearly fits z): used alone it found no ellipsoid,
+            # or one with a wrong scale (issue 22: mean |B| 22 420 against a 53 941 reference)
+            W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
+            M1 = float(np.mean(F**2)) * (W0.T @ W0)
+            b1 = c0
+            start = "algebraic"
+            centred = _centred_start(u, np.asarray(F, dtype=np.float64))
+            if centred is not None:
+                ev_c, evec_c = np.linalg.eigh(centred[0])
+                ev_a, evec_a = np.linalg.eigh(M1)
+                misfit_c = _magnitude_misfit(u, (evec_c * np.sqrt(ev_c)) @ evec_c.T, centred[1], F)
+                misfit_a = _magnitude_misfit(u, (evec_a * np.sqrt(ev_a)) @ evec_a.T, b1, F)
+                if misfit_c < misfit_a:
+                    M1, b1 = centred
+                    start = "centred"
+            x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
+            w = _weights(u, b1, M1)
         if self.noise_std is not None:
             sigma2 = (float(self.noise_std) / norm.scale) ** 2
         else:
@@ -369,7 +395,8 @@ class TwoStep(Estimator):
         return ellipsoid_result(
             B, W, offset, ref=ref, F_hat=F_hat, sigma=float(np.sqrt(sigma2) * norm.scale), model=model,
             method=self.name, units=units, form=self.form, iterations=int(res.nfev), converged=bool(res.success),
-            diagnostics={"condition_number": cond, "optimizer": str(res.message), "step2_used": step2_used},
+            diagnostics={"condition_number": cond, "optimizer": str(res.message), "step2_used": step2_used,
+                         "step1_start": start},
             uncertainty_note="Fisher information at the estimate (a lower bound; TWOSTEP is not bias-free at "
             "strong noise)",
             principal=principal,
