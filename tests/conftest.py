@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,3 +19,20 @@ def ellipsoid_log(tmp_path: Path) -> Path:
     t = np.arange(len(raw)) * 0.02
     np.savetxt(path, np.column_stack([t, raw]), delimiter=",", header="t,bx,by,bz", comments="", fmt="%.6f")
     return path
+
+
+@pytest.fixture
+def small_chunks() -> Iterator[Callable[[int], None]]:
+    """Shrink the one chunk setting (trimag._core.chunks): ``small_chunks(rows)`` makes passes over (N, 3) samples
+    take ``rows`` rows per chunk from then on, and every other pass proportionally fewer (a pass with 24 doubles of
+    temporaries per row: rows / 8), so the multi-chunk path of every pass runs. Restored after the test."""
+    from trimag._core import chunks
+
+    tokens = []
+
+    def rows(n: int) -> None:
+        tokens.append(chunks._WORKING_MEMORY.set(int(n) * 3 * 8))
+
+    yield rows
+    if tokens:
+        chunks._WORKING_MEMORY.reset(tokens[0])

@@ -164,11 +164,12 @@ def test_memory_layout_of_the_input_does_not_matter(method: str) -> None:
 def test_power_sums_equal_the_direct_sums_over_several_chunks() -> None:
     from itertools import product
 
+    from trimag._core.chunks import chunk_rows
     from trimag.estimators._common import normalisation_of
-    from trimag.estimators.ellipsoid_fit import _CHUNK, power_sums
+    from trimag.estimators.ellipsoid_fit import power_sums
 
     rng = np.random.default_rng(3)
-    raw = rng.normal(size=(_CHUNK + 1234, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]  # > 1 chunk
+    raw = rng.normal(size=(chunk_rows() + 1234, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]  # > 1 chunk
     norm = normalisation_of(raw)
     u = (raw - norm.centre) / norm.scale
     sums = power_sums(raw, norm)

@@ -229,17 +229,16 @@ def test_params_text_shows_degrees_sigma_and_history() -> None:
     assert "+- " in text and "iteration history" in text and "nT" in text
 
 
-def test_blocked_sums_give_the_whole_log_solution(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_blocked_sums_give_the_whole_log_solution(small_chunks) -> None:
     """Every sum over samples is taken in blocks (QR of the Jacobian, residuals, start fit, spread): tiny blocks
     give the same parameters, uncertainty, condition number and history as one block holding the whole log."""
-    import trimag.estimators.gauss_newton as gn_module
     from trimag.models.scalar9 import Scalar9
     from trimag.simulate import simulate
 
     truth = Scalar9(b1=300.0, b2=-200.0, b3=150.0, k1=1.01, k2=0.99, k3=1.005, alpha=0.01, beta=-0.02, gamma=0.015)
     sim = simulate(truth, n=3000, field_nav=(48193.0, 0, 0), attitudes="random", noise=5.0, seed=3)
     whole = GaussNewton().fit(sim.raw, 48193.0, units="nT").calibration_
-    monkeypatch.setattr(gn_module, "_BLOCK", 97)
+    small_chunks(97)
     blocked = GaussNewton().fit(sim.raw, 48193.0, units="nT").calibration_
     std = np.array(list(whole.uncertainty["param_std"].values()))
     diff = np.array([blocked.params[k] - whole.params[k] for k in whole.uncertainty["param_std"]])

@@ -34,12 +34,11 @@ def params(sol: geometric.GeometricSolution) -> np.ndarray:
 
 @pytest.mark.parametrize("bias", [False, True])
 @pytest.mark.parametrize(("n", "noise"), [(200, 0.0), (1000, 20.0), (20_000, 200.0)])
-def test_blocked_equals_one_block(monkeypatch, bias, n, noise):
+def test_blocked_equals_one_block(small_chunks, bias, n, noise):
     """Blocks of 97 samples give the result of a single block, to rounding (the same Gauss-Newton steps)."""
     B = raw_log(n, noise, bias, seed=n)
-    monkeypatch.setattr(geometric, "_BLOCK", n + 1)
-    one = solve_geometric(B, bias=bias)
-    monkeypatch.setattr(geometric, "_BLOCK", 97)
+    one = solve_geometric(B, bias=bias)  # n < 65 536: one chunk at the default setting
+    small_chunks(97)
     blocked = solve_geometric(B, bias=bias)
     np.testing.assert_allclose(params(blocked), params(one), rtol=1e-9)
     assert blocked.result.method == one.result.method == "gauss-newton"
@@ -75,8 +74,8 @@ def test_solution_R_and_rss_describe_the_whole_jacobian():
 
 
 @pytest.mark.parametrize("bias", [False, True])
-def test_noise_free_recovery_1e9(monkeypatch, bias):
-    monkeypatch.setattr(geometric, "_BLOCK", 97)
+def test_noise_free_recovery_1e9(small_chunks, bias):
+    small_chunks(97)
     B = raw_log(500, 0.0, bias, seed=3)
     model = "ortho-gain-bias" if bias else "ortho-gain"
     cal = Geometric(model).fit(B).calibration_
@@ -128,24 +127,24 @@ def traced_peak(B: np.ndarray) -> int:
     return peak
 
 
-def test_memory_well_below_one_n_by_9_array(monkeypatch):
+def test_memory_well_below_one_n_by_9_array(small_chunks):
     """A fit of 300 000 samples in blocks of 8192 peaks far below one (N, 9) float64 array (the unblocked fit held
     several (N, p) Jacobians and residual arrays)."""
     n = 300_000
     B = raw_log(n, 20.0, True)  # (allocated before tracing)
     solve_geometric(B[:1000], bias=True)  # imports outside the measurement
-    monkeypatch.setattr(geometric, "_BLOCK", 8192)
+    small_chunks(8192)
     peak = traced_peak(B)
     assert peak < 0.25 * n * 9 * 8, f"peak {peak / 1e6:.1f} MB"
 
 
-def test_memory_independent_of_n(monkeypatch):
+def test_memory_independent_of_n(small_chunks):
     """The peak is a few blocks of ``[J | -r]`` (p + 1 = 10 columns), whatever N (blocks of 4096 samples here, to
     keep the test fast; the default block behaves alike: measured ~20 MB from N = 1.5e5 to 1e7)."""
     B = raw_log(120_000, 20.0, True)
     solve_geometric(B[:1000], bias=True)
-    monkeypatch.setattr(geometric, "_BLOCK", 4096)
+    small_chunks(4096)
     peaks = [traced_peak(B[:n]) for n in (30_000, 120_000)]
-    block_bytes = geometric._BLOCK * 10 * 8
+    block_bytes = 4096 * 10 * 8
     assert peaks[1] <= 1.05 * peaks[0], f"peaks {[p / 1e6 for p in peaks]} MB"
     assert max(peaks) < 6 * block_bytes, f"peaks {[p / 1e6 for p in peaks]} MB"

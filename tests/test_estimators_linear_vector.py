@@ -283,9 +283,9 @@ def test_analytic_jacobian_matches_finite_differences():
         (40, 3.0, 6, False, None),
     ],
 )
-def test_fit_with_background_equals_full_data_reference(monkeypatch, n, noise, seed, random_attitudes, block):
+def test_fit_with_background_equals_full_data_reference(small_chunks, n, noise, seed, random_attitudes, block):
     if block is not None:
-        monkeypatch.setattr(lv, "_QR_BLOCK", block)
+        small_chunks(block * 104 * 12 // 24)  # QR panels of 13 columns and `block` rows
     H_m, R = _noisy_vehicle(n, noise, seed, random_attitudes)
     F = float(np.linalg.norm(H_N))
     K, c, H_n, info = fit_with_background(H_m, R, F)
@@ -324,16 +324,15 @@ def test_fit_with_background_input_checks():
         fit_with_background(H_m[:, :2], R, 5e4)
 
 
-def test_solve_interference_in_blocks_matches_the_whole_least_squares(monkeypatch):
+def test_solve_interference_in_blocks_matches_the_whole_least_squares(small_chunks):
     """Blocks of 7 rows: K, c, residuals, standard errors and singular values of the one-shot [H_b, 1] fit."""
-    import trimag.estimators.linear_vector as lv
     from trimag.estimators.linear_vector import solve_interference
 
     rng = np.random.default_rng(11)
     H_b = Rotation.random(300, random_state=3).inv().apply([30000.0, 2000.0, 40000.0])
     K = np.array([[1.02, 0.01, -0.02], [0.03, 0.97, 0.01], [0.0, 0.02, 1.01]])
     H_m = H_b @ K.T + [200.0, -100.0, 50.0] + rng.normal(scale=30.0, size=H_b.shape)
-    monkeypatch.setattr(lv, "_BLOCK", 7)
+    small_chunks(7)
     K_fit, c_fit, info = solve_interference(H_m, H_b)
     A = np.column_stack([H_b, np.ones(len(H_b))])
     X, *_ = np.linalg.lstsq(A, H_m, rcond=None)

@@ -104,14 +104,13 @@ def test_needs_reference(cls: type) -> None:
         cls().fit(sphere_samples(), None)
 
 
-def test_bfgs_objective_in_blocks_gives_the_one_block_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_bfgs_objective_in_blocks_gives_the_one_block_fit(small_chunks) -> None:
     """The objective and gradient summed in blocks of 97 samples give the fit of one block, to rounding."""
-    import trimag.estimators.bfgs as bfgs_module
 
     rng = np.random.default_rng(3)
     B = sphere_samples(1000, seed=2) + rng.normal(scale=1e-3, size=(1000, 3))
     one = BFGS().fit(B, 1.0).calibration_
-    monkeypatch.setattr(bfgs_module, "_BLOCK", 97)
+    small_chunks(8 * 97)  # bfgs sums in chunks of 1/8 the rows: 97 samples
     blocked = BFGS().fit(B, 1.0).calibration_
     np.testing.assert_allclose(blocked.matrix, one.matrix, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(blocked.offset, one.offset, atol=1e-8)

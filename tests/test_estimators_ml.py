@@ -53,12 +53,12 @@ def test_geometric_residual_jacobian_is_exact():
     np.testing.assert_allclose(J, num, atol=1e-7)
 
 
-def test_blocked_normal_equations_equal_the_full_jacobian(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_blocked_normal_equations_equal_the_full_jacobian(small_chunks) -> None:
     """``_normal_equations`` (blocks of reused buffers, several blocks here) gives J^T J, J^T r and r^T r of the
     full residual and Jacobian, also with a per-sample target."""
     import trimag.estimators.ml as ml_module
 
-    monkeypatch.setattr(ml_module, "_RESIDUAL_BLOCK", 64)
+    small_chunks(8 * 64)  # the residual passes take 1/8 the rows: 64
     rng = np.random.default_rng(4)
     u = rng.normal(size=(300, 3))
     p = np.array([1.1, 0.1, -0.05, 0.9, 0.08, 1.0, 0.1, 0.2, -0.1])
@@ -71,14 +71,14 @@ def test_blocked_normal_equations_equal_the_full_jacobian(monkeypatch: pytest.Mo
     assert ml_module._normal_equations(u, p, t, hessian=False)[0] is None
 
 
-def test_normal_equations_on_raw_samples_and_a_constant_target(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_normal_equations_on_raw_samples_and_a_constant_target(small_chunks) -> None:
     """The polish of long logs passes the raw samples with their normalisation (normalised block by block, no copy)
     and, without a reference, one number as the target: the same sums as on the normalised copy with a target
     array, to rounding."""
     import trimag.estimators.ml as ml_module
     from trimag.estimators._common import normalisation_stats, normalise
 
-    monkeypatch.setattr(ml_module, "_RESIDUAL_BLOCK", 64)
+    small_chunks(8 * 64)  # the residual passes take 1/8 the rows: 64
     rng = np.random.default_rng(5)
     raw = rng.normal(size=(300, 3)) * [300.0, 250.0, 200.0] + [1500.0, -800.0, 400.0]  # far from the origin
     u, norm = normalise(raw)

@@ -233,15 +233,14 @@ def test_quadric_entries_jacobian_matches_finite_differences(bias):
 
 
 @pytest.mark.parametrize("bias", [False, True])
-def test_blocked_factor_gives_the_one_block_fit(monkeypatch, bias):
+def test_blocked_factor_gives_the_one_block_fit(small_chunks, bias):
     """Blocks of 97 pairs give the fit, phi, condition numbers and uncertainty of one block, to rounding."""
-    import trimag.estimators.pairwise as pw
 
     truth = OrthoGainBias(**PAPER.as_dict(), bx=0.3, by=-0.25, bz=0.4) if bias else PAPER
     raw = paper_raw(1500, 1e-2, 7, model=truth, kind="random")
     model = "ortho-gain-bias" if bias else "ortho-gain"
     one = trimag.fit(raw, model=model, method="pairwise")
-    monkeypatch.setattr(pw, "_BLOCK", 97)
+    small_chunks(97)
     blocked = trimag.fit(raw, model=model, method="pairwise")
     np.testing.assert_allclose(blocked.matrix, one.matrix, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(blocked.offset, one.offset, atol=1e-10)
@@ -251,14 +250,14 @@ def test_blocked_factor_gives_the_one_block_fit(monkeypatch, bias):
         assert blocked.uncertainty["param_std"][k] == pytest.approx(v, rel=1e-8)
 
 
-def test_fit_memory_does_not_grow_with_the_number_of_pairs(monkeypatch):
+def test_fit_memory_does_not_grow_with_the_number_of_pairs(small_chunks):
     """With blocks of 4096 pairs, 400 000 pairs peak at about what 100 000 do: memory is set by the blocks (and
     by the 65 536-row blocks of the column means), not by N."""
     import tracemalloc
 
     import trimag.estimators.pairwise as pw
 
-    monkeypatch.setattr(pw, "_BLOCK", 4096)
+    small_chunks(4096)
     peaks = []
     for n_pairs in (100_000, 400_000):
         B1, B2, _ = pair_samples(np.ascontiguousarray(paper_raw(n_pairs, 1e-2, 8, kind="random")))

@@ -1,11 +1,11 @@
-"""The blocked QR least squares (``trimag.estimators._qr``) against numpy's whole-matrix solvers."""
+"""The blocked QR least squares (``trimag._core.qr``) against numpy's whole-matrix solvers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from trimag.estimators._qr import BlockedQR
+from trimag._core.qr import BlockedQR
 
 
 @pytest.mark.parametrize("block", [1, 4, 97, 5000])
@@ -43,15 +43,15 @@ def test_fewer_rows_than_columns_so_far() -> None:
     assert qr.R.shape == (3, 3) and qr.residual_sum_squares == 0.0
 
 
-def test_blocks_are_factored_in_panels_with_the_same_result(monkeypatch):
+def test_blocks_are_factored_in_panels_with_the_same_result(small_chunks):
     """A block larger than a panel is factored panel by panel (here 64 rows): the same R (up to row signs),
     solution and residual as a QR of the whole system."""
-    import trimag.estimators._qr as qr_module
+    import trimag._core.qr as qr_module
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(1000, 5)) * [1.0, 1e3, 1e-3, 10.0, 1.0]
     b = A @ [1.0, -2.0, 3.0, 0.5, 4.0] + rng.normal(size=1000)
-    monkeypatch.setattr(qr_module, "QR_PANEL_BYTES", 64 * 8 * 6)
+    small_chunks(12 * 64 * 6 // 3)  # a QR panel is 1/12 of the working memory: 64 rows of 6 columns
     qr = qr_module.BlockedQR(5)
     assert qr.rows_per_qr == 64
     qr.add(A[:700], b[:700])

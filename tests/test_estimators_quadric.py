@@ -132,17 +132,16 @@ def test_noise_swamps_limited_path_as_non_ellipsoid_or_large_error() -> None:
         assert np.max(np.abs(np.array(cal.diagnostics["w"]) - TRUTH.w_vector())) > 1e-2
 
 
-def test_blocked_design_gives_the_whole_log_solution(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_blocked_design_gives_the_whole_log_solution(small_chunks) -> None:
     """The linear design and the physical Jacobian are factored block by block: tiny blocks give the same
     parameters, ranks, condition numbers and singular values as one block, on a full set of attitudes and on
     a single-axis turn (where the report names what is undetermined)."""
-    import trimag.estimators.quadric as quadric_module
 
     rng = np.random.default_rng(8)
     full = TRUTH.distort(uniform_directions(3000, seed=8)) + rng.normal(scale=1e-3, size=(3000, 3))
     single = paper_samples(tilt_deg=0.0)
     whole = [identifiability_report(V, 1.0) for V in (full, single)]
-    monkeypatch.setattr(quadric_module, "_BLOCK", 7)
+    small_chunks(7)
     blocked = [identifiability_report(V, 1.0) for V in (full, single)]
     for w, b in zip(whole, blocked, strict=True):
         assert (b.rank, b.physical_rank, b.undetermined, b.undetermined_terms) == (

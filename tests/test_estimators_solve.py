@@ -1,4 +1,4 @@
-"""Gauss-Newton with the Levenberg-Marquardt fallback (trimag.estimators._solve)."""
+"""Gauss-Newton with the Levenberg-Marquardt fallback (trimag._core.solve)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from trimag.estimators._solve import contraction, gauss_newton_then_lm
+from trimag._core.solve import contraction, gauss_newton_then_lm
 
 
 def test_linear_problem_is_solved_in_one_step() -> None:

@@ -125,17 +125,14 @@ def test_twostep_step2_on_sufficient_statistics_matches_levenberg_marquardt(monk
     np.testing.assert_allclose(fast.offset, slow.offset, rtol=0, atol=1e-6)
 
 
-def test_twostep_blocked_statistics_do_not_depend_on_the_block_size(monkeypatch):
+def test_twostep_blocked_statistics_do_not_depend_on_the_block_size(small_chunks):
     """Weights, step-1 residuals and step 2's sufficient statistics are accumulated in blocks of samples: many
     small blocks give the calibration that one block gives."""
-    import trimag._rowwise as rowwise
-    import trimag.estimators.twostep as twostep_module
 
     rng = np.random.default_rng(23)
     X = uniform_directions(3000, seed=24) @ D.T + B0 + 0.01 * rng.standard_normal((3000, 3))
     one = trimag.fit(X, method="twostep", reference=1.0)
-    monkeypatch.setattr(rowwise, "BLOCK", 256)
-    monkeypatch.setattr(twostep_module, "BLOCK", 256)
+    small_chunks(256)
     many = trimag.fit(X, method="twostep", reference=1.0)
     np.testing.assert_allclose(many.matrix, one.matrix, rtol=1e-11, atol=1e-14)
     np.testing.assert_allclose(many.offset, one.offset, rtol=0, atol=1e-12)

@@ -270,12 +270,12 @@ def test_numbers_python_reads_keep_the_typed_read(tmp_path: Path, first_row: str
     assert (typed.n_dropped, typed.n_duplicates) == (text.n_dropped, text.n_duplicates)
 
 
-def test_count_duplicate_rows_with_a_block_transform_counts_the_transformed_rows(monkeypatch):
+def test_count_duplicate_rows_with_a_block_transform_counts_the_transformed_rows(small_chunks):
     """``prepare`` is applied block by block (blocks of 5 here) and to the compared candidates: the count is that
     of the transformed array, without a transformed copy of the whole array."""
-    from trimag import _rowwise
+    from trimag._core import rowwise as _rowwise
 
-    monkeypatch.setattr(_rowwise, "_HASH_BLOCK", 5)
+    small_chunks(5)
     rng = np.random.default_rng(2)
     a = rng.normal(size=(40, 3))
     a[10:20] = a[:10] + 1e-12  # equal after rounding to 9 decimals, distinct before

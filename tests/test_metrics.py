@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import trimag._rowwise as rowwise
+import trimag._core.rowwise as rowwise
 from trimag.metrics import before_after_stats, norm_stats, row_dot, row_norms
 
 
@@ -19,10 +19,10 @@ def test_row_dot_matches_einsum():
 
 
 @pytest.mark.parametrize("with_reference", [False, True], ids=["mean-F", "per-sample-F"])
-def test_before_after_stats_equals_norm_stats_over_blocks(monkeypatch, with_reference):
+def test_before_after_stats_equals_norm_stats_over_blocks(small_chunks, with_reference):
     """Over several blocks (block size forced to 1000 rows, 4321 samples) the one-pass statistics equal
     ``norm_stats`` on the whole arrays; large magnitudes with a tiny spread do not cancel."""
-    monkeypatch.setattr(rowwise, "BLOCK", 1000)
+    small_chunks(1000)
     rng = np.random.default_rng(1)
     n = 4321
     B = 5e4 * rng.standard_normal((n, 3)) + 2e4

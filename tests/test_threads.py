@@ -1,4 +1,4 @@
-"""``trimag._threads.one_blas_thread``: fits and in-process trials run with one BLAS thread, restored after."""
+"""``trimag._core.threads.one_blas_thread``: fits and in-process trials run with one BLAS thread, restored after."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS, so both librarie
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import trimag
-from trimag._threads import one_blas_thread
+from trimag._core.threads import one_blas_thread
 from trimag.parallel import map_trials
 
 

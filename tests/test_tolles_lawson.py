@@ -249,13 +249,12 @@ def test_cli_on_magnav_mat_struct(tmp_path: Path):
     assert np.std(df["TL_data.mag_1_uc_compensated"].to_numpy() - d.mag_1_c) < 0.1
 
 
-def test_apply_in_blocks_equals_whole_segment_design(monkeypatch):
-    import trimag.compensation as compensation
+def test_apply_in_blocks_equals_whole_segment_design(small_chunks):
 
     sim = simulate_aircraft(30.0, seed=7)
     comp = fit_tolles_lawson(sim.vector_nT, sim.scalar_nT, rate_hz=10.0, segments=sim.segments, bootstrap=0)
     whole = sim.scalar_nT - design(sim.vector_nT) @ comp.coefficients
-    monkeypatch.setattr(compensation, "_APPLY_BLOCK", 97)
+    small_chunks(97)
     np.testing.assert_allclose(comp.apply(sim.vector_nT, sim.scalar_nT), whole, rtol=0, atol=1e-9)
 
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._rowwise import affine
+from ._core.rowwise import affine
 from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._core.chunks import chunk_rows
 from ._version import __version__
 from .calibration import _jsonable, atomic_write_text, file_major_version
 from .errors import CalibrationFormatError, TrimagInputError
@@ -33,7 +34,6 @@ from .models.tolles_lawson import TollesLawsonTerms
 __all__ = ["COMPENSATION_FORMAT_VERSION", "ScalarCompensation"]
 
 COMPENSATION_FORMAT_VERSION = "1.0.0"
-_APPLY_BLOCK = 65_536  # rows of design built at a time by apply (bounded memory)
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,8 +127,9 @@ class ScalarCompensation:
                 continue
             # in blocks of rows, each with one neighbour on either side so that the finite differences at a
             # block's edges are those of the whole segment: memory does not grow with the segment's length
-            for c0 in range(start, stop, _APPLY_BLOCK):
-                c1 = min(c0 + _APPLY_BLOCK, stop)
+            step = chunk_rows(len(self.coefficients) + 3)  # the design's columns and the field
+            for c0 in range(start, stop, step):
+                c1 = min(c0 + step, stop)
                 a, b = max(c0 - 1, start), min(c1 + 1, stop)
                 A = self.terms.design(B[a:b], None if S is None else S[a:b])
                 out[c0:c1] = A[c0 - a : c0 - a + (c1 - c0)] @ self.coefficients

@@ -39,9 +39,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._rowwise import scratch
+from ._core.rowwise import row_dot, scratch
+from ._core.sphere import fibonacci_sphere
 from .errors import IdentifiabilityError, TrimagInputError
-from .metrics import row_dot
 from .models.base import ErrorModel
 
 __all__ = [
@@ -214,7 +214,7 @@ def ellipsoid_fisher(
     """
     g = geometry
     p = 9 if known_magnitude else 10
-    # component-major: a[k] is parameter k's derivative for every sample (a reused buffer, trimag._rowwise.scratch)
+    # component-major: a[k] is parameter k's derivative for every sample (a reused buffer, trimag._core.rowwise.scratch)
     with scratch(p, len(g.weight)) as a:
         for k, (r, c) in enumerate(zip(*UPPER, strict=True)):
             np.multiply(g.normal[r], g.e[c], out=a[k])
@@ -352,8 +352,6 @@ def _upper_predicted_errors(
 
 
 def _test_directions(n: int = 500) -> NDArray[np.float64]:
-    from .diagnostics import fibonacci_sphere
-
     return fibonacci_sphere(n)
 
 

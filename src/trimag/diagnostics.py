@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._rowwise import scratch
+from ._core.chunks import chunk_rows
+from ._core.rowwise import row_dot, scratch
+from ._core.sphere import fibonacci_sphere
 from .errors import IdentifiabilityError, IdentifiabilityWarning
-from .metrics import row_dot
 
 __all__ = [
     "CONDITION_ERROR",
@@ -49,8 +50,6 @@ CONDITION_ERROR = 1e9
 #: Measured (docs/method-ml.md, "Identifiability"): 1.0-1.9 for single-axis turns at sigma/F = 4e-4 to 5e-2;
 #: 5.7 for one hemisphere at sigma/F = 5e-2; 6.3-98 on five real logs.
 PLANE_NOISE_RATIO = 3.0
-#: Rows per block of the nearest-cell search (the (block, n_cells) products stay in cache).
-_CHUNK = 512
 #: Diagnostics that summarise the whole log (sphere coverage, degeneracy, and the noise level and Fisher
 #: information of the ellipsoid methods) use at most this many evenly spread samples: sums over samples scaled up.
 DIAGNOSTIC_SAMPLES = 20_000
@@ -59,15 +58,6 @@ DIAGNOSTIC_SAMPLES = 20_000
 def diagnostic_subsample(n: int) -> NDArray[np.int64]:
     """Indices of at most :data:`DIAGNOSTIC_SAMPLES` samples spread evenly over ``0 .. n - 1`` (all when fewer)."""
     return np.linspace(0, n - 1, min(n, DIAGNOSTIC_SAMPLES)).astype(np.int64)
-
-
-def fibonacci_sphere(n: int) -> NDArray[np.float64]:
-    """``n`` nearly equal-area cell centres on the unit sphere, shape (n, 3)."""
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    r = np.sqrt(1.0 - z * z)
-    phi = np.pi * (1.0 + 5**0.5) * i
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
 def sphere_coverage(
@@ -104,9 +94,11 @@ def sphere_coverage(
     if min_count is None:
         min_count = max(1, int(np.ceil(0.1 * len(u) * stride / n_cells)))  # counts are scaled by the stride
     counts = np.zeros(n_cells, dtype=np.int64)
-    with scratch(min(len(u), _CHUNK), n_cells) as dots:  # a reused buffer (trimag._rowwise.scratch)
-        for start in range(0, len(u), _CHUNK):
-            block = u[start : start + _CHUNK]
+    # chunks of the nearest-cell search: the (m, n_cells) products and their argmax temporaries stay in cache
+    step = chunk_rows(4 * n_cells)
+    with scratch(min(len(u), step), n_cells) as dots:  # a reused buffer (trimag._core.rowwise.scratch)
+        for start in range(0, len(u), step):
+            block = u[start : start + step]
             prod = dots[: len(block)]
             np.matmul(block, centres_t, out=prod)
             counts += np.bincount(prod.argmax(axis=1), minlength=n_cells) * stride
@@ -308,12 +300,14 @@ def design_condition(A: ArrayLike) -> tuple[float, NDArray[np.float64], NDArray[
     """
     a = np.asarray(A, dtype=np.float64)
     norms = np.linalg.norm(a, axis=0)
-    norms[norms == 0] = 1.0
+    # a column that is zero up to rounding is not scaled up: unit norm would turn rounding noise into apparent
+    # information (and the verdict would depend on the order of the sums)
+    norms[norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)] = 1.0
     n, p = a.shape
     if n > 2 * p:
         # tall: the singular values and right vectors of A are those of R in A = QR (Householder, numpy's LAPACK;
         # not scipy's, whose separate OpenBLAS thread pool spin-waits against numpy's: measured 2x slower
-        # batch fits). The column-scaled copy goes into a reused buffer (trimag._rowwise.scratch).
+        # batch fits). The column-scaled copy goes into a reused buffer (trimag._core.rowwise.scratch).
         with scratch(p, n) as at:
             np.divide(a.T, norms[:, None], out=at)
             r = np.linalg.qr(at.T, mode="r")

@@ -10,7 +10,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _rowwise
+from ._core import rowwise as _rowwise
+from ._core.chunks import chunk_rows
+from ._core.rowwise import row_dot
+from ._core.stats import StreamingMoments as _Moments
+from .crlb import crlb
 
 __all__ = ["before_after_stats", "magnitude_error", "magnitude_stats", "norm_stats", "rms", "row_dot", "row_norms"]
 
@@ -19,20 +23,6 @@ def rms(x: ArrayLike) -> float:
     """Root mean square of ``x``."""
     a = np.asarray(x, dtype=np.float64)
     return float(np.sqrt(np.mean(a * a)))
-
-
-def row_dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Row-wise dot products ``sum_k a_ik b_ik`` of two (N, 3) arrays -> (N,).
-
-    Three column products: about 5x faster than ``np.einsum("ij,ij->i", a, b)``, whose inner loop over 3
-    elements dominates; other shapes fall back to ``einsum``.
-    """
-    if a.ndim == 2 and a.shape[1] == 3 and b.shape == a.shape:
-        out = a[:, 0] * b[:, 0]
-        out += a[:, 1] * b[:, 1]
-        out += a[:, 2] * b[:, 2]
-        return out
-    return np.asarray(np.einsum("...i,...i->...", a, b), dtype=np.float64)
 
 
 def row_norms(B: ArrayLike) -> NDArray[np.float64]:
@@ -69,30 +59,6 @@ def norm_stats(norms: ArrayLike, reference: ArrayLike) -> dict[str, Any]:
         "peak_to_peak": hi - lo,
         "bias": float(err.mean()),
     }
-
-
-class _Moments:
-    """Count, mean, sum of squared deviations, min and max of a stream of blocks (Chan et al.'s pairwise
-    update: no cancellation when the mean is large and the spread tiny)."""
-
-    def __init__(self) -> None:
-        self.n, self.mean, self.m2 = 0, 0.0, 0.0
-        self.lo, self.hi = np.inf, -np.inf
-
-    def add(self, x: NDArray[np.float64], scratch: NDArray[np.float64] | None = None) -> None:
-        """Add the values ``x`` (m,); ``scratch`` (at least m,) avoids a temporary."""
-        m = len(x)
-        if m == 0:
-            return
-        mean = float(np.sum(x)) / m
-        dev = np.subtract(x, mean, out=None if scratch is None else scratch[:m])
-        m2 = float(np.dot(dev, dev))
-        total = self.n + m
-        delta = mean - self.mean
-        self.mean += delta * m / total
-        self.m2 += m2 + delta * delta * self.n * m / total
-        self.n = total
-        self.lo, self.hi = min(self.lo, float(x.min())), max(self.hi, float(x.max()))
 
 
 def _stats_from(norms: _Moments, err: _Moments | None, F: float) -> dict[str, Any]:
@@ -143,7 +109,7 @@ def before_after_stats(
 
     Notes
     -----
-    The samples are processed in blocks of 65 536 rows (:mod:`trimag._rowwise`), so no (N, 3) or (N,) temporary
+    The samples are processed in blocks of 65 536 rows (:mod:`trimag._core.rowwise`), so no (N, 3) or (N,) temporary
     is formed; the result
     equals ``norm_stats(row_norms(B), F)`` and ``norm_stats(row_norms(corrected), F)`` to rounding.
     """
@@ -152,15 +118,15 @@ def before_after_stats(
     raw, cor = _Moments(), _Moments()
     raw_err, cor_err = (_Moments(), _Moments()) if reference is not None else (None, None)
     ref_sum = 0.0
-    size = min(max(len(B), 1), _rowwise.BLOCK)
+    size = min(max(len(B), 1), chunk_rows())
 
     def norms(t: NDArray[np.float64], out: NDArray[np.float64], scratch: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.sqrt(_rowwise.sum_squares(t, out=out, tmp=scratch), out=out)
 
-    with _rowwise.scratch(7, size) as work:  # reused block buffers (trimag._rowwise.scratch)
+    with _rowwise.scratch(7, size) as work:  # reused block buffers (trimag._core.rowwise.scratch)
         y_buf = work[:3]
         tmp, n_raw_buf, n_cor_buf, err_buf = work[3:]
-        for start, t in _rowwise.transposed_blocks(B):  # component-major blocks (trimag._rowwise)
+        for start, t in _rowwise.transposed_blocks(B):  # component-major blocks (trimag._core.rowwise)
             m = t.shape[1]
             n_raw = norms(t, n_raw_buf[:m], tmp[:m])
             t -= offset[:, None]
@@ -252,7 +218,4 @@ def j_index(true: Any, estimated: Any, *, keys: tuple[str, ...] | None = None) -
     return float(j) if np.ndim(j) == 0 else j
 
 
-# ---- the Cramér–Rao bound of the scalar calibration problem (issue 7; implemented in trimag.crlb) ------------
-from .crlb import crlb  # noqa: E402
-
-__all__ += ["crlb"]
+__all__ += ["crlb"]  # the Cramér–Rao bound of the scalar calibration problem, implemented in trimag.crlb

@@ -38,7 +38,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from ._threads import one_blas_thread
+from ._core.threads import one_blas_thread
 from .errors import TrimagInputError
 
 __all__ = ["DEFAULT_LOCAL_BACKEND", "ProgressBar", "map_trials", "shutdown_pools", "trial_seeds"]
@@ -274,7 +274,7 @@ def map_trials(
             return _run_distributed(fn, items, scheduler, chunksize, bar)
         if workers == 1:
             out = []
-            with one_blas_thread():  # as in the worker processes (trimag._threads)
+            with one_blas_thread():  # as in the worker processes (trimag._core.threads)
                 for item in items:
                     out.append(fn(item))
                     bar.advance(1)

@@ -7,7 +7,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, column_means, scratch, sum_squares, transposed_blocks
+from .._core.chunks import chunk_rows
+from .._core.rowwise import column_means, scratch, sum_squares, transposed_blocks
 from ..errors import TrimagInputError
 from ..reference import ScalarReference, as_scalar_reference
 
@@ -33,7 +34,7 @@ class Normalisation:
 
 def normalise(B: NDArray[np.float64]) -> tuple[NDArray[np.float64], Normalisation]:
     """Centre ``B`` (N, 3) on its mean and scale it to unit RMS radius: returns ``(u, norm)``,
-    ``u = norm.forward(B)`` (the centre by :func:`trimag._rowwise.column_means`)."""
+    ``u = norm.forward(B)`` (the centre by :func:`trimag._core.rowwise.column_means`)."""
     centre = column_means(B)
     u = B - centre
     flat = u.ravel()
@@ -48,7 +49,8 @@ def normalisation_stats(B: NDArray[np.float64], centre: NDArray[np.float64] | No
     ``centre`` given (e.g. zeros for a model without offsets), the scale is the RMS distance from it."""
     centre = column_means(B) if centre is None else np.asarray(centre, dtype=np.float64)
     total = 0.0
-    with scratch(min(max(len(B), 1), BLOCK)) as out, scratch(min(max(len(B), 1), BLOCK)) as tmp:
+    rows = min(max(len(B), 1), chunk_rows())
+    with scratch(rows) as out, scratch(rows) as tmp:
         for _, t in transposed_blocks(B, centre):
             m = t.shape[1]
             total += float(np.sum(sum_squares(t, out=out[:m], tmp=tmp[:m])))

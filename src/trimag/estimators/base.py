@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._threads import one_blas_thread
+from .._core.threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import diagnostic_subsample, sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
@@ -135,7 +135,7 @@ class Estimator:
         model = self._resolve_model()
         X = check_field(B, min_samples=self._min_samples(model), model=model)
         unit = normalise_unit(units)
-        with one_blas_thread():  # small BLAS calls only: a second thread would just spin-wait (trimag._threads)
+        with one_blas_thread():  # small BLAS calls only: a second thread would just spin-wait (trimag._core.threads)
             cal = self._fit(X, reference, model=model, units=unit, attitude=attitude)
             cal = honest_uncertainty(cal, X, reference)  # repeated rows, correlated residuals, few samples
         self.calibration_ = cal

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
+from .._core.chunks import chunk_rows
 from ..calibration import Calibration
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.zhang_cheng import ZhangCheng, upper_from_quadric
@@ -34,9 +35,6 @@ from .quadric import check_identifiable, diagnostics_entries, identifiability_re
 __all__ = ["BFGS", "finish_iterative", "iterative_start", "unpack"]
 
 _UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
-#: Samples per block of the objective and its gradient: the block's (m, 9) Jacobian and temporaries stay in cache,
-#: and memory does not grow with N.
-_BLOCK = 8192
 
 
 def unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -140,9 +138,10 @@ class BFGS(Estimator):
         def fun(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
             M, b = unpack(p)
             cost, grad = 0.0, np.zeros(9)
-            for s in range(0, n, _BLOCK):  # the (N, 9) Jacobian is never formed: block by block
-                mag, J = magnitude_jacobian(u[s : s + _BLOCK], M, b)
-                r = mag - t[s : s + _BLOCK]
+            chunk = chunk_rows(24)
+            for s in range(0, n, chunk):  # the (N, 9) Jacobian is never formed: block by block
+                mag, J = magnitude_jacobian(u[s : s + chunk], M, b)
+                r = mag - t[s : s + chunk]
                 cost += float(r @ r)
                 grad += r @ J
             return 0.5 * cost / n, grad / n

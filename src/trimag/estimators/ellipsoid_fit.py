@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import scratch, transposed_blocks
+from .._core.chunks import chunk_rows
+from .._core.rowwise import scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, weak_directions
 from ..errors import IdentifiabilityError
@@ -31,7 +32,6 @@ __all__ = [
 ]
 
 _TERMS = ("xx", "yy", "zz", "yz", "xz", "xy", "x", "y", "z", "1")
-_CHUNK = 65_536
 _FACTORS = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 1.0])
 
 
@@ -81,8 +81,8 @@ def _pair_moments(u: NDArray[np.float64], norm: Normalisation | None = None) -> 
     """
     moments = np.zeros(len(_PAIRS))
     centre = norm.centre if norm is not None else None
-    with scratch(6, min(max(len(u), 1), _CHUNK)) as Q:  # a reused buffer (trimag._rowwise.scratch)
-        for _, t in transposed_blocks(u, centre, block=_CHUNK):  # component-major blocks: contiguous x, y, z
+    with scratch(6, min(max(len(u), 1), chunk_rows())) as Q:  # a reused buffer (trimag._core.rowwise.scratch)
+        for _, t in transposed_blocks(u, centre, block=chunk_rows()):  # component-major blocks: contiguous x, y, z
             if norm is not None:
                 t *= 1.0 / norm.scale
             x, y, z = t

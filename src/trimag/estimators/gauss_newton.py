@@ -6,8 +6,9 @@ Each sample gives one nonlinear equation (methods.md, paper B)
 
 and the N equations are solved by Gauss-Newton: ``p <- p + delta`` with ``delta = argmin |J delta + r|``
 (solved through a QR factorisation, not by forming ``J^T J``), ``J`` the analytic Jacobian
-(:func:`residual_jacobian`). Every sum over samples is taken in blocks of :data:`_BLOCK` samples (``[J | -r]`` is
-factored block by block, :class:`._qr.BlockedQR`), so memory does not grow with N.
+(:func:`residual_jacobian`). Every sum over samples is taken in chunks of samples
+(:func:`~trimag._core.chunks.chunk_rows`; ``[J | -r]`` is
+factored block by block, :class:`~trimag._core.qr.BlockedQR`), so memory does not grow with N.
 
 * Start: the algebraic (linear least-squares) quadric fit ``u^T A u + v^T u = 1`` (nine unknowns, exact on
   noise-free data), scaled to the reference (:func:`algebraic_start`), reduced to the scalar9 gauge
@@ -42,7 +43,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, column_means, scratch, transposed_blocks
+from .._core.chunks import chunk_rows
+from .._core.qr import BlockedQR
+from .._core.rowwise import column_means, scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import (
     CONDITION_ERROR,
@@ -58,7 +61,6 @@ from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
-from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import quadratic_terms
 
@@ -80,9 +82,6 @@ _ANGLES = ("alpha", "beta", "gamma")
 #: wobble); only then is the thickness-to-noise test applied, so that logs with a large residual (model error,
 #: disturbances) but a well-spread cloud are not mistaken for a single-axis turn.
 _FLAT = 0.2
-#: Samples per block of every sum over the log (residuals, the Jacobian's QR factorisation, the start fit): the
-#: memory of a fit is a few blocks (about 10 MB), whatever N.
-_BLOCK = BLOCK
 
 
 class GaussNewtonFallbackWarning(TrimagWarning):
@@ -109,7 +108,7 @@ def residual_jacobian(
     b, k, ang = _unpack(p)
     T = t_matrix(*ang)
     Tinv = np.linalg.inv(T)
-    # component-major (3, N) layout: each step is one contiguous pass (trimag._rowwise)
+    # component-major (3, N) layout: each step is one contiguous pass (trimag._core.rowwise)
     z = np.empty((3, len(x)))
     np.subtract(x.T, b[:, None], out=z)
     z *= (1.0 / k)[:, None]
@@ -136,7 +135,7 @@ def _centred_singular_values(B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Singular values (3,), largest first, of the samples ``B`` (N, 3) minus their mean, block by block (the
     triangular factor of a blocked QR has the same singular values: :class:`._qr.BlockedQR`)."""
     qr = BlockedQR(3)
-    for _, t in transposed_blocks(B, column_means(B), block=_BLOCK):
+    for _, t in transposed_blocks(B, column_means(B), block=chunk_rows()):
         qr.add(t.T)
     return np.asarray(np.linalg.svd(qr.R, compute_uv=False), dtype=np.float64)
 
@@ -182,9 +181,9 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
     # the design D = (x^2, y^2, z^2, 2yz, 2xz, 2xy, x, y, z) of u = (B - centre) / scale, block by block into a
     # QR factorisation: the same minimum-norm solution and condition number as numpy.linalg.lstsq(D, 1)
     qr = BlockedQR(9)
-    ones = np.ones(min(max(n, 1), _BLOCK))
-    with scratch(9, min(max(n, 1), _BLOCK)) as design:
-        for _, t in transposed_blocks(B, centre, block=_BLOCK):
+    ones = np.ones(min(max(n, 1), chunk_rows()))
+    with scratch(9, min(max(n, 1), chunk_rows())) as design:
+        for _, t in transposed_blocks(B, centre, block=chunk_rows()):
             t *= 1.0 / scale
             d = quadratic_terms(t, design[:, : t.shape[1]])
             d[3:6] *= 2.0
@@ -209,9 +208,11 @@ def algebraic_start(B: NDArray[np.float64], F: NDArray[np.float64]) -> tuple[Sca
 def _blocks(
     B: NDArray[np.float64], F: NDArray[np.float64], scale: float
 ) -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]]:
-    """Consecutive blocks of :data:`_BLOCK` samples and their reference, both divided by ``scale``."""
-    for start in range(0, len(B), _BLOCK):
-        yield B[start : start + _BLOCK] / scale, F[start : start + _BLOCK] / scale
+    """Consecutive chunks of samples (:func:`~trimag._core.chunks.chunk_rows`) and their reference, both divided by
+    ``scale``."""
+    step = chunk_rows()
+    for start in range(0, len(B), step):
+        yield B[start : start + step] / scale, F[start : start + step] / scale
 
 
 def half_sum_squares(B: NDArray[np.float64], F: NDArray[np.float64], scale: float, p: NDArray[np.float64]) -> float:

@@ -11,10 +11,11 @@ noise sample enters once, through one residual, where the pairwise objective mix
 squared-magnitude difference. Start: a linear least-squares fit of the quadric ``B'^T A B' + 2 g^T B' = 1``
 (``g = 0`` for ``ortho-gain``), reduced to ``Gamma^-1`` by the upper Cholesky factor scaled to ``C[2, 2] ==
 1``. Then Gauss-Newton with the analytic Jacobian, Levenberg-Marquardt when a step raises the cost (the rule of
-:func:`trimag.estimators._solve.gauss_newton_then_lm`).
+:func:`trimag._core.solve.gauss_newton_then_lm`).
 
 Every sum over samples (the normalisation, the start's design, the residuals, the Jacobian and the cost) is taken
-in blocks of :data:`_BLOCK` samples: the start's design and each Gauss-Newton system ``[J | -r]`` are factored
+in chunks of samples (:func:`~trimag._core.chunks.chunk_rows`): the start's design and each Gauss-Newton system ``[J
+| -r]`` are factored
 block by block (:class:`._qr.BlockedQR`), so memory does not grow with N. Only the rare Levenberg-Marquardt
 fallback holds the whole (N, p) Jacobian (MINPACK needs it).
 """
@@ -28,15 +29,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
-from .._threads import one_blas_thread
+from .._core.chunks import chunk_rows
+from .._core.qr import BlockedQR
+from .._core.rowwise import scratch, sum_squares, transposed_blocks
+from .._core.solve import ROUNDING_STEP, XTOL, GaussNewtonResult
+from .._core.threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError
 from ..models import get_model
 from ._common import normalisation_stats, scalar_reference
-from ._qr import BlockedQR
-from ._solve import ROUNDING_STEP, XTOL, GaussNewtonResult
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import quadratic_terms
 from .pairwise import params_covariance, q_to_matrix
@@ -46,9 +48,6 @@ __all__ = ["Geometric", "GeometricSolution", "solve_geometric"]
 _Q_IDX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
 _NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")
-#: Samples per block of every sum over the log (the start's design, residuals, the Jacobian's QR factorisation):
-#: the memory of a fit is a few blocks (about 20 MB), whatever N.
-_BLOCK = BLOCK
 
 #: The Gauss-Newton system at a point: its :class:`._qr.BlockedQR` of ``[J | -r]`` (None when a residual is not
 #: finite) and ``sum r^2``.
@@ -111,9 +110,9 @@ def _normalisation(B: NDArray[np.float64], bias: bool) -> tuple[NDArray[np.float
 def _unit_blocks(
     B: NDArray[np.float64], centre: NDArray[np.float64], scale: float
 ) -> Iterator[NDArray[np.float64]]:
-    """Consecutive blocks ``((B - centre) / scale).T`` (3, m) of :data:`_BLOCK` samples, component-major, in a
+    """Consecutive blocks ``((B - centre) / scale).T`` (3, m) of a chunk of samples, component-major, in a
     reused buffer (use each before asking for the next)."""
-    for _, t in transposed_blocks(B, centre, block=_BLOCK):
+    for _, t in transposed_blocks(B, centre, block=chunk_rows()):
         np.divide(t, scale, out=t)
         yield t
 
@@ -147,7 +146,7 @@ def _start(
     n = len(B)
     p = 9 if bias else 6
     qr = BlockedQR(p)
-    m0 = min(max(n, 1), _BLOCK)
+    m0 = min(max(n, 1), chunk_rows())
     with scratch(p, m0) as design, scratch(m0) as ones:
         ones.fill(1.0)
         for t in _unit_blocks(B, centre, scale):
@@ -224,7 +223,7 @@ def _linearise(
     C, b, h = _unpack(p, bias)
     npar = len(p)
     n = len(B)
-    m0 = min(max(n, 1), _BLOCK)
+    m0 = min(max(n, 1), chunk_rows())
     qr = BlockedQR(npar)
     rss = 0.0
     with scratch(npar + 1, m0) as system, scratch(3, m0) as y:
@@ -244,12 +243,12 @@ def _linearise(
 def _gauss_newton(
     system: Callable[[NDArray[np.float64]], _System], p0: NDArray[np.float64], *, max_steps: int, xtol: float = XTOL
 ) -> tuple[GaussNewtonResult, BlockedQR, float] | None:
-    """Undamped Gauss-Newton from ``p0`` by the rule of :func:`trimag.estimators._solve.gauss_newton`, each step
+    """Undamped Gauss-Newton from ``p0`` by the rule of :func:`trimag._core.solve.gauss_newton`, each step
     from the QR factorisation of ``[J | -r]`` (``system(p)``) instead of the normal equations; None when a step
     raises ``sum r^2`` (far from the minimum) or ``max_steps`` pass without convergence.
 
     Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
-    rounding only (relative step below :data:`~trimag.estimators._solve.ROUNDING_STEP`) keeps the point before it.
+    rounding only (relative step below :data:`~trimag._core.solve.ROUNDING_STEP`) keeps the point before it.
     The system is linearised at every trial point (a rejected trial ends the run). Returns the result (fields of
     ``scipy.optimize.OptimizeResult`` without ``fun`` and ``jac``), the system at the solution and its ``sum r^2``.
     """
@@ -304,8 +303,8 @@ def _levenberg_marquardt(
     from scipy.optimize import least_squares
 
     n, npar = len(B), len(p0)
-    ut = np.empty((3, n))  # component-major (3, N): contiguous passes (trimag._rowwise)
-    for start, t in transposed_blocks(B, centre, block=_BLOCK):
+    ut = np.empty((3, n))  # component-major (3, N): contiguous passes (trimag._core.rowwise)
+    for start, t in transposed_blocks(B, centre, block=chunk_rows()):
         np.divide(t, scale, out=ut[:, start : start + t.shape[1]])
 
     def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -327,8 +326,9 @@ def _levenberg_marquardt(
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
     J, r = res.pop("jac"), res.pop("fun")
     qr = BlockedQR(npar)
-    for start in range(0, n, _BLOCK):
-        qr.add(J[start : start + _BLOCK], -r[start : start + _BLOCK])
+    chunk = chunk_rows()
+    for start in range(0, n, chunk):
+        qr.add(J[start : start + chunk], -r[start : start + chunk])
     return res, qr, float(r @ r)
 
 
@@ -352,12 +352,12 @@ def solve_geometric(B: NDArray[np.float64], *, bias: bool = False, max_iter: int
     -----
     The fit runs on ``u = (B - centre) / scale`` block by block: memory does not grow with N, except in the
     Levenberg-Marquardt fallback (taken when a Gauss-Newton step raises the cost), which holds the whole (N, p)
-    Jacobian. Called from the main thread it runs with one BLAS thread (:func:`trimag._threads.one_blas_thread`).
+    Jacobian. Called from the main thread it runs with one BLAS thread (:func:`trimag._core.threads.one_blas_thread`).
     """
     def system(p: NDArray[np.float64]) -> _System:
         return _linearise(B, centre, scale, bias, p)
 
-    # small QR factorisations per block: a second BLAS thread would only spin-wait (trimag._threads)
+    # small QR factorisations per block: a second BLAS thread would only spin-wait (trimag._core.threads)
     with one_blas_thread():
         centre, scale = _normalisation(B, bias)
         C0, b0, h0, cond = _start(B, centre, scale, bias)

@@ -28,23 +28,19 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .._rowwise import BLOCK, count_duplicate_rows
+from .._core.chunks import chunk_rows
+from .._core.qr import BlockedQR, panel_rows
+from .._core.rowwise import count_duplicate_rows
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.interference12 import Interference12
 from ..reference import ScalarReference, as_vector
-from ._qr import QR_PANEL_BYTES, BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = ["LinearVector", "fit_with_background", "solve_interference"]
 
 _NAMES_A = ("H_b x", "H_b y", "H_b z", "c")
-#: Rows per block of the sums over samples.
-_BLOCK = BLOCK
-#: Rows per block of the QR factorisation of the joint-background design (:func:`fit_with_background`): a panel of
-#: 13 columns within :data:`trimag.estimators._qr.QR_PANEL_BYTES` (factored from cache).
-_QR_BLOCK = QR_PANEL_BYTES // (8 * 13)
 _HINT = (
     "record at least 4 attitudes whose body-frame background fields are not coplanar "
     "(tilt the vehicle in pitch and roll as well as turning it in heading)"
@@ -68,14 +64,15 @@ def _body_field(attitude: Rotation, H_n: NDArray[np.float64]) -> NDArray[np.floa
     exist for one block at a time (whole, they took 880 MB at N = 1e7 besides the 240 MB result)."""
     n = len(attitude)
     out = np.empty((n, 3))
-    for start in range(0, n, _BLOCK):
-        out[start : start + _BLOCK] = attitude[start : start + _BLOCK].inv().apply(H_n)
+    chunk = chunk_rows()
+    for start in range(0, n, chunk):
+        out[start : start + chunk] = attitude[start : start + chunk].inv().apply(H_n)
     return out
 
 
 def _distinct_count(H_b: NDArray[np.float64]) -> int:
     """Distinct attitudes: rows of ``H_b`` (N, 3) that differ after rounding to 1e-9 of the largest value (rows
-    hashed, colliding ones compared exactly: :func:`~trimag._rowwise.count_duplicate_rows`; sorting whole rows
+    hashed, colliding ones compared exactly: :func:`~trimag._core.rowwise.count_duplicate_rows`; sorting whole rows
     took 0.84 of a 1.37 s fit at N = 1e6)."""
     scale = float(np.max(np.abs(H_b))) or 1.0
 
@@ -115,12 +112,13 @@ def solve_interference(
             f"only {n_att} distinct attitude(s): the 12 interference coefficients need at least 4 attitudes "
             f"(each sensor axis is a 4-unknown problem); {_HINT}"
         )
-    # [H_b, 1 | H_m] = Q R block by block (trimag.estimators._qr.BlockedQR): R11 (4, 4) has the singular values
+    # [H_b, 1 | H_m] = Q R block by block (trimag._core.qr.BlockedQR): R11 (4, 4) has the singular values
     # and column norms of A = [H_b, 1], R11 X = R12 is the least-squares solution, and R22's column norms are
     # the per-axis residual norms; no (N, 4) design is formed
     qr = BlockedQR(7)
-    for start in range(0, len(H_b), _BLOCK):
-        m = min(_BLOCK, len(H_b) - start)
+    chunk = chunk_rows()
+    for start in range(0, len(H_b), chunk):
+        m = min(chunk, len(H_b) - start)
         block = np.empty((m, 7))
         block[:, :3] = H_b[start : start + m]
         block[:, 3] = 1.0
@@ -164,8 +162,9 @@ def _vector_sum_squares(
     """Per-axis sums of squares (3,) of ``B - H_b`` and of ``matrix (B - offset) - H_b`` (rows of ``B``, ``H_b``
     (N, 3)), block by block: the vector errors before and after compensation without (N, 3) temporaries."""
     before, after = np.zeros(3), np.zeros(3)
-    for start in range(0, len(B), _BLOCK):
-        b, h = B[start : start + _BLOCK], H_b[start : start + _BLOCK]
+    chunk = chunk_rows()
+    for start in range(0, len(B), chunk):
+        b, h = B[start : start + chunk], H_b[start : start + chunk]
         e = b - h
         before += np.einsum("ij,ij->j", e, e)
         e = (b - offset) @ matrix.T - h
@@ -186,7 +185,8 @@ def _factor_background_design(
     """Triangular factor ``R`` of ``[D10 | B]`` (N, 13), ``D10 = [vec(C_i^T), 1]``, by a blocked QR factorisation.
 
     Each block of rows (its ``C_i^T`` computed from its own attitudes) is stacked under the factor of the rows
-    before and factored again (TSQR, as :class:`._qr.BlockedQR` does), so only (block, 13) arrays are formed.
+    before and factored again (TSQR, as :class:`~trimag._core.qr.BlockedQR` does), so
+    only (block, 13) arrays are formed.
 
     Parameters
     ----------
@@ -194,7 +194,8 @@ def _factor_background_design(
         Measured fields.
     attitude : Rotation, N rotations (body -> NED)
     block : int, optional
-        Rows per block (default :data:`_QR_BLOCK`).
+        Rows per block (default: a QR panel of 13 columns, :func:`~trimag._core.qr.panel_rows`, factored from
+        cache).
 
     Returns
     -------
@@ -204,7 +205,7 @@ def _factor_background_design(
         ``R[:10, 10:] = Q_1^T B``.
     """
     n = len(B)
-    step = max(1, int(block or _QR_BLOCK))
+    step = max(1, int(block or panel_rows(13)))
     R = np.zeros((0, 13))
     for s in range(0, n, step):
         m = min(step, n - s)

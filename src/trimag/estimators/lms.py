@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._core.chunks import chunk_rows
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from .base import Estimator
@@ -32,8 +33,6 @@ from .quadric import check_identifiable, identifiability_report, require_magnitu
 
 __all__ = ["LMS", "dual_lms"]
 
-#: Samples converted to Python floats at a time by :func:`dual_lms`.
-_CHUNK = 65_536
 
 
 def dual_lms(
@@ -75,11 +74,12 @@ def dual_lms(
     epochs = 0
     for ep in range(n_epochs):
         sq = 0.0
-        for start in range(0, n, _CHUNK):  # Python floats for one chunk at a time (24 bytes each), not all N
+        chunk = chunk_rows()
+        for start in range(0, n, chunk):  # Python floats for one chunk at a time (24 bytes each), not all N
             if order is None:
-                rows, targets = u[start : start + _CHUNK].tolist(), t[start : start + _CHUNK].tolist()
+                rows, targets = u[start : start + chunk].tolist(), t[start : start + chunk].tolist()
             else:
-                sel = order[ep, start : start + _CHUNK]
+                sel = order[ep, start : start + chunk]
                 rows, targets = u[sel].tolist(), t[sel].tolist()
             for (ux, uy, uz), target in zip(rows, targets, strict=True):
                 ex, ey, ez = ux - bx, uy - by, uz - bz

@@ -38,7 +38,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import column_means, scratch, sum_squares
+from .._core.chunks import chunk_rows
+from .._core.rowwise import column_means, scratch, sum_squares
+from .._core.solve import GaussNewtonResult, contraction, gauss_newton
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
@@ -69,7 +71,6 @@ from ..metrics import row_dot
 from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
 from ..reference import ScalarReference
 from ._common import Normalisation, check_ellipsoid_options, normalisation_stats, normalise, scalar_reference
-from ._solve import GaussNewtonResult, contraction, gauss_newton
 from .base import Estimator, build_calibration
 from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
 
@@ -124,10 +125,6 @@ def magnitude_jacobian(
     return mag, J
 
 
-#: Rows per block of :func:`geometric_residual`: its ~20 temporaries of this length stay in cache and below the
-#: allocator's mmap threshold (128 KiB), so repeated evaluations reuse memory instead of faulting in fresh
-#: pages (at N = 1e5 whole-array temporaries cost ~8000 page faults per ``ml`` fit, about a quarter of its time).
-_RESIDUAL_BLOCK = 8192
 
 
 #: The magnitude each sample should have: one number (the same for every sample) or an array (N,).
@@ -146,14 +143,15 @@ def geometric_residual(
 
     ``r_i`` is, to first order, the signed distance of sample ``i`` from the ellipsoid (variance ``sigma^2``),
     invariant to the scale of ``W``; the Jacobian includes the derivative of the weight. Computed in blocks of
-    :data:`_RESIDUAL_BLOCK` samples (:func:`_residual_block`).
+    a chunk (:func:`~trimag._core.chunks.chunk_rows`) samples (:func:`_residual_block`).
     """
     W, b = _unpack(p)
     n = len(u)
     r = np.empty(n)
     Jt = np.empty((9, n))
-    for s in range(0, n, _RESIDUAL_BLOCK):
-        e = min(s + _RESIDUAL_BLOCK, n)
+    chunk = chunk_rows(24)
+    for s in range(0, n, chunk):
+        e = min(s + chunk, n)
         _residual_block(u[s:e], W, b, _take(target, slice(s, e)), r[s:e], Jt[:, s:e])
     return r, Jt.T
 
@@ -165,7 +163,7 @@ def _residual_block(
     """:func:`geometric_residual` of the samples ``u`` (m, 3): writes ``r`` into ``r_out`` (m,) and ``J^T`` into
     ``Jt_out`` (9, m). With ``norm``, ``u`` are raw samples, normalised here (``(x - centre) / scale``)."""
     # Component-major layout: every quantity is a (3, m) or (m,) array of contiguous rows, so each step below
-    # is one pass over m numbers. All temporaries live in one reused (26, m) buffer (trimag._rowwise.scratch):
+    # is one pass over m numbers. All temporaries live in one reused (26, m) buffer (trimag._core.rowwise.scratch):
     # fresh ones would be mapped and page-faulted anew at every call.
     with scratch(26, len(u)) as ws:
         e, y, n, q, Wq, P = ws[0:3], ws[3:6], ws[6:9], ws[9:12], ws[12:15], ws[15:18]
@@ -287,15 +285,17 @@ def _normal_equations(
     norm: Normalisation | None = None,
 ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64], float]:
     """``J^T J`` (9, 9; None when ``hessian`` is False), ``J^T r`` (9,) and ``sum r^2`` of the geometric residual,
-    accumulated over blocks of :data:`_RESIDUAL_BLOCK` samples (cache-sized temporaries; memory independent of
+    accumulated over chunks of samples (:func:`~trimag._core.chunks.chunk_rows`) (cache-sized temporaries; memory
+    independent of
     N). With ``norm``, ``u`` are the raw samples, normalised block by block (no normalised copy of the log)."""
     W, b = _unpack(p)
     JtJ = np.zeros((9, 9)) if hessian else None
     Jtr = np.zeros(9)
     ss = 0.0
-    with scratch(10, min(len(u), _RESIDUAL_BLOCK)) as work:  # reused buffers (trimag._rowwise.scratch)
-        for start in range(0, len(u), _RESIDUAL_BLOCK):
-            stop = min(start + _RESIDUAL_BLOCK, len(u))
+    with scratch(10, min(len(u), chunk_rows(24))) as work:  # reused buffers (trimag._core.rowwise.scratch)
+        chunk = chunk_rows(24)
+        for start in range(0, len(u), chunk):
+            stop = min(start + chunk, len(u))
             r, Jt = work[0, : stop - start], work[1:, : stop - start]
             _residual_block(u[start:stop], W, b, _take(target, slice(start, stop)), r, Jt, norm)
             if JtJ is not None:

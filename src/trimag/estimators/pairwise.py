@@ -16,7 +16,7 @@ The squared corrected magnitude expands to
 (for a pair's difference), so each pair's residual is linear in the six entries of ``M = Gamma^-T Gamma^-1``.
 The closed-form start is the null vector of that N x 6 design ``W``; the upper Cholesky factor of ``M``,
 scaled so that its (3, 3) entry is 1, is ``Gamma^-1``. Gauss-Newton (Levenberg-Marquardt when a step raises
-the cost: :mod:`trimag.estimators._solve`) on the five ``q`` (analytic
+the cost: :mod:`trimag._core.solve`) on the five ``q`` (analytic
 Jacobian) then minimises ``Phi`` exactly (the paper solves ``grad Phi = 0``).
 
 With offsets (``ortho-gain-bias``) each residual ``|C (B1 - b)|^2 - |C (B2 - b)|^2`` is linear in
@@ -34,15 +34,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, column_means
+from .._core.chunks import chunk_rows
+from .._core.qr import BlockedQR
+from .._core.rowwise import column_means
+from .._core.solve import gauss_newton_then_lm
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models import get_model
 from ..models.ortho_gain import params_from_q
 from ._common import scalar_reference
-from ._qr import BlockedQR
-from ._solve import gauss_newton_then_lm
 from .base import Estimator, build_calibration
 
 __all__ = [
@@ -70,8 +71,6 @@ _Q_IDX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
 _TERMS6 = ("M11", "M22", "M33", "M12", "M23", "M13")
 #: ``(rows, cols)`` of ``M`` in the order of :data:`_TERMS6` (the columns of :func:`pairwise_design`).
 TERM_INDEX = (np.array([0, 1, 2, 0, 1, 0]), np.array([0, 1, 2, 1, 2, 2]))
-#: Pairs per block of :func:`pair_factor` (tests set it small).
-_BLOCK = BLOCK
 _TERMS9 = (*_TERMS6, "(Mb)x", "(Mb)y", "(Mb)z")
 _Q_NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")
@@ -129,7 +128,7 @@ def pair_factor(
     """Triangular factor ``R`` of the W design of the pairs ``((B1 - centre) / scale, (B2 - centre) / scale)``.
 
     The design (:func:`pairwise_design`, (N, 6) or (N, 9)) is built and factored block by block
-    (:class:`~trimag.estimators._qr.BlockedQR`, :data:`_BLOCK` pairs at a time), so memory does not grow with N.
+    (:class:`~trimag._core.qr.BlockedQR`, a chunk of pairs at a time), so memory does not grow with N.
     ``W^T W = R^T R``, and ``R`` has the same singular values, right singular vectors and column norms as
     ``W``; every pair's residual is ``W_i . m`` with ``m`` the entries of ``M`` (and ``M b``), so
     ``sum_i (W_i . m)^2 = |R m|^2`` for every ``m``: the whole objective lives in ``R``.
@@ -140,9 +139,10 @@ def pair_factor(
     """
     c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     qr = BlockedQR(9 if bias else 6)
-    for start in range(0, len(B1), _BLOCK):
-        u1 = (B1[start : start + _BLOCK] - c) / scale
-        u2 = (B2[start : start + _BLOCK] - c) / scale
+    chunk = chunk_rows()
+    for start in range(0, len(B1), chunk):
+        u1 = (B1[start : start + chunk] - c) / scale
+        u2 = (B2[start : start + chunk] - c) / scale
         qr.add(pairwise_design(u1, u2, bias=bias))
     return qr.R
 
@@ -249,8 +249,9 @@ def pair_normalisation(
     centre = (column_means(B1) + column_means(B2)) / 2 if bias else np.zeros(3)
     total = 0.0
     for group in (B1, B2):
-        for start in range(0, len(group), _BLOCK):
-            e = group[start : start + _BLOCK] - centre
+        chunk = chunk_rows()
+        for start in range(0, len(group), chunk):
+            e = group[start : start + chunk] - centre
             total += float(np.einsum("ij,ij->", e, e))
     return centre, float(np.sqrt(total / n)) or 1.0
 

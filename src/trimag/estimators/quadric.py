@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK
+from .._core.chunks import chunk_rows
+from .._core.qr import BlockedQR
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -44,7 +45,6 @@ from ..metrics import row_dot
 from ..models.zhang_cheng import ZhangCheng, quadric_terms
 from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
-from ._qr import BlockedQR
 from .base import Estimator, build_calibration
 
 __all__ = [
@@ -71,9 +71,6 @@ _HINT = (
 )
 
 
-#: Samples per block of the sums over the log (the linear design, the physical Jacobian): memory does not grow
-#: with N (a few blocks of (65 536, 10)).
-_BLOCK = BLOCK
 
 
 @dataclass
@@ -90,8 +87,9 @@ def _linear_design(V: NDArray[np.float64]) -> _Design:
     norm = normalisation_stats(V)
     centre, scale = norm.centre, norm.scale
     system = BlockedQR(9)
-    for start in range(0, len(V), _BLOCK):
-        P = quadric_terms((V[start : start + _BLOCK] - centre) / scale)
+    chunk = chunk_rows()
+    for start in range(0, len(V), chunk):
+        P = quadric_terms((V[start : start + chunk] - centre) / scale)
         system.add(np.column_stack([P[:, 0] - P[:, 2], P[:, 1] - P[:, 2], P[:, 3:]]), -P[:, 2])
     return _Design(system, centre, scale)
 
@@ -274,8 +272,9 @@ def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability
         k0 = float(np.sqrt(np.einsum("ij,ij->", V, V) / len(V) / F2))
         at = ZhangCheng(kx=k0, ky=k0, kz=k0)
     physical = BlockedQR(9)  # the physical Jacobian block by block: its triangular factor has J's singular values
-    for start in range(0, len(V), _BLOCK):
-        physical.add(physical_jacobian(V[start : start + _BLOCK], at))
+    chunk = chunk_rows()
+    for start in range(0, len(V), chunk):
+        physical.add(physical_jacobian(V[start : start + chunk], at))
     pcond, ps, pvt = design_condition(physical.R)
     prank = _rank(ps, CONDITION_ERROR)
     undetermined = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_ERROR, share=0.05)

@@ -32,7 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._rowwise import BLOCK, scratch, sum_squares, transposed_blocks
+from .._core.chunks import chunk_rows
+from .._core.rowwise import scratch, sum_squares, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -84,7 +85,7 @@ Magnitudes = float | NDArray[np.float64]
 def _blocks(u: NDArray[np.float64], rows: int, norm: Normalisation | None = None) -> Any:
     """``(start, t, work)`` per block of :func:`transposed_blocks`, ``work`` a reused (rows, m) buffer. With
     ``norm``, ``u`` are raw samples and ``t`` is normalised (``(x - centre) / scale``): no normalised copy."""
-    with scratch(rows, min(max(len(u), 1), BLOCK)) as work:
+    with scratch(rows, min(max(len(u), 1), chunk_rows())) as work:
         for start, t in transposed_blocks(u, None if norm is None else norm.centre):
             if norm is not None:
                 t *= 1.0 / norm.scale

@@ -28,17 +28,13 @@ import pandas as pd
 import pyarrow as pa
 from numpy.typing import NDArray
 
+from .._core.chunks import DEFAULT_CHUNK_ROWS, read_block_bytes
+from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
 
 __all__ = ["Chunk", "ChunkSource", "MagnitudeAccumulator", "apply_file", "iter_chunks", "open_chunks"]
 
-DEFAULT_CHUNK_ROWS = 200_000
-# bytes per pyarrow read block (a chunk is assembled from blocks): pyarrow keeps some tens of blocks' worth of
-# buffers alive while streaming (measured: pool peak ~40x the block size), so blocks stay small; 1 MiB blocks
-# read as fast as 7 MiB ones (docs/performance.md)
-_MIN_BLOCK = 1 << 16
-_MAX_BLOCK = 1 << 20
 
 
 class Chunk:
@@ -218,7 +214,7 @@ def open_chunks(
             import pyarrow.csv as pacsv
 
             assert layout.delimiter is not None
-            block = int(np.clip(chunk_rows * _bytes_per_row(p, layout.skip), _MIN_BLOCK, _MAX_BLOCK))
+            block = read_block_bytes(int(chunk_rows * _bytes_per_row(p, layout.skip)))
             start = 0
             try:
                 reader = pacsv.open_csv(
@@ -422,49 +418,41 @@ def _correct(
 
 class MagnitudeAccumulator:
     """One-pass statistics of ``|B| - F`` over chunks, for a known reference (scalar or per-row) or, with
-    ``F = None``, against the mean magnitude of all rows (from running sums)."""
+    ``F = None``, against the mean magnitude of all rows (:class:`~trimag._core.stats.StreamingMoments`: no
+    cancellation when the field is large and its spread tiny)."""
 
     def __init__(self) -> None:
-        self.n = 0
-        self.sum = 0.0
-        self.sum_sq = 0.0
-        self.min = np.inf
-        self.max = -np.inf
-        self.err_sq = 0.0
-        self.err_min = np.inf
-        self.err_max = -np.inf
+        self.norms = StreamingMoments()
+        self.errors = StreamingMoments()
         self.known = False
+
+    @property
+    def n(self) -> int:
+        """Rows added."""
+        return self.norms.n
 
     def add(self, norms: NDArray[np.float64], reference: NDArray[np.float64] | float | None) -> None:
         if len(norms) == 0:
             return
-        self.n += len(norms)
-        self.sum += float(norms.sum())
-        self.sum_sq += float((norms * norms).sum())
-        self.min = min(self.min, float(norms.min()))
-        self.max = max(self.max, float(norms.max()))
+        self.norms.add(norms)
         if reference is not None:
             self.known = True
-            err = norms - reference
-            self.err_sq += float((err * err).sum())
-            self.err_min = min(self.err_min, float(err.min()))
-            self.err_max = max(self.err_max, float(err.max()))
+            self.errors.add(norms - reference)
 
     def result(self, reference_value: float | None = None) -> dict[str, float]:
         """Statistics: ``mean_norm``, ``std_norm``, ``rms``, ``max_abs``, ``peak_to_peak``; without a known reference
         the errors are taken against ``reference_value`` (e.g. the corrected mean)."""
-        mean = self.sum / self.n
-        var = max(self.sum_sq / self.n - mean * mean, 0.0)
+        norms = self.norms
         if self.known:
-            rms = np.sqrt(self.err_sq / self.n)
-            lo, hi = self.err_min, self.err_max
+            rms = self.errors.rms_about(0.0)
+            lo, hi = self.errors.lo, self.errors.hi
         else:
-            F = mean if reference_value is None else reference_value
-            rms = np.sqrt(max(self.sum_sq / self.n - 2 * F * mean + F * F, 0.0))
-            lo, hi = self.min - F, self.max - F
+            F = norms.mean if reference_value is None else reference_value
+            rms = norms.rms_about(F)
+            lo, hi = norms.lo - F, norms.hi - F
         return {
-            "mean_norm": float(mean),
-            "std_norm": float(np.sqrt(var)),
+            "mean_norm": float(norms.mean),
+            "std_norm": float(np.sqrt(norms.variance)),
             "rms": float(rms),
             "max_abs": float(max(abs(lo), abs(hi))),
             "peak_to_peak": float(hi - lo),

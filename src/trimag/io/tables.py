@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from .._rowwise import count_duplicate_rows
+from .._core.rowwise import count_duplicate_rows
 from ..errors import TrimagInputError
 
 __all__ = [

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog, mavlink_messages
+from .base import Channel, MagnetometerStream, VehicleLog, mavlink_messages
 
 __all__ = ["onboard_matrix", "read_ardupilot", "undo_ardupilot"]
 

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog
+from .base import Channel, MagnetometerStream, VehicleLog
 
 __all__ = ["PHONE_NAME", "read_phone"]
 

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog, mavlink_messages, require
+from .base import Channel, MagnetometerStream, VehicleLog, mavlink_messages, require
 
 __all__ = ["read_px4log", "read_ulog", "undo_px4_legacy"]
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import TrimagInputError
-from . import Channel, MagnetometerStream, VehicleLog, require
+from .base import Channel, MagnetometerStream, VehicleLog, require
 
 __all__ = ["read_ros"]
 

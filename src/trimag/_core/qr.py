@@ -4,8 +4,8 @@ For ``min |A x - b|`` with ``A`` (N, p) too large to hold, each block of rows is
 of the rows before and factored again (TSQR): after the last block ``R`` (p, p) and ``c = Q^T b`` (p,) give the
 same solution, singular values and residual as a QR of the whole ``A`` (orthogonal transformations only, so no
 squaring of the condition number as ``A^T A`` would do), in O(block x p) memory. Each block is factored in panels
-of :data:`QR_PANEL_BYTES`: 3.6 ms per 65 536 rows with p = 10 (numpy's LAPACK ``dgeqrf``, one thread; 11 ms with
-whole 65 536-row blocks).
+of :func:`~trimag._core.chunks.qr_panel_bytes` (128 KiB at the default setting): 3.6 ms per 65 536 rows with
+p = 10 (numpy's LAPACK ``dgeqrf``, one thread; 11 ms with whole 65 536-row blocks).
 """
 
 from __future__ import annotations
@@ -13,12 +13,18 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["QR_PANEL_BYTES", "BlockedQR"]
+from .chunks import qr_panel_bytes
 
-#: Bytes of one panel handed to LAPACK's QR: panels that stay in the L2 cache were 3x faster per row than 65 536-row
-#: blocks on this project's 2-core machine (p = 10: 9.9 -> 2.1 ms per 65 536 rows with 2048-row panels; 8 ms with
-#: 4096 rows, out of cache). docs/performance.md, "What changed", item 11.
-QR_PANEL_BYTES = 1 << 17
+__all__ = ["BlockedQR", "panel_rows"]
+
+
+
+def panel_rows(columns: int) -> int:
+    """Rows of one panel of ``columns`` float64 columns handed to LAPACK's QR (at least 64): panels that stay in the
+    L2 cache (:func:`~trimag._core.chunks.qr_panel_bytes`) were 3x faster per row than 65 536-row blocks on this
+    project's 2-core machine (p = 10: 9.9 -> 2.1 ms per 65 536 rows with 2048-row panels; 8 ms with 4096 rows,
+    out of cache)."""
+    return max(64, qr_panel_bytes() // (8 * columns))
 
 
 class BlockedQR:
@@ -49,7 +55,7 @@ class BlockedQR:
         """Append rows ``A`` (m, p) with right-hand side ``b`` (m,); zeros when None (only ``R`` wanted).
 
         The rows are factored :attr:`rows_per_qr` at a time: LAPACK's Householder QR of a tall panel runs from
-        cache when the panel fits in it (:data:`QR_PANEL_BYTES`), 3x faster per row than on 65 536-row blocks.
+        cache when the panel fits in it (:func:`panel_rows`), 3x faster per row than on 65 536-row blocks.
         """
         A = np.asarray(A, dtype=np.float64)
         rhs = None if b is None else np.asarray(b, dtype=np.float64)
@@ -66,8 +72,8 @@ class BlockedQR:
 
     @property
     def rows_per_qr(self) -> int:
-        """Rows factored per LAPACK call: a panel of ``rows x (p + 1)`` doubles within :data:`QR_PANEL_BYTES`."""
-        return max(64, QR_PANEL_BYTES // (8 * (self.p + 1)))
+        """Rows factored per LAPACK call: a panel of ``rows x (p + 1)`` doubles (:func:`panel_rows`)."""
+        return panel_rows(self.p + 1)
 
     def _full(self) -> NDArray[np.float64]:
         """The factor of ``[A | b]`` padded to (p + 1, p + 1) (fewer rows while fewer than p + 1 were added)."""

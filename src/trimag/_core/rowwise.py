@@ -3,7 +3,8 @@
 numpy subtracts a (3,) vector from an (N, 3) array, or multiplies it by a 3 x 3 matrix, with an inner loop of
 length 3, which costs 5-10x the same work on the transposed (3, N) layout, where each component is one
 contiguous pass (measured: ``(B - b) @ W.T`` on 65 536 rows 2.0 ms, the blocked transposed form 0.25 ms). The
-helpers here transpose blocks of :data:`BLOCK` rows (a size that stays in cache) and work component by component.
+helpers here transpose chunks of :func:`~trimag._core.chunks.chunk_rows` rows (65 536 at the default setting, a
+size that stays in cache) and work component by component.
 
 Block buffers come from :func:`scratch`, a per-thread pool of reused arrays. A fresh array of more than 128 KiB is
 mapped by the allocator and costs a page fault per 4 KiB on first touch, and glibc returns freed memory to the
@@ -21,10 +22,10 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK", "affine", "column_means", "count_duplicate_rows", "scratch", "sum_squares", "transposed_blocks"]
+from .chunks import chunk_rows
 
-#: Rows per block.
-BLOCK = 65_536
+__all__ = ["affine", "column_means", "count_duplicate_rows", "row_dot", "scratch", "sum_squares", "transposed_blocks"]
+
 #: Buffers of :func:`scratch` up to this many doubles (4 MiB) are kept for reuse; larger ones are freed.
 SCRATCH_KEEP = 1 << 19
 #: Buffers kept per thread (the smallest is dropped beyond this).
@@ -50,14 +51,28 @@ def scratch(*shape: int) -> Iterator[NDArray[np.float64]]:
                 del free[min(range(len(free)), key=lambda i: free[i].size)]  # by index: arrays have no ==
 
 
+def row_dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Row-wise dot products ``sum_k a_ik b_ik`` of two (N, 3) arrays -> (N,).
+
+    Three column products: about 5x faster than ``np.einsum("ij,ij->i", a, b)``, whose inner loop over 3
+    elements dominates; other shapes fall back to ``einsum``.
+    """
+    if a.ndim == 2 and a.shape[1] == 3 and b.shape == a.shape:
+        out = a[:, 0] * b[:, 0]
+        out += a[:, 1] * b[:, 1]
+        out += a[:, 2] * b[:, 2]
+        return out
+    return np.asarray(np.einsum("...i,...i->...", a, b), dtype=np.float64)
+
+
 def transposed_blocks(
     B: NDArray[np.float64], offset: NDArray[np.float64] | None = None, *, block: int | None = None
 ) -> Iterator[tuple[int, NDArray[np.float64]]]:
     """Yield ``(start, T)`` for consecutive blocks of ``B`` (N, 3): ``T`` (3, m) is ``(B[start:start+m] - offset).T``,
     C-contiguous. ``T`` is a reused buffer: use it before the next block is requested. ``block``: rows per block
-    (default :data:`BLOCK`)."""
+    (default :func:`~trimag._core.chunks.chunk_rows`)."""
     n = len(B)
-    block = block or BLOCK
+    block = block or chunk_rows()
     with scratch(3, min(max(n, 1), block)) as buf:
         for start in range(0, n, block):
             rows = B[start : start + block]
@@ -85,7 +100,7 @@ def affine(
     """``(B - offset) @ matrix.T`` for ``B`` (N, 3), ``matrix`` (3, 3), ``offset`` (3,): a new (N, 3) array."""
     out = np.empty((len(B), 3))
     matrix = np.ascontiguousarray(matrix, dtype=np.float64)
-    with scratch(3, min(max(len(B), 1), BLOCK)) as y:  # the same block size as transposed_blocks
+    with scratch(3, min(max(len(B), 1), chunk_rows())) as y:  # the same block size as transposed_blocks
         for start, t in transposed_blocks(B, offset):
             m = t.shape[1]
             np.matmul(matrix, t, out=y[:, :m])
@@ -95,20 +110,17 @@ def affine(
 
 def column_means(B: NDArray[np.float64]) -> NDArray[np.float64]:
     """The mean of the rows of ``B`` (N, 3), shape (3,): ``ones @ B`` block by block (a matrix-vector product per
-    block of :data:`BLOCK` rows: ``B.mean(axis=0)`` reduces a strided axis, about 10x slower, and one ``ones(N)``
+    chunk of rows: ``B.mean(axis=0)`` reduces a strided axis, about 10x slower, and one ``ones(N)``
     would take 8 bytes per row)."""
     n = len(B)
     total = np.zeros(B.shape[1] if B.ndim == 2 else 3)
-    with scratch(min(max(n, 1), BLOCK)) as ones:
+    block = chunk_rows()
+    with scratch(min(max(n, 1), block)) as ones:
         ones.fill(1.0)
-        for start in range(0, n, BLOCK):
-            rows = B[start : start + BLOCK]
+        for start in range(0, n, block):
+            rows = B[start : start + block]
             total += ones[: len(rows)] @ rows
     return total / max(n, 1)
-
-
-#: Rows per block of :func:`count_duplicate_rows`.
-_HASH_BLOCK = 1 << 16
 
 
 def count_duplicate_rows(
@@ -131,8 +143,9 @@ def count_duplicate_rows(
         return rows if prepare is None else prepare(rows)
 
     h = np.empty(len(field), dtype=np.uint64)
-    for start in range(0, len(field), _HASH_BLOCK):  # blocks: temporaries of the block's size, not N
-        rows = rows_of(start, start + _HASH_BLOCK)
+    block = chunk_rows()
+    for start in range(0, len(field), block):  # chunks: temporaries of the chunk's size, not N
+        rows = rows_of(start, start + block)
         hb = pd.util.hash_array(rows[:, 0] + 0.0)  # contiguous column; + 0.0: -0.0 -> 0.0
         for j in range(1, field.shape[1]):
             hb = hb * np.uint64(0x9E3779B97F4A7C15) ^ pd.util.hash_array(rows[:, j] + 0.0)

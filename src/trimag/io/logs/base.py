@@ -1,0 +1,205 @@
+"""The types every log reader returns, and the helpers they share (imported by the readers and the package)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from ...errors import TrimagInputError
+
+__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "mavlink_messages", "require"]
+
+
+def require(module: str) -> Any:
+    """Import an optional dependency of the log readers, or raise a one-line error naming the extra."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise TrimagInputError(
+            f"reading autopilot logs needs the optional package {module.split('.')[0]!r}: "
+            'pip install "trimag[logs]"'
+        ) from None
+
+
+def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
+    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error."""
+    mavutil = require("pymavlink.mavutil")
+    try:
+        conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
+            mavutil.mavlink_connection(str(path))
+    except Exception as exc:  # pymavlink raises many kinds on a damaged file
+        raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
+    while True:
+        try:
+            msg = conn.recv_match(type=types)
+        except Exception as exc:
+            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+        if msg is None:
+            return
+        yield msg
+
+
+@dataclass
+class Channel:
+    """A logged time series: ``time_s`` (N,) and ``values`` (N,) or (N, k), with a unit."""
+
+    time_s: NDArray[np.float64]
+    values: NDArray[np.float64]
+    unit: str = ""
+    source: str = ""
+
+
+@dataclass
+class MagnetometerStream:
+    """One magnetometer of a log.
+
+    Attributes
+    ----------
+    name : str
+        How the log names it (``MAG[0]``, ``MAG2``, ``sensor_mag device 592905``, ``IMU1.Mag``).
+    instance : int
+        0-based instance (ArduPilot compass number, PX4 calibration slot).
+    time_s : ndarray, shape (N,)
+    field : ndarray, shape (N, 3)
+        The reading with the onboard calibration undone (the raw reading in the autopilot's body frame), ``unit``.
+    logged : ndarray, shape (N, 3)
+        The reading as logged.
+    unit : str
+    undone : list of str
+        What was undone, for the user (empty when the log holds raw readings).
+    device_id : int or None
+    onboard : dict
+        The onboard calibration parameters that were undone.
+    """
+
+    name: str
+    instance: int
+    time_s: NDArray[np.float64]
+    field: NDArray[np.float64]
+    logged: NDArray[np.float64]
+    unit: str
+    undone: list[str] = dataclasses.field(default_factory=list)
+    device_id: int | None = None
+    onboard: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate, Hz (0 for fewer than 2 samples)."""
+        dt = np.diff(self.time_s)
+        dt = dt[dt > 0]
+        return float(1.0 / np.median(dt)) if len(dt) else 0.0
+
+    def describe(self) -> str:
+        """One line for the user: name, samples, rate, unit."""
+        dev = f", device id {self.device_id}" if self.device_id else ""
+        return f"{self.name}: {len(self.time_s)} samples at {self.rate_hz:.3g} Hz, {self.unit}{dev}"
+
+
+@dataclass
+class VehicleLog:
+    """What trimag reads of an autopilot log."""
+
+    path: str
+    format: str
+    magnetometers: list[MagnetometerStream]
+    attitude: Channel | None = None  # yaw, pitch, roll in degrees (Z-Y-X, body -> NED)
+    channels: dict[str, Channel] = field(default_factory=dict)  # current_A, throttle, temperature_C, ...
+    gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
+    parameters: dict[str, float] = field(default_factory=dict)
+    messages: list[str] = field(default_factory=list)
+
+    def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
+        """The magnetometer named by ``sensor`` (instance number, name or device id), or the best one.
+
+        Without ``sensor``: the magnetometer with the most samples (the first on a tie).
+        """
+        if not self.magnetometers:
+            raise TrimagInputError(f"{self.path}: the log has no magnetometer readings")
+        if sensor is None:
+            return max(self.magnetometers, key=lambda m: len(m.time_s))
+        text = str(sensor).strip()
+        for m in self.magnetometers:
+            if text in (str(m.instance), m.name, str(m.device_id)):
+                return m
+        names = ", ".join(f"{m.instance} ({m.name})" for m in self.magnetometers)
+        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with sensor)")
+
+    def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
+        """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
+
+        Columns: ``time_s``, ``mag_x``, ``mag_y``, ``mag_z`` (calibration undone), ``mag_logged_x..z``, then
+        ``yaw_deg``, ``pitch_deg``, ``roll_deg`` (slerp) and the channels (linear interpolation). A channel
+        sample outside its stream's time span is left empty (NaN) and counted.
+
+        Returns
+        -------
+        table, messages
+        """
+        from scipy.spatial.transform import Rotation, Slerp
+
+        mag = self.choose(sensor)
+        t = mag.time_s
+        cols: dict[str, NDArray[np.float64]] = {"time_s": t}
+        for k, a in enumerate("xyz"):
+            cols[f"mag_{a}"] = mag.field[:, k]
+        for k, a in enumerate("xyz"):
+            cols[f"mag_logged_{a}"] = mag.logged[:, k]
+        messages: list[str] = []
+        outside: dict[str, int] = {}
+        at = self.attitude
+        ta = np.zeros(0)
+        if at is not None:
+            good = np.isfinite(at.time_s) & np.isfinite(at.values).all(axis=1)
+            order = np.argsort(at.time_s[good], kind="stable")
+            ta, keep = np.unique(at.time_s[good][order], return_index=True)
+            ang = at.values[good][order][keep]
+        if at is not None and len(ta) >= 2:
+            rot = Rotation.from_euler("ZYX", ang, degrees=True)
+            inside = (t >= ta[0]) & (t <= ta[-1])
+            ypr = np.full((len(t), 3), np.nan)
+            if inside.any():
+                ypr[inside] = Slerp(ta, rot)(t[inside]).as_euler("ZYX", degrees=True)
+            ypr[:, 0] = np.mod(ypr[:, 0], 360.0)
+            cols["yaw_deg"], cols["pitch_deg"], cols["roll_deg"] = ypr[:, 0], ypr[:, 1], ypr[:, 2]
+            if (~inside).sum():
+                outside["attitude"] = int((~inside).sum())
+        for name, ch in self.channels.items():
+            if len(ch.time_s) < 2:
+                continue
+            order = np.argsort(ch.time_s, kind="stable")
+            tc = ch.time_s[order]
+            vals = ch.values[order]
+            inside = (t >= tc[0]) & (t <= tc[-1])
+            v = np.interp(t, tc, vals)
+            v[~inside] = np.nan
+            cols[name] = v
+            if (~inside).sum():
+                outside[name] = int((~inside).sum())
+        if outside:
+            messages.append(
+                f"aligned to {mag.name}'s {len(t)} time stamps; left empty where outside the stream's logged span: "
+                + ", ".join(f"{name} {n}" for name, n in outside.items())
+            )
+        df = pd.DataFrame(cols)
+        return df, messages
+
+    def summary_lines(self, sensor: str | int | None = None) -> list[str]:
+        """What the user should know: the magnetometers, what was undone, what else the log offers."""
+        chosen = self.choose(sensor)
+        lines = [f"{self.format} log with {len(self.magnetometers)} magnetometer(s): "
+                 + "; ".join(("* " if m is chosen else "") + m.describe() for m in self.magnetometers)
+                 + " (* = used; choose another with sensor)"]
+        lines += [f"{chosen.name}: {u}" for u in chosen.undone]
+        offered = list(self.channels)
+        if offered:
+            lines.append(f"channels for regressors: {', '.join(offered)}")
+        lines += self.messages
+        return lines
