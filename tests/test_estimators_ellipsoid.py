@@ -165,8 +165,8 @@ def test_power_sums_equal_the_direct_sums_over_several_chunks() -> None:
     from itertools import product
 
     from trimag._core.chunks import chunk_rows
+    from trimag._core.quadric import power_sums
     from trimag.estimators._common import normalisation_of
-    from trimag.estimators.ellipsoid_fit import power_sums
 
     rng = np.random.default_rng(3)
     raw = rng.normal(size=(chunk_rows() + 1234, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]  # > 1 chunk
@@ -182,14 +182,14 @@ def test_power_sums_equal_the_direct_sums_over_several_chunks() -> None:
 
 def test_one_pass_of_moments_gives_the_scatter_and_the_power_sums() -> None:
     """``als`` takes the algebraic fit's scatter and its own power sums from one pass (``quadric_moments``)."""
-    from trimag.estimators._common import normalisation_stats
-    from trimag.estimators.ellipsoid_fit import (
+    from trimag._core.quadric import (
         power_sums,
         power_sums_from_moments,
         quadric_moments,
         quadric_scatter,
         scatter_from_moments,
     )
+    from trimag.estimators._common import normalisation_stats
 
     rng = np.random.default_rng(8)
     raw = rng.normal(size=(3000, 3)) * [2.0, 1.0, 0.5] + [100.0, -50.0, 20.0]

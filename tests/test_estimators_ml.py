@@ -463,7 +463,7 @@ def test_chi2_survival_equals_scipy() -> None:
     """The balance test's closed-form chi-square tail equals scipy.stats.chi2.sf for 1-3 degrees of freedom."""
     from scipy.stats import chi2
 
-    from trimag.estimators.ml import chi2_survival
+    from trimag.estimators._finish import chi2_survival
 
     for dof in (1, 2, 3):
         for x in (0.0, 1e-12, 0.3, 1.0, 3.0, 7.8, 20.0, 60.0, 300.0, np.inf):

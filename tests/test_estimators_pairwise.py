@@ -10,15 +10,9 @@ import pytest
 import trimag
 from trimag.errors import IdentifiabilityError, NotFittedError, TrimagInputError
 from trimag.estimators import get_estimator
+from trimag.estimators._pairs import closed_form_pairs, pairwise_design
 from trimag.estimators.geometric import Geometric, solve_geometric
-from trimag.estimators.pairwise import (
-    Pairwise,
-    closed_form_pairs,
-    pair_samples,
-    pairwise_design,
-    q_to_matrix,
-    solve_pairs,
-)
+from trimag.estimators.pairwise import Pairwise, pair_samples, q_to_matrix, solve_pairs
 from trimag.experiments.wu2013 import FIELD, attitudes_for
 from trimag.metrics import j_index
 from trimag.models.ortho_gain import OrthoGain, OrthoGainBias, params_from_q

@@ -8,9 +8,10 @@ import pytest
 import trimag
 from trimag.errors import IdentifiabilityError, NotFittedError, TrimagInputError
 from trimag.estimators import get_estimator
-from trimag.estimators.quadric import Quadric, identifiability_report, quadric_solve
+from trimag.estimators._quadric import quadric_solve, quadric_terms
+from trimag.estimators.quadric import Quadric, identifiability_report
 from trimag.experiments.zhang2009 import FIELD_NAV, TRUTH, paper_attitudes
-from trimag.models.zhang_cheng import ZhangCheng, quadric_terms
+from trimag.models.zhang_cheng import ZhangCheng
 from trimag.simulate import body_field, uniform_directions
 
 

@@ -9,14 +9,9 @@ from hypothesis import strategies as st
 
 from trimag.calibration import Calibration
 from trimag.errors import TrimagInputError
+from trimag.estimators._quadric import quadric_terms
 from trimag.models import get_model
-from trimag.models.zhang_cheng import (
-    ZhangCheng,
-    quadric_from_w,
-    quadric_terms,
-    upper_from_quadric,
-    w_from_quadric,
-)
+from trimag.models.zhang_cheng import ZhangCheng, quadric_from_w, upper_from_quadric, w_from_quadric
 
 PAPER = ZhangCheng(*np.radians([0.8, 0.5, 1.1]), 1.02, 0.99, 1.01, 0.03, 0.02, 0.01)
 

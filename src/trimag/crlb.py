@@ -43,6 +43,7 @@ from ._core.rowwise import row_dot, scratch
 from ._core.sphere import fibonacci_sphere
 from .errors import IdentifiabilityError, TrimagInputError
 from .models.base import ErrorModel
+from .models.ellipsoid import UPPER
 
 __all__ = [
     "UPPER_NAMES",
@@ -56,7 +57,6 @@ __all__ = [
     "predicted_errors",
 ]
 
-UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 #: Parameter names of the ``ellipsoid`` model in the upper-triangular gauge.
 UPPER_NAMES = ("w11", "w12", "w13", "w22", "w23", "w33", "hard_iron_x", "hard_iron_y", "hard_iron_z")
 

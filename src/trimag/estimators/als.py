@@ -25,21 +25,19 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from ..calibration import Calibration
-from ..diagnostics import check_not_degenerate
-from ..errors import IdentifiabilityError
-from ._common import check_ellipsoid_options, normalisation_stats, scalar_reference
-from .base import Estimator
-from .ellipsoid_fit import (
-    algebraic_ellipsoid,
-    gauge_scale,
+from .._core.quadric import (
     power_sums,
     power_sums_from_moments,
     quadric_moments,
     quadric_to_ellipsoid,
     scatter_from_moments,
 )
-from .ml import ellipsoid_result
+from ..calibration import Calibration
+from ..diagnostics import check_not_degenerate
+from ..errors import IdentifiabilityError
+from ._common import algebraic_ellipsoid, check_ellipsoid_options, gauge_scale, normalisation_stats, scalar_reference
+from ._finish import ellipsoid_result
+from .base import Estimator
 
 __all__ = ["AdjustedLeastSquares", "als_scatter", "als_solve"]
 

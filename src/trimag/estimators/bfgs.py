@@ -26,74 +26,13 @@ from scipy.optimize import minimize
 
 from .._core.chunks import chunk_rows
 from ..calibration import Calibration
-from ..errors import IdentifiabilityError, TrimagInputError
-from ..models.zhang_cheng import ZhangCheng, upper_from_quadric
-from .base import Estimator, build_calibration
-from .ml import magnitude_jacobian
-from .quadric import check_identifiable, diagnostics_entries, identifiability_report, require_magnitude
+from ..models.ellipsoid import magnitude_jacobian
+from ._common import iterative_start, unpack
+from ._finish import finish_iterative
+from ._quadric import check_identifiable, identifiability_report, require_magnitude
+from .base import Estimator
 
 __all__ = ["BFGS", "finish_iterative", "iterative_start", "unpack"]
-
-_UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
-
-
-def unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``p`` (9,) -> (upper-triangular ``M`` (3, 3), ``b`` (3,))."""
-    M = np.zeros((3, 3))
-    M[_UPPER] = p[:6]
-    return M, p[6:9]
-
-
-def iterative_start(u: NDArray[np.float64], start: str) -> NDArray[np.float64]:
-    """Starting vector (9,) for the scaled problem: ``"nominal"`` (zero offset) or ``"centroid"``."""
-    if start == "nominal":
-        b0 = np.zeros(3)
-    elif start == "centroid":
-        b0 = u.mean(axis=0)
-    else:
-        raise TrimagInputError(f"`start` must be 'nominal' or 'centroid'; got {start!r}")
-    k0 = float(np.sqrt(np.mean(np.sum((u - b0) ** 2, axis=1))))
-    if not k0 > 0:
-        raise IdentifiabilityError("all samples equal the starting offset: the sensor appears stuck")
-    M0 = np.eye(3) / k0
-    return np.concatenate([M0[_UPPER], b0])
-
-
-def finish_iterative(
-    estimator: Estimator,
-    B: NDArray[np.float64],
-    p: NDArray[np.float64],
-    f_ref: float,
-    *,
-    model: str,
-    units: str,
-    ref: Any,
-    report: Any,
-    iterations: int,
-    converged: bool,
-    extra: dict[str, Any],
-) -> Calibration:
-    """Scaled solution ``p`` -> Calibration in the model's gauge, with the identifiability report."""
-    if not np.isfinite(p).all():
-        raise TrimagInputError(
-            f"method {estimator.name!r} diverged (non-finite coefficients); use a smaller step or a better start"
-        )
-    M_u, b_u = unpack(p)
-    try:
-        M = upper_from_quadric(M_u.T @ M_u)  # same magnitudes, the model's (upper-triangular) gauge
-        est = ZhangCheng.from_matrix_offset(M, b_u * f_ref)
-    except TrimagInputError as exc:
-        raise IdentifiabilityError(
-            f"method {estimator.name!r} ended outside the zhang-cheng model ({exc}); the data do not constrain "
-            "it well enough for an iterative fit from the nominal start"
-        ) from None
-    M, offset = est.correction()
-    diagnostics = diagnostics_entries(report, est)
-    diagnostics.update(extra)
-    return build_calibration(
-        B, M, offset, model=model, method=estimator.name, units=units, reference=ref,
-        params=est.as_dict(), iterations=iterations, converged=converged, diagnostics=diagnostics,
-    )
 
 
 class BFGS(Estimator):

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
+from .._core.quadric import quadratic_terms
 from .._core.rowwise import column_means, scratch, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import (
@@ -62,7 +63,6 @@ from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
 from .base import Estimator, build_calibration
-from .ellipsoid_fit import quadratic_terms
 
 __all__ = [
     "GaussNewton",

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
+from .._core.quadric import quadratic_terms
 from .._core.rowwise import scratch, sum_squares, transposed_blocks
 from .._core.solve import ROUNDING_STEP, XTOL, GaussNewtonResult
 from .._core.threads import one_blas_thread
@@ -38,14 +39,12 @@ from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError
 from ..models import get_model
+from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
 from ._common import normalisation_stats, scalar_reference
 from .base import Estimator, build_calibration
-from .ellipsoid_fit import quadratic_terms
-from .pairwise import params_covariance, q_to_matrix
 
 __all__ = ["Geometric", "GeometricSolution", "solve_geometric"]
 
-_Q_IDX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
 _NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")
 
@@ -205,7 +204,7 @@ def _system_block(
     sum_squares(y, out=neg_r, tmp=out[0])
     np.sqrt(neg_r, out=neg_r)  # |y|
     y /= neg_r  # n
-    for k, (row, col) in enumerate(zip(*_Q_IDX, strict=True)):
+    for k, (row, col) in enumerate(zip(*Q_INDEX, strict=True)):
         np.multiply(y[row], e[col], out=out[k])
     if bias:
         np.matmul(C.T, y, out=out[5:8])
@@ -362,7 +361,7 @@ def solve_geometric(B: NDArray[np.float64], *, bias: bool = False, max_iter: int
         centre, scale = _normalisation(B, bias)
         C0, b0, h0, cond = _start(B, centre, scale, bias)
         nb = 3 if bias else 0
-        p0 = np.concatenate([C0[_Q_IDX], b0[:nb], [h0]])
+        p0 = np.concatenate([C0[Q_INDEX], b0[:nb], [h0]])
         gn = _gauss_newton(system, p0, max_steps=max_iter)
         if gn is not None:
             res, qr, rss = gn

@@ -27,9 +27,10 @@ from numpy.typing import NDArray
 from .._core.chunks import chunk_rows
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ._common import iterative_start
+from ._finish import finish_iterative
+from ._quadric import check_identifiable, identifiability_report, require_magnitude
 from .base import Estimator
-from .bfgs import finish_iterative, iterative_start
-from .quadric import check_identifiable, identifiability_report, require_magnitude
 
 __all__ = ["LMS", "dual_lms"]
 

@@ -30,8 +30,6 @@ covariance is then stated in that gauge with ``F`` as a tenth parameter.
 
 from __future__ import annotations
 
-import math
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -39,92 +37,44 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
-from .._core.rowwise import column_means, scratch, sum_squares
+from .._core.rowwise import scratch, sum_squares
 from .._core.solve import GaussNewtonResult, contraction, gauss_newton
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
     UPPER_NAMES,
-    _constrained_inverse,
-    _upper_param,
-    ellipsoid_fisher,
-    ellipsoid_geometry,
-    predicted_errors,
 )
 from ..diagnostics import (
-    CONDITION_ERROR,
-    CONDITION_WARN,
     DIAGNOSTIC_SAMPLES,
     check_condition,
     check_not_degenerate,
-    check_not_planar_within_noise,
-    describe_directions,
     design_condition,
     diagnostic_subsample,
-    fibonacci_sphere,
     gram_condition,
-    sphere_coverage,
     weak_directions,
 )
-from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
-from ..metrics import row_dot
-from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
-from ..reference import ScalarReference
-from ._common import Normalisation, check_ellipsoid_options, normalisation_stats, normalise, scalar_reference
-from .base import Estimator, build_calibration
-from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
+from ..errors import IdentifiabilityError, TrimagInputError
+from ._common import (
+    Normalisation,
+    algebraic_ellipsoid,
+    check_ellipsoid_options,
+    gauge_scale,
+    normalisation_stats,
+    normalise,
+    scalar_reference,
+)
+from ._finish import BALANCE_CHOICES, ellipsoid_result
+from .base import Estimator
 
-__all__ = [
-    "BALANCE_CHOICES",
-    "COVERAGE_WARN",
-    "VIF_REPORT",
-    "VIF_WARN",
-    "MaximumLikelihood",
-    "balance_test",
-    "bias_correction",
-    "ellipsoid_result",
-    "geometric_residual",
-    "identifiability",
-    "magnitude_jacobian",
-    "weighted_ml",
-]
+__all__ = ["MaximumLikelihood", "bias_correction", "geometric_residual", "weighted_ml"]
 
 _NAMES = UPPER_NAMES
-#: Covered fraction of the sphere (cells of :func:`trimag.diagnostics.sphere_coverage`) below which a fit warns.
-COVERAGE_WARN = 0.25
-#: Variance inflation factor (``C_kk J_kk``: how much the correlation with the other parameters inflates a
-#: parameter's variance) above which a parameter is listed as poorly determined (its standard deviation is more
-#: than 3x what it would be if the others were known) ...
-VIF_REPORT = 10.0
-#: ... and above which the fit warns (standard deviation inflated 10x).
-VIF_WARN = 100.0
-#: Warn when the worst-determined combination of parameters has more than this many times the standard
-#: deviation a full-sphere recording of the same length would give (:func:`identifiability`). Measured: 1.0-1.3
-#: for full spheres and three great circles, 10-11 for one hemisphere, 1.6-6.5 on five real logs, 120-2400
-#: for two great circles at sigma/F <= 1e-2.
-INFLATION_WARN = 30.0
 
 
 def _unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     W = np.zeros((3, 3))
     W[UPPER] = p[:6]
     return W, p[6:9]
-
-
-def magnitude_jacobian(
-    u: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Magnitudes ``|W (u - b)|`` (N,) and their Jacobian (N, 9) w.r.t. (upper W, b)."""
-    e = u - b
-    y = e @ W.T
-    mag = np.sqrt(row_dot(y, y))
-    n = y / mag[:, None]
-    J = np.empty((len(u), 9))
-    J[:, :6] = n[:, UPPER[0]] * e[:, UPPER[1]]
-    J[:, 6:] = -(n @ W)
-    return mag, J
-
-
 
 
 #: The magnitude each sample should have: one number (the same for every sample) or an array (N,).
@@ -401,284 +351,6 @@ def bias_correction(
         return np.asarray(-np.linalg.solve(H, 0.5 * sigma2 * lap), dtype=np.float64)
     except np.linalg.LinAlgError as exc:
         raise IdentifiabilityError(_SINGULAR) from exc
-
-
-def identifiability(
-    fisher: NDArray[np.float64], names: tuple[str, ...], covariance: NDArray[np.float64], coverage: dict[str, Any],
-    *, vif_report: float = VIF_REPORT, vif_warn: float = VIF_WARN, coverage_warn: float = COVERAGE_WARN,
-    reference_fisher: NDArray[np.float64] | None = None, inflation_warn: float = INFLATION_WARN,
-) -> dict[str, Any]:
-    """Condition number, per-parameter variance inflation and the verdict, for ``Calibration.diagnostics``.
-
-    Parameters whose variance inflation factor exceeds ``vif_report`` are listed in ``poorly_determined``.
-    Warns (:class:`IdentifiabilityWarning`) when the covered fraction of the sphere is below ``coverage_warn``,
-    a parameter's variance inflation factor exceeds ``vif_warn`` or the column-normalised condition number of
-    the Fisher information exceeds ``CONDITION_WARN``; raises :class:`IdentifiabilityError` above
-    ``CONDITION_ERROR``.
-
-    With ``reference_fisher`` (the information a full sphere of the same length carries at the same estimate),
-    the generalised eigenvalues of the W, b blocks are the fractions of that information each combination of
-    parameters keeps. The smallest, as a ratio of standard deviations ``1 / sqrt(fraction)``, is
-    ``std_inflation_vs_full_sphere``; the fit warns above ``inflation_warn`` and names the parameters of that
-    combination. This catches two great circles (the pencil of quadrics through both leaves one combination to
-    the noise), which the column-normalised condition number and the variance inflation factors do not see:
-    the weak combination is nearly a single parameter whose information is small but uncorrelated.
-    """
-    # the condition number is taken on W and b alone (with an unknown magnitude the scale of W and F
-    # trade off exactly, which the det(W) gauge removes; it is not a property of the data)
-    fw = fisher[:9, :9]
-    d = np.sqrt(np.clip(np.diag(fw), 1e-300, None))
-    ev = np.linalg.eigvalsh(fw / np.outer(d, d))
-    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-    k = min(len(names), len(covariance))
-    vif = np.diag(covariance)[:k] * np.diag(fisher)[:k]
-    poor = [n for n, v in zip(names[:k], vif, strict=True) if v > vif_report]
-    bad = [n for n, v in zip(names[:k], vif, strict=True) if v > vif_warn]
-    out = {
-        "condition_number_fisher": cond,
-        "variance_inflation": dict(zip(names[:k], vif.tolist(), strict=True)),
-        "poorly_determined": poor,
-        "coverage_fraction": coverage.get("fraction"),
-        "thresholds": {"vif_report": vif_report, "vif_warn": vif_warn, "coverage": coverage_warn,
-                       "condition_warn": CONDITION_WARN, "condition_error": CONDITION_ERROR},
-    }
-    reasons = []
-    if not np.isfinite(cond) or cond > CONDITION_ERROR:
-        raise IdentifiabilityError(
-            f"the data cannot identify the ellipsoid model (Fisher condition number {cond:.3g}; poorly determined: "
-            f"{', '.join(poor) or 'several'}); record the sensor turning about all three axes"
-        )
-    if cond > CONDITION_WARN:
-        reasons.append(f"condition number {cond:.3g}")
-    if coverage.get("fraction") is not None and coverage["fraction"] < coverage_warn:
-        reasons.append(describe_directions(coverage) if coverage.get("cone_axis") is not None
-                       else f"the data cover {100 * coverage['fraction']:.0f}% of the sphere of directions")
-    if bad:
-        reasons.append(f"poorly determined: {', '.join(bad)} (variance inflated more than {vif_warn:g}x by the "
-                       "correlation with the other parameters)")
-    if reference_fisher is not None:
-        inflation, weakest = _inflation_vs_full_sphere(fw, reference_fisher[:9, :9], names[:9])
-        out["std_inflation_vs_full_sphere"] = inflation
-        out["weakest_combination"] = weakest
-        if inflation > inflation_warn:
-            reasons.append(f"the worst-determined parameter combination ({', '.join(weakest)}) has {inflation:.3g}x "
-                           "the standard deviation a full sphere of the same length would give")
-    out["warning"] = "; ".join(reasons) or None
-    if reasons:
-        warnings.warn(
-            "the calibration is poorly identified: " + "; ".join(reasons)
-            + "; record the sensor in more attitudes (turn it about all three axes)",
-            IdentifiabilityWarning, stacklevel=4,
-        )
-    return out
-
-
-def _inflation_vs_full_sphere(
-    fisher: NDArray[np.float64], reference: NDArray[np.float64], names: tuple[str, ...]
-) -> tuple[float, list[str]]:
-    """``1 / sqrt(smallest generalised eigenvalue)`` of ``(fisher, reference)`` (both (p, p)) and the parameters
-    that dominate its eigenvector (in units of their full-sphere standard deviations); ``(nan, [])`` when the
-    reference is not positive definite."""
-    try:
-        L = np.linalg.cholesky(reference)
-    except np.linalg.LinAlgError:
-        return float("nan"), []
-    Linv = np.linalg.inv(L)
-    ev, vecs = np.linalg.eigh(Linv @ fisher @ Linv.T)
-    inflation = float(1.0 / np.sqrt(ev[0])) if ev[0] > 0 else float("inf")
-    v = np.abs((Linv.T @ vecs[:, 0]) * np.sqrt(np.diag(reference)))  # the combination, per reference std
-    return inflation, [names[k] for k in np.nonzero(v > 0.3 * v.max())[0]]
-
-
-#: Values of the ``balance`` option of ``ml``.
-BALANCE_CHOICES = ("auto", "never", "always")
-#: Significance level of :func:`balance_test`: the data count as balanced unless the test rejects at this level.
-BALANCE_ALPHA = 0.01
-
-
-def chi2_survival(x: float, dof: int) -> float:
-    """``P(X > x)`` for ``X`` chi-square with ``dof`` in (1, 2, 3) degrees of freedom, in closed form
-    (``scipy.stats.chi2.sf`` without importing scipy.stats, which takes ~0.3 s): ``erfc(sqrt(x/2))``,
-    ``exp(-x/2)`` and ``erfc(sqrt(x/2)) + sqrt(2x/pi) exp(-x/2)``."""
-    if dof not in (1, 2, 3):
-        raise ValueError(f"dof must be 1, 2 or 3; got {dof}")
-    if math.isnan(x):
-        return math.nan
-    if x <= 0:
-        return 1.0
-    if math.isinf(x):
-        return 0.0
-    if dof == 2:
-        return math.exp(-0.5 * x)
-    tail = math.erfc(math.sqrt(0.5 * x))
-    return tail if dof == 1 else tail + math.sqrt(2.0 * x / math.pi) * math.exp(-0.5 * x)
-
-
-def balance_test(
-    B: NDArray[np.float64], offset: NDArray[np.float64], cov_offset: NDArray[np.float64], sigma: float,
-    *, alpha: float = BALANCE_ALPHA,
-) -> dict[str, Any]:
-    """Are the true field directions balanced (``sum_i u_i = 0``), so that the sample mean is the offset?
-
-    With balanced directions (e.g. complete turns sampled evenly in time) ``mean(x) = b + mean(e)``: the sample
-    mean estimates the offset with covariance ``sigma^2 I / N``, below the bound for unknown directions (about
-    ``3 sigma^2 / N`` per axis on a full sphere). The test compares ``d = mean(x) - b_ml`` with its covariance
-    under balance. To first order ``mean(e)`` is uncorrelated with the maximum-likelihood error (its
-    Jacobian in ``b`` is minus the unit normals), so ``Cov(d) = Cov(b_ml) - sigma^2 I / N`` (a Hausman test), and
-    ``chi2 = d^T Cov(d)^-1 d`` has 3 degrees of freedom under balance.
-
-    Parameters
-    ----------
-    B : ndarray, shape (N, 3)
-        Raw samples.
-    offset : ndarray, shape (3,)
-        Maximum-likelihood offset.
-    cov_offset : ndarray, shape (3, 3)
-        Its covariance (data units squared).
-    sigma : float
-        Noise standard deviation per axis (data units).
-    alpha : float
-        Significance level; balanced when the p-value exceeds it.
-
-    Returns
-    -------
-    dict
-        ``balanced`` (bool), ``chi2``, ``dof``, ``p_value``, ``alpha``, ``sample_mean`` (list of 3).
-    """
-    n = len(B)
-    mean = column_means(B)
-    d = mean - offset
-    cov_d = np.asarray(cov_offset, dtype=np.float64) - (sigma**2 / n) * np.eye(3)
-    evals, evecs = np.linalg.eigh(0.5 * (cov_d + cov_d.T))
-    keep = evals > 1e-6 * max(float(evals.max()), sigma**2 / n)
-    dof = int(keep.sum())
-    z = evecs.T @ d
-    stat = float(np.sum(z[keep] ** 2 / evals[keep])) if dof else float("inf")
-    p_value = chi2_survival(stat, dof) if dof else 0.0
-    return {
-        "balanced": bool(dof == 3 and p_value > alpha),
-        "chi2": stat,
-        "dof": dof,
-        "p_value": p_value,
-        "alpha": alpha,
-        "sample_mean": mean.tolist(),
-    }
-
-
-def ellipsoid_result(
-    B: NDArray[np.float64], W: NDArray[np.float64], offset: NDArray[np.float64], *, ref: ScalarReference,
-    F_hat: float | None, sigma: float | None, model: str, method: str, units: str, form: str,
-    iterations: int = 0, converged: bool = True, diagnostics: dict[str, Any] | None = None,
-    uncertainty_note: str = "Fisher information at the estimate (attained by an efficient estimator)",
-    balance: str = "never", principal: NDArray[np.float64] | None = None,
-) -> Calibration:
-    """Finish an ellipsoid fit: uncertainty, identifiability diagnostics and the :class:`Calibration`.
-
-    Parameters
-    ----------
-    B : ndarray, shape (N, 3)
-        Raw samples.
-    W, offset : ndarray
-        Upper-triangular correction (3, 3) and offset (3,), data units, already in the final scale
-        (reference magnitude or ``det W = 1``).
-    ref : ScalarReference
-    F_hat : float or None
-        Fitted magnitude when unknown.
-    sigma : float or None
-        Noise standard deviation per axis (data units); estimated from the residuals when None.
-    balance : {"never", "auto", "always"}
-        Whether to replace the offset by the sample mean when the field directions are balanced
-        (:func:`balance_test`): never, when the test accepts it, or always.
-    principal : ndarray, shape (3,), optional
-        Principal standard deviations of ``B``, as :func:`~trimag.diagnostics.check_not_degenerate` returned
-        them (computed here when None).
-    """
-    if form not in ("upper", "symmetric"):
-        raise TrimagInputError(f"`form` must be 'upper' or 'symmetric'; got {form!r}")
-    if balance not in BALANCE_CHOICES:
-        raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {balance!r}")
-    known = ref.values is not None
-    W = to_upper(W)
-    # sums over samples (noise level, information, coverage) use an evenly spread subsample on large logs
-    idx = diagnostic_subsample(len(B))
-    B_sub = B if len(idx) == len(B) else B[idx]
-    geometry = ellipsoid_geometry(B_sub, W, offset)
-    target_sub: Any = (
-        ref.values[idx] if ref.values is not None
-        else float(F_hat if F_hat is not None else geometry.magnitude.mean())
-    )
-    if sigma is None:
-        resid = geometry.magnitude - target_sub
-        sigma = float(np.sqrt(np.sum(geometry.weight * resid**2) / max(len(idx) - 9, 1)))
-    plane_ratio = check_not_planar_within_noise(B, sigma, std=principal)
-    uncertainty: dict[str, Any] | None = None
-    diag: dict[str, Any] = dict(diagnostics or {})
-    cov: NDArray[np.float64] | None = None
-    names: tuple[str, ...] = _NAMES
-    if sigma > 0:
-        theta = np.concatenate([W[UPPER], offset])
-        # the information is a sum over samples: on large logs, an evenly spread subsample scaled up
-        J = ellipsoid_fisher(geometry, sigma, known_magnitude=known) * (len(B) / len(idx))
-        grad = None
-        if not known:
-            names = (*_NAMES, "F")
-            Winv = np.linalg.inv(W)
-            gW = np.zeros(6)
-            for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
-                gW[k] = Winv[j, i]
-            grad = np.concatenate([gW, np.zeros(3), [0.0]])
-        try:
-            cov = _constrained_inverse(J, grad)
-        except IdentifiabilityError:
-            cov = np.full_like(J, np.inf)
-        if balance != "never" and np.isfinite(cov).all():
-            test = balance_test(B, offset, cov[6:9, 6:9], sigma)
-            apply_mean = balance == "always" or test["balanced"]
-            test["applied"] = bool(apply_mean)
-            diag["balanced_offset"] = test
-            if apply_mean:
-                # the sample mean is the offset; its error (mean noise) is uncorrelated to first order with
-                # the ML estimate of W (docs/method-ml.md, "Balanced sampling"), so only the b block changes
-                offset = np.asarray(test["sample_mean"], dtype=np.float64)
-                cov = cov.copy()
-                cov[6:9, :] = 0.0
-                cov[:, 6:9] = 0.0
-                cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
-    if balance == "always" and "balanced_offset" not in diag:  # no noise estimate or no covariance: no test
-        offset = column_means(B)
-        diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
-                                   "note": "forced by balance='always'; not tested (no noise estimate)"}
-    offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
-    coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal.T)
-    if cov is not None:
-        theta = np.concatenate([W[UPPER], offset])
-        Fm = float(np.mean(ref.values)) if ref.values is not None else float(target_sub)
-        X_test = (Fm * fibonacci_sphere(500)) @ np.linalg.inv(W).T + offset
-        field_rms, mag_rms = (
-            predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
-        )
-        # the information the same number of samples would carry on a full sphere, at the same estimate
-        J_ref = ellipsoid_fisher(ellipsoid_geometry(X_test, W, offset), sigma, known_magnitude=known)
-        diag["identifiability"] = identifiability(J, names, cov, coverage, reference_fisher=J_ref * (len(B) / 500))
-        diag["identifiability"]["plane_noise_ratio"] = plane_ratio  # check_not_planar_within_noise
-        uncertainty = {
-            "basis": uncertainty_note,
-            "gauge": "upper-triangular W" + ("" if known else ", det(W) = 1, F estimated"),
-            "param_std": dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),
-            "covariance": cov.tolist(),
-            "covariance_order": list(names),
-            "noise_std": sigma,
-            "predicted_field_rms": field_rms,
-            "predicted_magnitude_rms": mag_rms,
-        }
-    W_out = to_symmetric(W) if form == "symmetric" else W
-    upper = form == "upper"  # then the corrected directions and their coverage are those computed above
-    return build_calibration(
-        B, W_out, offset, model=model, method=method, units=units, reference=ref,
-        params=Ellipsoid.from_matrix_offset(W_out, offset).as_dict(), iterations=iterations,
-        converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag,
-        coverage=coverage if upper else None,
-    )
 
 
 class MaximumLikelihood(Estimator):

@@ -33,16 +33,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
-from .._core.rowwise import scratch, sum_squares, transposed_blocks
+from .._core.rowwise import row_dot, scratch, sum_squares, transposed_blocks
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
-from ..metrics import row_dot
 from ..models.ellipsoid import to_upper
-from ._common import Normalisation, check_ellipsoid_options, normalisation_stats, normalise, scalar_reference
+from ._common import (
+    Normalisation,
+    algebraic_ellipsoid,
+    check_ellipsoid_options,
+    gauge_scale,
+    normalisation_stats,
+    normalise,
+    scalar_reference,
+)
+from ._finish import ellipsoid_result
 from .base import Estimator
-from .ellipsoid_fit import algebraic_ellipsoid, gauge_scale
-from .ml import ellipsoid_result
 
 __all__ = ["TwoStep"]
 

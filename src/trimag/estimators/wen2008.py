@@ -42,8 +42,8 @@ from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, normalised_upper
 from ._common import scalar_reference
+from ._pairs import PAIRINGS, TERM_INDEX, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples
 from .base import Estimator, build_calibration
-from .pairwise import PAIRINGS, TERM_INDEX, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples
 
 __all__ = ["Wen2008", "Wen2008Model", "WenSolution", "solve_wen_pairs", "wen_params_from_matrix"]
 

@@ -16,8 +16,13 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._core.rowwise import row_dot
 from ..errors import TrimagInputError
 from .base import ErrorModel
+
+#: Indices (rows, columns) of the six entries of an upper-triangular 3 x 3 matrix, in the order w11 w12 w13 w22
+#: w23 w33.
+UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 __all__ = ["Ellipsoid", "to_symmetric", "to_upper"]
 
@@ -70,3 +75,17 @@ def to_symmetric(matrix: ArrayLike) -> NDArray[np.float64]:
     m = np.asarray(matrix, dtype=np.float64)
     vals, vecs = np.linalg.eigh(m.T @ m)
     return (vecs * np.sqrt(vals)) @ vecs.T
+
+
+def magnitude_jacobian(
+    u: NDArray[np.float64], W: NDArray[np.float64], b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Magnitudes ``|W (u - b)|`` (N,) and their Jacobian (N, 9) w.r.t. (upper W, b)."""
+    e = u - b
+    y = e @ W.T
+    mag = np.sqrt(row_dot(y, y))
+    n = y / mag[:, None]
+    J = np.empty((len(u), 9))
+    J[:, :6] = n[:, UPPER[0]] * e[:, UPPER[1]]
+    J[:, 6:] = -(n @ W)
+    return mag, J

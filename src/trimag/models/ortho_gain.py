@@ -32,6 +32,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import TrimagInputError
 from .base import ErrorModel
 
+#: Indices (rows, columns) of ``q1..q5`` in ``Gamma^-1 = [[q1, q2, q3], [0, q4, q5], [0, 0, 1]]`` (paper A).
+Q_INDEX = (np.array([0, 0, 0, 1, 1]), np.array([0, 1, 2, 1, 2]))
+
 __all__ = ["OrthoGain", "OrthoGainBias", "normalised_upper", "params_from_q", "q_from_params"]
 
 #: Relative tolerance for "this matrix has the ortho-gain structure" in :meth:`OrthoGain.from_matrix_offset`.
@@ -231,3 +234,26 @@ class OrthoGainBias(OrthoGain):
         if b.shape not in ((3,), (1, 3)) or not np.isfinite(b).all():
             raise TrimagInputError(f"`offset` must be a finite (3,) array; got {b!r}")
         return cls.from_vector(np.concatenate([params, b.reshape(3)]))
+
+
+def q_to_matrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``Gamma^-1 = [[q1, q2, q3], [0, q4, q5], [0, 0, 1]]`` from ``q`` (5,)."""
+    C = np.eye(3)
+    C[Q_INDEX] = q
+    return C
+
+
+def params_covariance(q: NDArray[np.float64], cov_u: NDArray[np.float64], extra_scales: NDArray) -> NDArray:
+    """Propagate a covariance of ``(q1..q5, extras)`` (internal, scaled units) to ``(theta, phi, psi, kxz, kyz,
+    extras)``: finite-difference Jacobian of :func:`params_from_q` at ``q``; each extra is multiplied by its
+    entry of ``extra_scales`` (e.g. the data scale for offsets)."""
+    p = 5 + len(extra_scales)
+    A = np.zeros((p, p))
+    base = params_from_q(q)
+    for j in range(5):
+        h = 1e-7 * max(abs(q[j]), 1.0)
+        dq = q.copy()
+        dq[j] += h
+        A[:5, j] = (params_from_q(dq) - base) / h
+    A[5:, 5:] = np.diag(extra_scales)
+    return A @ cov_u @ A.T

@@ -50,32 +50,12 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import TrimagInputError
 from .base import ErrorModel
 
-__all__ = [
-    "W_TERMS",
-    "ZhangCheng",
-    "quadric_from_w",
-    "quadric_terms",
-    "upper_from_quadric",
-    "w_from_quadric",
-]
+__all__ = ["W_TERMS", "ZhangCheng", "quadric_from_w", "upper_from_quadric", "w_from_quadric"]
 
 #: Names of the entries of ``W`` (the monomial each multiplies in ``phi(V)``).
 W_TERMS: tuple[str, ...] = ("xx", "yy", "zz", "xy", "xz", "yz", "x", "y", "z", "1")
 
 _ANGLES = ("alpha", "beta", "gamma")
-
-
-def quadric_terms(V: ArrayLike) -> NDArray[np.float64]:
-    """The monomials ``phi(V)`` of the quadratic form, shape (N, 10), so that ``phi(V) @ W == |B|^2``.
-
-    Parameters
-    ----------
-    V : array_like, shape (N, 3)
-        Sensor output (any unit).
-    """
-    v = np.asarray(V, dtype=np.float64)
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([x * x, y * y, z * z, x * y, x * z, y * z, x, y, z, np.ones_like(x)], axis=-1)
 
 
 def w_from_quadric(Q: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:

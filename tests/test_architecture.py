@@ -1,0 +1,145 @@
+"""The import rules of docs/architecture.md, checked on the package's own source (no import is executed).
+
+- no import cycle between trimag's modules (imports inside functions count too);
+- an estimator module imports no sibling estimator: only the estimators' base and shared private modules
+  (``base``, ``_common``, ``_finish``, ``_pairs``, ``_quadric``), the numerical core and the support modules;
+- the numerical core (``trimag._core``) imports nothing of trimag but itself and ``trimag.errors``;
+- at most two module-level chunk/block-size constants (the one chunk setting and the rows of a streamed file).
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+import trimag
+
+ROOT = Path(trimag.__file__).parent
+SHARED_ESTIMATOR_MODULES = {"base", "_common", "_finish", "_pairs", "_quadric"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in ROOT.rglob("*.py"):
+        parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """trimag modules ``name`` imports (at any depth of its code; TYPE_CHECKING blocks excluded)."""
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found: set[str] = set()
+
+    def visit(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                continue
+            if isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = package.split(".")
+                    base = base[: len(base) - (child.level - 1)]
+                    module = ".".join(base + ([child.module] if child.module else []))
+                else:
+                    module = child.module or ""
+                for alias in child.names:
+                    target = f"{module}.{alias.name}"
+                    found.add(target if target in MODULES else module)
+            elif isinstance(child, ast.Import):
+                found.update(alias.name for alias in child.names)
+            visit(child)
+
+    visit(ast.parse(path.read_text(encoding="utf-8")))
+    return {m for m in found if m in MODULES and m != name}
+
+
+GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _cycles() -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+
+    def connect(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(GRAPH[v]):
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for v in sorted(GRAPH):
+        if v not in index:
+            connect(v)
+    return components
+
+
+def test_the_walk_sees_the_package():
+    assert len(MODULES) > 60
+    assert "trimag.estimators._finish" in GRAPH["trimag.estimators.ml"]  # relative imports resolved
+    assert "trimag._core.chunks" in GRAPH["trimag._core.rowwise"]
+
+
+def test_no_import_cycle():
+    assert _cycles() == []
+
+
+def test_the_cycle_check_finds_a_cycle():
+    GRAPH["trimag._core.chunks"].add("trimag._core.rowwise")
+    try:
+        assert _cycles() == [["trimag._core.chunks", "trimag._core.rowwise"]]
+    finally:
+        GRAPH["trimag._core.chunks"].discard("trimag._core.rowwise")
+
+
+@pytest.mark.parametrize("name", sorted(m for m in MODULES if m.startswith("trimag.estimators.")))
+def test_no_estimator_imports_a_sibling_estimator(name):
+    siblings = {
+        m for m in GRAPH[name]
+        if m.startswith("trimag.estimators.") and m.rsplit(".", 1)[1] not in SHARED_ESTIMATOR_MODULES
+    }
+    assert siblings == set(), f"{name} imports sibling estimator(s) {sorted(siblings)}"
+
+
+@pytest.mark.parametrize("name", sorted(m for m in MODULES if m.startswith("trimag._core")))
+def test_the_core_imports_only_itself_and_errors(name):
+    outside = {m for m in GRAPH[name] if not m.startswith("trimag._core") and m != "trimag.errors"}
+    assert outside == set(), f"{name} imports {sorted(outside)}"
+
+
+def test_at_most_two_chunk_size_constants():
+    constants = []
+    for name, path in MODULES.items():
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+                node, ast.AnnAssign) else []
+            for target in targets:
+                sized = isinstance(node.value, (ast.Constant, ast.BinOp))  # a number, not e.g. the ContextVar
+                if sized and isinstance(target, ast.Name) and re.search(r"BLOCK|CHUNK|PANEL|WORKING_MEMORY", target.id):
+                    constants.append(f"{name}.{target.id}")
+    assert sorted(constants) == ["trimag._core.chunks.DEFAULT_CHUNK_ROWS", "trimag._core.chunks.WORKING_MEMORY_BYTES"]
