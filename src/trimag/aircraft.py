@@ -18,11 +18,11 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from .calibration import atomic_write_text
 from .compensation import ScalarCompensation
 from .errors import TrimagInputError
 from .estimators.tolles_lawson import fit_tolles_lawson, manoeuvre_content, segment_std
 from .filtering import BandPass, finite_runs, split_segments
+from .io.atomic import atomic_write_text
 from .io.tables import _numeric, detect_csv_layout, guess_format, read_table
 
 __all__ = [

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import glob
 import os
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -24,8 +23,8 @@ from typing import Any
 
 import pandas as pd
 
-from .calibration import atomic_write_text
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
+from .io.atomic import atomic_path, atomic_write_text
 
 __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs", "fit_batch", "fit_one"]
 
@@ -186,15 +185,8 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
 
 
 def _write_parquet(df: pd.DataFrame, path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are ordinary files
-    try:
+    with atomic_path(path) as tmp:
         df.to_parquet(tmp, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -17,7 +17,6 @@ import datetime as _dt
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -31,29 +30,10 @@ from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit
 
-__all__ = ["FORMAT_VERSION", "Calibration", "atomic_write_text"]
+__all__ = ["FORMAT_VERSION", "Calibration"]
 
 FORMAT_VERSION = "1.0.0"
 _FORMAT_MAJOR = 1
-
-
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file in the same folder, then rename.
-
-    A reader never sees a half-written file, and an error leaves any previous file untouched.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are ordinary files
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
 
 
 def file_major_version(data: Any, kind: str, current: str) -> int:
@@ -307,6 +287,8 @@ class Calibration:
 
     def to_file(self, path: str | os.PathLike[str]) -> Path:
         """Write the JSON file atomically (temporary file, then rename)."""
+        from .io.atomic import atomic_write_text
+
         return atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod

@@ -26,9 +26,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from ._core.chunks import chunk_rows
 from ._version import __version__
-from .calibration import _jsonable, atomic_write_text, file_major_version
+from .calibration import _jsonable, file_major_version
 from .errors import CalibrationFormatError, TrimagInputError
 from .filtering import BandPass, finite_runs
+from .io.atomic import atomic_write_text
 from .models.tolles_lawson import TollesLawsonTerms
 
 __all__ = ["COMPENSATION_FORMAT_VERSION", "ScalarCompensation"]

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from .attitude import body_field
 from .errors import TrimagInputError
 from .models.base import ErrorModel
 
@@ -90,11 +91,6 @@ def great_circle_directions(n: int) -> NDArray[np.float64]:
         t = 2.0 * np.pi * np.arange(k) / max(k, 1)
         parts.append(np.roll(np.column_stack([np.cos(t), np.sin(t), np.zeros(k)]), i, axis=1))
     return np.vstack(parts)
-
-
-def body_field(attitude: Rotation, field_nav: ArrayLike) -> NDArray[np.float64]:
-    """Navigation-frame field (3,) seen in the body frame at each attitude, shape (N, 3)."""
-    return attitude.inv().apply(np.asarray(field_nav, dtype=np.float64))
 
 
 def add_noise(

@@ -19,10 +19,11 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from .calibration import Calibration, atomic_write_text
+from .calibration import Calibration
 from .errors import TrimagError, TrimagInputError, TrimagWarning
 from .estimators import make_estimator
 from .io import MagnitudeAccumulator, Samples, apply_file, column_values, open_chunks, read_samples
+from .io.atomic import atomic_write_text
 from .io.tables import where_mask
 from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
 from .units import convert, normalise_unit

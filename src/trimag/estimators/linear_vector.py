@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR, panel_rows
 from .._core.rowwise import count_duplicate_rows
+from ..attitude import body_field
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -57,17 +58,6 @@ def _check_attitude(attitude: Any, n: int) -> Rotation:
         got = 1 if attitude.single else len(attitude)
         raise TrimagInputError(f"need one attitude per sample: {n} samples but {got} attitude(s)")
     return attitude
-
-
-def _body_field(attitude: Rotation, H_n: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``attitude.inv().apply(H_n)`` (N, 3), block by block: the inverted rotations and the rotation's temporaries
-    exist for one block at a time (whole, they took 880 MB at N = 1e7 besides the 240 MB result)."""
-    n = len(attitude)
-    out = np.empty((n, 3))
-    chunk = chunk_rows()
-    for start in range(0, n, chunk):
-        out[start : start + chunk] = attitude[start : start + chunk].inv().apply(H_n)
-    return out
 
 
 def _distinct_count(H_b: NDArray[np.float64]) -> int:
@@ -368,10 +358,10 @@ def fit_with_background(
         proj.residual, np.zeros(2), jac=proj.jacobian, method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
     )
     H_n = proj.background(res.x)
-    K, c, info = solve_interference(B, _body_field(attitude, H_n))
+    K, c, info = solve_interference(B, body_field(attitude, H_n))
     if np.linalg.det(K) < 0:  # sign gauge: det(K) > 0
         H_n = -H_n
-        K, c, info = solve_interference(B, _body_field(attitude, H_n))
+        K, c, info = solve_interference(B, body_field(attitude, H_n))
     info.update(
         {
             "linear_condition_number": cond_lin,
@@ -442,10 +432,10 @@ class LinearVector(Estimator):
             K, c, H_n, info = fit_with_background(B, att, magnitude, max_iter=self.max_iter)
             source = f"fitted background NED {np.round(H_n, 6).tolist()} (|H_n| fixed: {scale_src})"
             diag["background_given"] = None if reference is None else as_vector(reference).tolist()
-            H_b = _body_field(att, H_n)
+            H_b = body_field(att, H_n)
         else:
             H_n = as_vector(reference)
-            H_b = _body_field(att, H_n)
+            H_b = body_field(att, H_n)
             K, c, info = solve_interference(B, H_b)
             source = f"background NED {np.round(H_n, 6).tolist()}"
         F = float(np.linalg.norm(H_n))

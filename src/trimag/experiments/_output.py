@@ -8,7 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..calibration import _jsonable, atomic_write_text
+from ..calibration import _jsonable
+from ..io.atomic import atomic_write_text
 from ..report import save_figure
 
 __all__ = ["jsonable", "save_figure", "write_csv", "write_dict_csv"]

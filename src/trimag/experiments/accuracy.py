@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..calibration import atomic_write_text
 from ..crlb import UPPER, crlb
 from ..diagnostics import fibonacci_sphere
 from ..estimators import DEFAULT_METHOD, available_methods, get_estimator
+from ..io.atomic import atomic_write_text
 from ..models.ellipsoid import Ellipsoid, to_upper
 from ..simulate import great_circle_directions, hemisphere_directions, uniform_directions
 

@@ -46,9 +46,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..calibration import atomic_write_text
 from ..crlb import UPPER
 from ..estimators import available_methods, get_estimator, make_estimator
+from ..io.atomic import atomic_write_text
 from ..models import get_model
 from ..models.ellipsoid import to_upper
 from ..simulate import simulate, uniform_directions

@@ -48,9 +48,9 @@ from scipy.spatial.transform import Rotation
 from scipy.special import elliprd
 
 from ..attitude import background_from_samples, body_field, from_euler, from_quaternion
-from ..calibration import atomic_write_text
 from ..errors import TrimagInputError
 from ..estimators.linear_vector import LinearVector, fit_with_background, solve_interference
+from ..io.atomic import atomic_write_text
 from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
 from ..parallel import map_trials, trial_seeds

@@ -33,11 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..calibration import atomic_write_text
 from ..errors import TrimagInputError
 from ..estimators.geometric import solve_geometric
 from ..estimators.pairwise import pair_samples, solve_pairs
 from ..estimators.wen2008 import Wen2008Model, solve_wen_pairs, wen_params_from_matrix
+from ..io.atomic import atomic_write_text
 from ..metrics import j_index
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, params_from_q

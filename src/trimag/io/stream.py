@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import re
-import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +29,7 @@ from numpy.typing import NDArray
 from .._core.chunks import DEFAULT_CHUNK_ROWS, read_block_bytes
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
+from .atomic import atomic_path
 from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
 
 __all__ = ["Chunk", "ChunkSource", "MagnitudeAccumulator", "apply_file", "iter_chunks", "open_chunks"]
@@ -326,14 +325,9 @@ def apply_file(
     out_kind = guess_format(out) if out.suffix else "csv"
     if out_kind not in ("csv", "txt", "parquet", "npz"):
         raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    os.chmod(tmp_name, 0o644)  # mkstemp creates 0600; outputs are ordinary files
-    tmp = Path(tmp_name)
     n_rows = 0
     n_bad = 0
-    try:
+    with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error
         if out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
             with tmp.open("w", encoding="utf-8", newline="") as fh:
@@ -390,10 +384,6 @@ def apply_file(
             cor = np.vstack([c for _, c in parts])
             with tmp.open("wb") as fh:
                 np.savez(fh, raw=raw, corrected=cor)
-        os.replace(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return {
         "n_rows": n_rows,
         "n_uncorrected": n_bad,
