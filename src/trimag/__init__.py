@@ -7,6 +7,8 @@
 
 from ._version import __version__
 from .calibration import Calibration
+from .compensation import ScalarCompensation
+from .crlb import crlb
 from .errors import (
     IdentifiabilityError,
     IdentifiabilityWarning,
@@ -15,16 +17,24 @@ from .errors import (
     TrimagInputError,
     UnitMismatchError,
 )
+from .estimators import available_methods, get_estimator
 from .fitting import fit
+from .models import available_models, get_model
 
 __all__ = [
     "Calibration",
     "IdentifiabilityError",
     "IdentifiabilityWarning",
     "NotFittedError",
+    "ScalarCompensation",
     "TrimagError",
     "TrimagInputError",
     "UnitMismatchError",
     "__version__",
+    "available_methods",
+    "available_models",
+    "crlb",
     "fit",
+    "get_estimator",
+    "get_model",
 ]

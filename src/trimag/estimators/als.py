@@ -39,7 +39,7 @@ from ._common import algebraic_ellipsoid, check_ellipsoid_options, gauge_scale, 
 from ._finish import ellipsoid_result
 from .base import Estimator
 
-__all__ = ["AdjustedLeastSquares", "als_scatter", "als_solve"]
+__all__ = ["AdjustedLeastSquares"]
 
 # xi(x) = sum of coef * x^p y^q z^r, one (exponent, coefficient) list per entry
 _XI: tuple[tuple[tuple[tuple[int, int, int], float], ...], ...] = (

@@ -32,7 +32,7 @@ from ._finish import finish_iterative
 from ._quadric import check_identifiable, identifiability_report, require_magnitude
 from .base import Estimator
 
-__all__ = ["BFGS", "finish_iterative", "iterative_start", "unpack"]
+__all__ = ["BFGS"]
 
 
 class BFGS(Estimator):

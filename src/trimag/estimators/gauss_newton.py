@@ -64,17 +64,7 @@ from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
 from .base import Estimator, build_calibration
 
-__all__ = [
-    "GaussNewton",
-    "GaussNewtonFallbackWarning",
-    "algebraic_start",
-    "gauss_newton",
-    "half_sum_squares",
-    "linearise",
-    "params_text",
-    "planarity",
-    "residual_jacobian",
-]
+__all__ = ["GaussNewton", "GaussNewtonFallbackWarning"]
 
 PARAM_NAMES = Scalar9.param_names()
 _ANGLES = ("alpha", "beta", "gamma")

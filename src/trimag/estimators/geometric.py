@@ -43,7 +43,7 @@ from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
 from ._common import normalisation_stats, scalar_reference
 from .base import Estimator, build_calibration
 
-__all__ = ["Geometric", "GeometricSolution", "solve_geometric"]
+__all__ = ["Geometric"]
 
 _NAMES = ("q1", "q2", "q3", "q4", "q5")
 _B_NAMES = ("bx", "by", "bz")

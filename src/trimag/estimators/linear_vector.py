@@ -39,7 +39,7 @@ from ..models.interference12 import Interference12
 from ..reference import ScalarReference, as_vector
 from .base import Estimator, build_calibration
 
-__all__ = ["LinearVector", "fit_with_background", "solve_interference"]
+__all__ = ["LinearVector"]
 
 _NAMES_A = ("H_b x", "H_b y", "H_b z", "c")
 _HINT = (

@@ -66,7 +66,7 @@ from ._common import (
 from ._finish import BALANCE_CHOICES, ellipsoid_result
 from .base import Estimator
 
-__all__ = ["MaximumLikelihood", "bias_correction", "geometric_residual", "weighted_ml"]
+__all__ = ["MaximumLikelihood"]
 
 _NAMES = UPPER_NAMES
 

@@ -44,7 +44,7 @@ from ._common import scalar_reference
 from ._pairs import PAIRINGS, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples, quadric_entries
 from .base import Estimator, build_calibration
 
-__all__ = ["Pairwise", "PairwiseSolution", "solve_pairs"]
+__all__ = ["Pairwise"]
 
 
 _TERMS6 = ("M11", "M22", "M33", "M12", "M23", "M13")

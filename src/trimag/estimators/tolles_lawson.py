@@ -32,7 +32,7 @@ from ..errors import IdentifiabilityError, TrimagInputError
 from ..filtering import BandPass, finite_runs
 from ..models.tolles_lawson import TERM_KINDS, TollesLawsonTerms, parse_terms
 
-__all__ = ["FilteredSums", "filtered_sums", "fit_tolles_lawson", "manoeuvre_content", "segment_std"]
+__all__ = ["fit_tolles_lawson"]
 
 
 @dataclass(frozen=True)

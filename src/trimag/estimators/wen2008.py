@@ -45,7 +45,7 @@ from ._common import scalar_reference
 from ._pairs import PAIRINGS, TERM_INDEX, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples
 from .base import Estimator, build_calibration
 
-__all__ = ["Wen2008", "Wen2008Model", "WenSolution", "solve_wen_pairs", "wen_params_from_matrix"]
+__all__ = ["Wen2008"]
 
 WEN_PARAMS = ("alpha", "beta", "gamma", "k1", "k2")
 
