@@ -2,6 +2,9 @@
 
     git worktree add /tmp/old <commit>
     python benchmarks/ab_fits.py --old /tmp/old/src --new src --sizes 1e4,1e5,1e6 --methods ml,ellipsoid-fit
+    python benchmarks/ab_fits.py ... --methods ortho-gain-bias:pairwise,scalar9:gauss-newton,zhang-cheng:quadric
+
+A method is ``METHOD`` (model ellipsoid) or ``MODEL:METHOD`` (scalar9 and zhang-cheng get the reference 48000 nT).
 
 Each round runs every (tree, size, method) in a fresh process: the minimum of 5 fits (after one warm-up) and the
 process's peak resident memory.
@@ -21,15 +24,17 @@ import json, resource, sys, time, warnings
 import numpy as np
 import trimag
 warnings.simplefilter("ignore")
-n, method = int(float(sys.argv[1])), sys.argv[2]
+n, spec = int(float(sys.argv[1])), sys.argv[2]
+model, method = spec.split(":") if ":" in spec else ("ellipsoid", spec)
+kw = {"reference": 48000.0} if model in ("scalar9", "zhang-cheng") else {}
 rng = np.random.default_rng(0)
 u = rng.normal(size=(n, 3)); u /= np.linalg.norm(u, axis=1, keepdims=True)
 W = np.array([[0.95, 0.03, -0.02], [0.0, 1.04, 0.05], [0.0, 0.0, 1.01]])
 B = np.linalg.solve(W, (48000 * u).T).T + [1200.0, -850.0, 400.0] + rng.normal(scale=50.0, size=u.shape)
-trimag.fit(B, model="ellipsoid", method=method, units="nT")
+trimag.fit(B, model=model, method=method, units="nT", **kw)
 times = []
 for _ in range(5):
-    t = time.perf_counter(); trimag.fit(B, model="ellipsoid", method=method, units="nT")
+    t = time.perf_counter(); trimag.fit(B, model=model, method=method, units="nT", **kw)
     times.append(time.perf_counter() - t)
 print(json.dumps({"s": min(times), "mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
@@ -52,7 +57,7 @@ def main() -> None:
                     out = subprocess.run([sys.executable, "-c", _CODE, size, method], env=env, capture_output=True,
                                          text=True, check=True)
                     results.setdefault((size, method, label), []).append(json.loads(out.stdout))
-    print(f"{'N':>6} {'method':14} {'old [ms]':>9} {'new [ms]':>9} {'new/old':>8} {'old MB':>7} {'new MB':>7}")
+    print(f"{'N':>6} {'method':30} {'old [ms]':>9} {'new [ms]':>9} {'new/old':>8} {'old MB':>7} {'new MB':>7}")
     for size in args.sizes.split(","):
         for method in args.methods.split(","):
             o = results[(size, method, "old")]
@@ -61,7 +66,7 @@ def main() -> None:
             tn = statistics.median(r["s"] for r in n) * 1e3
             mo = statistics.median(r["mb"] for r in o)
             mn = statistics.median(r["mb"] for r in n)
-            print(f"{size:>6} {method:14} {to:9.2f} {tn:9.2f} {tn / to:8.2f} {mo:7.0f} {mn:7.0f}")
+            print(f"{size:>6} {method:30} {to:9.2f} {tn:9.2f} {tn / to:8.2f} {mo:7.0f} {mn:7.0f}")
 
 
 if __name__ == "__main__":

@@ -12,10 +12,13 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
+
+if TYPE_CHECKING:
+    from .requests import FitRequest
 
 __all__ = ["build_parser", "main"]
 
@@ -287,6 +290,23 @@ def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None
         raise TrimagInputError(f"cannot write {path}: no write permission in {probe}")
 
 
+def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitRequest:
+    """The typed request of ``trimag fit`` (vector or scalar model) from its parsed flags."""
+    from .requests import AttitudeSpec, FitRequest, InputSpec, ReferenceSpec
+
+    return FitRequest(
+        input=InputSpec(args.data, fmt=args.fmt, columns=args.columns, var=args.var, units=args.units,
+                        rows=args.rows, where=args.where, strict=args.strict, sensor=args.sensor),
+        model=args.model, method=args.method, options=options,
+        reference=ReferenceSpec(reference=args.reference, igrf_spec=args.igrf_spec,
+                                reference_column=args.reference_column, background_ned=args.background_ned,
+                                background_run=args.background_run),
+        attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
+                              quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame),
+        out=args.out, report=args.report, policy=args.policy,
+    )
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     from .workflow import fit_file, parse_options
 
@@ -295,16 +315,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     if args.model == "tolles-lawson":
         return _cmd_fit_tolles_lawson(args)
 
-    result = fit_file(
-        args.data, fmt=args.fmt, columns=args.columns, var=args.var, units=args.units, rows=args.rows,
-        where=args.where, strict=args.strict, model=args.model, method=args.method,
-        options=parse_options(args.option), reference=args.reference, igrf_spec=args.igrf_spec,
-        reference_column=args.reference_column, attitude_columns=args.attitude_columns,
-        quaternion_columns=args.quaternion_columns, quaternion_order=args.quaternion_order,
-        quaternion_frame=args.quaternion_frame, background_ned=args.background_ned,
-        background_run=args.background_run, out=args.out, report=args.report, sensor=args.sensor,
-        policy=args.policy,
-    )
+    result = fit_file(_fit_request(args, parse_options(args.option)))
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:

@@ -26,6 +26,7 @@ from .io import MagnitudeAccumulator, Samples, apply_file, column_values, open_c
 from .io.atomic import atomic_write_text
 from .io.tables import where_mask
 from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
+from .requests import FitRequest
 from .units import convert, normalise_unit
 
 __all__ = [
@@ -385,45 +386,31 @@ def _refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[
     )
 
 
-def fit_file(
-    path: str | Path,
-    *,
-    fmt: str | None = None,
-    columns: str | None = None,
-    var: str | None = None,
-    units: str | None = None,
-    rows: str | None = None,
-    where: str | None = None,
-    strict: bool = False,
-    model: str = "ellipsoid",
-    method: str | None = None,
-    options: dict[str, Any] | None = None,
-    reference: str | float | None = None,
-    igrf_spec: str | None = None,
-    reference_column: str | None = None,
-    attitude_columns: str | None = None,
-    quaternion_columns: str | None = None,
-    quaternion_order: str = "wxyz",
-    quaternion_frame: str = "ned",
-    background_ned: str | None = None,
-    background_run: str | None = None,
-    out: str | Path | None = None,
-    report: str | Path | None = None,
-    sensor: str | None = None,
-    policy: str | None = None,
-) -> FitResult:
+def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked.
 
-    With ``policy`` (a TOML file or ``"default"``, :mod:`trimag.policy`) the calibration is checked against its
-    limits; the result is in ``summary["acceptance"]`` and in the written file (a rejected calibration is still
-    written, marked so).
+    ``request``: a :class:`~trimag.requests.FitRequest`, or a path with the request's fields as keyword arguments
+    (:meth:`FitRequest.of <trimag.requests.FitRequest.of>`). With a ``policy`` (a TOML file or ``"default"``,
+    :mod:`trimag.policy`) the calibration is checked against its limits; the result is in
+    ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
+    req = request if isinstance(request, FitRequest) else FitRequest.of(request, **arguments)
+    if arguments and isinstance(request, FitRequest):
+        raise TrimagInputError("give either a FitRequest or a path with keyword arguments, not both")
+    src, given, att = req.input, req.reference, req.attitude
+    path, fmt, columns, var, units = src.path, src.fmt, src.columns, src.var, src.units
+    model, method, options, out, report, policy = (
+        req.model, req.method, dict(req.options), req.out, req.report, req.policy)
+    reference, igrf_spec, reference_column = given.reference, given.igrf_spec, given.reference_column
+    background_ned, background_run = given.background_ned, given.background_run
+    attitude_columns, quaternion_columns = att.attitude_columns, att.quaternion_columns
+    quaternion_order, quaternion_frame = att.quaternion_order, att.quaternion_frame
     from .policy import read_policy
 
     limits = read_policy(policy) if policy is not None else None
     estimator = make_estimator(model, method, options)
-    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=rows, where=where, strict=strict,
-                           sensor=sensor)
+    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=src.rows, where=src.where,
+                           strict=src.strict, sensor=src.sensor)
     messages: list[str] = []
     log_info = samples.log_info
     if log_info is not None:
@@ -434,10 +421,8 @@ def fit_file(
                 f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
             )
         units = units or log_info["unit"]
-        given_ref = any(x is not None for x in (reference, igrf_spec, reference_column, background_ned,
-                                                background_run))
         gps = log_info.get("gps")
-        if not given_ref and gps and gps.get("date"):
+        if not given.given and gps and gps.get("date"):
             igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
             messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
         if estimator.reference_kind == "vector" and attitude_columns is None and quaternion_columns is None:

@@ -1,0 +1,99 @@
+"""Typed requests of the application layer (what ``trimag fit`` asks for), built by the CLI and by batch runs.
+
+The command line parses its flags into a :class:`FitRequest`; :func:`trimag.workflow.fit_file` takes one. Each
+field is named after the Python argument it becomes (``InputSpec.columns``, ``ReferenceSpec.igrf``); the CLI's
+help names the flag of each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import TrimagInputError
+
+__all__ = ["AttitudeSpec", "FitRequest", "InputSpec", "ReferenceSpec"]
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """Which samples to read: the file (or log) and how to read it (:func:`trimag.io.read_samples`)."""
+
+    path: str | Path
+    fmt: str | None = None
+    columns: str | None = None
+    var: str | None = None
+    units: str | None = None
+    rows: str | None = None
+    where: str | None = None
+    strict: bool = False
+    sensor: str | None = None
+
+
+@dataclass(frozen=True)
+class ReferenceSpec:
+    """The field reference: a magnitude (number, or an IGRF site, or a column) for scalar models, a background
+    vector (NED, or from an iron-free run) for vector models. All None: none given."""
+
+    reference: str | float | None = None
+    igrf_spec: str | None = None
+    reference_column: str | None = None
+    background_ned: str | None = None
+    background_run: str | None = None
+
+    @property
+    def given(self) -> bool:
+        """Whether any reference was given."""
+        return any(getattr(self, f.name) is not None for f in dataclasses.fields(self))
+
+
+@dataclass(frozen=True)
+class AttitudeSpec:
+    """Where the attitudes are (vector models): Euler angle columns (yaw, pitch, roll, degrees, Z-Y-X, body ->
+    NED) or quaternion columns in ``quaternion_order`` (``"wxyz"`` or ``"xyzw"``) for ``quaternion_frame``."""
+
+    attitude_columns: str | None = None
+    quaternion_columns: str | None = None
+    quaternion_order: str = "wxyz"
+    quaternion_frame: str = "ned"
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """One fit: read ``input``, take the ``reference`` (and ``attitude``), fit ``model`` by ``method`` with
+    ``options``, check ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration JSON) and
+    ``report`` (figure) when given."""
+
+    input: InputSpec
+    model: str = "ellipsoid"
+    method: str | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+    reference: ReferenceSpec = field(default_factory=ReferenceSpec)
+    attitude: AttitudeSpec = field(default_factory=AttitudeSpec)
+    out: str | Path | None = None
+    report: str | Path | None = None
+    policy: str | None = None
+
+    @classmethod
+    def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
+        """A request from flat keyword arguments (the fields of the specs and of the request itself), e.g.
+        ``FitRequest.of("log.csv", units="uT", igrf_spec="52.5,13.3,40,2021-01-01", out="cal.json")``."""
+        groups: dict[type, dict[str, Any]] = {InputSpec: {}, ReferenceSpec: {}, AttitudeSpec: {}, cls: {}}
+        specs = (InputSpec, ReferenceSpec, AttitudeSpec)
+        owner: dict[str, type] = {f.name: spec for spec in specs for f in dataclasses.fields(spec)}
+        owner.update({f.name: cls for f in dataclasses.fields(cls) if f.name not in ("input", "reference", "attitude")})
+        for name, value in arguments.items():
+            if name not in owner or name == "path":
+                raise TrimagInputError(f"unknown fit argument {name!r}; known: {', '.join(sorted(owner))}")
+            groups[owner[name]][name] = value
+        if groups[cls].get("options") is None:
+            groups[cls].pop("options", None)
+        return cls(
+            input=InputSpec(path, **groups[InputSpec]),
+            reference=ReferenceSpec(**groups[ReferenceSpec]),
+            attitude=AttitudeSpec(**groups[AttitudeSpec]),
+            **groups[cls],
+        )
