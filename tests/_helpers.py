@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -17,6 +19,36 @@ SHARED_DATA = Path(os.environ.get("TRIMAG_SHARED_DATA") or Path(__file__).resolv
 requires_shared = pytest.mark.skipif(
     not SHARED_DATA.exists(), reason="../shared/data absent (larger real logs are not bundled in the repo)"
 )
+
+#: The repository's benchmark harnesses (``python benchmarks/speed.py ...``); not part of the installed package.
+BENCHMARKS_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """Import the harness ``benchmarks/<name>.py`` from its path, once per process.
+
+    ``benchmarks/`` is not a package and is not installed, so it is loaded by path, under the name
+    ``_trimag_bench_<name>`` (the name ``benchmarks/speed.py`` loads its sibling ``accuracy.py`` under, so both
+    share one module). Call it at the top of a test module: without the folder (tests run against an installed
+    trimag, away from the repository) the whole module is skipped, with the reason.
+    """
+    path = BENCHMARKS_DIR / f"{name}.py"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent: the benchmark harnesses live in the repository's benchmarks/ folder, "
+                    "which is not installed with trimag", allow_module_level=True)
+    module_name = f"_trimag_bench_{name}"
+    module = sys.modules.get(module_name)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(module_name, path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[module_name]
+            raise
+    return module
 
 
 def trimag_command() -> list[str]:

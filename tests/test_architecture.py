@@ -143,3 +143,9 @@ def test_at_most_two_chunk_size_constants():
                 if sized and isinstance(target, ast.Name) and re.search(r"BLOCK|CHUNK|PANEL|WORKING_MEMORY", target.id):
                     constants.append(f"{name}.{target.id}")
     assert sorted(constants) == ["trimag._core.chunks.DEFAULT_CHUNK_ROWS", "trimag._core.chunks.WORKING_MEMORY_BYTES"]
+
+
+def test_no_benchmark_harness_inside_the_package():
+    """``trimag.experiments`` holds the four papers' reproductions only; benchmarks live in benchmarks/."""
+    experiments = {m.rsplit(".", 1)[1] for m in MODULES if m.startswith("trimag.experiments.")}
+    assert experiments == {"wu2013", "scalar_gn", "vehicle12", "zhang2009", "_data", "_output"}

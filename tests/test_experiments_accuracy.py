@@ -1,13 +1,18 @@
-"""``trimag bench accuracy`` on a tiny grid (trimag's own estimators; the peers are optional)."""
+"""The accuracy benchmark (``benchmarks/accuracy.py``) on a tiny grid (trimag's own estimators; the peers are
+optional)."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from trimag.experiments import accuracy
+from _helpers import BENCHMARKS_DIR, load_benchmark
+
+accuracy = load_benchmark("accuracy")
 
 
 def test_accuracy_tiny_grid(tmp_path):
@@ -44,3 +49,19 @@ def test_merge_parts_split_by_estimator(tmp_path):
     accuracy.run(tmp_path / "c", seed=1, estimators=["ml"], **kw)
     with pytest.raises(ValueError, match="seed"):
         accuracy.merge([tmp_path / "a", tmp_path / "c"], tmp_path / "bad")
+
+
+def test_runs_as_a_script_from_the_repository_root(tmp_path):
+    """``python benchmarks/accuracy.py`` (the former ``trimag bench accuracy``): a run, then a merge of it."""
+    root = BENCHMARKS_DIR.parent
+    cmd = [sys.executable, "benchmarks/accuracy.py", "--trials", "2", "--sizes", "300", "--sigmas", "0.01",
+           "--coverages", "full", "--estimators", "ml"]
+    proc = subprocess.run([*cmd, "--out", str(tmp_path / "a"), "--json"], capture_output=True, text=True, cwd=root,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["trials"] == 2 and summary["runtime_s"] > 0 and "| ml |" in summary["text"]
+    proc = subprocess.run([*cmd, "--out", str(tmp_path / "all"), "--merge", str(tmp_path / "a"), "-q"],
+                          capture_output=True, text=True, cwd=root, timeout=300)
+    assert proc.returncode == 0 and proc.stdout == "", proc.stderr
+    assert (tmp_path / "all" / "accuracy.md").read_text() == (tmp_path / "a" / "accuracy.md").read_text()

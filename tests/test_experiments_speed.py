@@ -1,7 +1,10 @@
-"""Small-size checks of the speed benchmark's parts (the real measurements live in benchmarks/speed.py)."""
+"""Small-size checks of the speed benchmark's parts (the harness ``benchmarks/speed.py``; its full runs are
+recorded in docs/performance.md)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -10,18 +13,19 @@ import pandas as pd
 import pytest
 
 from trimag.errors import TrimagInputError
-from trimag.experiments import get_experiment
-from trimag.experiments.speed import (
-    _run_measured,
-    fit_benchmark,
-    growth_exponents,
-    speed_ratios,
-    write_big_log,
-)
+
+from _helpers import BENCHMARKS_DIR, load_benchmark
+
+speed = load_benchmark("speed")
+_run_measured = speed._run_measured
+fit_benchmark = speed.fit_benchmark
+growth_exponents = speed.growth_exponents
+speed_ratios = speed.speed_ratios
+write_big_log = speed.write_big_log
 
 
-def test_registered_as_bench_target() -> None:
-    module = get_experiment("speed", kind="bench")
+def test_harness_has_run_and_options() -> None:
+    module = speed
     assert callable(module.run) and callable(module.add_arguments)
 
 
@@ -100,7 +104,7 @@ def test_write_big_log_and_measure(tmp_path: Path) -> None:
 
 
 def test_rows_with_different_keys_keep_every_column(tmp_path: Path) -> None:
-    from trimag.experiments.speed import _write_rows
+    _write_rows = speed._write_rows
 
     _write_rows(tmp_path / "f.csv", [{"n": 1, "median_s": 0.5}, {"n": 2, "note": "skipped: projected 40 s"}])
     df = pd.read_csv(tmp_path / "f.csv")
@@ -109,7 +113,36 @@ def test_rows_with_different_keys_keep_every_column(tmp_path: Path) -> None:
 
 
 def test_accuracy_sets_below_one_is_refused(tmp_path: Path) -> None:
-    from trimag.experiments import speed
-
     with pytest.raises(TrimagInputError, match="--accuracy-sets must be at least 1"):
         speed.run(tmp_path, accuracy_sets=0, skip=("fits", "apply", "batch"))
+
+
+def test_runs_as_a_script_from_the_repository_root(tmp_path: Path) -> None:
+    """``python benchmarks/speed.py`` (the former ``trimag bench speed``): options, JSON summary, outputs."""
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "benchmarks/speed.py", "--out", str(out), "--skip", "fits", "apply",
+                           "batch", "--json"], capture_output=True, text=True, cwd=BENCHMARKS_DIR.parent,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["runtime_s"] > 0 and "cpu_count" in summary["machine"]
+    assert (out / "speed.json").exists()
+
+
+def test_spawned_workers_do_not_import_the_simulator() -> None:
+    """The batch part's workers are spawned and run this script again (as ``__mp_main__``): it must not import
+    ``trimag.simulate`` (scipy.spatial, 0.4 s per worker) or the accuracy harness at its top."""
+    code = ("import runpy, sys; runpy.run_path('benchmarks/speed.py', run_name='__mp_main__'); "
+            "print('trimag.simulate' in sys.modules, '_trimag_bench_accuracy' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=BENCHMARKS_DIR.parent,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["False", "False"]
+
+
+def test_not_a_trimag_subcommand_any_more(capsys: pytest.CaptureFixture[str]) -> None:
+    from trimag.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "speed"])
+    assert exc.value.code == 2 and "invalid choice: 'bench'" in capsys.readouterr().err

@@ -192,17 +192,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
-    for name, kind, helptext in (("reproduce", "reproduce", "reproduce a paper's figures and tables"),
-                                 ("bench", "bench", "run a benchmark")):
-        p = sub.add_parser(name, help=helptext, description=helptext.capitalize() + ".")
-        p.add_argument("target", metavar="NAME")
-        p.add_argument("--out", default=f"trimag-{kind}", metavar="DIR", help="output folder")
-        p.add_argument("--quick", action="store_true", help="small sizes, for a fast check")
-        p.add_argument("--trials", type=int, help="Monte Carlo trials")
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--workers", type=int, default=1, help="parallel workers")
-        p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
-        p.add_argument("-q", "--quiet", action="store_true")
+    # the benchmarks are not subcommands: they live in the repository's benchmarks/ folder (not installed)
+    p = sub.add_parser("reproduce", help="reproduce a paper's figures and tables",
+                       description="Reproduce a paper's figures and tables.")
+    p.add_argument("target", metavar="NAME")
+    p.add_argument("--out", default="trimag-reproduce", metavar="DIR", help="output folder")
+    p.add_argument("--quick", action="store_true", help="small sizes, for a fast check")
+    p.add_argument("--trials", type=int, help="Monte Carlo trials")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1, help="parallel workers")
+    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
     return parser
 
 
@@ -514,17 +514,17 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     return result.exit_code()
 
 
-def _cmd_experiment(args: argparse.Namespace, kind: str) -> int:
+def _cmd_reproduce(args: argparse.Namespace) -> int:
     from .experiments import get_experiment
 
-    module = get_experiment(args.target, kind=kind)
+    module = get_experiment(args.target)
     extra: dict[str, Any] = {}
     if hasattr(module, "add_arguments"):
-        sub = _Parser(prog=f"trimag {kind} {args.target}", description=f"Options of {kind} {args.target}.")
+        sub = _Parser(prog=f"trimag reproduce {args.target}", description=f"Options of reproduce {args.target}.")
         module.add_arguments(sub)
         extra = vars(sub.parse_args(args.extra_args))
     elif args.extra_args:
-        raise TrimagInputError(f"{kind} {args.target} takes no option {args.extra_args[0]!r}")
+        raise TrimagInputError(f"reproduce {args.target} takes no option {args.extra_args[0]!r}")
     t0 = time.monotonic()
     summary = module.run(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
                          workers=args.workers, json_mode=args.json, **extra)
@@ -532,7 +532,7 @@ def _cmd_experiment(args: argparse.Namespace, kind: str) -> int:
     if args.json:
         print(json.dumps(summary, allow_nan=False, default=float))
     else:
-        _say(f"{kind} {args.target}: done in {summary['runtime_s']:.1f} s; outputs in {args.out}", args)
+        _say(f"reproduce {args.target}: done in {summary['runtime_s']:.1f} s; outputs in {args.out}", args)
         text = summary.get("text")
         if text:
             _say(str(text), args)
@@ -543,7 +543,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
-    if unknown and args.command not in ("reproduce", "bench"):
+    if unknown and args.command != "reproduce":
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.extra_args = unknown
     if args.command is None:
@@ -557,8 +557,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "simulate": _cmd_simulate,
         "demo": _cmd_demo,
         "batch": _cmd_batch,
-        "reproduce": lambda a: _cmd_experiment(a, "reproduce"),
-        "bench": lambda a: _cmd_experiment(a, "bench"),
+        "reproduce": _cmd_reproduce,
     }
     import signal
 

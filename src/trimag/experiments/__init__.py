@@ -1,7 +1,8 @@
-"""Reproductions of the four papers and the benchmarks, each a module with ``run(...) -> dict``.
+"""Reproductions of the four papers, each a module with ``run(...) -> dict``.
 
-``trimag reproduce NAME`` and ``trimag bench NAME`` call :func:`get_experiment` and then ``module.run``.
-Every module uses only trimag's public API.
+``trimag reproduce NAME`` calls :func:`get_experiment` and then ``module.run``. Every module uses only trimag's
+public API. (The benchmarks are not here: they live in the repository's ``benchmarks/`` folder, which is not
+installed: ``python benchmarks/speed.py``, ``python benchmarks/accuracy.py``.)
 
 Module contract:
 
@@ -19,7 +20,7 @@ from types import ModuleType
 
 from ..errors import TrimagInputError
 
-__all__ = ["BENCHMARKS", "EXPERIMENTS", "get_experiment"]
+__all__ = ["EXPERIMENTS", "get_experiment"]
 
 EXPERIMENTS: dict[str, str] = {
     "wu2013": "trimag.experiments.wu2013",
@@ -28,20 +29,14 @@ EXPERIMENTS: dict[str, str] = {
     "zhang2009": "trimag.experiments.zhang2009",
 }
 
-BENCHMARKS: dict[str, str] = {
-    "accuracy": "trimag.experiments.accuracy",
-    "speed": "trimag.experiments.speed",
-}
 
-
-def get_experiment(name: str, *, kind: str = "reproduce") -> ModuleType:
-    """Import the module of experiment (or benchmark) ``name``."""
-    table = EXPERIMENTS if kind == "reproduce" else BENCHMARKS
-    if name not in table:
-        raise TrimagInputError(f"unknown {kind} target {name!r}; choose one of {', '.join(table)}")
+def get_experiment(name: str) -> ModuleType:
+    """Import the module of the paper reproduction ``name``."""
+    if name not in EXPERIMENTS:
+        raise TrimagInputError(f"unknown reproduce target {name!r}; choose one of {', '.join(EXPERIMENTS)}")
     try:
-        return importlib.import_module(table[name])
+        return importlib.import_module(EXPERIMENTS[name])
     except ModuleNotFoundError as exc:
-        if exc.name == table[name]:
-            raise TrimagInputError(f"{kind} target {name!r} is not available in this build") from None
+        if exc.name == EXPERIMENTS[name]:
+            raise TrimagInputError(f"reproduce target {name!r} is not available in this build") from None
         raise
