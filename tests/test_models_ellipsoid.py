@@ -58,3 +58,18 @@ def test_bad_params_rejected() -> None:
     with pytest.raises(TrimagInputError, match="unknown model"):
         get_model("sphere")
     assert "ellipsoid" in available_models()
+
+
+def test_every_model_declares_the_kind_of_each_parameter():
+    """Reports and the generic estimator checks read the declared kinds (no guessing from names): every
+    parameter has one of the known kinds, and e.g. scalar9's ``beta`` is an angle, ``b1`` an offset."""
+    from trimag.models import MODELS, get_model
+    from trimag.models.base import PARAM_KINDS
+
+    for name in MODELS:
+        cls = get_model(name)
+        assert set(cls.kinds) == set(cls.param_names()), name
+        assert set(cls.kinds.values()) <= set(PARAM_KINDS), name
+    scalar9 = get_model("scalar9")
+    assert (scalar9.kind_of("beta"), scalar9.kind_of("b1"), scalar9.kind_of("k1")) == ("angle", "offset", "gain")
+    assert get_model("interference12").kind_of("c2") == "offset"

@@ -62,14 +62,12 @@ def summary_table(cal: Calibration) -> str:
     return "\n".join(line for line in lines if line)
 
 
-#: Parameter names that are angles (radians in the API; degrees shown too).
-ANGLE_PARAMS = frozenset({"alpha", "beta", "gamma", "theta", "phi", "psi"})
-#: Parameter names that carry the field unit (offsets, biases, hard iron, constant vehicle field).
-_OFFSET_PREFIXES = ("b", "hard_iron", "c", "offset")
+def _param_kinds(model: str) -> dict[str, str]:
+    """The parameters' declared kinds (:attr:`trimag.models.base.ErrorModel.kinds`) of a registered model; empty
+    for another (e.g. an ``affine`` calibration, whose parameters are then shown without a unit)."""
+    from .models import MODELS, get_model
 
-
-def _is_offset(name: str) -> bool:
-    return any(name.startswith(p) for p in _OFFSET_PREFIXES) and name not in ANGLE_PARAMS and name != "beta"
+    return dict(get_model(model).kinds) if model in MODELS else {}
 
 
 def params_table(cal: Calibration) -> str:
@@ -80,13 +78,14 @@ def params_table(cal: Calibration) -> str:
     std = (cal.uncertainty or {}).get("param_std", {}) or {}
     unit = cal.units
     lines = [f"{cal.model} parameters (value +- 1 sigma):"]
+    kinds = _param_kinds(cal.model)
     for name, value in cal.params.items():
         s = std.get(name)
         pm = f" +- {s:.3g}" if s is not None else ""
-        if name in ANGLE_PARAMS:
+        if kinds.get(name) == "angle":
             deg = f"  ({math.degrees(value):.5f} deg" + (f" +- {math.degrees(s):.2g}" if s is not None else "") + ")"
             lines.append(f"  {name:12s} = {value:.6g}{pm} rad{deg}")
-        elif _is_offset(name):
+        elif kinds.get(name) == "offset":
             lines.append(f"  {name:12s} = {value:.6g}{pm} {unit}")
         else:
             lines.append(f"  {name:12s} = {value:.8g}{pm}")

@@ -46,13 +46,9 @@ def simulated_problem(cls: type[Estimator], *, n: int = 600, seed: int = 0) -> S
     pattern = np.resize(_PATTERN, k)
     # offsets in field units (a few % of F); dimensionless parameters by a few %
     names = model_cls.param_names()
-    step = np.array([2.0 if _is_offset(nm) else 0.03 for nm in names])
+    step = np.array([2.0 if model_cls.kind_of(nm) == "offset" else 0.03 for nm in names])
     truth = model_cls.from_vector(base + pattern * step * scale)
     return simulate(truth, n=n, field_nav=_FIELD, noise=0.0, attitudes="random", seed=seed)
-
-
-def _is_offset(name: str) -> bool:
-    return name.startswith(("hard_iron", "b", "c", "offset", "bias")) and not name.startswith("beta")
 
 
 def _fit(est: Estimator, sim: Simulation, raw: NDArray[np.float64] | None = None) -> Estimator:

@@ -20,7 +20,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import TrimagInputError
 
-__all__ = ["ErrorModel"]
+__all__ = ["PARAM_KINDS", "ErrorModel"]
+
+#: The kinds of parameter a model declares (:attr:`ErrorModel.kinds`): ``offset`` (field unit: bias, hard iron,
+#: constant vehicle field), ``gain`` (dimensionless scale factor), ``angle`` (radians), ``matrix`` (a
+#: dimensionless entry of a correction or coupling matrix).
+PARAM_KINDS = ("offset", "gain", "angle", "matrix")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,6 +35,9 @@ class ErrorModel:
     name: ClassVar[str] = "affine"
     #: Number of parameters a scalar (magnitude-only) fit can identify, for minimum-sample checks.
     n_identifiable: ClassVar[int] = 9
+    #: The kind of each parameter (one of :data:`PARAM_KINDS`), declared by each model: reports and checks read
+    #: it instead of guessing from names.
+    kinds: ClassVar[Mapping[str, str]] = {}
 
     # ---- to implement in each model
     def correction(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -43,6 +51,14 @@ class ErrorModel:
         raise NotImplementedError
 
     # ---- shared
+    @classmethod
+    def kind_of(cls, name: str) -> str:
+        """The declared kind of parameter ``name`` (:data:`PARAM_KINDS`)."""
+        try:
+            return cls.kinds[name]
+        except KeyError:
+            raise TrimagInputError(f"model {cls.name!r} has no parameter {name!r}") from None
+
     @classmethod
     def param_names(cls) -> tuple[str, ...]:
         """Names of the physical parameters, in field order."""

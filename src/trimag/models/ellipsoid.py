@@ -11,6 +11,7 @@ model itself stores all nine entries so that any matrix round-trips exactly.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
@@ -46,6 +47,20 @@ class Ellipsoid(ErrorModel):
     w33: float = 1.0
 
     name: ClassVar[str] = "ellipsoid"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "hard_iron_x": "offset",
+        "hard_iron_y": "offset",
+        "hard_iron_z": "offset",
+        "w11": "matrix",
+        "w12": "matrix",
+        "w13": "matrix",
+        "w21": "matrix",
+        "w22": "matrix",
+        "w23": "matrix",
+        "w31": "matrix",
+        "w32": "matrix",
+        "w33": "matrix",
+    }
     n_identifiable: ClassVar[int] = 9
 
     def correction(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

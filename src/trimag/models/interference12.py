@@ -14,6 +14,7 @@ Coefficients: ``k11 .. k33`` (row-major, dimensionless) and ``c1, c2, c3`` (in t
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
@@ -47,6 +48,20 @@ class Interference12(ErrorModel):
     c3: float = 0.0
 
     name: ClassVar[str] = "interference12"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "k11": "matrix",
+        "k12": "matrix",
+        "k13": "matrix",
+        "k21": "matrix",
+        "k22": "matrix",
+        "k23": "matrix",
+        "k31": "matrix",
+        "k32": "matrix",
+        "k33": "matrix",
+        "c1": "offset",
+        "c2": "offset",
+        "c3": "offset",
+    }
     #: A magnitude-only fit could identify 9 of the 12 (K only up to a rotation); the vector fit of
     #: ``linear-vector`` identifies all 12 from 4 non-coplanar attitudes (its own ``_min_samples``).
     n_identifiable: ClassVar[int] = 9

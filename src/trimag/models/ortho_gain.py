@@ -24,6 +24,7 @@ Angles are in radians and must lie in (-pi/2, pi/2); gains must be positive.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import ClassVar, Self
 
 import numpy as np
@@ -131,6 +132,13 @@ class OrthoGain(ErrorModel):
     kyz: float = 1.0
 
     name: ClassVar[str] = "ortho-gain"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "theta": "angle",
+        "phi": "angle",
+        "psi": "angle",
+        "kxz": "gain",
+        "kyz": "gain",
+    }
     n_identifiable: ClassVar[int] = 5
 
     def __post_init__(self) -> None:
@@ -219,6 +227,16 @@ class OrthoGainBias(OrthoGain):
     bz: float = 0.0
 
     name: ClassVar[str] = "ortho-gain-bias"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "theta": "angle",
+        "phi": "angle",
+        "psi": "angle",
+        "kxz": "gain",
+        "kyz": "gain",
+        "bx": "offset",
+        "by": "offset",
+        "bz": "offset",
+    }
     n_identifiable: ClassVar[int] = 8
 
     def offset(self) -> NDArray[np.float64]:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
@@ -98,6 +99,17 @@ class Scalar9(ErrorModel):
     gamma: float = 0.0
 
     name: ClassVar[str] = "scalar9"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "b1": "offset",
+        "b2": "offset",
+        "b3": "offset",
+        "k1": "gain",
+        "k2": "gain",
+        "k3": "gain",
+        "alpha": "angle",
+        "beta": "angle",
+        "gamma": "angle",
+    }
     n_identifiable: ClassVar[int] = 9
 
     def __post_init__(self) -> None:

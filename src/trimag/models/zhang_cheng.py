@@ -42,6 +42,7 @@ the data's unit.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
@@ -123,6 +124,17 @@ m.as_vector().round(12).tolist()
     bz: float = 0.0
 
     name: ClassVar[str] = "zhang-cheng"
+    kinds: ClassVar[Mapping[str, str]] = {
+        "alpha": "angle",
+        "beta": "angle",
+        "gamma": "angle",
+        "kx": "gain",
+        "ky": "gain",
+        "kz": "gain",
+        "bx": "offset",
+        "by": "offset",
+        "bz": "offset",
+    }
     n_identifiable: ClassVar[int] = 9
     #: Parameters that are angles (radians in the API, degrees in reports).
     angle_params: ClassVar[tuple[str, ...]] = _ANGLES
