@@ -10,13 +10,13 @@ from scipy.spatial.transform import Rotation
 from trimag.attitude import (
     ENU_TO_NED,
     attitude_from_table,
-    background_from_run,
     background_from_samples,
     body_field,
     from_euler,
     from_quaternion,
 )
 from trimag.errors import TrimagInputError
+from trimag.io.background import background_from_run
 
 S = np.sqrt(0.5)
 

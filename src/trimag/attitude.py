@@ -21,7 +21,6 @@ Convention (``docs/conventions-attitude.md``; methods.md, paper C)
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -30,12 +29,10 @@ from scipy.spatial.transform import Rotation
 
 from ._core.chunks import chunk_rows
 from .errors import TrimagInputError
-from .units import normalise_unit
 
 __all__ = [
     "ENU_TO_NED",
     "attitude_from_table",
-    "background_from_run",
     "background_from_samples",
     "body_field",
     "from_euler",
@@ -268,64 +265,3 @@ def background_from_samples(B_free: ArrayLike, attitude: Rotation) -> tuple[NDAr
     return mean, spread
 
 
-def background_from_run(
-    path: str | os.PathLike[str],
-    *,
-    units: str = "unknown",
-    attitude: Rotation | None = None,
-    attitude_columns: str | Sequence[str] | None = None,
-    quaternion_columns: str | Sequence[str] | None = None,
-    quaternion_order: str = "wxyz",
-    quaternion_frame: str = "ned",
-    degrees: bool = True,
-    fmt: str | None = None,
-    columns: str | None = None,
-    var: str | None = None,
-) -> tuple[NDArray[np.float64], str]:
-    """Background field (NED) from an iron-free run stored in a file (``--background-run FILE``).
-
-    The file is read like the data (same ``fmt``, ``columns``, ``var``, unit ``units``). Attitudes come from
-    the file's own attitude columns when it has the named ones; otherwise the run must have been recorded
-    at the same attitudes as the data, row for row, and ``attitude`` (the data's) is used.
-
-    Returns
-    -------
-    H_n : ndarray, shape (3,)
-        :func:`background_from_samples` of the run, in ``units``.
-    source : str
-        A description for messages and the calibration file (file name, rows, spread).
-    """
-    from .io import read_samples
-
-    run = read_samples(os.fspath(path), fmt=fmt, columns=columns, var=var)
-    wanted = parse_columns(attitude_columns, 3, option="--attitude-columns") or parse_columns(
-        quaternion_columns, 4, option="--quaternion-columns"
-    )
-    has_own = wanted is not None and all(c in [str(x) for x in run.table.columns] for c in wanted)
-    if has_own:
-        att = attitude_from_table(
-            run.table, euler_columns=attitude_columns, quaternion_columns=quaternion_columns,
-            scalar_first=quaternion_order == "wxyz", frame=quaternion_frame, degrees=degrees,
-        )
-        how = "its own attitude columns"
-    elif attitude is not None:
-        n_att = 1 if attitude.single else len(attitude)
-        if n_att != len(run.field):
-            raise TrimagInputError(
-                f"--background-run {path}: the file has no attitude columns {wanted} and {len(run.field)} "
-                f"valid rows, but the data have {n_att} attitudes; record the iron-free run at the same "
-                "attitudes (one row each) or add the attitude columns to it"
-            )
-        att = attitude
-        how = "the data's attitudes, row for row"
-    else:
-        raise TrimagInputError(
-            f"--background-run {path}: no attitudes for the iron-free run; add attitude columns to it"
-        )
-    H_n, spread = background_from_samples(run.field, att)
-    unit = normalise_unit(units)
-    source = (
-        f"mean of iron-free run {os.path.basename(os.fspath(path))} ({len(run.field)} rows, {how}; "
-        f"rotated readings scatter {spread:.4g} {unit} RMS)"
-    )
-    return H_n, source

@@ -121,10 +121,11 @@ def vector_reference_from_options(
         fld = igrf(lat, lon, alt, date)
         vec = fld.ned_nT * convert(1.0, "nT", units)
         return vec, f"igrf {igrf_spec} (IGRF-14, NED {np.round(fld.ned_nT, 1).tolist()} nT)"
-    from . import attitude as _attitude
 
     assert background_run is not None
-    return _attitude.background_from_run(background_run, units=units, **read_kwargs)
+    from .io.background import background_from_run
+
+    return background_from_run(background_run, units=units, **read_kwargs)
 
 
 def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, Any]:

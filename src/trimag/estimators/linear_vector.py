@@ -13,7 +13,7 @@ needs at least 4 attitudes. The column-normalised condition number of ``A`` is r
 Attitudes follow ``docs/conventions-attitude.md``: ``Rotation`` body -> NED, ``H_b = R.inv().apply(H_n)``.
 
 Background field ``H_n`` (NED, the data's unit) comes from the caller (``--background-ned``, IGRF vector, or
-the mean of an iron-free run, :func:`trimag.attitude.background_from_run`). With
+the mean of an iron-free run, :func:`trimag.io.background.background_from_run`). With
 ``estimate_background=True`` it is fitted jointly (:func:`fit_with_background`): ``K`` and ``H_n`` are then
 identified only up to a common scale (``K s``, ``H_n / s``), fixed here by ``|H_n|`` = the magnitude of the
 given background (or the mean measured magnitude when none is given), and the sign by ``det(K) > 0``.
