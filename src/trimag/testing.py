@@ -183,6 +183,25 @@ def check_params_not_mutated(cls: type[Estimator]) -> None:
     assert est.get_params() == before, f"{cls.__name__}.fit changed its parameters"
 
 
+def check_uncertainty_fields(cls: type[Estimator]) -> None:
+    """A reported uncertainty has the same fields for every estimator
+    (:data:`trimag.estimators._finish.UNCERTAINTY_FIELDS`), its ``param_std`` names the model's parameters in
+    ``covariance_order``, and a covariance, when given, is square and matches that order."""
+    from .estimators._finish import UNCERTAINTY_FIELDS
+
+    sim = simulated_problem(cls)
+    noisy = sim.raw + np.random.default_rng(5).normal(scale=0.05, size=sim.raw.shape)
+    unc = _fit(cls(), sim, noisy).calibration_.uncertainty
+    if unc is None:
+        return
+    missing = [k for k in UNCERTAINTY_FIELDS if k not in unc]
+    assert not missing, f"{cls.__name__}'s uncertainty lacks {missing}"
+    assert list(unc["param_std"]) == list(unc["covariance_order"]), f"{cls.__name__}: param_std order"
+    if unc["covariance"] is not None:
+        cov = np.asarray(unc["covariance"], dtype=np.float64)
+        assert cov.shape == (len(unc["covariance_order"]),) * 2, f"{cls.__name__}: covariance shape {cov.shape}"
+
+
 _CHECKS: tuple[Callable[[type[Estimator]], None], ...] = (
     check_no_attributes_before_fit,
     check_not_fitted_error,
@@ -193,6 +212,7 @@ _CHECKS: tuple[Callable[[type[Estimator]], None], ...] = (
     check_rejects_bad_input,
     check_recovers_parameters,
     check_json_round_trip,
+    check_uncertainty_fields,
 )
 
 

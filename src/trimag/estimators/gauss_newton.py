@@ -62,6 +62,7 @@ from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
 from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
+from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
 
 __all__ = ["GaussNewton", "GaussNewtonFallbackWarning"]
@@ -526,14 +527,11 @@ class GaussNewton(Estimator):
         cov = cov_n * np.outer(scale_vec, scale_vec)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
-        uncertainty = {
-            "param_std": param_std,
-            "param_std_deg": {a: math.degrees(param_std[a]) for a in _ANGLES},
-            "covariance": cov.tolist(),
-            "covariance_order": list(PARAM_NAMES),
-            "noise_std": float(noise),
-            "note": "cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
-        }
+        uncertainty = make_uncertainty(
+            PARAM_NAMES, covariance=cov, noise_std=float(noise),
+            basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
+            param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
+        )
         hist_out = [
             {
                 **h,

@@ -41,6 +41,7 @@ from ..errors import IdentifiabilityError
 from ..models import get_model
 from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
 from ._common import normalisation_stats, scalar_reference
+from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
 
 __all__ = ["Geometric"]
@@ -426,12 +427,11 @@ class Geometric(Estimator):
         s2 = sol.rss / dof
         cov = params_covariance(sol.q, s2 * np.linalg.pinv(R.T @ R), np.full(npar - 5, sol.scale))
         out_names = [*get_model(model).param_names(), "h"]
-        uncertainty = {
-            "param_std": dict(zip(out_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),
-            "covariance": cov.tolist(),
-            "covariance_order": out_names,
-            "noise_std": float(np.sqrt(s2) * sol.scale),
-        }
+        uncertainty = make_uncertainty(
+            out_names, covariance=cov, noise_std=float(np.sqrt(s2) * sol.scale),
+            basis="s^2 (J^T J)^-1 at the solution, s^2 = RSS / (N - p), propagated to the model's parameters",
+            gauge="Z gain 1 (the corrected field is in the unit of the Z axis)",
+        )
         return build_calibration(
             B, sol.C, sol.b, model=model, method=self.name, units=units, reference=ref,
             params=instance.as_dict(), iterations=int(sol.result.nfev), converged=bool(sol.result.success),

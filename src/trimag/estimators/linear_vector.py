@@ -37,6 +37,7 @@ from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, we
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.interference12 import Interference12
 from ..reference import ScalarReference, as_vector
+from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
 
 __all__ = ["LinearVector"]
@@ -133,15 +134,20 @@ def solve_interference(
     dof = max(len(H_b) - 4, 1)
     s2 = resid_ss / dof  # (3,) per-axis residual variance
     inv_ata = np.linalg.pinv(R11.T @ R11)
-    std = np.sqrt(np.outer(s2, np.diag(inv_ata)))  # (3 axes, 4 unknowns)
     names = [f"k{a + 1}{b + 1}" for a in range(3) for b in range(3)] + ["c1", "c2", "c3"]
-    stds = np.concatenate([std[:, :3].ravel(), std[:, 3]])
+    # each axis is its own least-squares problem in (K row a, c_a): a block-diagonal covariance
+    cov = np.zeros((12, 12))
+    for a in range(3):
+        idx = [3 * a, 3 * a + 1, 3 * a + 2, 9 + a]
+        cov[np.ix_(idx, idx)] = s2[a] * inv_ata
     info = {
         "condition_number": cond,
         "n_attitudes": n_att,
         "singular_values": s.tolist(),
         "residual_rms_axis": np.sqrt(resid_ss / len(H_b)).tolist(),
-        "param_std": dict(zip(names, stds.tolist(), strict=True)),
+        "param_std": dict(zip(names, np.sqrt(np.diag(cov)).tolist(), strict=True)),
+        "covariance": cov,
+        "names": names,
     }
     return K, c, info
 
@@ -464,6 +470,9 @@ class LinearVector(Estimator):
             B, matrix, c, model=model, method=self.name, units=units, reference=ref,
             params=Interference12.from_K_c(K, c).as_dict(), iterations=int(info.get("iterations", 1)),
             converged=bool(info.get("converged", True)),
-            uncertainty={"param_std": info["param_std"], "note": "per-axis least-squares standard errors"},
+            uncertainty=make_uncertainty(
+                info["names"], covariance=info["covariance"],
+                basis="per-axis least-squares standard errors: s_a^2 (A^T A)^-1 for each sensor axis a, A = [H_b, 1]",
+            ),
             diagnostics=diag, extra_stats=extra,
         )

@@ -41,6 +41,7 @@ from ..errors import TrimagInputError
 from ..models import get_model
 from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
 from ._common import scalar_reference
+from ._finish import make_uncertainty
 from ._pairs import PAIRINGS, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples, quadric_entries
 from .base import Estimator, build_calibration
 
@@ -207,8 +208,8 @@ def _uncertainty(sol: PairwiseSolution, bias: bool) -> dict[str, Any]:
     cov_u = s2 * np.linalg.pinv(J.T @ J)
     cov = params_covariance(sol.q, cov_u, np.full(3 if bias else 0, sol.scale))
     names = ["theta", "phi", "psi", "kxz", "kyz", *(_B_NAMES if bias else ())]
-    return {
-        "param_std": dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),
-        "covariance": cov.tolist(),
-        "covariance_order": names,
-    }
+    return make_uncertainty(
+        names, covariance=cov, noise_std=None, gauge="Z gain 1 (the corrected field is in the unit of the Z axis)",
+        basis="s^2 (J^T J)^-1 of the pair residuals at the solution, s^2 = Phi / (n_pairs - p), propagated to the "
+        "model's parameters",
+    )
