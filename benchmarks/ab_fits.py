@@ -4,7 +4,8 @@
     python benchmarks/ab_fits.py --old /tmp/old/src --new src --sizes 1e4,1e5,1e6 --methods ml,ellipsoid-fit
     python benchmarks/ab_fits.py ... --methods ortho-gain-bias:pairwise,scalar9:gauss-newton,zhang-cheng:quadric
 
-A method is ``METHOD`` (model ellipsoid) or ``MODEL:METHOD`` (scalar9 and zhang-cheng get the reference 48000 nT).
+A method is ``METHOD`` (model ellipsoid) or ``MODEL:METHOD`` (scalar9 and zhang-cheng get the reference 48000 nT;
+interference12 random attitudes and its background).
 
 Each round runs every (tree, size, method) in a fresh process: the minimum of 5 fits (after one warm-up) and the
 process's peak resident memory.
@@ -31,6 +32,13 @@ rng = np.random.default_rng(0)
 u = rng.normal(size=(n, 3)); u /= np.linalg.norm(u, axis=1, keepdims=True)
 W = np.array([[0.95, 0.03, -0.02], [0.0, 1.04, 0.05], [0.0, 0.0, 1.01]])
 B = np.linalg.solve(W, (48000 * u).T).T + [1200.0, -850.0, 400.0] + rng.normal(scale=50.0, size=u.shape)
+if model == "interference12":  # random attitudes, a known background, paper C's K and c
+    from scipy.spatial.transform import Rotation
+    H_n = np.array([20000.0, 1000.0, 43000.0])
+    att = Rotation.random(n, random_state=1)
+    K = np.array([[1.02, 0.01, -0.02], [0.03, 0.97, 0.01], [0.0, 0.02, 1.01]])
+    B = att.inv().apply(H_n) @ K.T + [200.0, -100.0, 50.0] + rng.normal(scale=50.0, size=u.shape)
+    kw = {"reference": H_n, "attitude": att}
 trimag.fit(B, model=model, method=method, units="nT", **kw)
 times = []
 for _ in range(5):

@@ -172,3 +172,14 @@ def test_igrf_reference_value_is_reported(turns_log: Path) -> None:
     assert any("41231" in m or "41232" in m for m in result.messages)
     ref = result.calibration.reference
     assert ref is not None and ref["value"] == pytest.approx(41231.6, abs=1.0)
+
+
+def test_held_out_ratio_is_above_one_and_the_in_sample_ratio_below() -> None:
+    """In-sample, RMS after / noise limit is about sqrt(1 - 9/N) by construction (the fit absorbs 9 degrees of
+    freedom of the noise); on a held-out log of the same turns it is about sqrt(1 + 9/N): the figure docs quote."""
+    rows, _ = sgn.sigma_sweep(n_per_axis=100, trials=8, seed=3, sigmas=(20.0,))
+    (r,) = rows
+    n = 300
+    assert r["ratio_to_noise_limit"] < 1.0 < r["ratio_held_out"]
+    assert r["ratio_held_out"] == pytest.approx(np.sqrt(1 + 9 / n), abs=0.01)
+    assert r["ratio_to_noise_limit"] == pytest.approx(np.sqrt(1 - 9 / n), abs=0.01)
