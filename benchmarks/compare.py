@@ -2,7 +2,7 @@
 
 Alternates, each in its own process: a batch fit of a folder of logs with 1 and 2 workers (files per second), and
 one ``trimag fit`` of a small log from the command line (wall time and peak memory). Used for the A/B numbers of
-docs/performance.md ("What changed since run V").
+docs/performance-history.md ("What changed since run V").
 
     git worktree add /tmp/old <commit>
     python benchmarks/compare.py --old /tmp/old/src --new src --logs '/tmp/fleet/*.csv' --rounds 3

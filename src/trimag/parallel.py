@@ -49,7 +49,7 @@ R = TypeVar("R")
 #: Dask local scheduler used for ``workers > 1``. ``"processes"`` sidesteps the GIL, which numpy only releases
 #: inside large array operations; for trials of a few thousand samples (the usual Monte Carlo and
 #: calibration-log sizes) it measured faster than ``"threads"`` on the 2-core benchmark machine
-#: (docs/performance.md, "executor").
+#: (docs/performance-history.md, "The executor").
 DEFAULT_LOCAL_BACKEND = "processes"
 
 _SHOW_AFTER_S = 1.0

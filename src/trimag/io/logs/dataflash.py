@@ -4,7 +4,7 @@ A DataFlash log is a stream of messages ``0xA3 0x95 TYPE PAYLOAD``; ``FMT`` mess
 length, name, field formats and names. pymavlink decodes message by message in Python (about 40 s for a 100 MB
 log here); this reader walks the stream once to find where each wanted message starts (a Python loop over
 message offsets, no decoding), then decodes all messages of a type at once through a numpy structured dtype
-(docs/performance.md, "Reading autopilot logs"). The file is memory-mapped; memory grows with the messages
+(docs/performance.md, "At a glance"). The file is memory-mapped; memory grows with the messages
 wanted, not with the file.
 
 Field formats and scales follow pymavlink's ``DFReader`` (``c``/``C``/``e``/``E`` x 0.01, ``L`` x 1e-7).
