@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -369,32 +369,10 @@ class GaussNewton(Estimator):
             if not (isinstance(value, (int, float)) and value > 0):
                 raise TrimagInputError(f"gauss-newton option {key} must be a positive number; got {value!r}")
 
-    def _fit(
-        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
-    ) -> Calibration:
-        self._check_options()
-        check_not_degenerate(B)
-        ref = scalar_reference(reference, len(B), units)
-        if ref.values is None:
-            f_mean = float(np.linalg.norm(B, axis=1).mean())
-            ref = ScalarReference(
-                np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit
-            )
-        F = ref.values
-        assert F is not None
-        s = float(np.sqrt(F @ F / len(F)))
-        # every sum over samples is taken block by block on B / s, F / s (memory independent of N)
-        sv = _centred_singular_values(B)
-        flatness = float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
-
-        def geometry_hint() -> str:
-            """What the samples saw (the cone of field directions, or the axis they turned about) and what to
-            record (trimag.diagnostics.coverage_advice): computed only when a message needs it."""
-            return coverage_advice(B, s, what="the 9 scalar9 parameters") + (
-                " (the paper pools turns about X, Y and Z and fits them together)"
-            )
-
-        # ---- start
+    def _start(
+        self, B: NDArray[np.float64], F: NDArray[np.float64], geometry_hint: Callable[[], str]
+    ) -> tuple[Scalar9, str]:
+        """The starting model (given, or the linear quadric fit) and how it was obtained."""
         if self.start is not None:
             start = Scalar9.from_dict(self.start)
             start_kind = "given"
@@ -411,10 +389,13 @@ class GaussNewton(Estimator):
                     f"the linear start fit {start_cond:.3g})"
                 )
             start_kind = "linear quadric fit u^T A u + v^T u = 1 scaled to F, scalar9 gauge"
-        p0 = start.as_vector()
-        p0[:3] /= s
+        return start, start_kind
 
-        # ---- Gauss-Newton, then Levenberg-Marquardt if needed
+    def _solve(
+        self, B: NDArray[np.float64], F: NDArray[np.float64], s: float, p0: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], dict[str, Any], list[dict[str, Any]], bool, str, dict[str, Any] | None]:
+        """Gauss-Newton from ``p0`` (normalised parameters), then Levenberg-Marquardt if it does not converge:
+        ``(p, gn, history, converged, optimizer, fallback_info)``."""
         with np.errstate(over="raise", invalid="raise", divide="raise"):
             try:
                 gn = gauss_newton(
@@ -460,22 +441,24 @@ class GaussNewton(Estimator):
                     f"gauss-newton: {why}; continued with Levenberg-Marquardt "
                     f"({'converged' if converged else 'did not converge: ' + str(res.message)})",
                     GaussNewtonFallbackWarning,
-                    stacklevel=3,
+                    stacklevel=4,
                 )
             else:
                 warnings.warn(
                     f"gauss-newton: {why}; the result is not converged (fallback=False)",
                     GaussNewtonFallbackWarning,
-                    stacklevel=3,
+                    stacklevel=4,
                 )
-        if p[3:6].min() <= 0 or np.abs(p[6:9]).max() >= math.pi / 2:
-            raise IdentifiabilityError(
-                "the scalar9 fit left the valid region (a scale factor <= 0 or an angle beyond 90 degrees): "
-                f"the data do not identify the model. {geometry_hint() if flatness < _FLAT else ''}".strip()
-            )
+        return p, gn, history, converged, optimizer, fallback_info
 
-        # ---- identifiability and uncertainty at the solution (from the QR factorisation of the system at p:
-        # R has the singular values, right singular vectors and column norms of J, and J^T J = R^T R)
+    def _covariance(
+        self, B: NDArray[np.float64], F: NDArray[np.float64], s: float, p: NDArray[np.float64], gn: dict[str, Any],
+        sv: NDArray[np.float64], flatness: float, units: str, geometry_hint: Callable[[], str],
+    ) -> tuple[float, NDArray[np.float64], float, float]:
+        """Identifiability checks and the covariance at the solution ``p`` (normalised parameters), from the QR
+        factorisation of the system at ``p`` (R has the singular values, right singular vectors and column norms of
+        J, and J^T J = R^T R): ``(condition number, covariance (9, 9), noise std (data unit), thickness / noise)``.
+        """
         if gn.get("system") is not None:
             system, half_ss = gn["system"], float(gn["cost"])
         else:
@@ -519,6 +502,44 @@ class GaussNewton(Estimator):
                 f"{hint or advice()}"
             )
 
+        return cond, cov_n, noise, thickness_ratio
+
+    def _fit(
+        self, B: NDArray[np.float64], reference: Any, *, model: str, units: str, attitude: Any
+    ) -> Calibration:
+        self._check_options()
+        check_not_degenerate(B)
+        ref = scalar_reference(reference, len(B), units)
+        if ref.values is None:
+            f_mean = float(np.linalg.norm(B, axis=1).mean())
+            ref = ScalarReference(
+                np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit
+            )
+        F = ref.values
+        assert F is not None
+        s = float(np.sqrt(F @ F / len(F)))
+        # every sum over samples is taken block by block on B / s, F / s (memory independent of N)
+        sv = _centred_singular_values(B)
+        flatness = float(sv[2] / sv[0]) if sv[0] > 0 else 0.0
+
+        def geometry_hint() -> str:
+            """What the samples saw (the cone of field directions, or the axis they turned about) and what to
+            record (trimag.diagnostics.coverage_advice): computed only when a message needs it."""
+            return coverage_advice(B, s, what="the 9 scalar9 parameters") + (
+                " (the paper pools turns about X, Y and Z and fits them together)"
+            )
+
+        start, start_kind = self._start(B, F, geometry_hint)
+        p0 = start.as_vector()
+        p0[:3] /= s
+        p, gn, history, converged, optimizer, fallback_info = self._solve(B, F, s, p0)
+        if p[3:6].min() <= 0 or np.abs(p[6:9]).max() >= math.pi / 2:
+            raise IdentifiabilityError(
+                "the scalar9 fit left the valid region (a scale factor <= 0 or an angle beyond 90 degrees): "
+                f"the data do not identify the model. {geometry_hint() if flatness < _FLAT else ''}".strip()
+            )
+
+        cond, cov_n, noise, thickness_ratio = self._covariance(B, F, s, p, gn, sv, flatness, units, geometry_hint)
         # ---- back to data units
         scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
         params_vec = p * scale_vec
@@ -532,6 +553,7 @@ class GaussNewton(Estimator):
             basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
             param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
         )
+        n = len(B)
         hist_out = [
             {
                 **h,
