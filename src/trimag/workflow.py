@@ -398,43 +398,83 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     req = request if isinstance(request, FitRequest) else FitRequest.of(request, **arguments)
     if arguments and isinstance(request, FitRequest):
         raise TrimagInputError("give either a FitRequest or a path with keyword arguments, not both")
-    src, given, att = req.input, req.reference, req.attitude
-    path, fmt, columns, var, units = src.path, src.fmt, src.columns, src.var, src.units
-    model, method, options, out, report, policy = (
-        req.model, req.method, dict(req.options), req.out, req.report, req.policy)
-    reference, igrf_spec, reference_column = given.reference, given.igrf_spec, given.reference_column
-    background_ned, background_run = given.background_ned, given.background_run
-    attitude_columns, quaternion_columns = att.attitude_columns, att.quaternion_columns
-    quaternion_order, quaternion_frame = att.quaternion_order, att.quaternion_frame
     from .policy import read_policy
 
-    limits = read_policy(policy) if policy is not None else None
-    estimator = make_estimator(model, method, options)
-    samples = read_samples(path, fmt=fmt, columns=columns, var=var, rows=src.rows, where=src.where,
+    limits = read_policy(req.policy) if req.policy is not None else None
+    estimator = make_estimator(req.model, req.method, dict(req.options))
+    src = req.input
+    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
-    messages: list[str] = []
-    log_info = samples.log_info
-    if log_info is not None:
-        messages += [m for m in log_info["messages"] if not m.startswith("warning:")]
-        messages += [m for m in log_info["messages"] if m.startswith("warning:")]
-        if units is not None and normalise_unit(units) != log_info["unit"] and columns is None:
-            raise TrimagInputError(
-                f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
-            )
-        units = units or log_info["unit"]
-        gps = log_info.get("gps")
-        if not given.given and gps and gps.get("date"):
-            igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
-            messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
-        if estimator.reference_kind == "vector" and attitude_columns is None and quaternion_columns is None:
-            if not log_info.get("has_attitude"):
-                raise TrimagInputError(f"model {model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
-            attitude_columns = "yaw_deg,pitch_deg,roll_deg"
-        if columns is None:
-            _refuse_static_log(samples, log_info)
-    units, unit_messages = _check_unit(samples, units, reference, igrf_spec)
-    messages += unit_messages
+    req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
+    units, unit_messages = _check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
+    messages += unit_messages + _reading_messages(samples)
+    samples, ref, attitude, ref_messages = _fit_reference(req, samples, estimator, unit)
+    messages += ref_messages
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TrimagWarning)
+        estimator.fit(samples.field, ref, units=unit, attitude=attitude)
+    cal = estimator.calibration_
+    if samples.log_info is not None and src.columns is None:
+        _refuse_unidentified_log(cal, samples, samples.log_info)
+    if estimator.reference_kind == "vector":
+        att = req.attitude
+        _refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
+                                      att.attitude_columns, att.quaternion_columns, att.quaternion_order,
+                                      att.quaternion_frame)
+    elif _worse_than_raw(cal):
+        messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
+                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
+                        "reference and the unit")
+    warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
+    if warn_texts:
+        cal = cal.with_diagnostics(warnings=warn_texts)
+    igrf_spec = req.reference.igrf_spec
+    if limits is not None:
+        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
+    summary = fit_summary(cal, samples)
+    summary["warnings"] = warn_texts
+    if limits is not None:
+        summary["acceptance"] = cal.diagnostics["acceptance"]
+    if igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None and req.model == "ellipsoid":
+        messages.append(_heading_message(cal, igrf_spec, summary))
+    cal, written = _write_fit_outputs(cal, samples, req)
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
+
+
+def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
+    """What a vehicle log states itself (unit, the IGRF site of its GPS fix, its attitude columns) filled into the
+    request, the log reader's messages, and the refusal of a log that cannot be fitted (static, too short)."""
+    log_info = samples.log_info
+    if log_info is None:
+        return req, []
+    messages = [m for m in log_info["messages"] if not m.startswith("warning:")]
+    messages += [m for m in log_info["messages"] if m.startswith("warning:")]
+    src, given, att = req.input, req.reference, req.attitude
+    if src.units is not None and normalise_unit(src.units) != log_info["unit"] and src.columns is None:
+        raise TrimagInputError(
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={src.units!r} (it is known)"
+        )
+    src = dataclasses.replace(src, units=src.units or log_info["unit"])
+    gps = log_info.get("gps")
+    if not given.given and gps and gps.get("date"):
+        igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
+        given = dataclasses.replace(given, igrf_spec=igrf_spec)
+        messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
+    if estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
+        if not log_info.get("has_attitude"):
+            raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
+        att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
+    if src.columns is None:
+        _refuse_static_log(samples, log_info)
+    return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
+
+
+def _reading_messages(samples: Samples) -> list[str]:
+    """What reading the samples chose, selected, dropped and found repeated (never silently)."""
+    messages = []
     if samples.column_note:
         messages.append(samples.column_note)
     if samples.selection:
@@ -446,36 +486,19 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         )
     if samples.n_duplicates:
         messages.append(f"{samples.n_duplicates} rows repeat an earlier x/y/z exactly (kept)")
-    attitude = None
-    if estimator.reference_kind == "vector":
-        from . import attitude as _attitude
+    return messages
 
-        samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
-        if n_no_attitude:
-            messages.append(
-                f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
-            )
 
-        attitude = _attitude.attitude_from_table(
-            samples.table,
-            euler_columns=attitude_columns,
-            quaternion_columns=quaternion_columns,
-            scalar_first=quaternion_order == "wxyz",
-            frame=quaternion_frame,
-        )
-        ref: Any
-        ref, source = vector_reference_from_options(
-            units=unit, background_ned=background_ned, igrf_spec=igrf_spec, background_run=background_run,
-            fmt=fmt, columns=columns, var=var,
-            **({"attitude": attitude, "attitude_columns": attitude_columns,
-                "quaternion_columns": quaternion_columns, "quaternion_order": quaternion_order,
-                "quaternion_frame": quaternion_frame} if background_run is not None else {}),
-        )
-        messages.append(f"background field {np.round(ref, 6).tolist()} {unit} ({source})")
-    else:
-        ref = scalar_reference_from_options(
-            samples, units=unit, reference=reference, igrf_spec=igrf_spec, reference_column=reference_column
-        )
+def _fit_reference(
+    req: FitRequest, samples: Samples, estimator: Any, unit: str
+) -> tuple[Samples, Any, Any, list[str]]:
+    """The reference the estimator takes (a background vector and the attitudes for a vector model, a magnitude
+    otherwise): ``(samples without the rows that lack an attitude, reference, attitude or None, messages)``."""
+    given, att, src = req.reference, req.attitude, req.input
+    messages: list[str] = []
+    if estimator.reference_kind != "vector":
+        ref = scalar_reference_from_options(samples, units=unit, reference=given.reference,
+                                            igrf_spec=given.igrf_spec, reference_column=given.reference_column)
         if ref.source.startswith("igrf"):
             assert ref.values is not None
             messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
@@ -484,55 +507,60 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                 f"method {estimator.name!r} needs a known field magnitude: give --reference F, --igrf "
                 "LAT,LON,ALT_M,DATE or --reference-column NAME"
             )
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", TrimagWarning)
-        estimator.fit(samples.field, ref, units=unit, attitude=attitude)
-    cal = estimator.calibration_
-    if log_info is not None and columns is None:
-        _refuse_unidentified_log(cal, samples, log_info)
-    if estimator.reference_kind == "vector":
-        _refuse_impossible_vector_fit(cal, samples, ref, unit, model, method, options, attitude_columns,
-                                      quaternion_columns, quaternion_order, quaternion_frame)
-    elif _worse_than_raw(cal):
-        messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
-                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
-                        "reference and the unit")
-    warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
-    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
-    if warn_texts:
-        cal = cal.with_diagnostics(warnings=warn_texts)
-    if limits is not None:
-        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
-    summary = fit_summary(cal, samples)
-    summary["warnings"] = warn_texts
-    if limits is not None:
-        summary["acceptance"] = cal.diagnostics["acceptance"]
-    if igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None and model == "ellipsoid":
-        from .heading import predicted_heading_sigma
+        return samples, ref, None, messages
+    from . import attitude as _attitude
 
-        north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
-        heading = predicted_heading_sigma(cal, float(np.degrees(np.arctan2(down, np.hypot(north, east)))))
-        summary["predicted_heading_sigma_deg"] = {k: heading[k] for k in ("rms_deg", "max_deg", "inclination_deg")}
-        messages.append(f"predicted heading error of a level sensor here (inclination "
-                        f"{heading['inclination_deg']:.1f} deg): {heading['rms_deg']:.3g} deg RMS over headings, "
-                        f"{heading['max_deg']:.3g} deg at worst (1 sigma)")
+    samples, n_no_attitude = _drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    if n_no_attitude:
+        messages.append(
+            f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
+        )
+    attitude = _attitude.attitude_from_table(
+        samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+    )
+    background, source = vector_reference_from_options(
+        units=unit, background_ned=given.background_ned, igrf_spec=given.igrf_spec,
+        background_run=given.background_run, fmt=src.fmt, columns=src.columns, var=src.var,
+        **({"attitude": attitude, "attitude_columns": att.attitude_columns,
+            "quaternion_columns": att.quaternion_columns, "quaternion_order": att.quaternion_order,
+            "quaternion_frame": att.quaternion_frame} if given.background_run is not None else {}),
+    )
+    messages.append(f"background field {np.round(background, 6).tolist()} {unit} ({source})")
+    return samples, background, attitude, messages
+
+
+def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:
+    """The heading error the calibration predicts at the IGRF site's inclination (into ``summary``), as a line."""
+    from .heading import predicted_heading_sigma
+
+    north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+    heading = predicted_heading_sigma(cal, float(np.degrees(np.arctan2(down, np.hypot(north, east)))))
+    summary["predicted_heading_sigma_deg"] = {k: heading[k] for k in ("rms_deg", "max_deg", "inclination_deg")}
+    return (f"predicted heading error of a level sensor here (inclination {heading['inclination_deg']:.1f} deg): "
+            f"{heading['rms_deg']:.3g} deg RMS over headings, {heading['max_deg']:.3g} deg at worst (1 sigma)")
+
+
+def _write_fit_outputs(cal: Calibration, samples: Samples, req: FitRequest) -> tuple[Calibration, dict[str, str]]:
+    """Write the report and the calibration when asked: together or not at all (the report first, it can fail)."""
     written: dict[str, str] = {}
-    try:  # the outputs appear together or not at all: the report first (it can fail), then the calibration
-        if report is not None:
+    path = req.input.path
+    try:
+        if req.report is not None:
             from .report import fit_report, save_figure
 
             notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
             title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"
-            written["report"] = str(save_figure(fit_report(samples.field, cal, title=title, notes=notes), report))
-        if out is not None:
+            figure = fit_report(samples.field, cal, title=title, notes=notes)
+            written["report"] = str(save_figure(figure, req.report))
+        if req.out is not None:
             cal = cal.with_stats(source=str(path), columns=list(samples.columns))
-            written["calibration"] = str(cal.to_file(out))
+            written["calibration"] = str(cal.to_file(req.out))
     except BaseException:
         for done in written.values():
             Path(done).unlink(missing_ok=True)
         raise
-    summary["outputs"] = written
-    return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
+    return cal, written
 
 
 def apply_to_file(
