@@ -191,13 +191,13 @@ def attitude_from_table(
     """
     if (euler_columns is None) == (quaternion_columns is None):
         raise TrimagInputError(
-            "give the attitude either as Euler angles (--attitude-columns yaw,pitch,roll) or as quaternions "
-            "(--quaternion-columns w,x,y,z), exactly one of them"
+            "give the attitude either as Euler angles (`attitude_columns=yaw,pitch,roll`) or as quaternions "
+            "(`quaternion_columns=w,x,y,z`), exactly one of them"
         )
     cols = (
-        parse_columns(euler_columns, 3, option="--attitude-columns")
+        parse_columns(euler_columns, 3, option="`attitude_columns`")
         if euler_columns is not None
-        else parse_columns(quaternion_columns, 4, option="--quaternion-columns")
+        else parse_columns(quaternion_columns, 4, option="`quaternion_columns`")
     )
     assert cols is not None
     available = [str(c) for c in getattr(table, "columns", [])]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -35,15 +36,46 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_INPUT)
 
 
+#: Python argument name -> the command line's flag (filled from the parser by :func:`main`): the library's messages
+#: name Python arguments in backticks (`` `columns` ``, `` `units=uT` ``, `` `option balance=never` ``) and the
+#: command line says them as flags (``--columns``, ``--units uT``, ``--option balance=never``).
+_FLAGS: dict[str, str] = {"options": "--option"}
+_ARGUMENT = re.compile(r"`([a-z_]+)(?:([= ])([^`]*))?`")
+
+
+def _as_flags(msg: str) -> str:
+    """``msg`` with every `` `argument` `` (or `` `argument=value` ``) the command line has a flag for said as that
+    flag (``--flag`` or ``--flag value``); other backticked text is left as it is."""
+
+    def flag(m: re.Match[str]) -> str:
+        name, value = m.group(1), m.group(3)
+        if name not in _FLAGS:
+            return m.group(0)
+        return _FLAGS[name] if value is None else f"{_FLAGS[name]} {value}"
+
+    return _ARGUMENT.sub(flag, msg)
+
+
+def _register_flags(parser: argparse.ArgumentParser) -> None:
+    """Fill :data:`_FLAGS` from every (sub)command's options: dest -> its long flag."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _register_flags(sub)
+        longs = [o for o in action.option_strings if o.startswith("--")]
+        if longs and action.dest not in ("help", "version"):
+            _FLAGS.setdefault(action.dest, longs[0])
+
+
 def _err(msg: str) -> None:
-    sys.stderr.write(f"trimag: {msg}\n")
+    sys.stderr.write(f"trimag: {_as_flags(msg)}\n")
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
     """Human-readable progress/info goes to stderr when --json reserves stdout for the JSON object."""
     stream = sys.stderr if getattr(args, "json", False) else sys.stdout
     if not getattr(args, "quiet", False):
-        stream.write(msg + "\n")
+        stream.write(_as_flags(msg) + "\n")
 
 
 def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
@@ -542,6 +574,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
+    _register_flags(parser)
     args, unknown = parser.parse_known_args(argv)
     if unknown and args.command != "reproduce":
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")

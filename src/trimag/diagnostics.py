@@ -464,7 +464,7 @@ def coverage_advice(B: NDArray[np.float64], field: float | None = None, *, what:
         return (
             f"{text}: a cone this narrow cannot identify {what}; tilt the sensor further, so that the field is also "
             f"seen from the side{towards} (turn it over); a vehicle that cannot tilt that far can use a vector fit "
-            "with attitudes and the background field (--model interference12), which needs much less tilt"
+            "with attitudes and the background field (`model=interference12`), which needs much less tilt"
         )
     return f"{text}: record the sensor turning about all three axes (or tumble it through all attitudes)"
 

@@ -317,7 +317,7 @@ def _run_distributed(
     except OSError as exc:
         raise TrimagInputError(
             f"cannot connect to the Dask scheduler at {scheduler!r} ({exc}); start one with "
-            "`dask scheduler` and workers with `dask worker ADDRESS`, or drop --scheduler to run locally"
+            "`dask scheduler` and workers with `dask worker ADDRESS`, or drop `scheduler` to run locally"
         ) from None
     try:
         slots = sum(client.nthreads().values()) or 1

@@ -116,11 +116,13 @@ def parse_igrf_spec(spec: str) -> tuple[float, float, float, str]:
     """Parse ``"LAT,LON,ALT_M,YYYY-MM-DD"`` (the ``--igrf`` option)."""
     parts = [p.strip() for p in str(spec).split(",")]
     if len(parts) != 4:
-        raise TrimagInputError(f"--igrf takes LAT,LON,ALT_M,YYYY-MM-DD (e.g. 52.51,13.33,40,2021-01-01); got {spec!r}")
+        raise TrimagInputError(
+            f"`igrf_spec` takes LAT,LON,ALT_M,YYYY-MM-DD (e.g. 52.51,13.33,40,2021-01-01); got {spec!r}"
+        )
     try:
         lat, lon, alt = (float(p) for p in parts[:3])
     except ValueError:
-        raise TrimagInputError(f"--igrf: latitude, longitude and altitude must be numbers; got {spec!r}") from None
+        raise TrimagInputError(f"`igrf_spec`: latitude, longitude and altitude must be numbers; got {spec!r}") from None
     _parse_date(parts[3])
     return lat, lon, alt, parts[3]
 
@@ -188,7 +190,7 @@ def as_scalar_reference(reference: Any, n: int, *, units: str = "unknown") -> Sc
         except ValueError:
             raise TrimagInputError(
                 f"reference {reference!r} is neither a number nor 'mean'; give the field magnitude in the "
-                "data's unit, e.g. --reference 48193"
+                "data's unit, e.g. `reference=48193`"
             ) from None
     values = check_reference_values(reference, n)
     source = "given" if np.ndim(reference) == 0 else "per-sample"

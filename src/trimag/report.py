@@ -101,7 +101,7 @@ def params_table(cal: Calibration) -> str:
         lines.append(
             "note: offset = sample mean (field directions balanced: chi2 "
             f"{balance.get('chi2', float('nan')):.3g}, p = {balance.get('p_value', float('nan')):.3g}; "
-            "--option balance=never to keep the maximum-likelihood offset)"
+            "`option balance=never` to keep the maximum-likelihood offset)"
         )
     return "\n".join(lines)
 

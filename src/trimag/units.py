@@ -65,7 +65,7 @@ def normalise_unit(unit: str | None) -> str:
     canonical = _ALIASES.get(key.lower())
     if canonical is None:
         raise TrimagInputError(
-            f"unknown unit {unit!r}; use one of {', '.join(UNITS)} (e.g. --units uT)"
+            f"unknown unit {unit!r}; use one of {', '.join(UNITS)} (e.g. `units=uT`)"
         )
     return canonical
 
@@ -76,7 +76,7 @@ def nT_per_unit(unit: str) -> float:
     factor = UNITS[canonical]
     if factor is None:
         raise TrimagInputError(
-            f"unit {canonical!r} has no conversion to nT; state the data's physical unit with --units "
+            f"unit {canonical!r} has no conversion to nT; state the data's physical unit with `units` "
             "(nT, uT, G, mG) or give the reference in the data's own unit"
         )
     return factor

@@ -61,7 +61,7 @@ def parse_options(items: list[str] | None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in items or []:
         if "=" not in item:
-            raise TrimagInputError(f"--option takes KEY=VALUE (e.g. --option form=symmetric); got {item!r}")
+            raise TrimagInputError(f"`option` takes KEY=VALUE (e.g. `option form=symmetric`); got {item!r}")
         key, value = item.split("=", 1)
         try:
             out[key.strip()] = json.loads(value)
@@ -91,7 +91,7 @@ def scalar_reference_from_options(
     """Build the magnitude reference from the command-line choices (at most one of them)."""
     given = [x for x in (reference, igrf_spec, reference_column) if x is not None]
     if len(given) > 1:
-        raise TrimagInputError("give only one of --reference, --igrf, --reference-column")
+        raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
     n = len(samples.field)
     if igrf_spec is not None:
         lat, lon, alt, date = parse_igrf_spec(igrf_spec)
@@ -111,11 +111,11 @@ def vector_reference_from_options(
     given = [x for x in (background_ned, igrf_spec, background_run) if x is not None]
     if len(given) != 1:
         raise TrimagInputError(
-            "model interference12 needs exactly one background field: --background-ned N,E,D, "
-            "--igrf LAT,LON,ALT_M,DATE, or --background-run FILE"
+            "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, or `background_run=FILE`"
         )
     if background_ned is not None:
-        return _parse_vector(background_ned, "--background-ned"), "given (NED)"
+        return _parse_vector(background_ned, "`background_ned`"), "given (NED)"
     if igrf_spec is not None:
         lat, lon, alt, date = parse_igrf_spec(igrf_spec)
         fld = igrf(lat, lon, alt, date)
@@ -482,7 +482,7 @@ def _reading_messages(samples: Samples) -> list[str]:
     if samples.n_dropped:
         messages.append(
             f"dropped {samples.n_dropped} of {samples.n_rows} rows with missing, non-numeric, NaN or inf "
-            f"x/y/z values (first at data row {samples.dropped_index[0]}; use --strict to refuse them)"
+            f"x/y/z values (first at data row {samples.dropped_index[0]}; use `strict` to refuse them)"
         )
     if samples.n_duplicates:
         messages.append(f"{samples.n_duplicates} rows repeat an earlier x/y/z exactly (kept)")
@@ -504,8 +504,8 @@ def _fit_reference(
             messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
         if estimator.requires_reference and not ref.known:
             raise TrimagInputError(
-                f"method {estimator.name!r} needs a known field magnitude: give --reference F, --igrf "
-                "LAT,LON,ALT_M,DATE or --reference-column NAME"
+                f"method {estimator.name!r} needs a known field magnitude: give `reference=F`, "
+                "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
             )
         return samples, ref, None, messages
     from . import attitude as _attitude
@@ -612,7 +612,7 @@ def evaluate_file(
         cal.apply(np.zeros(3), units=unit)
     given = [x for x in (reference, igrf_spec, reference_column) if x is not None]
     if len(given) > 1:
-        raise TrimagInputError("give only one of --reference, --igrf, --reference-column")
+        raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
     F: float | None = None
     source = "mean"
     if igrf_spec is not None:
@@ -774,9 +774,9 @@ def simulate_to_file(
     if isinstance(params, dict) and "params" in params and isinstance(params["params"], dict):
         params = params["params"]
     if n < 1:
-        raise TrimagInputError(f"--n must be a positive number of samples; got {n}")
+        raise TrimagInputError(f"`n` must be a positive number of samples; got {n}")
     if noise < 0 or not np.isfinite(noise):
-        raise TrimagInputError(f"--noise must be a non-negative standard deviation; got {noise}")
+        raise TrimagInputError(f"`noise` must be a non-negative standard deviation; got {noise}")
     truth_model = get_model(model).from_dict(params)
     sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes, seed=seed)
     q = sim.attitude.as_quat(scalar_first=True)

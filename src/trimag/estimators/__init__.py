@@ -96,7 +96,7 @@ def make_estimator(model: str, method: str | None, options: dict[str, Any] | Non
     get_model(model)
     name = method or DEFAULT_METHOD.get(model)
     if name is None:
-        raise TrimagInputError(f"model {model!r} has no default method; give --method")
+        raise TrimagInputError(f"model {model!r} has no default method; give `method`")
     cls = get_estimator(name)
     if model not in cls.models:
         raise TrimagInputError(

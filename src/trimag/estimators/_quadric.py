@@ -215,8 +215,8 @@ def require_magnitude(reference: Any, n: int, units: str, method: str) -> Scalar
     ref = scalar_reference(reference, n, units)
     if ref.values is None:
         raise TrimagInputError(
-            f"method {method!r} needs the field magnitude: give reference=F (or --reference F, or --igrf ...) "
-            "in the data's unit"
+            f"method {method!r} needs the field magnitude: give `reference=F` in the data's unit (or "
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, or `reference_column=NAME`)"
         )
     return ref
 

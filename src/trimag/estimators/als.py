@@ -93,7 +93,7 @@ def als_solve(
     if not np.any(real):
         raise IdentifiabilityError(
             "adjusted least squares found no noise level that explains the data as an ellipsoid; record the "
-            "sensor turning through many more attitudes (or use --method ml)"
+            "sensor turning through many more attitudes (or use `method=ml`)"
         )
     s = max(float(np.min(vals.real[real])), 0.0)
     M = P0 + s * P1 + s * s * P2

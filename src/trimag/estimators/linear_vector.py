@@ -53,7 +53,7 @@ def _check_attitude(attitude: Any, n: int) -> Rotation:
     if not isinstance(attitude, Rotation):
         raise TrimagInputError(
             "linear-vector needs the attitude of every sample as a scipy Rotation (body -> NED); "
-            "on the command line give --attitude-columns yaw,pitch,roll or --quaternion-columns w,x,y,z"
+            "on the command line give `attitude_columns=yaw,pitch,roll` or `quaternion_columns=w,x,y,z`"
         )
     if attitude.single or len(attitude) != n:
         got = 1 if attitude.single else len(attitude)
@@ -422,8 +422,8 @@ class LinearVector(Estimator):
         if reference is None and not self.estimate_background:
             raise TrimagInputError(
                 "linear-vector needs the background field vector H_n (N, E, D) in the data's unit: "
-                "--background-ned N,E,D, --igrf LAT,LON,ALT_M,DATE, or --background-run FILE "
-                "(or --option estimate_background=true)"
+                "`background_ned=N,E,D`, `igrf_spec=LAT,LON,ALT_M,DATE`, or `background_run=FILE` "
+                "(or `option estimate_background=true`)"
             )
         if isinstance(reference, ScalarReference):
             raise TrimagInputError("linear-vector needs a background VECTOR (N, E, D), not a magnitude")

@@ -381,7 +381,7 @@ class TwoStep(Estimator):
         if np.any(ev <= 0):
             raise IdentifiabilityError(
                 "TWOSTEP converged to a matrix that is not positive definite; record the sensor turning "
-                "through many more attitudes (or use --method ml)"
+                "through many more attitudes (or use `method=ml`)"
             )
         A = (evec * np.sqrt(ev)) @ evec.T
         b_u = np.linalg.solve(M, c)

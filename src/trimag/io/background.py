@@ -45,8 +45,8 @@ def background_from_run(
         A description for messages and the calibration file (file name, rows, spread).
     """
     run = read_samples(os.fspath(path), fmt=fmt, columns=columns, var=var)
-    wanted = parse_columns(attitude_columns, 3, option="--attitude-columns") or parse_columns(
-        quaternion_columns, 4, option="--quaternion-columns"
+    wanted = parse_columns(attitude_columns, 3, option="`attitude_columns`") or parse_columns(
+        quaternion_columns, 4, option="`quaternion_columns`"
     )
     has_own = wanted is not None and all(c in [str(x) for x in run.table.columns] for c in wanted)
     if has_own:
@@ -59,7 +59,7 @@ def background_from_run(
         n_att = 1 if attitude.single else len(attitude)
         if n_att != len(run.field):
             raise TrimagInputError(
-                f"--background-run {path}: the file has no attitude columns {wanted} and {len(run.field)} "
+                f"`background_run` {path}: the file has no attitude columns {wanted} and {len(run.field)} "
                 f"valid rows, but the data have {n_att} attitudes; record the iron-free run at the same "
                 "attitudes (one row each) or add the attitude columns to it"
             )
@@ -67,7 +67,7 @@ def background_from_run(
         how = "the data's attitudes, row for row"
     else:
         raise TrimagInputError(
-            f"--background-run {path}: no attitudes for the iron-free run; add attitude columns to it"
+            f"`background_run` {path}: no attitudes for the iron-free run; add attitude columns to it"
         )
     H_n, spread = background_from_samples(run.field, att)
     unit = normalise_unit(units)

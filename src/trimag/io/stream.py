@@ -107,7 +107,7 @@ def _parse_rows(rows: str | None) -> tuple[int, int | None]:
         return 0, None
     m = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*", rows)
     if not m:
-        raise TrimagInputError(f"--rows takes START:STOP with non-negative integers, e.g. 0:5000; got {rows!r}")
+        raise TrimagInputError(f"`rows` takes START:STOP with non-negative integers, e.g. 0:5000; got {rows!r}")
     return (int(m.group(1)) if m.group(1) else 0), (int(m.group(2)) if m.group(2) else None)
 
 
@@ -172,7 +172,7 @@ def open_chunks(
 
         p = plain_path(p)  # compressed text, decimal commas
     if chunk_rows < 1:
-        raise TrimagInputError(f"--chunk-rows must be a positive number of rows; got {chunk_rows}")
+        raise TrimagInputError(f"`chunk_rows` must be a positive number of rows; got {chunk_rows}")
     kind = guess_format(p, fmt)
     if kind in ("csv", "txt"):
         layout = detect_csv_layout(p, fmt=kind)

@@ -96,7 +96,7 @@ def guess_format(path: str | Path, fmt: str | None = None) -> str:
     if fmt:
         f = fmt.lower().lstrip(".")
         if f not in FORMATS:
-            raise TrimagInputError(f"unknown --format {fmt!r}; choose one of {', '.join(FORMATS)}")
+            raise TrimagInputError(f"unknown `fmt` {fmt!r}; choose one of {', '.join(FORMATS)}")
         return f
     ext = Path(path).suffix.lower().lstrip(".")
     mapping = {"csv": "csv", "txt": "txt", "dat": "txt", "tsv": "txt", "log": "txt", "npz": "npz",
@@ -331,14 +331,14 @@ def _pick_variable(candidates: dict[str, Any], var: str | None, path: Path) -> s
         if len(squeezed) == 2 and min(squeezed) >= 3 and np.asarray(v).dtype.kind in "fiu":
             usable[k] = v
     if not usable:
-        raise TrimagInputError(f"{path}: no 2-D numeric variable with >= 3 columns; name one with --var")
+        raise TrimagInputError(f"{path}: no 2-D numeric variable with >= 3 columns; name one with `var`")
     preferred = [k for k in usable if re.search(r"mag|compass|field", k, re.I)]
     if len(preferred) == 1:
         return preferred[0]
     if len(usable) == 1:
         return next(iter(usable))
     raise TrimagInputError(
-        f"{path}: several arrays could hold the field ({', '.join(sorted(usable))}); choose one with --var"
+        f"{path}: several arrays could hold the field ({', '.join(sorted(usable))}); choose one with `var`"
     )
 
 
@@ -480,7 +480,7 @@ def resolve_columns(
     if columns is not None:
         items = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else list(columns)
         if len(items) != 3:
-            raise TrimagInputError(f"--columns needs exactly three columns (x, y, z); got {len(items)}: {items}")
+            raise TrimagInputError(f"`columns` needs exactly three columns (x, y, z); got {len(items)}: {items}")
         chosen = []
         for item in items:
             if isinstance(item, str) and item in names:
@@ -489,13 +489,13 @@ def resolve_columns(
                 idx = int(item)
                 if not 0 <= idx < len(names):
                     raise TrimagInputError(
-                        f"--columns: index {idx} is out of range; "
+                        f"`columns`: index {idx} is out of range; "
                         f"the file has {len(names)} columns (0-{len(names) - 1})"
                     )
                 chosen.append(names[idx])
             else:
                 raise TrimagInputError(
-                    f"--columns: no column {item!r}; the columns are {', '.join(names)}"
+                    f"`columns`: no column {item!r}; the columns are {', '.join(names)}"
                 )
         return (chosen[0], chosen[1], chosen[2]), ""
     by_axis: dict[str, list[str]] = {"x": [], "y": [], "z": []}
@@ -552,22 +552,22 @@ def _columns_by_content(
     if headerless and source and _NOT_FIELD_FILE.search(Path(source).name):
         raise TrimagInputError(
             f"the file name says this is not a magnetometer log ({Path(source).name}); if it is one, name the x, y, "
-            "z columns with --columns"
+            "z columns with `columns`"
         )
     if len(candidates) == 3:
         chosen3 = (candidates[0], candidates[1], candidates[2])
         note = f"using columns {', '.join(chosen3)} (the only three that can be a field"
         note += f"; skipped {skipped_txt})" if skipped_txt else ")"
-        return chosen3, note + "; choose others with --columns"
+        return chosen3, note + "; choose others with `columns`"
     if len(candidates) > 3:
         raise TrimagInputError(
             f"several columns could be the magnetometer's x, y, z ({', '.join(candidates)}); "
-            "name them with --columns X,Y,Z"
+            "name them with `columns=X,Y,Z`"
         )
     raise TrimagInputError(
         f"found {len(candidates)} column(s) that can be a magnetometer axis ({', '.join(candidates) or 'none'}"
         f"{'; skipped ' + skipped_txt if skipped_txt else ''}); a magnetometer log needs three (x, y, z): "
-        "name them with --columns"
+        "name them with `columns`"
     )
 
 
@@ -577,7 +577,7 @@ def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = N
     if rows:
         m = re.fullmatch(r"\s*(-?\d*)\s*:\s*(-?\d*)\s*", rows)
         if not m:
-            raise TrimagInputError(f"--rows takes START:STOP (0-based, STOP excluded), e.g. 0:5000; got {rows!r}")
+            raise TrimagInputError(f"`rows` takes START:STOP (0-based, STOP excluded), e.g. 0:5000; got {rows!r}")
         start = int(m.group(1)) if m.group(1) else None
         stop = int(m.group(2)) if m.group(2) else None
         df = df.iloc[slice(start, stop)]
@@ -594,10 +594,10 @@ def where_mask(df: pd.DataFrame, where: str) -> NDArray[np.bool_]:
     """Boolean mask of the rows of ``df`` matching ``"COLUMN==VALUE"`` or ``"COLUMN!=VALUE"``."""
     m = re.fullmatch(r"\s*([^=!]+?)\s*(==|!=)\s*(.*?)\s*", where)
     if not m:
-        raise TrimagInputError(f"--where takes COLUMN==VALUE or COLUMN!=VALUE; got {where!r}")
+        raise TrimagInputError(f"`where` takes COLUMN==VALUE or COLUMN!=VALUE; got {where!r}")
     col, op, value = m.groups()
     if col not in df.columns:
-        raise TrimagInputError(f"--where: no column {col!r}; the columns are {', '.join(map(str, df.columns))}")
+        raise TrimagInputError(f"`where`: no column {col!r}; the columns are {', '.join(map(str, df.columns))}")
     series = df[col]
     if series.dtype.kind in "fiub":
         try:
@@ -666,7 +666,7 @@ def read_samples(
     if n_bad and strict:
         raise TrimagInputError(
             f"{p}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
-            f"{int(df.index[positions[0]])}); fix them, or drop --strict to skip and count them"
+            f"{int(df.index[positions[0]])}); fix them, or drop `strict` to skip and count them"
         )
     if n_bad == len(df):
         raise TrimagInputError(
