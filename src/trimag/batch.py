@@ -46,7 +46,8 @@ class BatchResult:
         file failed; ``error`` holds the message, ``error_type`` ``"input"``, ``"identifiability"`` or
         ``"internal"``).
     written : dict
-        ``{"summary_csv": path, "summary_parquet": path}``.
+        ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
+        ``parquet`` extra, is installed).
     seconds : float
         Wall time of the whole batch.
     """
@@ -184,9 +185,14 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     return df
 
 
-def _write_parquet(df: pd.DataFrame, path: Path) -> Path:
+def _write_parquet(df: pd.DataFrame, path: Path) -> Path | None:
+    """Write the summary as Parquet when pyarrow (the ``parquet`` extra) is installed; None otherwise."""
+    from ._core.extras import available
+
+    if not available("pyarrow"):
+        return None
     with atomic_path(path) as tmp:
-        df.to_parquet(tmp, index=False)
+        df.to_parquet(tmp, index=False, engine="pyarrow")
     return path
 
 
@@ -212,7 +218,7 @@ def fit_batch(
         Glob patterns (``**`` recursive) or file paths.
     out_dir : path
         Output folder (created): ``<name>.json`` per file (see :func:`calibration_names`), ``summary.csv``,
-        ``summary.parquet``.
+        ``summary.parquet`` (with the ``parquet`` extra).
     model, method, options
         As for ``trimag fit`` (``options``: method keyword arguments).
     workers : int
@@ -256,6 +262,8 @@ def fit_batch(
     table = _table(rows)
     written = {
         "summary_csv": str(atomic_write_text(out / "summary.csv", table.to_csv(index=False, lineterminator="\n"))),
-        "summary_parquet": str(_write_parquet(table, out / "summary.parquet")),
     }
+    parquet = _write_parquet(table, out / "summary.parquet")
+    if parquet is not None:
+        written["summary_parquet"] = str(parquet)
     return BatchResult(table, written, seconds)
