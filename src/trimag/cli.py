@@ -177,9 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
-    p = sub.add_parser("batch", help="fit many logs (one calibration each) on Dask",
+    p = sub.add_parser("batch", help="fit many logs (one calibration each), on local processes or Dask",
                        description="Fit every file matched; write OUT/<name>.json per file and "
-                                   "OUT/summary.csv + OUT/summary.parquet. A bad file is reported, not fatal.")
+                                   "OUT/summary.csv (+ OUT/summary.parquet with the parquet extra). A bad file is "
+                                   "reported, not fatal.")
     p.add_argument("inputs", nargs="+", metavar="GLOB", help="glob pattern(s) ('logs/**/*.csv') or files")
     _add_data_options(p, selection=False)
     p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`)")
@@ -187,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--workers", type=int, default=1, help="parallel workers on Dask's local scheduler")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="dask.distributed scheduler, e.g. tcp://host:8786")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="dask.distributed scheduler, e.g. tcp://host:8786 (needs the batch extra)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
