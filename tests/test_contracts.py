@@ -43,8 +43,9 @@ def _write_log(path: Path, raw: np.ndarray, *, blank_row: int | None = None) -> 
 
 @pytest.mark.parametrize("out_name", ["out.csv", "out.parquet", "out.npz"])
 def test_apply_writes_raw_minus_offset_times_matrix_transposed(tmp_path: Path, out_name: str) -> None:
-    """On a 1500-row file streamed in chunks of 400 rows: every corrected cell equals (raw - offset) @ matrix.T
-    computed from the calibration file's numbers; the input columns are passed through; rows stay aligned."""
+    """On a 1500-row file streamed in chunks of 1200 and 300 rows (both code paths of the correction: above and
+    below 1000 rows), every corrected cell equals (raw - offset) @ matrix.T computed from the calibration file's
+    numbers; the input columns are passed through; rows stay aligned."""
     raw = simulate_ellipsoid(1500, noise=8.0, seed=11)
     fit_log, log = tmp_path / "fit.csv", tmp_path / "log.csv"
     _write_log(fit_log, raw)
@@ -55,7 +56,7 @@ def test_apply_writes_raw_minus_offset_times_matrix_transposed(tmp_path: Path, o
     matrix, offset = np.array(cal["matrix"]), np.array(cal["offset"])
     assert not np.allclose(matrix, matrix.T)  # a transposed matrix would give other numbers
     out = tmp_path / out_name
-    proc = run_trimag("apply", cal_path, log, "-o", out, "--chunk-rows", "400", "--json")
+    proc = run_trimag("apply", cal_path, log, "-o", out, "--chunk-rows", "1200", "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["n_rows"] == 1500
 
