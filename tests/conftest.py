@@ -10,6 +10,34 @@ import pytest
 
 from _helpers import simulate_ellipsoid
 
+SRC = Path(__file__).resolve().parents[1] / "src" / "trimag"
+
+
+def stale_installed_copy() -> str | None:
+    """Why the imported trimag is not this checkout's ``src/trimag`` (None when it is, or when its files are the
+    same bytes, as after ``pip install .`` of this very tree, what CI does).
+
+    After ``pip install .`` a later edit of ``src/`` is not what the tests import: they would pass or fail on
+    the old copy. ``pip install -e ".[dev]"`` (an editable install) imports ``src/`` itself."""
+    import trimag
+
+    installed = Path(trimag.__file__).resolve().parent
+    if not SRC.is_dir() or installed == SRC:
+        return None
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC)
+        copy = installed / rel
+        if not copy.is_file() or copy.read_bytes() != path.read_bytes():
+            return (f"the tests import trimag from {installed}, an installed copy that differs from this checkout's "
+                    f"src/trimag ({rel}); reinstall, or install for development with pip install -e \".[dev]\"")
+    return None
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    reason = stale_installed_copy()
+    if reason is not None:
+        raise pytest.UsageError(reason)
+
 
 @pytest.fixture
 def ellipsoid_log(tmp_path: Path) -> Path:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trimag.crlb import _constrained_inverse, crlb, parametrisation
+from trimag.crlb import crlb, parametrisation
 from trimag.errors import IdentifiabilityError, TrimagInputError
 from trimag.models import get_model
 from trimag.models.ellipsoid import Ellipsoid
@@ -19,7 +19,9 @@ def _ellipsoid() -> Ellipsoid:
 
 def _brute(truth, u, sigma, F, known):
     """Full Fisher information of x_i = D(theta) F u(angles_i) + b(theta) by central differences over
-    (theta, 2N angles[, F]), inverted, the theta block kept (gauge det W fixed when F is unknown and free)."""
+    (theta, 2N angles[, F]), inverted, the theta block kept (gauge det W fixed when F is unknown and free: the
+    bordered matrix [[J, g], [g^T, 0]] with g the gradient of log det W, inverted by numpy; nothing of trimag's
+    constrained inverse)."""
     _, theta, param = parametrisation(truth)
     p, N = len(theta), len(u)
     ang = np.column_stack([np.arccos(u[:, 2]), np.arctan2(u[:, 1], u[:, 0])])
@@ -51,7 +53,14 @@ def _brute(truth, u, sigma, F, known):
             tp[k] += d
             tm[k] -= d
             grad[k] = (np.log(abs(np.linalg.det(param(tp)[0]))) - np.log(abs(np.linalg.det(param(tm)[0])))) / (2 * d)
-    C = _constrained_inverse(J, grad if scale_free else None)
+    if scale_free:  # constrained CRB (Stoica & Ng 1998) from the bordered information matrix, not trimag's own inverse
+        n = len(z0)
+        bordered = np.zeros((n + 1, n + 1))
+        bordered[:n, :n] = J
+        bordered[:n, n] = bordered[n, :n] = grad
+        C = np.linalg.inv(bordered)[:n, :n]
+    else:
+        C = np.linalg.inv(J)
     idx = [*range(p), len(z0) - 1]
     return C[np.ix_(idx, idx)]
 

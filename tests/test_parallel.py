@@ -1,4 +1,5 @@
-"""Tests of trimag.parallel: the same results in-process, on Dask's local schedulers and with progress shown."""
+"""Tests of trimag.parallel: the same results in-process, on the local pools (processes, threads; no Dask) and with
+progress shown."""
 
 from __future__ import annotations
 
@@ -86,6 +87,16 @@ def test_partial_and_builtin_functions() -> None:
 def test_trial_error_is_raised(workers: int, backend: str | None) -> None:
     with pytest.raises(ValueError, match="trial 3 failed"):
         map_trials(_fail_on_three, range(6), workers=workers, backend=backend, chunksize=1, progress=False)
+
+
+def test_kept_process_pool_survives_a_failed_run_and_needs_no_dask(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A trial's error leaves the kept worker processes usable; local runs never import Dask."""
+    for name in ("dask", "distributed"):
+        monkeypatch.setitem(sys.modules, name, None)  # `import dask` now fails, as without the batch extra
+    with pytest.raises(ValueError, match="trial 3 failed"):
+        map_trials(_fail_on_three, range(40), workers=2, chunksize=1, progress=False)
+    assert map_trials(_fail_on_three, [4, 5, 6], workers=2, chunksize=1, progress=False) == [16, 25, 36]
+    assert map_trials(_fail_on_three, [7, 8], workers=2, backend="threads", progress=False) == [49, 64]
 
 
 @pytest.mark.parametrize(

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from ._core.extras import require
 from .compensation import ScalarCompensation
 from .errors import TrimagInputError
 from .estimators.tolles_lawson import fit_tolles_lawson, manoeuvre_content, segment_std
@@ -231,9 +232,11 @@ def apply_compensation_file(
     """Write every input column unchanged plus ``<scalar>_compensated`` (nT) to ``out`` (CSV, Parquet or NPZ)."""
     comp = ScalarCompensation.from_file(comp_path)
     data_p, out_p = Path(data), Path(out)
+    out_kind = guess_format(out_p) if out_p.suffix else "csv"
+    if out_kind == "parquet":  # before the work
+        require("pyarrow.parquet", "writing Parquet files")
     df, _, _, compensated, s_col = _compensate(comp, data_p, fmt, var, columns, scalar_column, units)
     name = f"{s_col}_compensated"
-    out_kind = guess_format(out_p) if out_p.suffix else "csv"
     n_bad = int((~np.isfinite(compensated)).sum())
     if out_kind in ("csv", "txt") and guess_format(data_p, fmt) in ("csv", "txt"):
         _write_text_with_column(data_p, out_p, df, name, compensated)

@@ -1,13 +1,14 @@
-"""Batch calibration: fit every log matched by a glob (a fleet of sensors, or many runs of one) on Dask.
+"""Batch calibration: fit every log matched by a glob (a fleet of sensors, or many runs of one).
 
 Each file is fitted independently with :func:`trimag.workflow.fit_file` (same reading rules, references and
 options as ``trimag fit``), its :class:`~trimag.calibration.Calibration` written to ``OUT/<name>.json``, and one
-row per file collected into a summary table written as ``OUT/summary.csv`` and ``OUT/summary.parquet``.
+row per file collected into a summary table written as ``OUT/summary.csv`` and, with pyarrow (the ``parquet``
+extra), ``OUT/summary.parquet``.
 A file that cannot be read or fitted gets a row with its error; the others go on.
 
-The work runs through :func:`trimag.parallel.map_trials`: in this process (``workers=1``), on Dask's local
-scheduler (``workers > 1``, nothing to start), or on a ``dask.distributed`` cluster (``scheduler=ADDRESS``;
-the workers must see the same file system paths).
+The work runs through :func:`trimag.parallel.map_trials`: in this process (``workers=1``), on a local pool of
+worker processes (``workers > 1``, nothing to start, no Dask needed), or on a ``dask.distributed`` cluster
+(``scheduler=ADDRESS``, the ``batch`` extra; the workers must see the same file system paths).
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ class BatchResult:
         file failed; ``error`` holds the message, ``error_type`` ``"input"``, ``"identifiability"`` or
         ``"internal"``).
     written : dict
-        ``{"summary_csv": path, "summary_parquet": path}``.
+        ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
+        ``parquet`` extra, is installed).
     seconds : float
         Wall time of the whole batch.
     """
@@ -165,7 +167,8 @@ def fit_one(job: tuple[str, str], **fit_options: Any) -> dict[str, Any]:
             warnings="; ".join(s.get("warnings") or []), calibration=out,
         )
     except Exception as exc:
-        message = str(exc) if isinstance(exc, TrimagError) else f"{type(exc).__name__}: {exc}"
+        message = str(exc) if isinstance(exc, TrimagError) else \
+            f"internal error (a bug in trimag, not a problem with this file): {type(exc).__name__}: {exc}"
         row.update(error=message or type(exc).__name__, error_type=_error_type(exc))
     row["seconds"] = time.perf_counter() - t0
     return row
@@ -184,9 +187,14 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     return df
 
 
-def _write_parquet(df: pd.DataFrame, path: Path) -> Path:
+def _write_parquet(df: pd.DataFrame, path: Path) -> Path | None:
+    """Write the summary as Parquet when pyarrow (the ``parquet`` extra) is installed; None otherwise."""
+    from ._core.extras import available
+
+    if not available("pyarrow"):
+        return None
     with atomic_path(path) as tmp:
-        df.to_parquet(tmp, index=False)
+        df.to_parquet(tmp, index=False, engine="pyarrow")
     return path
 
 
@@ -212,19 +220,19 @@ def fit_batch(
         Glob patterns (``**`` recursive) or file paths.
     out_dir : path
         Output folder (created): ``<name>.json`` per file (see :func:`calibration_names`), ``summary.csv``,
-        ``summary.parquet``.
+        ``summary.parquet`` (with the ``parquet`` extra).
     model, method, options
         As for ``trimag fit`` (``options``: method keyword arguments).
     workers : int
-        Parallel workers on Dask's local scheduler; 1 runs in this process.
+        Parallel worker processes on this machine; 1 runs in this process.
     scheduler : str or distributed.Client, optional
-        A ``dask.distributed`` scheduler address (or client); overrides ``workers``.
+        A ``dask.distributed`` scheduler address (or client); overrides ``workers``. Needs the ``batch`` extra.
     progress : bool or str
         Progress bar on stderr (see :func:`trimag.parallel.map_trials`).
     chunksize : int, optional
-        Files per Dask task (default: about 8 tasks per worker).
+        Files per task (default: about 8 tasks per worker).
     backend : {"processes", "threads"}, optional
-        Dask local scheduler for ``workers > 1`` (default: processes; see :func:`trimag.parallel.map_trials`).
+        Local pool for ``workers > 1`` (default: processes; see :func:`trimag.parallel.map_trials`).
     **fit_options
         Further :func:`trimag.workflow.fit_file` arguments, the same for every file: ``fmt``, ``columns``,
         ``units``, ``strict``, ``reference``, ``igrf_spec``, ``reference_column``, ...
@@ -256,6 +264,8 @@ def fit_batch(
     table = _table(rows)
     written = {
         "summary_csv": str(atomic_write_text(out / "summary.csv", table.to_csv(index=False, lineterminator="\n"))),
-        "summary_parquet": str(_write_parquet(table, out / "summary.parquet")),
     }
+    parquet = _write_parquet(table, out / "summary.parquet")
+    if parquet is not None:
+        written["summary_parquet"] = str(parquet)
     return BatchResult(table, written, seconds)

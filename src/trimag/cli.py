@@ -209,9 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
-    p = sub.add_parser("batch", help="fit many logs (one calibration each) on Dask",
+    p = sub.add_parser("batch", help="fit many logs (one calibration each), on local processes or Dask",
                        description="Fit every file matched; write OUT/<name>.json per file and "
-                                   "OUT/summary.csv + OUT/summary.parquet. A bad file is reported, not fatal.")
+                                   "OUT/summary.csv (+ OUT/summary.parquet with the parquet extra). A bad file is "
+                                   "reported, not fatal.")
     p.add_argument("inputs", nargs="+", metavar="GLOB", help="glob pattern(s) ('logs/**/*.csv') or files")
     _add_data_options(p, selection=False)
     p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`)")
@@ -219,8 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--workers", type=int, default=1, help="parallel workers on Dask's local scheduler")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="dask.distributed scheduler, e.g. tcp://host:8786")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="dask.distributed scheduler, e.g. tcp://host:8786 (needs the batch extra)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
@@ -541,8 +543,10 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         print(json.dumps(result.summary(), allow_nan=False))
     else:
         _say(f"fitted {result.n_files - result.n_failed} of {result.n_files} files in {result.seconds:.1f} s "
-             f"({result.files_per_second:.1f} files/s); wrote {result.written['summary_csv']}, "
-             f"{result.written['summary_parquet']} and one calibration per file in {args.out}", args)
+             f"({result.files_per_second:.1f} files/s); wrote {', '.join(result.written.values())} and one "
+             f"calibration per file in {args.out}", args)
+        if "summary_parquet" not in result.written:
+            _say('note: summary.parquet not written: it needs pyarrow (pip install "trimag[parquet]")', args)
     return result.exit_code()
 
 
@@ -628,9 +632,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return EXIT_OK
+    except ImportError as exc:  # an optional package that a code path imported without `require`: still exit 2
+        from ._core.extras import EXTRAS, missing_extra_message
+
+        if (exc.name or "").split(".")[0] not in EXTRAS:
+            return _internal_error(exc)
+        _err(f"error: {missing_extra_message(exc.name or '', f'trimag {args.command}')}")
+        return EXIT_INPUT
     except Exception as exc:
-        _err(f"internal error: {type(exc).__name__}: {exc} (please report this with the command you ran)")
-        return EXIT_INTERNAL
+        return _internal_error(exc)
+
+
+def _internal_error(exc: BaseException) -> int:
+    """Exit code 1 is for trimag's own bugs only: say so, in one line (no traceback)."""
+    _err(f"internal error (a bug in trimag, not a problem with your input): {type(exc).__name__}: {exc}; "
+         "please report it with the command you ran")
+    return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -18,6 +18,7 @@ __all__ = [
     "CalibrationFormatError",
     "IdentifiabilityError",
     "IdentifiabilityWarning",
+    "MissingExtraError",
     "NotFittedError",
     "TrimagError",
     "TrimagInputError",
@@ -40,6 +41,11 @@ class TrimagInputError(TrimagError, ValueError):
 
 class UnitMismatchError(TrimagInputError):
     """Data in one unit were given to a calibration made for another."""
+
+
+class MissingExtraError(TrimagInputError, ImportError):
+    """A feature needs an optional package that is not installed; the message names the extra that installs it
+    (e.g. ``pip install "trimag[parquet]"``)."""
 
 
 class CalibrationFormatError(TrimagInputError):

@@ -1,5 +1,5 @@
-"""A small executor for independent trials: in-process, Dask's local scheduler, or a ``dask.distributed``
-cluster.
+"""A small executor for independent trials: in-process, a local pool of worker processes (or threads), or a
+``dask.distributed`` cluster.
 
 Every Monte Carlo reproduction, benchmark and :mod:`trimag.batch` run goes through :func:`map_trials`, so one
 ``--workers N`` (or ``--scheduler ADDRESS``) option speeds all of them up.
@@ -12,6 +12,9 @@ cluster):
 * each item carries everything a trial needs, in particular its own random seed (use :func:`trial_seeds`), so
   the results do not depend on ``workers`` or on the order in which trials finish;
 * it returns something picklable and small (numbers, a dict, a small array), not the simulated data.
+
+Local runs (``workers >= 1``) need nothing beyond the core install (:mod:`concurrent.futures`); only a cluster
+(``scheduler=``) needs Dask, the ``batch`` extra (``pip install "trimag[batch]"``).
 
 Example
 -------
@@ -31,13 +34,13 @@ import math
 import os
 import sys
 import time
-import uuid
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from typing import Any, TypeVar
 
 import numpy as np
 
+from ._core.extras import require
 from ._core.threads import one_blas_thread
 from .errors import TrimagInputError
 
@@ -46,10 +49,9 @@ __all__ = ["DEFAULT_LOCAL_BACKEND", "ProgressBar", "map_trials", "shutdown_pools
 T = TypeVar("T")
 R = TypeVar("R")
 
-#: Dask local scheduler used for ``workers > 1``. ``"processes"`` sidesteps the GIL, which numpy only releases
-#: inside large array operations; for trials of a few thousand samples (the usual Monte Carlo and
-#: calibration-log sizes) it measured faster than ``"threads"`` on the 2-core benchmark machine
-#: (docs/performance-history.md, "The executor").
+#: Local pool used for ``workers > 1``. ``"processes"`` sidesteps the GIL, which numpy only releases inside large
+#: array operations; for trials of a few thousand samples (the usual Monte Carlo and calibration-log sizes) it
+#: measured faster than ``"threads"`` on the 2-core benchmark machine (docs/performance-history.md, "The executor").
 DEFAULT_LOCAL_BACKEND = "processes"
 
 _SHOW_AFTER_S = 1.0
@@ -230,20 +232,20 @@ def map_trials(
     items : iterable
         One entry per trial (e.g. a seed, or a ``(seed, noise)`` tuple, or a file path).
     workers : int
-        ``1`` (default): run in this process, no Dask involved. ``> 1``: Dask's local scheduler with this many
-        workers (``backend``). Ignored when ``scheduler`` is given (the cluster has its own workers).
+        ``1`` (default): run in this process. ``> 1``: a local pool of this many worker processes (or threads,
+        ``backend``). Ignored when ``scheduler`` is given (the cluster has its own workers).
     scheduler : str or distributed.Client, optional
         Address of a running ``dask.distributed`` scheduler (e.g. ``"tcp://10.0.0.5:8786"``), or a ``Client``;
         the trials then run on that cluster. A client opened here is closed afterwards; a client passed in is
-        left open.
+        left open. Needs Dask (the ``batch`` extra).
     progress : bool or str
         Show a rich progress bar on stderr when the run takes more than a second (and stderr is a terminal).
         A string is used as the bar's label (default label: ``"trials"``).
     chunksize : int, optional
-        Items per Dask task. Default: about 8 tasks per worker, which keeps per-task overhead negligible.
+        Items per task. Default: about 8 tasks per worker, which keeps per-task overhead negligible.
     backend : {"processes", "threads"}, optional
-        Dask local scheduler for ``workers > 1``; default :data:`DEFAULT_LOCAL_BACKEND`. ``"threads"`` avoids
-        starting processes and suits trials dominated by large numpy operations (which release the GIL).
+        Local pool for ``workers > 1``; default :data:`DEFAULT_LOCAL_BACKEND`. ``"threads"`` avoids starting
+        processes and suits trials dominated by large numpy operations (which release the GIL).
 
     Returns
     -------
@@ -254,6 +256,8 @@ def map_trials(
     ------
     TrimagInputError
         ``workers < 1``, ``chunksize < 1`` or an unknown ``backend``.
+    MissingExtraError
+        ``scheduler`` is given and Dask is not installed (``pip install "trimag[batch]"``).
     Exception
         The first exception raised by ``fn`` is re-raised (catch errors inside ``fn`` to keep going, as
         :mod:`trimag.batch` does for bad files).
@@ -285,31 +289,36 @@ def map_trials(
 def _run_local(
     fn: Callable[[T], R], items: list[T], workers: int, backend: str, chunksize: int | None, bar: ProgressBar
 ) -> list[R]:
-    import dask
-    from dask.callbacks import Callback
+    """Run the chunks on the kept process pool (or a thread pool), one chunk per dispatch, in order of ``items``.
 
+    One chunk at a time per worker: a worker that finishes early takes the next chunk, instead of idling while
+    another still has several (measured: a fixed batch of chunks per worker leaves cores idle at the end).
+    """
     chunks = _chunks(items, chunksize or _auto_chunksize(len(items), workers))
-    token = uuid.uuid4().hex[:12]
-    names = [f"trimag-trials-{token}-{i}" for i in range(len(chunks))]
-    sizes = {name: len(c) for name, c in zip(names, chunks, strict=True)}
-    task = dask.delayed(_apply_chunk, pure=False, traverse=False)
-    tasks = [task(fn, chunk, dask_key_name=name) for name, chunk in zip(names, chunks, strict=True)]
-
-    def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
-        bar.advance(sizes.get(key if isinstance(key, str) else str(key), 0))
-
-    # processes: one task per dispatch (Dask's default hands each idle worker a batch of 6 tasks, fixed in advance:
-    # a worker that finishes its batch early then idles while another still has several chunks to do)
-    extra: dict[str, Any] = {"pool": _process_pool(workers), "chunksize": 1} if backend == "processes" else {}
-    with Callback(posttask=posttask):
-        results = dask.compute(*tasks, scheduler=backend, num_workers=workers, **extra)
-    return [r for chunk_result in results for r in chunk_result]
+    pool: Executor = _process_pool(workers) if backend == "processes" else ThreadPoolExecutor(workers)
+    futures: list[Future[list[R]]] = []
+    try:
+        futures = [pool.submit(_apply_chunk, fn, chunk) for chunk in chunks]
+        size = {id(f): len(c) for f, c in zip(futures, chunks, strict=True)}
+        pending: set[Future[list[R]]] = set(futures)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            for fut in done:
+                fut.result()  # re-raises the trial's exception here (the rest are cancelled below)
+                bar.advance(size[id(fut)])
+        return [r for fut in futures for r in fut.result()]
+    finally:
+        for fut in futures:
+            fut.cancel()  # after an error: chunks not yet started are dropped; the kept pool stays usable
+        if backend != "processes":
+            pool.shutdown(wait=True)
 
 
 def _run_distributed(
     fn: Callable[[T], R], items: list[T], scheduler: Any, chunksize: int | None, bar: ProgressBar
 ) -> list[R]:
-    from distributed import Client, as_completed
+    distributed = require("distributed", "running on a Dask cluster (--scheduler)")
+    Client, as_completed = distributed.Client, distributed.as_completed
 
     own = not isinstance(scheduler, Client)
     try:

@@ -329,7 +329,9 @@ def _load_broad(path: Path) -> dict[str, Any]:
 
 
 def _load_hmc(path: Path) -> dict[str, Any]:
-    import h5py
+    from .._core.extras import require
+
+    h5py = require("h5py", f"{path.name}: reading MATLAB v7.3 (HDF5) files")
 
     with h5py.File(path, "r") as fh:
         c = np.array(fh["compassBuffer"], dtype=np.float64)

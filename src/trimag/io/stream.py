@@ -9,6 +9,9 @@ as a string (the cells are kept exactly), x/y/z are converted with one vectorise
 written by pyarrow's CSV writer. Whitespace-delimited text, rows pyarrow refuses (e.g. a row with a different
 number of fields) and cells that need quoting on output fall back to pandas, which gives the same rows and
 cells. A :class:`Chunk` converts between its Arrow and pandas forms only when asked.
+
+pyarrow is optional (the ``parquet`` extra): without it text files are read and written by pandas alone (same
+rows and cells, slower), and Parquet input or output is refused with one line naming the extra.
 """
 
 from __future__ import annotations
@@ -19,18 +22,21 @@ import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 from numpy.typing import NDArray
 
 from .._core.chunks import DEFAULT_CHUNK_ROWS, read_block_bytes
+from .._core.extras import available, require
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .atomic import atomic_path
 from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 __all__ = ["Chunk", "ChunkSource", "MagnitudeAccumulator", "apply_file", "iter_chunks", "open_chunks"]
 
@@ -77,6 +83,7 @@ class Chunk:
     def arrow(self) -> pa.Table:
         if self._arrow is None:
             assert self._table is not None
+            pa = require("pyarrow", "converting a chunk to an Arrow table")
             self._arrow = pa.Table.from_pandas(self._table, preserve_index=False)
         return self._arrow
 
@@ -113,6 +120,7 @@ def _parse_rows(rows: str | None) -> tuple[int, int | None]:
 
 def _arrow_numeric(col: pa.ChunkedArray | pa.Array) -> NDArray[np.float64]:
     """Column -> float64 (NaN for null, empty or non-numeric cells): one Arrow cast, pandas when it refuses."""
+    import pyarrow as pa
     import pyarrow.compute as pc
 
     try:
@@ -130,6 +138,8 @@ def _xyz(table: pa.Table, cols: tuple[str, str, str]) -> NDArray[np.float64]:
 
 def _rechunk(batches: Iterable[pa.RecordBatch], rows: int) -> Iterator[pa.Table]:
     """Regroup record batches into tables of exactly ``rows`` rows (the last one shorter); zero-copy slices."""
+    import pyarrow as pa
+
     buf: list[pa.RecordBatch] = []
     n = 0
     for batch in batches:
@@ -210,6 +220,7 @@ def open_chunks(
                 start += len(df)
 
         def gen_arrow() -> Iterator[Chunk]:
+            import pyarrow as pa
             import pyarrow.csv as pacsv
 
             assert layout.delimiter is not None
@@ -235,9 +246,10 @@ def open_chunks(
                 pass  # e.g. a row with a different number of fields: pandas reads the rest as before
             yield from gen_pandas(skip_rows=start)
 
-        return source, (gen_arrow() if layout.delimiter is not None else gen_pandas())
+        # pyarrow (the `parquet` extra) reads delimited text faster; pandas gives the same rows and cells
+        return source, (gen_arrow() if layout.delimiter is not None and available("pyarrow") else gen_pandas())
     if kind == "parquet":
-        import pyarrow.parquet as pq
+        pq = require("pyarrow.parquet", "reading Parquet files")
 
         try:
             # pre_buffer=False: reads column chunks page by page; with pre-buffering the memory pool peaked at
@@ -276,6 +288,8 @@ def iter_chunks(path: str | Path, **kwargs: Any) -> Iterator[Chunk]:
 
 
 def _with_corrected(table: pa.Table, corrected: NDArray[np.float64], names: list[str]) -> pa.Table:
+    import pyarrow as pa
+
     for j, name in enumerate(names):
         table = table.append_column(name, pa.array(corrected[:, j], from_pandas=True))  # NaN -> empty cell
     return table
@@ -283,6 +297,7 @@ def _with_corrected(table: pa.Table, corrected: NDArray[np.float64], names: list
 
 def _write_csv_rows(fh: Any, table: pa.Table, sep: str) -> None:
     """Write the rows (no header) of ``table``: pyarrow's writer, or pandas when a cell needs quoting."""
+    import pyarrow as pa
     import pyarrow.csv as pacsv
 
     buf = io.BytesIO()
@@ -320,11 +335,13 @@ def apply_file(
         ``n_rows``, ``n_uncorrected``, ``columns`` (x, y, z used), ``output_columns`` (appended names), ``out``.
     """
     out = Path(out_path)
-    source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
-    new_cols = [f"{c}{suffix}" for c in source.columns]
     out_kind = guess_format(out) if out.suffix else "csv"
     if out_kind not in ("csv", "txt", "parquet", "npz"):
         raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
+    if out_kind == "parquet":
+        require("pyarrow.parquet", "writing Parquet files")
+    source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
+    new_cols = [f"{c}{suffix}" for c in source.columns]
     n_rows = 0
     n_bad = 0
     with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error

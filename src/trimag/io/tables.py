@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from .._core.extras import available, require
 from .._core.rowwise import count_duplicate_rows
 from ..errors import TrimagInputError
 
@@ -241,8 +242,9 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
         kwargs["sep"] = r"\s+"
     else:
         kwargs["sep"] = layout.delimiter
-    try:
-        df = _read_delimited_arrow(path, layout, kwargs) if layout.delimiter is not None else None
+    try:  # pyarrow's reader when the `parquet` extra is installed; pandas' otherwise (same rows and cells)
+        df = _read_delimited_arrow(path, layout, kwargs) if layout.delimiter is not None and available("pyarrow") \
+            else None
         if df is None:
             df = pd.read_csv(path, **kwargs)
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
@@ -359,6 +361,17 @@ def _struct_table(value: Any, name: str, path: Path) -> pd.DataFrame:
     return pd.DataFrame({k: a for k, a in fields.items() if len(a) == n})
 
 
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _is_hdf5(path: Path) -> bool:
+    """True when the file carries the HDF5 signature where MATLAB v7.3 (after its 512-byte header) or a plain
+    HDF5 file puts it."""
+    with path.open("rb") as fh:
+        head = fh.read(520)
+    return head[:8] == _HDF5_SIGNATURE or head[512:520] == _HDF5_SIGNATURE
+
+
 def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
     import scipy.io
 
@@ -376,6 +389,10 @@ def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
     except ValueError as exc:
         if "Unknown mat file type" not in str(exc) and "Mat file appears to be truncated" not in str(exc):
             raise TrimagInputError(f"{path}: cannot read MAT file: {exc}") from None
+    if not available("h5py"):
+        if _is_hdf5(path):
+            require("h5py", f"{path}: reading MATLAB v7.3 (HDF5) files")  # raises: the extra is missing
+        raise TrimagInputError(f"{path}: not a readable MAT file (neither MATLAB v4-v7.2 nor v7.3/HDF5)")
     import h5py
 
     try:
@@ -446,8 +463,9 @@ def read_table(
         return _read_npz(p, var)
     if kind == "mat":
         return _read_mat(p, var)
+    require("pyarrow.parquet", "reading Parquet files")
     try:
-        return pd.read_parquet(p)
+        return pd.read_parquet(p, engine="pyarrow")
     except Exception as exc:  # pyarrow raises several types
         raise TrimagInputError(f"{p}: not a readable Parquet file ({exc})") from None
 

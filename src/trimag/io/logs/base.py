@@ -18,15 +18,9 @@ __all__ = ["Channel", "MagnetometerStream", "VehicleLog", "mavlink_messages", "r
 
 def require(module: str) -> Any:
     """Import an optional dependency of the log readers, or raise a one-line error naming the extra."""
-    import importlib
+    from ..._core.extras import require as require_extra
 
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        raise TrimagInputError(
-            f"reading autopilot logs needs the optional package {module.split('.')[0]!r}: "
-            'pip install "trimag[logs]"'
-        ) from None
+    return require_extra(module, "reading autopilot logs")
 
 
 def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
