@@ -273,3 +273,35 @@ def test_cli_refusals(tmp_path: Path) -> None:
                     "linear combinations")
     _one_line_error(run_trimag("fit", log, "--model", "ortho-gain", "--reference", str(F), "--regressors", "current"),
                     2, "--regressors works with the models ellipsoid, interference12")
+
+
+def test_export_refuses_a_calibration_with_regressor_terms(fitted) -> None:
+    from trimag.io.export import export_calibration
+
+    cal, base, _, _ = fitted
+    assert export_calibration(base, "json").text
+    with pytest.raises(TrimagInputError, match=r"regressor terms .* cannot hold"):
+        export_calibration(cal, "ardupilot")
+
+
+def test_cli_vector_model_fit_and_evaluate(tmp_path: Path) -> None:
+    paths = []
+    for seed in (1, 2):
+        H, R, channels = _vehicle(seed, 1000)
+        e = R.as_euler("ZYX", degrees=True)
+        table = {"x": H[:, 0], "y": H[:, 1], "z": H[:, 2], "yaw": e[:, 0], "pitch": e[:, 1], "roll": e[:, 2],
+                 "current": channels["current"]}
+        pd.DataFrame(table).to_csv(tmp_path / f"veh{seed}.csv", index=False)
+        paths.append(tmp_path / f"veh{seed}.csv")
+    cal_path = tmp_path / "cal.json"
+    vector = ("--attitude-columns", "yaw,pitch,roll", "--background-ned", ",".join(map(str, H_N)))
+    proc = run_trimag("fit", paths[0], "--model", "interference12", "--units", "nT", *vector, "--regressors",
+                      "current", "-o", cal_path, "--json")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["regressors"]["ranking"][0]["significant"]
+    proc = run_trimag("evaluate", cal_path, paths[1], *vector, "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["rms_after"] < 1.15 * NOISE * np.sqrt(3)
+    pd.read_csv(paths[1]).drop(columns="current").to_csv(tmp_path / "bare.csv", index=False)
+    _one_line_error(run_trimag("evaluate", cal_path, tmp_path / "bare.csv", *vector), 2, "no column 'current'")
