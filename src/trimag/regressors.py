@@ -16,8 +16,9 @@ channel ``j`` over the fitted samples) is stored, and ``b0`` is the offset at th
 
 Uncertainty: ``sigma^2 (J^T J)^-1`` at the estimate (the Fisher information of the Gaussian model), ``sigma^2``
 from the residuals, times the residuals' integrated autocorrelation time (:func:`trimag.honesty.correlation_time`,
-magnitude residuals). The ranking (:func:`rank_regressors`) refits without each term and reports the residual
-variance it explains and an F-test of its three coefficients.
+magnitude residuals). The ranking (``diagnostics["regressors"]["ranking"]``) refits without each term and reports
+the residual variance it explains and an F-test of its three coefficients (the F statistic and its denominator
+degrees of freedom divided by the same autocorrelation time).
 """
 
 from __future__ import annotations
@@ -106,7 +107,9 @@ class _Magnitude:
     """
 
     def __init__(self, x: NDArray[np.float64], u: NDArray[np.float64], t: Any) -> None:
-        self.x, self.u, self.t = x, u, t
+        # component-major (3, N) and (m, N) copies: every step below is a pass over contiguous rows
+        # (row-wise arithmetic on (N, 3) arrays is 5-10x slower, docs/architecture.md)
+        self.xT, self.uT, self.t = np.ascontiguousarray(x.T), np.ascontiguousarray(u.T), t
         self._key: bytes | None = None
         self._value: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
@@ -119,18 +122,19 @@ class _Magnitude:
     def _evaluate(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         W = np.zeros((3, 3))
         W[UPPER] = p[:6]
-        m = self.u.shape[1]
-        d = self.x - p[6:9] - self.u @ p[9:].reshape(m, 3)
-        y = d @ W.T
-        mag = np.sqrt(np.einsum("ij,ij->i", y, y))
-        n = y / mag[:, None]
-        q = n @ W  # W^T n per sample
-        J = np.empty((len(d), 9 + 3 * m))
+        m, n_samples = self.uT.shape
+        d = self.xT - p[6:9, None] - p[9:].reshape(m, 3).T @ self.uT  # (3, N)
+        y = W @ d
+        mag = np.sqrt(y[0] ** 2 + y[1] ** 2 + y[2] ** 2)
+        n = y / mag
+        q = W.T @ n  # W^T n per sample, (3, N)
+        Jt = np.empty((9 + 3 * m, n_samples))
         for k, (a, b) in enumerate(zip(*UPPER, strict=True)):
-            J[:, k] = n[:, a] * d[:, b]
-        J[:, 6:9] = -q
-        J[:, 9:] = -(self.u[:, :, None] * q[:, None, :]).reshape(len(d), 3 * m)
-        return mag - self.t, J
+            np.multiply(n[a], d[b], out=Jt[k])
+        np.negative(q, out=Jt[6:9])
+        for j in range(m):
+            np.multiply(-self.uT[j], q, out=Jt[9 + 3 * j : 12 + 3 * j])
+        return mag - self.t, Jt.T
 
 
 def _solve(
@@ -255,12 +259,16 @@ def _f_survival(f: float, dfn: int, dfd: int) -> float:
 
 
 def _ranking(
-    names: Sequence[str], fit: dict[str, Any], n_rows: int, alpha: float
+    names: Sequence[str], fit: dict[str, Any], n_rows: int, alpha: float, tau: float = 1.0
 ) -> list[dict[str, Any]]:
-    """One entry per regressor, most variance explained first (module docstring)."""
+    """One entry per regressor, most variance explained first (module docstring).
+
+    ``tau``: the residuals' integrated autocorrelation time; the F statistic and its denominator degrees of
+    freedom are divided by it (``tau`` consecutive samples carry about one sample's information).
+    """
     ss, k = fit["ss"], fit["n_params"]
     n_resid = fit["residuals"].size
-    dof = max(n_resid - k, 1)
+    dof = max(int((n_resid - k) / tau), 1)
     cov, order = fit["cov"], fit["param_names"]
     out = []
     for j, name in enumerate(names):
@@ -269,7 +277,7 @@ def _ranking(
         C = cov[np.ix_(idx, idx)]
         std = np.sqrt(np.clip(np.diag(C), 0.0, None))
         explained = max(fit["ss_without"][j] - ss, 0.0)
-        f_stat = (explained / 3.0) / (ss / dof) if ss > 0 else float("inf")
+        f_stat = (explained / 3.0) / (ss / max(n_resid - k, 1)) / tau if ss > 0 else float("inf")
         try:
             wald = float(coef @ np.linalg.solve(C, coef))
         except np.linalg.LinAlgError:
@@ -393,6 +401,7 @@ def _assemble(
         if tau > 1.0:
             factors["correlated_residuals"] = tau
             cov = cov * tau
+            fit = {**fit, "cov": cov}
     order = fit["param_names"]
     uncertainty = {
         "basis": "sigma^2 (J^T J)^-1 at the joint estimate (Gauss-Newton Fisher information; sigma from the "
@@ -406,7 +415,7 @@ def _assemble(
         "inflation": {"total": float(np.prod(list(factors.values()))) if factors else 1.0, **factors,
                       "note": "covariance x total: correlated residuals (trimag.honesty.correlation_time)"},
     }
-    ranking = _ranking(names, fit, n, alpha)
+    ranking = _ranking(names, fit, n, alpha, factors.get("correlated_residuals", 1.0))
     stats = dict(base.stats)
     stats.update({
         "rms_after": float(np.sqrt(np.mean(err**2))), "max_abs_after": float(np.max(np.abs(err))),
