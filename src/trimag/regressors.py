@@ -253,9 +253,11 @@ def _fit_vector(
 
 
 def _f_survival(f: float, dfn: int, dfd: int) -> float:
-    from scipy.stats import f as f_distribution
+    """``P(X > f)`` for ``X ~ F(dfn, dfd)``: the regularised incomplete beta function ``I_x(dfd/2, dfn/2)`` at
+    ``x = dfd / (dfd + dfn f)`` (``scipy.stats.f.sf`` without importing scipy.stats, ~0.4 s)."""
+    from scipy.special import betainc
 
-    return float(f_distribution.sf(f, dfn, dfd))
+    return float(betainc(0.5 * dfd, 0.5 * dfn, dfd / (dfd + dfn * max(f, 0.0))))
 
 
 def _ranking(
