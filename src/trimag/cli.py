@@ -452,7 +452,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     finally:
         close()
     if r["n_dropped"]:
-        _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric x/y/z")
+        what = "x/y/z or regressor values" if r.get("regressors") else "x/y/z"
+        _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
         return EXIT_OK

@@ -702,6 +702,7 @@ def evaluate_file(
         "n_used": after.n,
         "n_dropped": n_bad,
         "selection": "; ".join(x for x in (f"rows {rows}" if rows else "", f"where {where}" if where else "") if x),
+        "regressors": list(regressor_names),
         "reference": {"value": F_used, "source": source, "unit": cal.units},
         "rms_before": stats_before["rms"],
         "rms_after": stats_after["rms"],
