@@ -305,3 +305,16 @@ def test_cli_vector_model_fit_and_evaluate(tmp_path: Path) -> None:
     assert json.loads(proc.stdout)["rms_after"] < 1.15 * NOISE * np.sqrt(3)
     pd.read_csv(paths[1]).drop(columns="current").to_csv(tmp_path / "bare.csv", index=False)
     _one_line_error(run_trimag("evaluate", cal_path, tmp_path / "bare.csv", *vector), 2, "no column 'current'")
+
+
+def test_cli_batch_takes_the_regressors(tmp_path: Path) -> None:
+    for seed in (8, 9):
+        raw, channels = _log(seed, 800, temperature=False)
+        _write(tmp_path / f"log{seed}.csv", raw, channels)
+    proc = run_trimag("batch", str(tmp_path / "log*.csv"), "--reference", str(F), "--regressors", "current",
+                      "--out", tmp_path / "out", "--json")
+    assert proc.returncode == 0, proc.stderr
+    for seed in (8, 9):
+        cal = Calibration.from_file(tmp_path / "out" / f"log{seed}.json")
+        assert cal.regressors["names"] == ["current"]
+        assert np.allclose(cal.regressors["coefficients"][0], K_CURRENT, atol=2.0)

@@ -190,6 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="identification method (default: the model's default)")
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
+    p.add_argument("--regressors", metavar="COL[,COL...]",
+                   help="offset terms linear in these columns of every file (as for `trimag fit`)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--workers", type=int, default=1, help="parallel workers on Dask's local scheduler")
     p.add_argument("--scheduler", metavar="ADDRESS", help="dask.distributed scheduler, e.g. tcp://host:8786")
@@ -518,6 +520,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         workers=args.workers, scheduler=args.scheduler, progress=not args.quiet, fmt=args.fmt,
         columns=args.columns, var=args.var, units=args.units, strict=args.strict, reference=args.reference,
         igrf_spec=args.igrf_spec, reference_column=args.reference_column,
+        regressors=_regressor_flag(args.regressors),
     )
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
         if error:
