@@ -318,3 +318,10 @@ def test_cli_batch_takes_the_regressors(tmp_path: Path) -> None:
         cal = Calibration.from_file(tmp_path / "out" / f"log{seed}.json")
         assert cal.regressors["names"] == ["current"]
         assert np.allclose(cal.regressors["coefficients"][0], K_CURRENT, atol=2.0)
+
+
+def test_repr_rebuilds_the_regressor_terms(fitted) -> None:
+    cal, _, raw, channels = fitted
+    rebuilt = eval(repr(cal), {"Calibration": Calibration})  # the from_matrix_offset call it shows
+    assert rebuilt.approx_equal(cal, atol=0)
+    assert np.array_equal(rebuilt.apply(raw, regressors=channels), cal.apply(raw, regressors=channels))

@@ -475,9 +475,10 @@ class Calibration:
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:
+        terms = "" if self.regressors is None else f", regressors={dict(self.regressors)!r}"
         return (
             f"Calibration.from_matrix_offset(matrix={self.matrix.tolist()!r}, offset={self.offset.tolist()!r}, "
-            f"units={self.units!r}, model={self.model!r}, method={self.method!r})"
+            f"units={self.units!r}, model={self.model!r}, method={self.method!r}{terms})"
         )
 
     def __eq__(self, other: object) -> bool:
