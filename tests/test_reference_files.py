@@ -26,6 +26,7 @@ from trimag.models import available_models
 
 DATA = Path(__file__).resolve().parent / "data" / "calibrations"
 COMPENSATION = "tolles-lawson"
+REGRESSORS = "ellipsoid-regressors"  # an ellipsoid calibration with regressor terms (format 2.0.0)
 MODELS = available_models()
 RTOL = 1e-9
 
@@ -54,8 +55,8 @@ def _major(version: str) -> int:
 
 def test_every_registered_model_has_a_reference_file() -> None:
     """A newly registered model needs its reference file: ``python tests/data/calibrations/make.py``."""
-    missing = [f"{name}{ext}" for name in [*MODELS, COMPENSATION] for ext in (".json", ".in.csv", ".out.csv")
-               if not (DATA / f"{name}{ext}").is_file()]
+    missing = [f"{name}{ext}" for name in [*MODELS, REGRESSORS, COMPENSATION]
+               for ext in (".json", ".in.csv", ".out.csv") if not (DATA / f"{name}{ext}").is_file()]
     assert not missing, f"run `python tests/data/calibrations/make.py` to write {', '.join(missing)}"
 
 
@@ -93,7 +94,23 @@ def test_compensation_file_reads_and_applies_as_written() -> None:
                                   comp.apply(vector, scalar))
 
 
-@pytest.mark.parametrize("name", [*MODELS, COMPENSATION])
+def test_calibration_file_with_regressor_terms_reads_and_applies_as_written() -> None:
+    """Format 2.0.0: the offset moves with the rows' ``current`` and ``temperature`` (docs/vehicle.md)."""
+    data = json.loads((DATA / f"{REGRESSORS}.json").read_text(encoding="utf-8"))
+    assert _major(data["format_version"]) == 2 and data["regressors"]["names"] == ["current", "temperature"]
+    cal = Calibration.from_file(DATA / f"{REGRESSORS}.json")
+    rows = read_rows(DATA / f"{REGRESSORS}.in.csv")
+    raw, u = rows[:, :3], {"current": rows[:, 3], "temperature": rows[:, 4]}
+    expected = read_rows(DATA / f"{REGRESSORS}.out.csv")
+    assert_rows_close(cal.apply(raw, regressors=u), expected, "ellipsoid with regressors: apply")
+    assert_rows_close(cal.apply(raw, regressors=rows[:, 3:]), expected, "ellipsoid with regressors: (N, m) array")
+    assert_rows_close(cal.apply(expected, inverse=True, regressors=u), raw, "ellipsoid with regressors: inverse")
+    back = Calibration.from_json(cal.to_json())
+    assert json.loads(back.to_json())["format_version"] == data["format_version"]
+    np.testing.assert_array_equal(back.apply(raw, regressors=u), cal.apply(raw, regressors=u))
+
+
+@pytest.mark.parametrize("name", [*MODELS, REGRESSORS, COMPENSATION])
 def test_trimag_apply_on_the_reference_rows(name: str, tmp_path: Path) -> None:
     """The same through the command a user runs: ``trimag apply FILE NAME.in.csv -o OUT.csv``."""
     out = tmp_path / "out.csv"

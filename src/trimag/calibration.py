@@ -9,6 +9,12 @@ in the data's unit. The named physical parameters of the model that produced it 
 
 A Calibration is immutable. Build it with ``from_*`` constructors, read it with ``as_*`` / ``to_*``.
 Its JSON file is versioned (``format_version``, semver); a file from a newer major version is refused.
+
+Regressor terms (``regressors``, docs/vehicle.md) make the offset depend on logged channels ``u_j`` (current,
+temperature, ...): ``B_corrected = matrix @ (B_raw - offset - sum_j k_j (u_j - mean_j))``. A calibration with
+them is written with format version :data:`REGRESSORS_FORMAT_VERSION` (2.0.0), so that a trimag that does not
+know them refuses the file instead of silently ignoring the terms; every other calibration is written exactly as
+before (1.0.0).
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ __all__ = ["FORMAT_VERSION", "Calibration"]
 
 FORMAT_VERSION = "1.0.0"
 _FORMAT_MAJOR = 1
+#: The format version of a calibration with regressor terms (a 1.x reader would ignore them: refused there).
+REGRESSORS_FORMAT_VERSION = "2.0.0"
 
 
 def file_major_version(data: Any, kind: str, current: str) -> int:
@@ -88,6 +96,53 @@ def _frozen_array(a: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np
     return arr
 
 
+def check_regressor_terms(terms: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``regressors`` entry of a calibration, checked and as plain lists.
+
+    ``terms``: ``names`` (m str), ``means`` (m,) in each regressor's unit, ``coefficients`` (m, 3) in data unit
+    per regressor unit (row ``j`` is ``k_j``), and optionally ``units`` (m str, free text) and ``note``.
+    """
+    try:
+        names = [str(n) for n in terms["names"]]
+        means = np.asarray(terms["means"], dtype=np.float64)
+        coef = np.asarray(terms["coefficients"], dtype=np.float64)
+    except KeyError as exc:
+        raise TrimagInputError(f"`regressors` lacks the entry {exc.args[0]!r}") from None
+    m = len(names)
+    if m == 0 or len(set(names)) != m:
+        raise TrimagInputError(f"`regressors` must name at least one regressor, each once; got {names}")
+    if means.shape != (m,) or coef.shape != (m, 3):
+        raise TrimagInputError(
+            f"`regressors` of {m} names needs means of shape ({m},) and coefficients ({m}, 3); got {means.shape} "
+            f"and {coef.shape}"
+        )
+    if not (np.isfinite(means).all() and np.isfinite(coef).all()):
+        raise TrimagInputError("`regressors` means and coefficients must be finite")
+    out: dict[str, Any] = {**dict(terms), "names": names, "means": means.tolist(), "coefficients": coef.tolist()}
+    return out
+
+
+def _regressor_values(terms: Mapping[str, Any], values: Any, shape: tuple[int, ...]) -> NDArray[np.float64]:
+    """The regressor values ``values`` (mapping name -> (N,), or (N, m) / (m,) array) as an (N, m) or (m,)
+    array in the order of ``terms["names"]``, for samples of ``shape`` ((N, 3) or (3,))."""
+    names = list(terms["names"])
+    if isinstance(values, Mapping):
+        missing = [n for n in names if n not in values]
+        if missing:
+            raise TrimagInputError(
+                f"`regressors` lacks {', '.join(map(repr, missing))}; this calibration needs {', '.join(names)}"
+            )
+        arr = np.stack([np.asarray(values[n], dtype=np.float64) for n in names], axis=-1)
+    else:
+        arr = np.asarray(values, dtype=np.float64)
+    expected = (*shape[:-1], len(names))
+    if arr.shape != expected:
+        raise TrimagInputError(
+            f"`regressors` must have shape {expected} (one value of {', '.join(names)} per sample); got {arr.shape}"
+        )
+    return arr
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
     """An identified magnetometer calibration: ``B_corrected = matrix @ (B_raw - offset)``.
@@ -116,6 +171,10 @@ class Calibration:
         Standard deviations (``param_std``), covariance and predicted error when the method gives them.
     diagnostics : dict
         Condition number, sphere coverage, warnings, iteration history.
+    regressors : dict or None
+        Regressor terms of the offset (docs/vehicle.md): ``names`` (m), ``means`` (m,), ``coefficients`` (m, 3)
+        in ``units`` per regressor unit; :meth:`apply` subtracts ``sum_j k_j (u_j - mean_j)`` from the raw
+        samples first. None: the offset is constant.
     """
 
     matrix: NDArray[np.float64]
@@ -131,6 +190,7 @@ class Calibration:
     created: str = ""
     trimag_version: str = __version__
     format_version: str = FORMAT_VERSION
+    regressors: Mapping[str, Any] | None = None
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -148,8 +208,10 @@ class Calibration:
         uncertainty: Mapping[str, Any] | None = None,
         diagnostics: Mapping[str, Any] | None = None,
         created: str | None = None,
+        regressors: Mapping[str, Any] | None = None,
     ) -> Calibration:
-        """Build a calibration from its correction matrix (3, 3) and offset (3,) in ``units``."""
+        """Build a calibration from its correction matrix (3, 3) and offset (3,) in ``units``; ``regressors``:
+        the offset's regressor terms (see the class docstring), None for a constant offset."""
         m = _frozen_array(matrix, (3, 3), "matrix")
         if abs(np.linalg.det(m)) < 1e-300 or np.linalg.cond(m) > 1e12:
             raise TrimagInputError("`matrix` is singular: a calibration must be invertible")
@@ -165,6 +227,8 @@ class Calibration:
             uncertainty=None if uncertainty is None else dict(uncertainty),
             diagnostics=dict(diagnostics or {}),
             created=created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            regressors=None if regressors is None else check_regressor_terms(regressors),
+            format_version=FORMAT_VERSION if regressors is None else REGRESSORS_FORMAT_VERSION,
         )
 
     @classmethod
@@ -190,7 +254,9 @@ class Calibration:
         )
 
     # ------------------------------------------------------------------ algebra
-    def apply(self, B: ArrayLike, *, inverse: bool = False, units: str | None = None) -> NDArray[np.float64]:
+    def apply(
+        self, B: ArrayLike, *, inverse: bool = False, units: str | None = None, regressors: Any = None
+    ) -> NDArray[np.float64]:
         """Correct raw samples (or, with ``inverse=True``, distort corrected ones back to raw).
 
         Parameters
@@ -198,9 +264,15 @@ class Calibration:
         B : array_like, shape (3,) or (N, 3)
             Samples in :attr:`units`. Non-finite rows stay non-finite (one row never affects another).
         inverse : bool
-            Apply the inverse map ``B_raw = inv(matrix) @ B + offset``.
+            Apply the inverse map ``B_raw = inv(matrix) @ B + offset`` (plus the regressor terms).
         units : str, optional
             Unit of ``B``; if given and different from :attr:`units`, :class:`UnitMismatchError` is raised.
+        regressors : mapping or array_like, optional
+            Values of the calibration's regressors (:attr:`regressors`) at each sample: a mapping name -> shape
+            (N,) (or a number for one sample), or an array of shape (N, m) (or (m,)) in the order of
+            ``regressors["names"]``, in the units they were fitted in. Required when the calibration has
+            regressor terms (``sum_j k_j (u_j - mean_j)`` is subtracted from ``B`` before the affine correction),
+            refused when it has none.
 
         Returns
         -------
@@ -216,14 +288,45 @@ class Calibration:
         arr = np.asarray(B, dtype=np.float64)
         if arr.shape[-1:] != (3,) or arr.ndim > 2:
             raise TrimagInputError(f"`B` must have shape (3,) or (N, 3); got {arr.shape}")
+        if self.regressors is not None or regressors is not None:
+            return self._apply_regressors(arr, inverse, regressors)
         if inverse:
             return np.linalg.solve(self.matrix, arr.T).T + self.offset
         if arr.ndim == 2 and len(arr) > 1000:
             return affine(arr, self.matrix, self.offset)  # blocked, component-major: ~3x faster on long arrays
         return (arr - self.offset) @ self.matrix.T
 
+    def regressor_shift(self, regressors: Any, shape: tuple[int, ...] = (1, 3)) -> NDArray[np.float64]:
+        """The offset change ``sum_j k_j (u_j - mean_j)`` at each sample, shape ``shape`` ((N, 3) or (3,)),
+        for regressor values given as in :meth:`apply`."""
+        terms = self.regressors
+        if terms is None:
+            raise TrimagInputError("this calibration has no regressor terms; drop `regressors`")
+        if regressors is None:
+            raise TrimagInputError(
+                f"this calibration has regressor terms ({', '.join(terms['names'])}); give their values at every "
+                "sample: apply(B, regressors={name: values}) (on the command line the data need those columns)"
+            )
+        u = _regressor_values(terms, regressors, shape)
+        shift = (u - np.asarray(terms["means"])) @ np.asarray(terms["coefficients"])
+        return np.asarray(shift, dtype=np.float64)
+
+    def _apply_regressors(self, arr: NDArray[np.float64], inverse: bool, regressors: Any) -> NDArray[np.float64]:
+        shift = self.regressor_shift(regressors, arr.shape)
+        if inverse:
+            return np.linalg.solve(self.matrix, arr.T).T + self.offset + shift
+        return np.asarray((arr - shift - self.offset) @ self.matrix.T, dtype=np.float64)
+
+    def _refuse_regressors(self, what: str) -> None:
+        if self.regressors is not None:
+            raise TrimagInputError(
+                f"{what} of a calibration with regressor terms ({', '.join(self.regressors['names'])}) is not "
+                "defined (the offset depends on the regressors)"
+            )
+
     def inv(self) -> Calibration:
         """The inverse map as a Calibration: ``c.inv().apply(c.apply(B)) == B`` (to rounding)."""
+        self._refuse_regressors("the inverse")
         inv_matrix = np.linalg.inv(self.matrix)
         return Calibration.from_matrix_offset(
             inv_matrix, -self.matrix @ self.offset, units=self.units, model="affine",
@@ -234,6 +337,8 @@ class Calibration:
         """Composition: ``(a * b).apply(B) == a.apply(b.apply(B))`` (``b`` first, as in scipy's Rotation)."""
         if not isinstance(other, Calibration):
             return NotImplemented
+        self._refuse_regressors("a composition")
+        other._refuse_regressors("a composition")
         matrix = self.matrix @ other.matrix
         offset = other.offset + np.linalg.solve(other.matrix, self.offset)
         return Calibration.from_matrix_offset(
@@ -241,7 +346,16 @@ class Calibration:
         )
 
     def approx_equal(self, other: Calibration, atol: float = 1e-9) -> bool:
-        """True when matrix and offset agree within ``atol`` and the units match."""
+        """True when matrix, offset (and regressor coefficients) agree within ``atol`` and the units match."""
+        mine, theirs = self.regressors, other.regressors
+        if (mine is None) != (theirs is None):
+            return False
+        if mine is not None and theirs is not None and not (
+            list(mine["names"]) == list(theirs["names"])
+            and bool(np.allclose(mine["coefficients"], theirs["coefficients"], rtol=0, atol=atol))
+            and bool(np.allclose(mine["means"], theirs["means"], rtol=0, atol=atol))
+        ):
+            return False
         return (
             self.units == other.units
             and bool(np.allclose(self.matrix, other.matrix, rtol=0, atol=atol))
@@ -258,8 +372,9 @@ class Calibration:
 
     # ------------------------------------------------------------------ export
     def as_dict(self) -> dict[str, Any]:
-        """All content as plain JSON types (the file format; see ``docs/calibration-file.md``)."""
-        return _jsonable(
+        """All content as plain JSON types (the file format; see ``docs/calibration-file.md``). A calibration
+        without regressor terms has no ``regressors`` key (format 1.0.0, as before they existed)."""
+        out = _jsonable(
             {
                 "format": "trimag-calibration",
                 "format_version": self.format_version,
@@ -280,6 +395,11 @@ class Calibration:
                 "diagnostics": dict(self.diagnostics),
             }
         )
+        if self.regressors is not None:
+            out["format_version"] = REGRESSORS_FORMAT_VERSION
+            out["convention"] = "B_corrected = matrix @ (B_raw - offset - sum_j k_j (u_j - mean_j))"
+            out["regressors"] = _jsonable(dict(self.regressors))
+        return dict(out)
 
     def to_json(self, indent: int | None = 2) -> str:
         """Serialise to JSON text; floats are written with full precision, so apply() round-trips exactly."""
@@ -294,7 +414,7 @@ class Calibration:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Calibration:
         """Rebuild from :meth:`as_dict` output; checks the format and its version."""
-        major = file_major_version(data, "calibration", FORMAT_VERSION)
+        major = file_major_version(data, "calibration", REGRESSORS_FORMAT_VERSION)
         if major < _FORMAT_MAJOR:
             from .io.legacy import migrate
 
@@ -308,6 +428,11 @@ class Calibration:
                 "it was not written by this trimag or was edited"
             )
         try:
+            terms = data.get("regressors")
+            if major >= 2 and terms is None:
+                raise CalibrationFormatError(
+                    f"calibration file has format_version {data.get('format_version')} but no regressor terms"
+                )
             return cls(
                 matrix=_frozen_array(data["matrix"], (3, 3), "matrix"),
                 offset=_frozen_array(data["offset"], (3,), "offset"),
@@ -321,7 +446,8 @@ class Calibration:
                 diagnostics=dict(data.get("diagnostics") or {}),
                 created=str(data.get("created", "")),
                 trimag_version=str(data.get("trimag_version", "")),
-                format_version=FORMAT_VERSION,
+                format_version=FORMAT_VERSION if terms is None else REGRESSORS_FORMAT_VERSION,
+                regressors=None if terms is None else check_regressor_terms(terms),
             )
         except KeyError as exc:
             raise CalibrationFormatError(f"calibration file lacks the entry {exc.args[0]!r}") from None
@@ -349,9 +475,10 @@ class Calibration:
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:
+        terms = "" if self.regressors is None else f", regressors={dict(self.regressors)!r}"
         return (
             f"Calibration.from_matrix_offset(matrix={self.matrix.tolist()!r}, offset={self.offset.tolist()!r}, "
-            f"units={self.units!r}, model={self.model!r}, method={self.method!r})"
+            f"units={self.units!r}, model={self.model!r}, method={self.method!r}{terms})"
         )
 
     def __eq__(self, other: object) -> bool:

@@ -147,6 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reference_options(p)
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
+    p.add_argument("--regressors", metavar="COL[,COL...]",
+                   help="columns the offset depends on linearly (current, throttle, temperature, ...): "
+                        "b = b0 + sum k_j (u_j - mean_j), fitted jointly and ranked (models ellipsoid, interference12; "
+                        "docs/vehicle.md); apply and evaluate read the same columns")
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -219,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="identification method (default: the model's default)")
     p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
     _add_reference_options(p)
+    p.add_argument("--regressors", metavar="COL[,COL...]",
+                   help="offset terms linear in these columns of every file (as for `trimag fit`)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -255,6 +261,10 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          args)
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
+    if cal.regressors is not None:
+        from .regressors import ranking_table
+
+        _say(ranking_table(cal.diagnostics["regressors"]["ranking"], cal.units), args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
 
@@ -337,8 +347,16 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
                                 background_run=args.background_run),
         attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
                               quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame),
-        out=args.out, report=args.report, policy=args.policy,
+        out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
     )
+
+
+def _regressor_flag(text: str | None) -> tuple[str, ...] | None:
+    """``--regressors A,B`` -> ("A", "B")."""
+    names = _split_list(text)
+    if names is not None and not names:
+        raise TrimagInputError("--regressors names no column; give COL[,COL...]")
+    return None if names is None else tuple(names)
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -470,7 +488,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     finally:
         close()
     if r["n_dropped"]:
-        _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric x/y/z")
+        what = "x/y/z or regressor values" if r.get("regressors") else "x/y/z"
+        _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
         return EXIT_OK
@@ -535,6 +554,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         workers=args.workers, scheduler=args.scheduler, progress=not args.quiet, fmt=args.fmt,
         columns=args.columns, var=args.var, units=args.units, strict=args.strict, reference=args.reference,
         igrf_spec=args.igrf_spec, reference_column=args.reference_column,
+        regressors=_regressor_flag(args.regressors),
     )
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
         if error:

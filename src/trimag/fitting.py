@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from .calibration import Calibration
@@ -20,6 +22,7 @@ def fit(
     *,
     units: str | None = "unknown",
     attitude: Any = None,
+    regressors: Mapping[str, ArrayLike] | None = None,
     **options: Any,
 ) -> Calibration:
     """Identify a magnetometer calibration from raw samples.
@@ -40,6 +43,11 @@ def fit(
         Unit of ``samples``: ``nT``, ``uT``, ``G``, ``mG``, ``counts`` (recorded in the result).
     attitude : scipy.spatial.transform.Rotation, optional
         Per-sample attitudes, for vector methods (``interference12``).
+    regressors : mapping str -> array_like, shape (N,), optional
+        Channels the offset depends on linearly (motor current, throttle, temperature, ...), in their own units:
+        ``b(t) = b0 + sum_j k_j (u_j(t) - mean_j)``, fitted jointly with the model (``ellipsoid`` and
+        ``interference12``; :func:`trimag.regressors.fit_regressors`, docs/vehicle.md). Apply the result with
+        ``cal.apply(B, regressors=...)``.
     **options
         Method options (see each method's class, e.g. ``form="symmetric"`` for ``ml``).
 
@@ -67,4 +75,9 @@ def fit(
     """
     estimator = make_estimator(model, method, options)
     estimator.fit(samples, reference, units=units, attitude=attitude)
-    return estimator.calibration_
+    if regressors is None:
+        return estimator.calibration_
+    from .regressors import fit_regressors
+
+    return fit_regressors(estimator.calibration_, np.asarray(samples, dtype=np.float64), regressors, reference,
+                          attitude=attitude)

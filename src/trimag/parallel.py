@@ -317,7 +317,7 @@ def _run_local(
 def _run_distributed(
     fn: Callable[[T], R], items: list[T], scheduler: Any, chunksize: int | None, bar: ProgressBar
 ) -> list[R]:
-    distributed = require("distributed", "running on a Dask cluster (--scheduler)")
+    distributed = require("distributed", "running on a Dask cluster (`scheduler`)")
     Client, as_completed = distributed.Client, distributed.as_completed
 
     own = not isinstance(scheduler, Client)

@@ -64,8 +64,9 @@ class AttitudeSpec:
 @dataclass(frozen=True)
 class FitRequest:
     """One fit: read ``input``, take the ``reference`` (and ``attitude``), fit ``model`` by ``method`` with
-    ``options``, check ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration JSON) and
-    ``report`` (figure) when given."""
+    ``options`` (and the offset's ``regressors``: column names whose terms ``k_j (u_j - mean_j)`` are fitted
+    jointly, docs/vehicle.md), check ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration
+    JSON) and ``report`` (figure) when given."""
 
     input: InputSpec
     model: str = "ellipsoid"
@@ -76,6 +77,7 @@ class FitRequest:
     out: str | Path | None = None
     report: str | Path | None = None
     policy: str | None = None
+    regressors: tuple[str, ...] | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

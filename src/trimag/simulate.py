@@ -257,3 +257,35 @@ def simulate_aircraft(
 
 
 __all__ += ["AircraftSimulation", "simulate_aircraft"]
+
+
+def current_profile(
+    n: int, seed: int | np.random.Generator | None = None, *, max_current: float = 20.0, cycles: float = 3.0,
+) -> NDArray[np.float64]:
+    """A motor-current series (n,), amperes, between 0 and ``max_current``: a throttle that swings ``cycles``
+    times over the log (random phase), with random steps of up to half the range on every sample (gusts, motor
+    commands), clipped at 0 and ``max_current`` (docs/vehicle.md).
+
+    Examples
+    --------
+    >>> current_profile(1000, 0).shape
+    (1000,)
+    """
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 1.0, n)
+    mid = 0.5 * max_current
+    swing = mid * np.sin(2.0 * np.pi * cycles * t + rng.uniform(0.0, 2.0 * np.pi)) * rng.uniform(0.5, 1.0, n)
+    return np.asarray(np.clip(mid + swing, 0.0, max_current), dtype=np.float64)
+
+
+def temperature_ramp(
+    n: int, seed: int | np.random.Generator | None = None, *, start: float = 20.0, stop: float = 35.0,
+    noise: float = 0.2,
+) -> NDArray[np.float64]:
+    """A temperature series (n,), degrees Celsius: a linear warm-up from ``start`` to ``stop`` plus white noise of
+    ``noise`` (the sensor's reading)."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(np.linspace(start, stop, n) + rng.normal(0.0, noise, n), dtype=np.float64)
+
+
+__all__ += ["current_profile", "temperature_ramp"]

@@ -24,6 +24,7 @@ from .errors import TrimagError, TrimagInputError, TrimagWarning
 from .estimators import make_estimator
 from .io import MagnitudeAccumulator, Samples, apply_file, column_values, open_chunks, read_samples
 from .io.atomic import atomic_write_text
+from .io.stream import chunk_columns
 from .io.tables import where_mask
 from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
 from .requests import FitRequest
@@ -153,11 +154,41 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
         "uncertainty": d["uncertainty"],
         "diagnostics": d["diagnostics"],
     }
+    if cal.regressors is not None:
+        out["regressors"] = {**d["regressors"], "ranking": d["diagnostics"].get("regressors", {}).get("ranking")}
+        out["rms_after_without_regressors"] = s.get("rms_after_without_regressors")
     if samples is not None:
         out["columns"] = list(samples.columns)
         out["selection"] = samples.selection
         out["source"] = samples.source
     return out
+
+
+def _regressor_names(names: Any) -> tuple[str, ...] | None:
+    """``FitRequest.regressors`` (a tuple, or a comma-separated string) as a tuple of names; None when none."""
+    if names is None:
+        return None
+    items = names.split(",") if isinstance(names, str) else list(names)
+    out = tuple(str(n).strip() for n in items if str(n).strip())
+    if not out:
+        raise TrimagInputError("`regressors` names no column; give COL[,COL...]")
+    if len(set(out)) != len(out):
+        raise TrimagInputError(f"`regressors` names a column twice: {', '.join(out)}")
+    return out
+
+
+def regressor_columns(
+    samples: Samples, names: tuple[str, ...], path: Any, what: str = "a regressor of the calibration"
+) -> dict[str, NDArray[np.float64]]:
+    """The values (N,) of the regressor columns ``names`` in the kept rows of ``samples``; one line naming the
+    missing column and the file when one is not there."""
+    missing = [n for n in names if n not in samples.table.columns]
+    if missing:
+        raise TrimagInputError(
+            f"{path}: no column {missing[0]!r} ({what}); the columns are "
+            f"{', '.join(map(str, samples.table.columns))}"
+        )
+    return {n: column_values(samples, n) for n in names}
 
 
 def _drop_rows_without_attitude(
@@ -401,6 +432,14 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     from .policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
+    regressor_names = _regressor_names(req.regressors)
+    if regressor_names is not None:
+        from .regressors import MODELS as REGRESSOR_MODELS
+
+        if req.model not in REGRESSOR_MODELS:
+            raise TrimagInputError(
+                f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
+            )
     estimator = make_estimator(req.model, req.method, dict(req.options))
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
@@ -411,6 +450,9 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     messages += unit_messages + _reading_messages(samples)
     samples, ref, attitude, ref_messages = _fit_reference(req, samples, estimator, unit)
     messages += ref_messages
+    regressor_values = None if regressor_names is None else regressor_columns(
+        samples, regressor_names, src.path, "named by `regressors`"
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", TrimagWarning)
         estimator.fit(samples.field, ref, units=unit, attitude=attitude)
@@ -426,6 +468,10 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
                         f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
                         "reference and the unit")
+    if regressor_values is not None:
+        from .regressors import fit_regressors
+
+        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
     if warn_texts:
@@ -439,7 +485,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         summary["acceptance"] = cal.diagnostics["acceptance"]
     if igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None and req.model == "ellipsoid":
         messages.append(_heading_message(cal, igrf_spec, summary))
-    cal, written = _write_fit_outputs(cal, samples, req)
+    cal, written = _write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
 
@@ -541,7 +587,9 @@ def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) 
             f"{heading['rms_deg']:.3g} deg RMS over headings, {heading['max_deg']:.3g} deg at worst (1 sigma)")
 
 
-def _write_fit_outputs(cal: Calibration, samples: Samples, req: FitRequest) -> tuple[Calibration, dict[str, str]]:
+def _write_fit_outputs(
+    cal: Calibration, samples: Samples, req: FitRequest, regressor_values: dict[str, NDArray[np.float64]] | None = None
+) -> tuple[Calibration, dict[str, str]]:
     """Write the report and the calibration when asked: together or not at all (the report first, it can fail)."""
     written: dict[str, str] = {}
     path = req.input.path
@@ -551,8 +599,11 @@ def _write_fit_outputs(cal: Calibration, samples: Samples, req: FitRequest) -> t
 
             notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
             title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"
-            figure = fit_report(samples.field, cal, title=title, notes=notes)
-            written["report"] = str(save_figure(figure, req.report))
+            field_, shown = samples.field, cal
+            if regressor_values is not None:  # the figure shows the samples with the regressor terms removed
+                field_ = samples.field - cal.regressor_shift(regressor_values, samples.field.shape)
+                shown = dataclasses.replace(cal, regressors=None)
+            written["report"] = str(save_figure(fit_report(field_, shown, title=title, notes=notes), req.report))
         if req.out is not None:
             cal = cal.with_stats(source=str(path), columns=list(samples.columns))
             written["calibration"] = str(cal.to_file(req.out))
@@ -575,12 +626,22 @@ def apply_to_file(
     chunk_rows: int = 200_000,
     progress: Any = None,
 ) -> dict[str, Any]:
-    """Correct a whole file with a calibration (streamed; see :func:`trimag.io.apply_file`)."""
+    """Correct a whole file with a calibration (streamed; see :func:`trimag.io.apply_file`).
+
+    A calibration with regressor terms reads its regressors from the columns of the same names; a missing column
+    raises :class:`TrimagInputError`, and a row whose regressor value is missing is left uncorrected.
+    """
     cal = Calibration.from_file(cal_path)
     if units is not None:
         cal.apply(np.zeros(3), units=units)  # raises UnitMismatchError on a unit clash
+    names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+
+    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+        return cal.apply(xyz, regressors=u[0] if u else None)
+
     result = apply_file(
-        cal.apply, data_path, out, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows, progress=progress
+        calibrate, data_path, out, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows, progress=progress,
+        regressor_columns=names,
     )
     result["units"] = cal.units
     return result
@@ -626,6 +687,7 @@ def evaluate_file(
         source = f"column {reference_column}"
     src, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
     start, stop = _row_range(rows)
+    regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
     for chunk in chunks:
@@ -639,6 +701,10 @@ def evaluate_file(
         xyz = chunk.xyz[mask]
         n_rows += len(xyz)
         ok = np.isfinite(xyz).all(axis=1)
+        u = chunk_columns(chunk, regressor_names, data_path)[mask] if regressor_names else None
+        if u is not None:
+            ok &= np.isfinite(u).all(axis=1)
+            u = u[ok]
         n_bad += int((~ok).sum())
         xyz = xyz[ok]
         ref_values: Any = F
@@ -649,7 +715,7 @@ def evaluate_file(
             vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
             ref_values = np.asarray(vals.astype(float))[mask][ok]
         before.add(np.linalg.norm(xyz, axis=1), ref_values)
-        after.add(np.linalg.norm(cal.apply(xyz), axis=1), ref_values)
+        after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
         if progress:
             progress(chunk.start + len(chunk.xyz))
     if after.n == 0:
@@ -668,6 +734,7 @@ def evaluate_file(
         "n_used": after.n,
         "n_dropped": n_bad,
         "selection": "; ".join(x for x in (f"rows {rows}" if rows else "", f"where {where}" if where else "") if x),
+        "regressors": list(regressor_names),
         "reference": {"value": F_used, "source": source, "unit": cal.units},
         "rms_before": stats_before["rms"],
         "rms_after": stats_after["rms"],
@@ -716,7 +783,10 @@ def evaluate_vector_file(
     background, source = vector_reference_from_options(units=cal.units, background_ned=background_ned,
                                                        igrf_spec=igrf_spec)
     expected = _attitude.body_field(rot, background)
-    raw, corrected = samples.field, cal.apply(samples.field)
+    u = None
+    if cal.regressors is not None:
+        u = regressor_columns(samples, tuple(cal.regressors["names"]), data_path)
+    raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
 
     def errors(B: NDArray[np.float64]) -> dict[str, Any]:
         e = B - expected

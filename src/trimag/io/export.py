@@ -197,6 +197,11 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
         raise TrimagInputError(f"unknown export target {target!r}; choose one of {', '.join(EXPORT_TARGETS)}")
     if instance < 0 or instance > 7:
         raise TrimagInputError(f"instance must be 0..7; got {instance}")
+    if cal.regressors is not None:
+        raise TrimagInputError(
+            f"this calibration has regressor terms ({', '.join(cal.regressors['names'])}) that the {target} format "
+            "cannot hold (a constant offset only); export a fit without `regressors`"
+        )
     if target == "ardupilot":
         if instance > 2:
             raise TrimagInputError("ArduPilot calibrates compasses 0..2 (COMPASS_OFS, OFS2, OFS3)")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import re
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -133,6 +133,21 @@ def _xyz(table: pa.Table, cols: tuple[str, str, str]) -> NDArray[np.float64]:
     out = np.empty((table.num_rows, 3))
     for j, c in enumerate(cols):
         out[:, j] = _arrow_numeric(table.column(c))
+    return out
+
+
+def chunk_columns(chunk: Chunk, names: Sequence[str], path: str | Path = "the data") -> NDArray[np.float64]:
+    """The numeric values of the columns ``names`` in one chunk, shape (n, m); NaN where a cell is missing or not a
+    number. A column that is not there raises :class:`TrimagInputError` naming it and ``path``."""
+    present = chunk.arrow.column_names if chunk.has_arrow else [str(c) for c in chunk.table.columns]
+    missing = [n for n in names if n not in present]
+    if missing:
+        raise TrimagInputError(
+            f"{path}: no column {missing[0]!r} (a regressor of the calibration); the columns are {', '.join(present)}"
+        )
+    out = np.empty((len(chunk), len(names)))
+    for j, name in enumerate(names):
+        out[:, j] = _arrow_numeric(chunk.arrow.column(name)) if chunk.has_arrow else _numeric(chunk.table[name])
     return out
 
 
@@ -321,8 +336,12 @@ def apply_file(
     suffix: str = "_cal",
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
     progress: Callable[[int], None] | None = None,
+    regressor_columns: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Correct every row of ``in_path`` and write all input columns plus the corrected x, y, z to ``out_path``.
+
+    With ``regressor_columns`` (m names), ``calibrate`` is called as ``calibrate(xyz, u)`` with ``u`` the rows'
+    values of those columns (n, m); a row whose value is missing is not corrected (counted in ``n_uncorrected``).
 
     The output format follows ``out_path``'s extension (``.csv``, ``.txt``, ``.parquet``, ``.npz``); CSV/text and
     Parquet are streamed in ``chunk_rows`` blocks. Rows whose x/y/z are missing, non-numeric or non-finite are
@@ -335,6 +354,8 @@ def apply_file(
         ``n_rows``, ``n_uncorrected``, ``columns`` (x, y, z used), ``output_columns`` (appended names), ``out``.
     """
     out = Path(out_path)
+    def _regressors(chunk: Chunk) -> NDArray[np.float64] | None:
+        return chunk_columns(chunk, regressor_columns, in_path) if regressor_columns else None
     out_kind = guess_format(out) if out.suffix else "csv"
     if out_kind not in ("csv", "txt", "parquet", "npz"):
         raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
@@ -352,7 +373,7 @@ def apply_file(
                     fh.write(line + "\n")
                 first = True
                 for chunk in chunks:
-                    corrected, bad = _correct(calibrate, chunk.xyz)
+                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
                     if first and source.has_header:
                         header = chunk.arrow.column_names if chunk.has_arrow else [str(c) for c in chunk.table.columns]
                         csv.writer(fh, delimiter=sep, lineterminator="\n").writerow(header + new_cols)
@@ -374,7 +395,7 @@ def apply_file(
             writer = None
             try:
                 for chunk in chunks:
-                    corrected, bad = _correct(calibrate, chunk.xyz)
+                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
                     table = _with_corrected(chunk.arrow, corrected, new_cols)
                     if writer is None:
                         writer = pq.ParquetWriter(tmp, table.schema)
@@ -391,7 +412,7 @@ def apply_file(
         else:  # npz: arrays in memory by nature
             parts = []
             for chunk in chunks:
-                corrected, bad = _correct(calibrate, chunk.xyz)
+                corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
                 parts.append((chunk.xyz, corrected))
                 n_rows += len(corrected)
                 n_bad += bad
@@ -399,8 +420,8 @@ def apply_file(
                     progress(n_rows)
             raw = np.vstack([r for r, _ in parts])
             cor = np.vstack([c for _, c in parts])
-            with tmp.open("wb") as fh:
-                np.savez(fh, raw=raw, corrected=cor)
+            with tmp.open("wb") as fb:
+                np.savez(fb, raw=raw, corrected=cor)
     return {
         "n_rows": n_rows,
         "n_uncorrected": n_bad,
@@ -412,14 +433,17 @@ def apply_file(
 
 
 def _correct(
-    calibrate: Callable[[NDArray[np.float64]], NDArray[np.float64]], xyz: NDArray[np.float64]
+    calibrate: Callable[..., NDArray[np.float64]], xyz: NDArray[np.float64], u: NDArray[np.float64] | None = None
 ) -> tuple[NDArray[np.float64], int]:
     ok = np.isfinite(xyz).all(axis=1)
+    if u is not None:
+        ok &= np.isfinite(u).all(axis=1)
+    extra = () if u is None else (u,)
     if ok.all():
-        return np.asarray(calibrate(xyz), dtype=np.float64), 0
+        return np.asarray(calibrate(xyz, *extra), dtype=np.float64), 0
     corrected = np.full_like(xyz, np.nan)
     if ok.any():
-        corrected[ok] = calibrate(xyz[ok])
+        corrected[ok] = calibrate(xyz[ok], *(e[ok] for e in extra))
     return corrected, int((~ok).sum())
 
 

@@ -1,7 +1,9 @@
 """Write the reference calibration files that ``tests/test_reference_files.py`` reads back.
 
 One calibration file per error model registered in :data:`trimag.models.MODELS` (ellipsoid, ortho-gain,
-ortho-gain-bias, scalar9, interference12, zhang-cheng) and one Tolles–Lawson compensation file, each fitted with
+ortho-gain-bias, scalar9, interference12, zhang-cheng), one ellipsoid calibration with regressor terms
+(``ellipsoid-regressors``: format 2.0.0; its rows carry ``current`` and ``temperature``) and one Tolles–Lawson
+compensation file, each fitted with
 trimag's public API (:func:`trimag.fit`, :func:`trimag.estimators.tolles_lawson.fit_tolles_lawson`) on fixed-seed
 simulated data (:mod:`trimag.simulate`). Beside each ``NAME.json``:
 
@@ -38,10 +40,11 @@ from numpy.typing import NDArray
 import trimag
 from trimag.estimators.tolles_lawson import fit_tolles_lawson
 from trimag.models import ErrorModel, available_models, get_model
-from trimag.simulate import simulate, simulate_aircraft
+from trimag.simulate import current_profile, simulate, simulate_aircraft, temperature_ramp
 
 HERE = Path(__file__).resolve().parent
 COMPENSATION = "tolles-lawson"
+REGRESSORS = "ellipsoid-regressors"
 
 F_NT = 48_000.0  # field magnitude, nT
 FIELD_NED = F_NT * np.array([0.45, 0.1, 0.88]) / np.linalg.norm([0.45, 0.1, 0.88])  # inclination ~ 62 deg
@@ -95,6 +98,22 @@ def write_calibration(model: str) -> None:
     _write_csv(HERE / f"{model}.out.csv", ["bx", "by", "bz"], cal.apply(rows), decimals=None)
 
 
+def write_regressors() -> None:
+    """Fit ``ellipsoid`` with a current (30, -20, 50 nT/A) and a temperature (2, 1, -3 nT/degC) term."""
+    sim = simulate(_truth("ellipsoid"), n=N_SAMPLES, field_nav=FIELD_NED, noise=NOISE_NT, seed=SEED)
+    rng = np.random.default_rng(SEED)
+    current, temperature = current_profile(N_SAMPLES, rng), temperature_ramp(N_SAMPLES, rng)
+    raw = sim.raw + np.outer(current, [30.0, -20.0, 50.0]) + np.outer(temperature, [2.0, 1.0, -3.0])
+    cal = trimag.fit(raw, reference=F_NT, units="nT", regressors={"current": current, "temperature": temperature})
+    cal.to_file(HERE / f"{REGRESSORS}.json")
+    table = np.column_stack([raw, current, temperature])
+    rows = np.round(table[:: len(raw) // N_ROWS][:N_ROWS], 2)
+    _write_csv(HERE / f"{REGRESSORS}.in.csv", ["bx", "by", "bz", "current", "temperature"], rows, decimals=2)
+    rows = read_rows(HERE / f"{REGRESSORS}.in.csv")
+    out = cal.apply(rows[:, :3], regressors={"current": rows[:, 3], "temperature": rows[:, 4]})
+    _write_csv(HERE / f"{REGRESSORS}.out.csv", ["bx", "by", "bz"], out, decimals=None)
+
+
 def write_compensation() -> None:
     """Fit a Tolles–Lawson compensation on a simulated calibration box; write the file, in and out rows."""
     box = simulate_aircraft(60.0, rate_hz=10.0, seed=SEED)
@@ -117,7 +136,7 @@ def write_compensation() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    names = [*available_models(), COMPENSATION]
+    names = [*available_models(), REGRESSORS, COMPENSATION]
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("names", nargs="*", metavar="NAME",
                         help=f"files to write (default: every one that is missing): {', '.join(names)}")
@@ -132,6 +151,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         if name == COMPENSATION:
             write_compensation()
+        elif name == REGRESSORS:
+            write_regressors()
         else:
             write_calibration(name)
         print(f"wrote {name}.json, {name}.in.csv, {name}.out.csv")
