@@ -227,16 +227,7 @@ class OrthoGainBias(OrthoGain):
     bz: float = 0.0
 
     name: ClassVar[str] = "ortho-gain-bias"
-    kinds: ClassVar[Mapping[str, str]] = {
-        "theta": "angle",
-        "phi": "angle",
-        "psi": "angle",
-        "kxz": "gain",
-        "kyz": "gain",
-        "bx": "offset",
-        "by": "offset",
-        "bz": "offset",
-    }
+    kinds: ClassVar[Mapping[str, str]] = {**OrthoGain.kinds, "bx": "offset", "by": "offset", "bz": "offset"}
     n_identifiable: ClassVar[int] = 8
 
     def offset(self) -> NDArray[np.float64]:
