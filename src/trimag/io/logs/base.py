@@ -31,14 +31,19 @@ def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> A
             mavutil.mavlink_connection(str(path))
     except Exception as exc:  # pymavlink raises many kinds on a damaged file
         raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
-    while True:
-        try:
-            msg = conn.recv_match(type=types)
-        except Exception as exc:
-            raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
-        if msg is None:
-            return
-        yield msg
+    try:
+        while True:
+            try:
+                msg = conn.recv_match(type=types)
+            except Exception as exc:
+                raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+            if msg is None:
+                return
+            yield msg
+    finally:  # the file pymavlink opened (an unclosed file otherwise: ResourceWarning)
+        close = getattr(conn, "close", None)
+        if callable(close):
+            close()
 
 
 @dataclass
