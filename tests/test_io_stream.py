@@ -268,3 +268,68 @@ def test_short_row_mid_file_falls_back_without_losing_rows(tmp_path: Path, cal: 
     assert got[short + 1].endswith(",,,,")  # missing z kept empty, no corrected values
     cor = np.array([g.split(",")[4:] for i, g in enumerate(got[1:]) if i != short], dtype=float)
     np.testing.assert_allclose(cor, c.apply(np.delete(raw.round(2), short, axis=0)), rtol=1e-12)
+
+
+def test_apply_copies_header_comments_and_untouched_cells_byte_for_byte(
+    tmp_path: Path, cal: tuple[Calibration, Path]
+) -> None:
+    """Findings (issue 22): `apply` stripped header names (`' mag_Y'`), padded comment lines with commas and
+    rewrote other cells. Comma CSV in, CSV out: every input line is copied as it is, the corrected cells appended
+    (CRLF line endings, quoted cells, oddly written numbers and a short row included)."""
+    c, _ = cal
+    raw = simulate_ellipsoid(60, noise=5.0, seed=9)
+    lines = ["# sensor: X", "# site: field 2, north pad", "t, mag_X, mag_Y ,mag_Z,note"]
+    for i, (x, y, z) in enumerate(raw):
+        note = '"a,b"' if i % 7 == 0 else ("" if i % 5 == 0 else f" p{i} ")
+        lines.append(f"{i:.1f},{x:.3f}, {y:.10g},{float(z)!r},{note}")
+    lines[30] = lines[30].rsplit(",", 1)[0]  # a short row: no note cell
+    src = tmp_path / "log.csv"
+    src.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    out = tmp_path / "log_cal.csv"
+    res = apply_file(c.apply, src, out, columns="1,2,3", chunk_rows=16)
+    assert res["n_rows"] == 60 and res["n_uncorrected"] == 0
+    got = out.read_bytes().decode().split("\r\n")
+    assert got[-1] == "" and len(got) == len(lines) + 1
+    assert got[:2] == lines[:2]  # comment lines unchanged, not padded
+    assert got[2] == lines[2] + ",mag_X_cal,mag_Y_cal,mag_Z_cal"  # header names byte for byte
+    for k in range(3, len(lines)):
+        assert got[k].startswith(lines[k] + ("," if k != 30 else ",,"))  # every input cell byte-identical
+    cor = np.array([g.rsplit(",", 3)[1:] for g in got[3:-1]], dtype=float)
+    np.testing.assert_allclose(cor, c.apply(np.array([[float(v) for v in ln.split(",")[1:4]] for ln in lines[3:]])),
+                               rtol=1e-15)
+
+
+def test_sigint_during_apply_leaves_no_temporary_or_partial_file(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
+    """Ctrl-C during `apply` of a large file: exit 130, one line on stderr, no output and no temporary file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    _, cal_path = cal
+    raw = simulate_ellipsoid(20_000, seed=4)
+    block = "".join(f"{i},{x:.3f},{y:.3f},{z:.3f}\n" for i, (x, y, z) in enumerate(raw))
+    src = tmp_path / "big.csv"
+    with src.open("w", encoding="utf-8") as fh:
+        fh.write("t,bx,by,bz\n")
+        for _ in range(100):  # 2e6 rows, ~70 MB: seconds to apply at chunk_rows 1000
+            fh.write(block)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    out = out_dir / "big_cal.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "trimag", "apply", str(cal_path), str(src), "-o", str(out), "--chunk-rows", "1000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    deadline = time.monotonic() + 60
+    while not list(out_dir.glob(".*.tmp")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "apply finished before it could be interrupted"
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "Traceback" not in err.decode() and len(err.decode().strip().splitlines()) == 1
+    assert not out.exists() and not list(out_dir.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["big.csv", "cal.json", "out"])

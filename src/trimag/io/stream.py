@@ -107,6 +107,10 @@ class ChunkSource:
     has_header: bool = True
     delimiter: str | None = ","
     all_columns: list[str] = field(default_factory=list)
+    #: delimited text: the file read (after any decompression), the lines before the header, the number of fields
+    raw_path: Path | None = None
+    skip: int = 0
+    n_fields: int = 0
 
 
 def _parse_rows(rows: str | None) -> tuple[int, int | None]:
@@ -216,7 +220,8 @@ def open_chunks(
             raise TrimagInputError(f"{p}: the file has a header but no data rows")
         cols, note = resolve_columns(head, columns, str(path))
         names = list(head.columns)
-        source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names)
+        source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names,
+                             raw_path=p, skip=layout.skip, n_fields=len(names))
 
         def gen_pandas(skip_rows: int = 0) -> Iterator[Chunk]:
             start = 0
@@ -366,7 +371,31 @@ def apply_file(
     n_rows = 0
     n_bad = 0
     with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error
-        if out_kind in ("csv", "txt"):
+        raw_copy = (out_kind in ("csv", "txt") and source.raw_path is not None and source.delimiter is not None
+                    and (out_kind == "txt" or source.delimiter == ","))
+        if raw_copy:  # delimited text in, same delimiter out: every input byte copied, corrected cells appended
+            assert source.raw_path is not None and source.delimiter is not None
+            sep_b = source.delimiter.encode()
+            with tmp.open("wb") as fb, source.raw_path.open("rb") as fin:
+                records = _raw_records(fin, source, sep_b)
+                for line in next(records):  # preamble and header, unchanged
+                    if line[1] is not None:  # the header: the corrected columns' names appended
+                        fb.write(line[0] + sep_b + sep_b.join(n.encode() for n in new_cols) + line[1])
+                    else:
+                        fb.write(line[0])
+                for chunk in chunks:
+                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
+                    cells = _corrected_cells(corrected, source.delimiter, arrow=chunk.has_arrow)
+                    for cell_line in cells:
+                        record = next(records, None)
+                        if record is None:
+                            raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+                        fb.write(record[0] + cell_line + record[1])
+                    n_rows += len(chunk)
+                    n_bad += bad
+                    if progress:
+                        progress(n_rows)
+        elif out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
             with tmp.open("w", encoding="utf-8", newline="") as fh:
                 for line in source.preamble:
@@ -430,6 +459,66 @@ def apply_file(
         "output_columns": new_cols,
         "out": str(out),
     }
+
+
+def _raw_records(fin: Any, source: ChunkSource, sep: bytes) -> Iterator[Any]:
+    """The raw lines of a delimited text file, for ``apply`` to copy byte for byte.
+
+    The first item is the list of ``(line, None)`` preamble lines (line ending included) followed by
+    ``(header, ending)``; then one ``(record, ending)`` per data row, the record padded with ``sep`` to the file's
+    number of fields when short (the corrected cells then land in their columns) and followed by ``sep``. Blank
+    lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on the next line
+    (a quoted cell with a line break).
+    """
+    head: list[tuple[bytes, bytes | None]] = []
+    for _ in range(source.skip):
+        head.append((fin.readline(), None))
+    if source.has_header:
+        body, ending = _split_ending(fin.readline())
+        head.append((body, ending))
+    yield head
+    n_fields = source.n_fields
+    for line in fin:
+        body, ending = _split_ending(line)
+        if not body.strip(b"\r"):
+            continue
+        while body.count(b'"') % 2:  # a quoted cell spans lines
+            more = fin.readline()
+            if not more:
+                break
+            nxt, ending = _split_ending(more)
+            body = body + (b"\r\n" if ending == b"\r\n" else b"\n") + nxt
+        if b'"' in body:
+            fields = len(next(csv.reader([body.decode("utf-8", "surrogateescape")], delimiter=sep.decode())))
+        else:
+            fields = body.count(sep) + 1
+        yield body + sep * max(n_fields - fields, 0) + sep, ending
+
+
+def _split_ending(line: bytes) -> tuple[bytes, bytes]:
+    """A raw line without and with only its line ending (``\\n`` added when the last line has none)."""
+    if line.endswith(b"\r\n"):
+        return line[:-2], b"\r\n"
+    if line.endswith(b"\n"):
+        return line[:-1], b"\n"
+    return line, b"\n"
+
+
+def _corrected_cells(corrected: NDArray[np.float64], delimiter: str, *, arrow: bool) -> list[bytes]:
+    """The corrected x, y, z of each row as delimited text (empty cells for NaN), one bytes line per row, formatted
+    as the pyarrow or the pandas writer formats them (``arrow``)."""
+    if arrow and available("pyarrow"):
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        table = pa.table({str(j): pa.array(corrected[:, j], from_pandas=True) for j in range(3)})
+        buf = io.BytesIO()
+        pacsv.write_csv(table, buf, write_options=pacsv.WriteOptions(
+            include_header=False, delimiter=delimiter, quoting_style="none"))
+        text = buf.getvalue()
+    else:
+        text = pd.DataFrame(corrected).to_csv(index=False, header=False, sep=delimiter, lineterminator="\n").encode()
+    return text.split(b"\n")[: len(corrected)]
 
 
 def _correct(
