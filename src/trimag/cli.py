@@ -81,8 +81,8 @@ def _say(msg: str, args: argparse.Namespace) -> None:
 def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
     g = p.add_argument_group("data")
     g.add_argument("--format", dest="fmt",
-                   choices=["csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log", "rosbag",
-                            "phone"],
+                   choices=["csv", "txt", "xyz", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log",
+                            "rosbag", "phone"],
                    help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
     g.add_argument("--sensor", metavar="N|NAME",
                    help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "

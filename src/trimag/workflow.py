@@ -523,6 +523,8 @@ def _reading_messages(samples: Samples) -> list[str]:
     messages = []
     if samples.column_note:
         messages.append(samples.column_note)
+    if samples.format_note:
+        messages.append(samples.format_note)
     if samples.selection:
         messages.append(f"selected {samples.n_rows} of {samples.n_total_rows} rows ({samples.selection})")
     if samples.n_dropped:

@@ -33,7 +33,7 @@ from .._core.extras import available, require
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .atomic import atomic_path
-from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
+from .tables import _numeric, detect_csv_layout, detect_format, guess_format, read_table, resolve_columns
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -202,7 +202,7 @@ def open_chunks(
         p = plain_path(p)  # compressed text, decimal commas
     if chunk_rows < 1:
         raise TrimagInputError(f"`chunk_rows` must be a positive number of rows; got {chunk_rows}")
-    kind = guess_format(p, fmt)
+    kind = detect_format(p, fmt)
     if kind in ("csv", "txt"):
         layout = detect_csv_layout(p, fmt=kind)
         kwargs: dict[str, Any] = {
