@@ -333,3 +333,23 @@ def test_sigint_during_apply_leaves_no_temporary_or_partial_file(tmp_path: Path,
     assert "Traceback" not in err.decode() and len(err.decode().strip().splitlines()) == 1
     assert not out.exists() and not list(out_dir.iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["big.csv", "cal.json", "out"])
+
+
+@pytest.mark.parametrize("text", [
+    "x,y,z,n\n1,2,3,a\n\n   \n \t \n4,5,6,b\n",  # blank and whitespace-only lines: skipped by the readers
+    "x,y,z,n\r\n1,2,3,a\r\n4,5,6,b",  # no line break after the last row
+    "\ufeffx,y,z,n\n1,2,3,a\n4,5,6,b\n",  # a byte-order mark
+])
+@pytest.mark.parametrize("chunk_rows", [1, 10])
+def test_apply_byte_copy_keeps_rows_aligned(tmp_path: Path, text: str, chunk_rows: int) -> None:
+    c = Calibration.from_matrix_offset(np.eye(3) * 1.01, [1.0, 2.0, 3.0], model="ellipsoid", units="nT")
+    src = tmp_path / "in.csv"
+    src.write_bytes(text.encode())
+    out = tmp_path / "out.csv"
+    res = apply_file(c.apply, src, out, chunk_rows=chunk_rows)
+    rows = out.read_bytes().decode().splitlines()
+    assert res["n_rows"] == 2 and len(rows) == 3
+    assert rows[0].endswith("x,y,z,n,x_cal,y_cal,z_cal") and rows[0].startswith(text[:1])
+    assert rows[1].startswith("1,2,3,a,") and rows[2].startswith("4,5,6,b,")
+    np.testing.assert_allclose(np.array([r.split(",")[4:] for r in rows[1:]], dtype=float),
+                               c.apply(np.array([[1.0, 2, 3], [4, 5, 6]])), rtol=1e-15)

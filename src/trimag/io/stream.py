@@ -395,6 +395,8 @@ def apply_file(
                     n_bad += bad
                     if progress:
                         progress(n_rows)
+                if next(records, None) is not None:  # never an output whose cells are not those of its rows
+                    raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
         elif out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
             with tmp.open("w", encoding="utf-8", newline="") as fh:
@@ -467,8 +469,8 @@ def _raw_records(fin: Any, source: ChunkSource, sep: bytes) -> Iterator[Any]:
     The first item is the list of ``(line, None)`` preamble lines (line ending included) followed by
     ``(header, ending)``; then one ``(record, ending)`` per data row, the record padded with ``sep`` to the file's
     number of fields when short (the corrected cells then land in their columns) and followed by ``sep``. Blank
-    lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on the next line
-    (a quoted cell with a line break).
+    and whitespace-only lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on
+    the next line (a quoted cell with a line break).
     """
     head: list[tuple[bytes, bytes | None]] = []
     for _ in range(source.skip):
@@ -478,9 +480,10 @@ def _raw_records(fin: Any, source: ChunkSource, sep: bytes) -> Iterator[Any]:
         head.append((body, ending))
     yield head
     n_fields = source.n_fields
+    blank = bytes(c for c in b" \t\r\f\v" if bytes([c]) != sep)  # a line of only these is skipped by the readers
     for line in fin:
         body, ending = _split_ending(line)
-        if not body.strip(b"\r"):
+        if not body.strip(blank):
             continue
         while body.count(b'"') % 2:  # a quoted cell spans lines
             more = fin.readline()
