@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -377,25 +378,24 @@ def apply_file(
             assert source.raw_path is not None and source.delimiter is not None
             sep_b = source.delimiter.encode()
             with tmp.open("wb") as fb, source.raw_path.open("rb") as fin:
-                records = _raw_records(fin, source, sep_b)
-                for line in next(records):  # preamble and header, unchanged
-                    if line[1] is not None:  # the header: the corrected columns' names appended
-                        fb.write(line[0] + sep_b + sep_b.join(n.encode() for n in new_cols) + line[1])
+                lines_in = _RawLines(fin, source, sep_b)
+                for body, ending in lines_in.head():  # preamble and header, unchanged
+                    if ending is not None:  # the header: the corrected columns' names appended
+                        fb.write(body + sep_b + sep_b.join(n.encode() for n in new_cols) + ending)
                     else:
-                        fb.write(line[0])
+                        fb.write(body)
                 for chunk in chunks:
                     corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
                     cells = _corrected_cells(corrected, source.delimiter, arrow=chunk.has_arrow)
-                    for cell_line in cells:
-                        record = next(records, None)
-                        if record is None:
-                            raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
-                        fb.write(record[0] + cell_line + record[1])
+                    block = lines_in.take(cells)
+                    if block is None:
+                        raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+                    fb.writelines(block)
                     n_rows += len(chunk)
                     n_bad += bad
                     if progress:
                         progress(n_rows)
-                if next(records, None) is not None:  # never an output whose cells are not those of its rows
+                if not lines_in.at_end():  # never an output whose cells are not those of its rows
                     raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
         elif out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
@@ -463,39 +463,85 @@ def apply_file(
     }
 
 
-def _raw_records(fin: Any, source: ChunkSource, sep: bytes) -> Iterator[Any]:
+class _RawLines:
     """The raw lines of a delimited text file, for ``apply`` to copy byte for byte.
 
-    The first item is the list of ``(line, None)`` preamble lines (line ending included) followed by
-    ``(header, ending)``; then one ``(record, ending)`` per data row, the record padded with ``sep`` to the file's
-    number of fields when short (the corrected cells then land in their columns) and followed by ``sep``. Blank
-    and whitespace-only lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on
-    the next line (a quoted cell with a line break).
+    :meth:`head` gives the preamble lines and the header as written; :meth:`take` the next ``n`` data records, each
+    as ``(record, ending)``: the record padded with the delimiter to the file's number of fields when short (the
+    corrected cells then land in their columns) and followed by one delimiter, and its line ending. Blank and
+    whitespace-only lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on
+    the next line (a quoted cell with a line break). Blocks without quotes or blank lines take a vectorised path.
     """
-    head: list[tuple[bytes, bytes | None]] = []
-    for _ in range(source.skip):
-        head.append((fin.readline(), None))
-    if source.has_header:
-        body, ending = _split_ending(fin.readline())
-        head.append((body, ending))
-    yield head
-    n_fields = source.n_fields
-    blank = bytes(c for c in b" \t\r\f\v" if bytes([c]) != sep)  # a line of only these is skipped by the readers
-    for line in fin:
-        body, ending = _split_ending(line)
-        if not body.strip(blank):
-            continue
+
+    def __init__(self, fin: Any, source: ChunkSource, sep: bytes) -> None:
+        self.fin = fin
+        self.source = source
+        self.sep = sep
+        self.blank = bytes(c for c in b" \t\r\f\v" if bytes([c]) != sep)  # a line of only these is skipped
+        self._blank_line = re.compile(rb"\n[" + re.escape(self.blank) + rb"]*\n")  # a blank line after the first
+        self.pending: list[bytes] = []
+
+    def head(self) -> list[tuple[bytes, bytes | None]]:
+        """The preamble lines ``(line, None)`` (ending included), then ``(header, ending)`` when there is one."""
+        out: list[tuple[bytes, bytes | None]] = [(self.fin.readline(), None) for _ in range(self.source.skip)]
+        if self.source.has_header:
+            out.append(_split_ending(self.fin.readline()))
+        return out
+
+    def _line(self) -> bytes:
+        return self.pending.pop() if self.pending else self.fin.readline()
+
+    def take(self, cells: list[bytes]) -> Iterable[bytes] | None:
+        """The next ``len(cells)`` records with ``cells`` appended, one per record, as pieces of the output's bytes;
+        None when the file has fewer records left."""
+        n = len(cells)
+        sep, n_fields = self.sep, self.source.n_fields
+        lines = list(itertools.islice(self.fin, n)) if not self.pending else []
+        if len(lines) == n and n:
+            data = b"".join(lines)
+            eol = b"\r\n" if data.endswith(b"\r\n") else b"\n"
+            if (data.endswith(b"\n") and data.count(eol) == n and (eol == b"\r\n" or b"\r" not in data)
+                    and b'"' not in data and data.count(sep) == n * (n_fields - 1)
+                    and lines[0].strip(self.blank + b"\n") and self._blank_line.search(data) is None):
+                # plain full rows: no per-line work in Python
+                del lines
+                bodies = data[: -len(eol)].split(eol)
+                del data
+                return itertools.chain.from_iterable(zip(bodies, itertools.repeat(sep), cells, itertools.repeat(eol)))
+        self.pending.extend(reversed(lines))
+        out = []
+        for cell in cells:
+            record = self._record()
+            if record is None:
+                return None
+            out.append(record[0] + cell + record[1])
+        return out
+
+    def at_end(self) -> bool:
+        """Whether no record is left."""
+        return self._record() is None
+
+    def _record(self) -> tuple[bytes, bytes] | None:
+        sep, n_fields = self.sep, self.source.n_fields
+        while True:
+            line = self._line()
+            if not line:
+                return None
+            body, ending = _split_ending(line)
+            if body.strip(self.blank):
+                break
         while body.count(b'"') % 2:  # a quoted cell spans lines
-            more = fin.readline()
+            more = self._line()
             if not more:
                 break
-            nxt, ending = _split_ending(more)
+            nxt, ending2 = _split_ending(more)
             body = body + (b"\r\n" if ending == b"\r\n" else b"\n") + nxt
+            ending = ending2
         if b'"' in body:
             fields = len(next(csv.reader([body.decode("utf-8", "surrogateescape")], delimiter=sep.decode())))
         else:
             fields = body.count(sep) + 1
-        yield body + sep * max(n_fields - fields, 0) + sep, ending
+        return body + sep * max(n_fields - fields, 0) + sep, ending
 
 
 def _split_ending(line: bytes) -> tuple[bytes, bytes]:
