@@ -353,3 +353,14 @@ def test_apply_byte_copy_keeps_rows_aligned(tmp_path: Path, text: str, chunk_row
     assert rows[1].startswith("1,2,3,a,") and rows[2].startswith("4,5,6,b,")
     np.testing.assert_allclose(np.array([r.split(",")[4:] for r in rows[1:]], dtype=float),
                                c.apply(np.array([[1.0, 2, 3], [4, 5, 6]])), rtol=1e-15)
+
+
+def test_apply_on_text_the_reader_cannot_parse_exits_2(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
+    """A quoted cell with a line break before the data made `apply` exit 1 (pandas' EmptyDataError)."""
+    from _helpers import run_trimag
+
+    src = tmp_path / "q.csv"
+    src.write_text('x,y,z,n\n1,2,3,"a\nb"\n4,5,6,b\n', encoding="utf-8")
+    r = run_trimag("apply", cal[1], src, "-o", tmp_path / "out.csv")
+    assert r.returncode == 2 and "cannot parse as delimited text" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "out.csv").exists()

@@ -213,7 +213,10 @@ def open_chunks(
             "keep_default_na": False,
             "sep": r"\s+" if layout.delimiter is None else layout.delimiter,
         }
-        head = pd.read_csv(p, nrows=2000, **kwargs)
+        try:
+            head = pd.read_csv(p, nrows=2000, **kwargs)
+        except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
+            raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
         if not layout.has_header:
             head.columns = [f"col{i}" for i in range(head.shape[1])]
         head.columns = [str(c).strip() for c in head.columns]
