@@ -317,6 +317,8 @@ def test_geosoft_xyz_names_nulls_and_line_records(tmp_path: Path) -> None:
     other.write_bytes(path.read_bytes())
     assert read_samples(other, columns="2,3,4").n_dropped == 2
     assert list(read_table(other).columns) == ["X", "Y", "FLUX_X", "FLUX_Y", "FLUX_Z", "MAG", "line"]
+    # without `columns`: the line number, the total field MAG and the coordinates are not axes
+    assert read_samples(path).columns == ("FLUX_X", "FLUX_Y", "FLUX_Z")
 
 
 def test_geosoft_xyz_ragged_row_is_refused_with_its_line(tmp_path: Path) -> None:

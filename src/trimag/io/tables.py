@@ -551,6 +551,7 @@ def resolve_columns(
 _NOT_FIELD = re.compile(
     r"(acc|gyr|gyro|rate|temp|time|stamp|_ns\b|_us\b|_ms\b|index|idx|count|loop|step|seq|frame|lat|lon|alt|"
     r"roll|pitch|yaw|heading|quat|\bq[wxyz0-3]\b|volt|curr|press|baro|min\b|max\b|mean|std|var\b|\bg[xyz]\b|"
+    r"^line(?:_record)?$|^fid(?:ucial)?$|^mag$|^tmi$|"
     r"\ba[xyz]\b|vel|pos|speed|gps|thr|pwm|rc)", re.I
 )
 _NOT_FIELD_FILE = re.compile(r"(accel|gyro|temperature|stats)", re.I)
