@@ -299,8 +299,13 @@ def test_apply_copies_header_comments_and_untouched_cells_byte_for_byte(
                                rtol=1e-15)
 
 
-def test_sigint_during_apply_leaves_no_temporary_or_partial_file(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
-    """Ctrl-C during `apply` of a large file: exit 130, one line on stderr, no output and no temporary file."""
+@pytest.mark.parametrize("compressed", [False, True])
+def test_sigint_during_apply_leaves_no_temporary_or_partial_file(
+    tmp_path: Path, cal: tuple[Calibration, Path], compressed: bool
+) -> None:
+    """Ctrl-C during `apply` of a large file: exit 130, one line on stderr, no output and no temporary file (nor the
+    decompressed copy of a gzip'ed input)."""
+    import gzip
     import os
     import signal
     import subprocess
@@ -315,24 +320,33 @@ def test_sigint_during_apply_leaves_no_temporary_or_partial_file(tmp_path: Path,
         fh.write("t,bx,by,bz\n")
         for _ in range(100):  # 2e6 rows, ~70 MB: seconds to apply at chunk_rows 1000
             fh.write(block)
+    if compressed:
+        with src.open("rb") as fin, gzip.open(tmp_path / "big.csv.gz", "wb", compresslevel=1) as fz:
+            fz.write(fin.read())
+        src.unlink()
+        src = tmp_path / "big.csv.gz"
     out_dir = tmp_path / "out"
     out_dir.mkdir()
+    scratch = tmp_path / "scratch"  # TMPDIR: where a decompressed copy goes
+    scratch.mkdir()
     out = out_dir / "big_cal.csv"
     proc = subprocess.Popen(
         [sys.executable, "-m", "trimag", "apply", str(cal_path), str(src), "-o", str(out), "--chunk-rows", "1000"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "TMPDIR": str(scratch)},
     )
     deadline = time.monotonic() + 60
     while not list(out_dir.glob(".*.tmp")) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert proc.poll() is None, "apply finished before it could be interrupted"
+    assert bool(list(scratch.iterdir())) == compressed  # the decompressed copy exists while apply runs
     time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130
     assert "Traceback" not in err.decode() and len(err.decode().strip().splitlines()) == 1
-    assert not out.exists() and not list(out_dir.iterdir())
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["big.csv", "cal.json", "out"])
+    assert not out.exists() and not list(out_dir.iterdir()) and not list(scratch.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([src.name, "cal.json", "out", "scratch"])
 
 
 @pytest.mark.parametrize("text", [
