@@ -177,3 +177,24 @@ def test_calibration_of_other_format_version_exit_2(ellipsoid_log: Path, tmp_pat
     cal.write_text(json.dumps(doc))
     _one_line_error(run_trimag("apply", cal, ellipsoid_log, "-o", tmp_path / "o.csv"), 2, "newer")
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_fit_and_apply_geosoft_xyz(tmp_path: Path) -> None:
+    """`trimag fit data.xyz --columns FLUX_X,FLUX_Y,FLUX_Z --units nT` works; `apply` writes a CSV with the header
+    (the names of the `/` record, then the line column) and every row, `*` rows kept with empty corrected cells."""
+    from test_io import _geosoft_xyz
+
+    path, _ = _geosoft_xyz(tmp_path / "survey.xyz")
+    cal = tmp_path / "cal.json"
+    fit = run_trimag("fit", path, "--columns", "FLUX_X,FLUX_Y,FLUX_Z", "--units", "nT", "-o", cal)
+    assert fit.returncode == 0, fit.stderr
+    assert "2 line record(s) skipped" in fit.stdout + fit.stderr and "dropped 2 of 400 rows" in fit.stdout + fit.stderr
+    out = tmp_path / "survey_cal.csv"
+    app = run_trimag("apply", cal, path, "-o", out, "--columns", "FLUX_X,FLUX_Y,FLUX_Z")
+    assert app.returncode == 0, app.stderr
+    df = pd.read_csv(out, dtype=str, keep_default_na=False)
+    assert list(df.columns) == ["X", "Y", "FLUX_X", "FLUX_Y", "FLUX_Z", "MAG", "line",
+                                "FLUX_X_cal", "FLUX_Y_cal", "FLUX_Z_cal"]
+    assert len(df) == 400 and (df["FLUX_Y"] == "*").sum() == 2 and (df["FLUX_Y_cal"] == "").sum() == 2
+    bad = run_trimag("apply", cal, path, "-o", tmp_path / "survey_cal.xyz", "--columns", "FLUX_X,FLUX_Y,FLUX_Z")
+    _one_line_error(bad, 2, "cannot write .xyz files")

@@ -284,3 +284,45 @@ def test_count_duplicate_rows_with_a_block_transform_counts_the_transformed_rows
     expected = int(pd.DataFrame(rounded + 0.0).duplicated().sum())
     assert expected == 10
     assert _rowwise.count_duplicate_rows(a, prepare=lambda rows: np.round(rows, 9)) == expected
+
+
+def _geosoft_xyz(path: Path, n_per_line: int = 200, null_rows: tuple[int, ...] = (5, 250)) -> tuple[Path, np.ndarray]:
+    """A Geosoft XYZ file: `/` comments, a `/` names record, `Line`/`Tie` records, `*` nulls in FLUX_Y."""
+    B = simulate_ellipsoid(2 * n_per_line, noise=5.0, seed=11, F=50_000.0)
+    out = ["/ ------------------------------------------", "/ XYZ EXPORT [03/14/2024]",
+           "/ DATABASE   [.\\survey.gdb]", "/", "/          X          Y     FLUX_X     FLUX_Y     FLUX_Z        MAG"]
+    for k in range(2 * n_per_line):
+        if k % n_per_line == 0:
+            out.append(["Line 1001", "Tie 2001"][k // n_per_line])
+        fy = "*" if k in null_rows else f"{B[k, 1]:.2f}"
+        out.append(f"  {500000 + 10 * k:10.1f} {6100000.0:12.1f} {B[k, 0]:10.2f} {fy:>10} {B[k, 2]:10.2f} "
+                   f"{np.linalg.norm(B[k]):10.2f}")
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return path, B
+
+
+def test_geosoft_xyz_names_nulls_and_line_records(tmp_path: Path) -> None:
+    """Finding (issue 22): Geosoft XYZ (`/` header lines, `*` nulls) was refused with a poor message."""
+    path, B = _geosoft_xyz(tmp_path / "survey.xyz")
+    s = read_samples(path, columns="FLUX_X,FLUX_Y,FLUX_Z")
+    assert s.columns == ("FLUX_X", "FLUX_Y", "FLUX_Z") and s.n_rows == 400
+    assert s.n_dropped == 2 and s.dropped_index == [5, 250]  # the `*` rows, counted
+    np.testing.assert_allclose(s.field, np.delete(B, [5, 250], axis=0), atol=0.006)
+    assert list(s.table["line"].unique()) == ["1001", "2001"]
+    assert "2 line record(s)" in s.format_note and "2 row(s) with a `*` null" in s.format_note
+    one_line = read_samples(path, columns="FLUX_X,FLUX_Y,FLUX_Z", where="line==2001")
+    assert one_line.n_rows == 200 and one_line.n_dropped == 1
+    # detected by the `/` header without the extension, and by its columns' names without `columns`
+    other = tmp_path / "survey.dat"
+    other.write_bytes(path.read_bytes())
+    assert read_samples(other, columns="2,3,4").n_dropped == 2
+    assert list(read_table(other).columns) == ["X", "Y", "FLUX_X", "FLUX_Y", "FLUX_Z", "MAG", "line"]
+    # without `columns`: the line number, the total field MAG and the coordinates are not axes
+    assert read_samples(path).columns == ("FLUX_X", "FLUX_Y", "FLUX_Z")
+
+
+def test_geosoft_xyz_ragged_row_is_refused_with_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.xyz"
+    path.write_text("/ X Y Z\n1 2 3\n4 5\n", encoding="utf-8")
+    with pytest.raises(TrimagInputError, match=r"line 3 has 2 fields where the data rows have 3"):
+        read_samples(path)

@@ -268,3 +268,113 @@ def test_short_row_mid_file_falls_back_without_losing_rows(tmp_path: Path, cal: 
     assert got[short + 1].endswith(",,,,")  # missing z kept empty, no corrected values
     cor = np.array([g.split(",")[4:] for i, g in enumerate(got[1:]) if i != short], dtype=float)
     np.testing.assert_allclose(cor, c.apply(np.delete(raw.round(2), short, axis=0)), rtol=1e-12)
+
+
+def test_apply_copies_header_comments_and_untouched_cells_byte_for_byte(
+    tmp_path: Path, cal: tuple[Calibration, Path]
+) -> None:
+    """Findings (issue 22): `apply` stripped header names (`' mag_Y'`), padded comment lines with commas and
+    rewrote other cells. Comma CSV in, CSV out: every input line is copied as it is, the corrected cells appended
+    (CRLF line endings, quoted cells, oddly written numbers and a short row included)."""
+    c, _ = cal
+    raw = simulate_ellipsoid(60, noise=5.0, seed=9)
+    lines = ["# sensor: X", "# site: field 2, north pad", "t, mag_X, mag_Y ,mag_Z,note"]
+    for i, (x, y, z) in enumerate(raw):
+        note = '"a,b"' if i % 7 == 0 else ("" if i % 5 == 0 else f" p{i} ")
+        lines.append(f"{i:.1f},{x:.3f}, {y:.10g},{float(z)!r},{note}")
+    lines[30] = lines[30].rsplit(",", 1)[0]  # a short row: no note cell
+    src = tmp_path / "log.csv"
+    src.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    out = tmp_path / "log_cal.csv"
+    res = apply_file(c.apply, src, out, columns="1,2,3", chunk_rows=16)
+    assert res["n_rows"] == 60 and res["n_uncorrected"] == 0
+    got = out.read_bytes().decode().split("\r\n")
+    assert got[-1] == "" and len(got) == len(lines) + 1
+    assert got[:2] == lines[:2]  # comment lines unchanged, not padded
+    assert got[2] == lines[2] + ",mag_X_cal,mag_Y_cal,mag_Z_cal"  # header names byte for byte
+    for k in range(3, len(lines)):
+        assert got[k].startswith(lines[k] + ("," if k != 30 else ",,"))  # every input cell byte-identical
+    cor = np.array([g.rsplit(",", 3)[1:] for g in got[3:-1]], dtype=float)
+    np.testing.assert_allclose(cor, c.apply(np.array([[float(v) for v in ln.split(",")[1:4]] for ln in lines[3:]])),
+                               rtol=1e-15)
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_sigint_during_apply_leaves_no_temporary_or_partial_file(
+    tmp_path: Path, cal: tuple[Calibration, Path], compressed: bool
+) -> None:
+    """Ctrl-C during `apply` of a large file: exit 130, one line on stderr, no output and no temporary file (nor the
+    decompressed copy of a gzip'ed input)."""
+    import gzip
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    _, cal_path = cal
+    raw = simulate_ellipsoid(20_000, seed=4)
+    block = "".join(f"{i},{x:.3f},{y:.3f},{z:.3f}\n" for i, (x, y, z) in enumerate(raw))
+    src = tmp_path / "big.csv"
+    with src.open("w", encoding="utf-8") as fh:
+        fh.write("t,bx,by,bz\n")
+        for _ in range(100):  # 2e6 rows, ~70 MB: seconds to apply at chunk_rows 1000
+            fh.write(block)
+    if compressed:
+        with src.open("rb") as fin, gzip.open(tmp_path / "big.csv.gz", "wb", compresslevel=1) as fz:
+            fz.write(fin.read())
+        src.unlink()
+        src = tmp_path / "big.csv.gz"
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    scratch = tmp_path / "scratch"  # TMPDIR: where a decompressed copy goes
+    scratch.mkdir()
+    out = out_dir / "big_cal.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "trimag", "apply", str(cal_path), str(src), "-o", str(out), "--chunk-rows", "1000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "TMPDIR": str(scratch)},
+    )
+    deadline = time.monotonic() + 60
+    while not list(out_dir.glob(".*.tmp")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "apply finished before it could be interrupted"
+    assert bool(list(scratch.iterdir())) == compressed  # the decompressed copy exists while apply runs
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "Traceback" not in err.decode() and len(err.decode().strip().splitlines()) == 1
+    assert not out.exists() and not list(out_dir.iterdir()) and not list(scratch.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([src.name, "cal.json", "out", "scratch"])
+
+
+@pytest.mark.parametrize("text", [
+    "x,y,z,n\n1,2,3,a\n\n   \n \t \n4,5,6,b\n",  # blank and whitespace-only lines: skipped by the readers
+    "x,y,z,n\r\n1,2,3,a\r\n4,5,6,b",  # no line break after the last row
+    "\ufeffx,y,z,n\n1,2,3,a\n4,5,6,b\n",  # a byte-order mark
+])
+@pytest.mark.parametrize("chunk_rows", [1, 10])
+def test_apply_byte_copy_keeps_rows_aligned(tmp_path: Path, text: str, chunk_rows: int) -> None:
+    c = Calibration.from_matrix_offset(np.eye(3) * 1.01, [1.0, 2.0, 3.0], model="ellipsoid", units="nT")
+    src = tmp_path / "in.csv"
+    src.write_bytes(text.encode())
+    out = tmp_path / "out.csv"
+    res = apply_file(c.apply, src, out, chunk_rows=chunk_rows)
+    rows = out.read_bytes().decode().splitlines()
+    assert res["n_rows"] == 2 and len(rows) == 3
+    assert rows[0].endswith("x,y,z,n,x_cal,y_cal,z_cal") and rows[0].startswith(text[:1])
+    assert rows[1].startswith("1,2,3,a,") and rows[2].startswith("4,5,6,b,")
+    np.testing.assert_allclose(np.array([r.split(",")[4:] for r in rows[1:]], dtype=float),
+                               c.apply(np.array([[1.0, 2, 3], [4, 5, 6]])), rtol=1e-15)
+
+
+def test_apply_on_text_the_reader_cannot_parse_exits_2(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
+    """A quoted cell with a line break before the data made `apply` exit 1 (pandas' EmptyDataError)."""
+    from _helpers import run_trimag
+
+    src = tmp_path / "q.csv"
+    src.write_text('x,y,z,n\n1,2,3,"a\nb"\n4,5,6,b\n', encoding="utf-8")
+    r = run_trimag("apply", cal[1], src, "-o", tmp_path / "out.csv")
+    assert r.returncode == 2 and "cannot parse as delimited text" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "out.csv").exists()

@@ -81,8 +81,8 @@ def _say(msg: str, args: argparse.Namespace) -> None:
 def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
     g = p.add_argument_group("data")
     g.add_argument("--format", dest="fmt",
-                   choices=["csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log", "rosbag",
-                            "phone"],
+                   choices=["csv", "txt", "xyz", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log",
+                            "rosbag", "phone"],
                    help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
     g.add_argument("--sensor", metavar="N|NAME",
                    help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "
@@ -115,6 +115,9 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
     g.add_argument("--quaternion-frame", choices=["ned", "enu"], default="ned",
                    help="navigation frame the quaternions refer to")
     g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
+    g.add_argument("--background-columns", metavar="N,E,D",
+                   help="per-sample background field (NED, the data's unit) from these columns, e.g. IGRF along a "
+                        "survey line or a reference vector magnetometer")
     if fit:
         g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
 
@@ -344,7 +347,7 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
         model=args.model, method=args.method, options=options,
         reference=ReferenceSpec(reference=args.reference, igrf_spec=args.igrf_spec,
                                 reference_column=args.reference_column, background_ned=args.background_ned,
-                                background_run=args.background_run),
+                                background_run=args.background_run, background_columns=args.background_columns),
         attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
                               quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame),
         out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
@@ -453,12 +456,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var, rows=args.rows,
             where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
             quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
-            background_ned=args.background_ned, igrf_spec=args.igrf_spec,
+            background_ned=args.background_ned, igrf_spec=args.igrf_spec, background_columns=args.background_columns,
         )
         if args.json:
             print(json.dumps(v, allow_nan=False))
             return EXIT_OK
-        _say(f"{v['n_used']} samples; background NED {np.round(v['background']['ned'], 3).tolist()} {v['units']} "
+        mean = "mean " if v["background"]["per_sample"] else ""
+        _say(f"{v['n_used']} samples; background NED {mean}{np.round(v['background']['ned'], 3).tolist()} {v['units']} "
              f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
         _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
         for k, axis in enumerate("xyz"):

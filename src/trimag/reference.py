@@ -202,7 +202,38 @@ def as_vector(value: ArrayLike, *, name: str = "background") -> NDArray[np.float
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != (3,) or not np.isfinite(arr).all():
         got = np.asarray(value).tolist() if arr.size <= 3 else f"an array of shape {arr.shape}"
-        hint = ("; a per-sample background (one vector per row) is not supported yet: give one (N, E, D) vector"
-                if arr.ndim == 2 and arr.shape[-1] == 3 else "")
+        hint = ("; a per-sample background (one vector per row) is given as `background_columns` (or as an (N, 3) "
+                "array to `fit`)" if arr.ndim == 2 and arr.shape[-1] == 3 else "")
         raise TrimagInputError(f"`{name}` must be 3 finite numbers (N, E, D); got {got}{hint}")
+    return arr
+
+
+def as_background(value: ArrayLike, n: int, *, name: str = "background") -> NDArray[np.float64]:
+    """Validate a background field: one vector (3,) or one per sample (``n``, 3), NED, finite.
+
+    Parameters
+    ----------
+    value : array_like, shape (3,) or (n, 3)
+        The background field in the navigation frame (NED), in the data's unit.
+    n : int
+        Number of samples.
+
+    Returns
+    -------
+    ndarray, shape (3,) or (n, 3)
+    """
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 2:
+        return as_vector(arr, name=name)
+    if arr.shape[1] != 3 or arr.shape[0] != n:
+        raise TrimagInputError(
+            f"`{name}` per sample needs one row per sample (N, E, D): {n} rows of 3; got {arr.shape[0]} rows of "
+            f"{arr.shape[1]}"
+        )
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise TrimagInputError(
+            f"`{name}` has {int(bad.sum())} row(s) with missing or non-finite values (first at row "
+            f"{int(np.argmax(bad))})"
+        )
     return arr

@@ -36,13 +36,15 @@ class InputSpec:
 @dataclass(frozen=True)
 class ReferenceSpec:
     """The field reference: a magnitude (number, or an IGRF site, or a column) for scalar models, a background
-    vector (NED, or from an iron-free run) for vector models. All None: none given."""
+    vector (NED, or from an iron-free run) or one per sample (``background_columns``: the N, E, D columns, in the
+    data's unit) for vector models. All None: none given."""
 
     reference: str | float | None = None
     igrf_spec: str | None = None
     reference_column: str | None = None
     background_ned: str | None = None
     background_run: str | None = None
+    background_columns: str | None = None
 
     @property
     def given(self) -> bool:

@@ -106,15 +106,25 @@ def scalar_reference_from_options(
 
 def vector_reference_from_options(
     *, units: str, background_ned: str | None = None, igrf_spec: str | None = None,
-    background_run: str | None = None, **read_kwargs: Any,
+    background_run: str | None = None, background_columns: str | None = None, samples: Samples | None = None,
+    **read_kwargs: Any,
 ) -> tuple[NDArray[np.float64], str]:
-    """The background field vector (N, E, D) in the data's unit and a description of its source."""
-    given = [x for x in (background_ned, igrf_spec, background_run) if x is not None]
+    """The background field (N, E, D) in the data's unit, shape (3,) or (N, 3) (``background_columns``: one
+    vector per row of ``samples``), and a description of its source."""
+    given = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
     if len(given) != 1:
         raise TrimagInputError(
             "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
-            "`igrf_spec=LAT,LON,ALT_M,DATE`, or `background_run=FILE`"
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE` or `background_columns=N,E,D`"
         )
+    if background_columns is not None:
+        if samples is None:
+            raise TrimagInputError("`background_columns` needs the samples' table")
+        names = _split_names(background_columns, samples, "background_columns")
+        values = np.column_stack([column_values(samples, c) for c in names])
+        F = np.linalg.norm(values, axis=1)
+        return values, (f"per sample from columns {', '.join(names)}, |H| {F.min():.6g} to {F.max():.6g} {units}, "
+                        f"mean NED {np.round(values.mean(axis=0), 3).tolist()}")
     if background_ned is not None:
         return _parse_vector(background_ned, "`background_ned`"), "given (NED)"
     if igrf_spec is not None:
@@ -189,6 +199,33 @@ def regressor_columns(
             f"{', '.join(map(str, samples.table.columns))}"
         )
     return {n: column_values(samples, n) for n in names}
+
+
+def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
+    """Three column names (or 0-based indices) of ``samples.table`` from ``"A,B,C"``; ``arg`` names the option."""
+    items = [c.strip() for c in spec.split(",") if c.strip()]
+    if len(items) != 3:
+        raise TrimagInputError(f"`{arg}` needs exactly three columns (N, E, D); got {len(items)}")
+    names = [str(c) for c in samples.table.columns]
+    out = []
+    for item in items:
+        if item not in names and item.isdigit():
+            if int(item) >= len(names):
+                raise TrimagInputError(f"`{arg}`: index {item} is out of range; the file has {len(names)} columns")
+            item = names[int(item)]
+        out.append(item)
+    return out
+
+
+def _drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose per-sample background cells are missing or non-finite."""
+    if background_columns is None:
+        return samples, 0
+    names = ",".join(_split_names(background_columns, samples, "background_columns"))
+    try:
+        return _drop_rows_without_attitude(samples, names, None)
+    except TrimagInputError:
+        raise TrimagInputError(f"none of the rows has a finite background in columns {names}") from None
 
 
 def _drop_rows_without_attitude(
@@ -523,6 +560,8 @@ def _reading_messages(samples: Samples) -> list[str]:
     messages = []
     if samples.column_note:
         messages.append(samples.column_note)
+    if samples.format_note:
+        messages.append(samples.format_note)
     if samples.selection:
         messages.append(f"selected {samples.n_rows} of {samples.n_total_rows} rows ({samples.selection})")
     if samples.n_dropped:
@@ -561,18 +600,25 @@ def _fit_reference(
         messages.append(
             f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
         )
+    samples, n_no_background = _drop_rows_without_background(samples, given.background_columns)
+    if n_no_background:
+        messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = _attitude.attitude_from_table(
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
         scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
     )
     background, source = vector_reference_from_options(
         units=unit, background_ned=given.background_ned, igrf_spec=given.igrf_spec,
-        background_run=given.background_run, fmt=src.fmt, columns=src.columns, var=src.var,
+        background_run=given.background_run, background_columns=given.background_columns, samples=samples,
+        fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
             "quaternion_columns": att.quaternion_columns, "quaternion_order": att.quaternion_order,
             "quaternion_frame": att.quaternion_frame} if given.background_run is not None else {}),
     )
-    messages.append(f"background field {np.round(background, 6).tolist()} {unit} ({source})")
+    if background.ndim == 1:
+        messages.append(f"background field {np.round(background, 6).tolist()} {unit} ({source})")
+    else:
+        messages.append(f"background field {source}")
     return samples, background, attitude, messages
 
 
@@ -764,24 +810,28 @@ def evaluate_vector_file(
     quaternion_frame: str = "ned",
     background_ned: str | None = None,
     igrf_spec: str | None = None,
+    background_columns: str | None = None,
 ) -> dict[str, Any]:
     """Vector errors of an attitude-based calibration (``interference12``) on a log with attitudes.
 
-    The background field (N, E, D) is rotated into the body frame at every sample (docs/conventions-attitude.md)
-    and compared with the raw and the corrected vector: per-axis RMS, vector RMS, and the angle between the
-    corrected field and the background in degrees (RMS and maximum).
+    The background field (N, E, D) -- one vector, or one per row from ``background_columns`` -- is rotated into
+    the body frame at every sample (docs/conventions-attitude.md) and compared with the raw and the corrected
+    vector: per-axis RMS, vector RMS, and the angle between the corrected field and the background in degrees
+    (RMS and maximum).
     """
     from . import attitude as _attitude
 
     cal = Calibration.from_file(cal_path)
     samples = read_samples(data_path, fmt=fmt, columns=columns, var=var, rows=rows, where=where)
     samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
+    samples, n_no_background = _drop_rows_without_background(samples, background_columns)
     rot = _attitude.attitude_from_table(
         samples.table, euler_columns=attitude_columns, quaternion_columns=quaternion_columns,
         scalar_first=quaternion_order == "wxyz", frame=quaternion_frame,
     )
     background, source = vector_reference_from_options(units=cal.units, background_ned=background_ned,
-                                                       igrf_spec=igrf_spec)
+                                                       igrf_spec=igrf_spec, background_columns=background_columns,
+                                                       samples=samples)
     expected = _attitude.body_field(rot, background)
     u = None
     if cal.regressors is not None:
@@ -801,8 +851,9 @@ def evaluate_vector_file(
     return {
         "calibration": str(cal_path), "data": str(data_path), "model": cal.model, "method": cal.method,
         "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
-        "n_used": len(raw), "n_dropped": samples.n_dropped + n_no_attitude,
-        "background": {"ned": np.asarray(background).tolist(), "source": source},
+        "n_used": len(raw), "n_dropped": samples.n_dropped + n_no_attitude + n_no_background,
+        "background": {"ned": (background.mean(axis=0) if background.ndim == 2 else background).tolist(),
+                       "source": source, "per_sample": background.ndim == 2},
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],

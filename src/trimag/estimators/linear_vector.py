@@ -36,7 +36,7 @@ from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.interference12 import Interference12
-from ..reference import ScalarReference, as_vector
+from ..reference import ScalarReference, as_background, as_vector
 from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
 
@@ -291,6 +291,13 @@ class _ReducedProjection:
         return J
 
 
+def _per_sample_source(H_n: NDArray[np.float64]) -> str:
+    """A per-sample background (N, 3) described in one line: its mean, spread and magnitude range."""
+    F = np.linalg.norm(H_n, axis=1)
+    return (f"per-sample background NED, mean {np.round(H_n.mean(axis=0), 6).tolist()}, peak-to-peak "
+            f"{np.round(np.ptp(H_n, axis=0), 6).tolist()} (|H_n| {F.min():.6g} to {F.max():.6g})")
+
+
 def fit_with_background(
     H_m: ArrayLike, attitude: Rotation, magnitude: float, *, max_iter: int = 50
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
@@ -413,6 +420,8 @@ class LinearVector(Estimator):
         return 4
 
     def _residual_target(self, corrected: NDArray[np.float64], reference: Any, ref_value: Any) -> Any:
+        if reference is not None and np.ndim(reference) == 2:  # a per-sample background: its magnitudes
+            return np.linalg.norm(np.asarray(reference, dtype=np.float64), axis=1)
         return float(ref_value)
 
     def _fit(
@@ -428,6 +437,11 @@ class LinearVector(Estimator):
         if isinstance(reference, ScalarReference):
             raise TrimagInputError("linear-vector needs a background VECTOR (N, E, D), not a magnitude")
         diag: dict[str, Any] = {}
+        if self.estimate_background and reference is not None and np.ndim(reference) == 2:
+            raise TrimagInputError(
+                "`estimate_background` fits one background vector; a per-sample background is used as given: "
+                "drop the option, or give one vector"
+            )
         if self.estimate_background:
             if reference is None:
                 magnitude = float(np.mean(np.linalg.norm(B, axis=1)))
@@ -440,18 +454,20 @@ class LinearVector(Estimator):
             diag["background_given"] = None if reference is None else as_vector(reference).tolist()
             H_b = body_field(att, H_n)
         else:
-            H_n = as_vector(reference)
+            H_n = as_background(reference, len(B))
             H_b = body_field(att, H_n)
             K, c, info = solve_interference(B, H_b)
-            source = f"background NED {np.round(H_n, 6).tolist()}"
-        F = float(np.linalg.norm(H_n))
+            source = f"background NED {np.round(H_n, 6).tolist()}" if H_n.ndim == 1 else _per_sample_source(H_n)
+        F_i = np.linalg.norm(H_n, axis=-1)  # () or (N,)
+        per_sample = H_n.ndim == 2
         matrix = np.asarray(np.linalg.inv(K), dtype=np.float64)
         ss_before, ss_after = _vector_sum_squares(B, H_b, matrix, c)
         diag.update(
             {
                 "condition_number": info["condition_number"],
                 "n_attitudes": info["n_attitudes"],
-                "background_ned": H_n.tolist(),
+                "background_ned": (H_n.mean(axis=0) if per_sample else H_n).tolist(),
+                "background_per_sample": per_sample,
                 "residual_rms_axis": info["residual_rms_axis"],
             }
         )
@@ -465,7 +481,7 @@ class LinearVector(Estimator):
             "vector_rms_before": float(np.sqrt(np.sum(ss_before) / n)),
             "vector_rms_after": float(np.sqrt(np.sum(ss_after) / n)),
         }
-        ref = ScalarReference(np.full(len(B), F), source, units)
+        ref = ScalarReference(np.broadcast_to(F_i, (len(B),)).astype(np.float64), source, units)
         return build_calibration(
             B, matrix, c, model=model, method=self.name, units=units, reference=ref,
             params=Interference12.from_K_c(K, c).as_dict(), iterations=int(info.get("iterations", 1)),

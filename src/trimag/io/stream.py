@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -33,7 +34,7 @@ from .._core.extras import available, require
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .atomic import atomic_path
-from .tables import _numeric, detect_csv_layout, guess_format, read_table, resolve_columns
+from .tables import _numeric, detect_csv_layout, detect_format, guess_format, read_table, resolve_columns
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -107,6 +108,10 @@ class ChunkSource:
     has_header: bool = True
     delimiter: str | None = ","
     all_columns: list[str] = field(default_factory=list)
+    #: delimited text: the file read (after any decompression), the lines before the header, the number of fields
+    raw_path: Path | None = None
+    skip: int = 0
+    n_fields: int = 0
 
 
 def _parse_rows(rows: str | None) -> tuple[int, int | None]:
@@ -198,7 +203,7 @@ def open_chunks(
         p = plain_path(p)  # compressed text, decimal commas
     if chunk_rows < 1:
         raise TrimagInputError(f"`chunk_rows` must be a positive number of rows; got {chunk_rows}")
-    kind = guess_format(p, fmt)
+    kind = detect_format(p, fmt)
     if kind in ("csv", "txt"):
         layout = detect_csv_layout(p, fmt=kind)
         kwargs: dict[str, Any] = {
@@ -208,7 +213,10 @@ def open_chunks(
             "keep_default_na": False,
             "sep": r"\s+" if layout.delimiter is None else layout.delimiter,
         }
-        head = pd.read_csv(p, nrows=2000, **kwargs)
+        try:
+            head = pd.read_csv(p, nrows=2000, **kwargs)
+        except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
+            raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
         if not layout.has_header:
             head.columns = [f"col{i}" for i in range(head.shape[1])]
         head.columns = [str(c).strip() for c in head.columns]
@@ -216,7 +224,8 @@ def open_chunks(
             raise TrimagInputError(f"{p}: the file has a header but no data rows")
         cols, note = resolve_columns(head, columns, str(path))
         names = list(head.columns)
-        source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names)
+        source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names,
+                             raw_path=p, skip=layout.skip, n_fields=len(names))
 
         def gen_pandas(skip_rows: int = 0) -> Iterator[Chunk]:
             start = 0
@@ -366,7 +375,32 @@ def apply_file(
     n_rows = 0
     n_bad = 0
     with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error
-        if out_kind in ("csv", "txt"):
+        raw_copy = (out_kind in ("csv", "txt") and source.raw_path is not None and source.delimiter is not None
+                    and (out_kind == "txt" or source.delimiter == ","))
+        if raw_copy:  # delimited text in, same delimiter out: every input byte copied, corrected cells appended
+            assert source.raw_path is not None and source.delimiter is not None
+            sep_b = source.delimiter.encode()
+            with tmp.open("wb") as fb, source.raw_path.open("rb") as fin:
+                lines_in = _RawLines(fin, source, sep_b)
+                for body, ending in lines_in.head():  # preamble and header, unchanged
+                    if ending is not None:  # the header: the corrected columns' names appended
+                        fb.write(body + sep_b + sep_b.join(n.encode() for n in new_cols) + ending)
+                    else:
+                        fb.write(body)
+                for chunk in chunks:
+                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
+                    cells = _corrected_cells(corrected, source.delimiter, arrow=chunk.has_arrow)
+                    block = lines_in.take(cells)
+                    if block is None:
+                        raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+                    fb.writelines(block)
+                    n_rows += len(chunk)
+                    n_bad += bad
+                    if progress:
+                        progress(n_rows)
+                if not lines_in.at_end():  # never an output whose cells are not those of its rows
+                    raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+        elif out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
             with tmp.open("w", encoding="utf-8", newline="") as fh:
                 for line in source.preamble:
@@ -430,6 +464,113 @@ def apply_file(
         "output_columns": new_cols,
         "out": str(out),
     }
+
+
+class _RawLines:
+    """The raw lines of a delimited text file, for ``apply`` to copy byte for byte.
+
+    :meth:`head` gives the preamble lines and the header as written; :meth:`take` the next ``n`` data records, each
+    as ``(record, ending)``: the record padded with the delimiter to the file's number of fields when short (the
+    corrected cells then land in their columns) and followed by one delimiter, and its line ending. Blank and
+    whitespace-only lines are skipped (the readers skip them); a record whose quotes are unbalanced continues on
+    the next line (a quoted cell with a line break). Blocks without quotes or blank lines take a vectorised path.
+    """
+
+    def __init__(self, fin: Any, source: ChunkSource, sep: bytes) -> None:
+        self.fin = fin
+        self.source = source
+        self.sep = sep
+        self.blank = bytes(c for c in b" \t\r\f\v" if bytes([c]) != sep)  # a line of only these is skipped
+        self._blank_line = re.compile(rb"\n[" + re.escape(self.blank) + rb"]*\n")  # a blank line after the first
+        self.pending: list[bytes] = []
+
+    def head(self) -> list[tuple[bytes, bytes | None]]:
+        """The preamble lines ``(line, None)`` (ending included), then ``(header, ending)`` when there is one."""
+        out: list[tuple[bytes, bytes | None]] = [(self.fin.readline(), None) for _ in range(self.source.skip)]
+        if self.source.has_header:
+            out.append(_split_ending(self.fin.readline()))
+        return out
+
+    def _line(self) -> bytes:
+        return self.pending.pop() if self.pending else self.fin.readline()
+
+    def take(self, cells: list[bytes]) -> Iterable[bytes] | None:
+        """The next ``len(cells)`` records with ``cells`` appended, one per record, as pieces of the output's bytes;
+        None when the file has fewer records left."""
+        n = len(cells)
+        sep, n_fields = self.sep, self.source.n_fields
+        lines = list(itertools.islice(self.fin, n)) if not self.pending else []
+        if len(lines) == n and n:
+            data = b"".join(lines)
+            eol = b"\r\n" if data.endswith(b"\r\n") else b"\n"
+            if (data.endswith(b"\n") and data.count(eol) == n and (eol == b"\r\n" or b"\r" not in data)
+                    and b'"' not in data and data.count(sep) == n * (n_fields - 1)
+                    and lines[0].strip(self.blank + b"\n") and self._blank_line.search(data) is None):
+                # plain full rows: no per-line work in Python
+                del lines
+                bodies = data[: -len(eol)].split(eol)
+                del data
+                return itertools.chain.from_iterable(zip(bodies, itertools.repeat(sep), cells, itertools.repeat(eol)))
+        self.pending.extend(reversed(lines))
+        out = []
+        for cell in cells:
+            record = self._record()
+            if record is None:
+                return None
+            out.append(record[0] + cell + record[1])
+        return out
+
+    def at_end(self) -> bool:
+        """Whether no record is left."""
+        return self._record() is None
+
+    def _record(self) -> tuple[bytes, bytes] | None:
+        sep, n_fields = self.sep, self.source.n_fields
+        while True:
+            line = self._line()
+            if not line:
+                return None
+            body, ending = _split_ending(line)
+            if body.strip(self.blank):
+                break
+        while body.count(b'"') % 2:  # a quoted cell spans lines
+            more = self._line()
+            if not more:
+                break
+            nxt, ending2 = _split_ending(more)
+            body = body + (b"\r\n" if ending == b"\r\n" else b"\n") + nxt
+            ending = ending2
+        if b'"' in body:
+            fields = len(next(csv.reader([body.decode("utf-8", "surrogateescape")], delimiter=sep.decode())))
+        else:
+            fields = body.count(sep) + 1
+        return body + sep * max(n_fields - fields, 0) + sep, ending
+
+
+def _split_ending(line: bytes) -> tuple[bytes, bytes]:
+    """A raw line without and with only its line ending (``\\n`` added when the last line has none)."""
+    if line.endswith(b"\r\n"):
+        return line[:-2], b"\r\n"
+    if line.endswith(b"\n"):
+        return line[:-1], b"\n"
+    return line, b"\n"
+
+
+def _corrected_cells(corrected: NDArray[np.float64], delimiter: str, *, arrow: bool) -> list[bytes]:
+    """The corrected x, y, z of each row as delimited text (empty cells for NaN), one bytes line per row, formatted
+    as the pyarrow or the pandas writer formats them (``arrow``)."""
+    if arrow and available("pyarrow"):
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        table = pa.table({str(j): pa.array(corrected[:, j], from_pandas=True) for j in range(3)})
+        buf = io.BytesIO()
+        pacsv.write_csv(table, buf, write_options=pacsv.WriteOptions(
+            include_header=False, delimiter=delimiter, quoting_style="none"))
+        text = buf.getvalue()
+    else:
+        text = pd.DataFrame(corrected).to_csv(index=False, header=False, sep=delimiter, lineterminator="\n").encode()
+    return text.split(b"\n")[: len(corrected)]
 
 
 def _correct(

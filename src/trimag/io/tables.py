@@ -36,7 +36,7 @@ __all__ = [
     "select_rows",
 ]
 
-FORMATS = ("csv", "txt", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log", "rosbag", "phone")
+FORMATS = ("csv", "txt", "xyz", "npz", "mat", "parquet", "dataflash", "tlog", "ulog", "px4log", "rosbag", "phone")
 LOG_KINDS = ("dataflash", "tlog", "ulog", "px4log", "rosbag", "phone")
 
 _AXIS_RE = re.compile(
@@ -85,6 +85,19 @@ class Samples:
     n_total_rows: int = 0
     #: what an autopilot log told (unit, magnetometer, GPS, messages), None for other files
     log_info: dict[str, Any] | None = None
+    #: what the file's format told besides the rows (e.g. a Geosoft XYZ file's line records and `*` nulls)
+    format_note: str = ""
+
+
+def detect_format(path: str | Path, fmt: str | None = None) -> str:
+    """:func:`guess_format`, and a text file whose first record starts with ``/`` is Geosoft XYZ."""
+    kind = guess_format(path, fmt)
+    if kind in ("csv", "txt") and fmt is None:
+        from .geosoft import is_geosoft_xyz
+
+        if is_geosoft_xyz(path):
+            return "xyz"
+    return kind
 
 
 def guess_format(path: str | Path, fmt: str | None = None) -> str:
@@ -100,7 +113,7 @@ def guess_format(path: str | Path, fmt: str | None = None) -> str:
             raise TrimagInputError(f"unknown `fmt` {fmt!r}; choose one of {', '.join(FORMATS)}")
         return f
     ext = Path(path).suffix.lower().lstrip(".")
-    mapping = {"csv": "csv", "txt": "txt", "dat": "txt", "tsv": "txt", "log": "txt", "npz": "npz",
+    mapping = {"csv": "csv", "txt": "txt", "xyz": "xyz", "dat": "txt", "tsv": "txt", "log": "txt", "npz": "npz",
                "npy": "npz", "mat": "mat", "parquet": "parquet", "pq": "parquet"}
     if ext in mapping:
         return mapping[ext]
@@ -452,13 +465,20 @@ def read_table(
         from .normalise import plain_path
 
         p = plain_path(p)  # compressed text, decimal commas
-    kind = guess_format(p, fmt)
+    kind = detect_format(p, fmt)
     if p.is_dir() and kind != "rosbag":
         raise TrimagInputError(f"{p}: is a folder; give a data file")
     if kind in LOG_KINDS:
         return _read_vehicle_log(p, kind, sensor)
     if kind in ("csv", "txt"):
         return _read_delimited(p, kind)[0]
+    if kind == "xyz":
+        from .geosoft import read_xyz
+
+        xyz = read_xyz(p)
+        xyz.table.attrs["trimag_xyz"] = {"n_line_records": xyz.n_line_records, "line_column": xyz.line_column,
+                                         "comments": list(xyz.comments)}
+        return xyz.table
     if kind == "npz":
         return _read_npz(p, var)
     if kind == "mat":
@@ -531,6 +551,7 @@ def resolve_columns(
 _NOT_FIELD = re.compile(
     r"(acc|gyr|gyro|rate|temp|time|stamp|_ns\b|_us\b|_ms\b|index|idx|count|loop|step|seq|frame|lat|lon|alt|"
     r"roll|pitch|yaw|heading|quat|\bq[wxyz0-3]\b|volt|curr|press|baro|min\b|max\b|mean|std|var\b|\bg[xyz]\b|"
+    r"^line(?:_record)?$|^fid(?:ucial)?$|^mag$|^tmi$|"
     r"\ba[xyz]\b|vel|pos|speed|gps|thr|pwm|rc)", re.I
 )
 _NOT_FIELD_FILE = re.compile(r"(accel|gyro|temperature|stats)", re.I)
@@ -681,6 +702,7 @@ def read_samples(
     ok = np.isfinite(xyz).all(axis=1)
     n_bad = int((~ok).sum())
     positions = np.nonzero(~ok)[0]
+    format_note = _xyz_note(df, cols, n_total) if "trimag_xyz" in df.attrs else ""
     if n_bad and strict:
         raise TrimagInputError(
             f"{p}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
@@ -706,7 +728,22 @@ def read_samples(
         source=str(p),
         n_total_rows=n_total,
         log_info=log_info,
+        format_note=format_note,
     )
+
+
+def _xyz_note(df: pd.DataFrame, cols: tuple[str, str, str], n_total: int) -> str:
+    """What a Geosoft XYZ file held besides the rows used: line records and ``*`` null rows (for the user)."""
+    info = df.attrs["trimag_xyz"]
+    n_null = int(np.any(np.column_stack([df[c].astype(str).str.strip().to_numpy() == "*" for c in cols]), axis=1).sum())
+    note = f"Geosoft XYZ: {n_total} data rows"
+    if info["n_line_records"]:
+        lines = pd.unique(df[info["line_column"]]) if info["line_column"] in df.columns else []
+        note += (f", {info['n_line_records']} line record(s) skipped ({len(lines)} line(s) in the rows used, "
+                 f"column {info['line_column']!r})")
+    if n_null:
+        note += f", {n_null} row(s) with a `*` null in {', '.join(cols)} (dropped and counted below)"
+    return note
 
 
 def column_values(samples: Samples, name: str) -> NDArray[np.float64]:
