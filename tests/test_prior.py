@@ -81,10 +81,9 @@ def test_level_turn_recovers_the_horizontal_offset(prior, tilt) -> None:
     assert cal.stats["std_norm_after"] < 1.2 * NOISE
 
 
-def test_attitude_and_inclination_identify_the_vertical(prior) -> None:
-    raw, euler = _level()
-    R = Rotation.from_euler("ZYX", euler, degrees=True)
-    cal = refit_offset(prior, raw, F, attitude=R, inclination_deg=INCLINATION)
+def test_tilt_identifies_the_vertical(prior) -> None:
+    raw, _ = _level(tilt=10.0)  # a boat rolling and pitching by 10 deg RMS while it turns
+    cal = refit_offset(prior, raw, F)
     comp = _components(cal)
     for k, axis in enumerate("xyz"):
         c = comp[f"offset_{axis}"]
@@ -92,6 +91,24 @@ def test_attitude_and_inclination_identify_the_vertical(prior) -> None:
         assert abs(c["value"] - HARD_AFTER[k]) < 3 * c["std"], (axis, c)
     assert comp["offset_z"]["std"] < 30.0
     assert cal.diagnostics["prior"]["unidentified"] == []
+
+
+def test_inclination_at_level_does_not_identify_the_vertical(prior) -> None:
+    """At level the vertical component ties the vertical offset to the inclination's accuracy (0.2 deg here):
+    still unidentified, with a sigma from the priors, and the truth within it."""
+    raw, euler = _level()
+    R = Rotation.from_euler("ZYX", euler, degrees=True)
+    cal = refit_offset(prior, raw, F, attitude=R, inclination_deg=INCLINATION)
+    comp = _components(cal)
+    assert cal.diagnostics["prior"]["unidentified"] == ["offset_z"]
+    assert abs(comp["offset_z"]["value"] - HARD_AFTER[2]) < 3 * comp["offset_z"]["std"]
+    incl = cal.diagnostics["prior"]["inclination"]
+    assert abs(incl["value_deg"] - INCLINATION) < 3 * incl["std_deg"]
+    assert "inclination_rad" in cal.uncertainty["covariance_order"]
+    # an inclination known far better identifies it
+    sharp = refit_offset(prior, raw, F, attitude=R, inclination_deg=INCLINATION, inclination_sigma_deg=0.001)
+    z = _components(sharp)["offset_z"]
+    assert z["identified_by_data"] and abs(z["value"] - HARD_AFTER[2]) < 3 * z["std"] and z["std"] < 30.0
 
 
 def test_prior_sigma_regularises_the_unidentified_vertical(prior) -> None:
@@ -155,7 +172,7 @@ def test_cli_quick_recalibration(files) -> None:
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert "offset_z" in summary["prior"]["unidentified"]
-    assert "--igrf" in proc.stderr  # the message says what would identify it, as the flag
+    assert "unidentified: offset_z" in proc.stderr and "tilt the vehicle" in proc.stderr
     cal = Calibration.from_file(out)
     prov = cal.diagnostics["prior"]
     assert prov["path"] == str(files["cal"])
@@ -166,9 +183,10 @@ def test_cli_quick_recalibration(files) -> None:
     comp = prov["components"]
     for k, axis in enumerate("xy"):
         assert abs(comp[f"offset_{axis}"]["value"] - HARD_AFTER[k]) < 3 * comp[f"offset_{axis}"]["std"]
-    # with the attitudes and the inclination the vertical is fitted too
+    # with the attitudes and an inclination known to 0.001 deg the vertical is fitted too
     proc = run_trimag("fit", files["level"], "--reference", str(F), "--prior", files["cal"], "--attitude-columns",
-                      "yaw,pitch,roll", "--option", f"inclination_deg={INCLINATION}", "--json")
+                      "yaw,pitch,roll", "--option", f"inclination_deg={INCLINATION}", "--option",
+                      "inclination_sigma_deg=0.001", "--json")
     assert proc.returncode == 0, proc.stderr
     comp = json.loads(proc.stdout)["prior"]["components"]
     assert comp["offset_z"]["identified_by_data"]

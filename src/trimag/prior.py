@@ -11,7 +11,10 @@ alignment) and its regressor terms kept fixed, the new offset ``b`` is the only 
 ``s`` is a field scale (nominally 1) that absorbs the reference's error and a drift of the prior's gain: a level
 turn sees the horizontal field as a circle, whose centre gives ``b_x, b_y``, but the magnitude alone cannot tell a
 vertical offset from a slightly different ``|F|`` (the two trade exactly when the sensor never tilts). The vertical
-component (inclination ``I`` and a known attitude or tilt) identifies it.
+component adds the inclination ``I`` (fitted too, with a Gaussian prior of ``inclination_sigma_deg``, default
+0.2 deg): at level it ties the vertical offset to the inclination's accuracy (``dV = F cos(I) dI``, 1.4 nT per 0.01
+deg at I = 68.6 deg... and through ``s`` more), so only **tilt** (roll and pitch changing while the vehicle turns)
+identifies the vertical offset from the data themselves.
 
 The fit is a regularised (maximum a posteriori) least squares of ``(b, s)``: the data residuals over the noise
 ``sigma`` (from the residuals), plus two Gaussian priors,
@@ -51,13 +54,15 @@ DEFAULT_SCALE_SIGMA = 0.005
 #: Default standard deviation of the offset's change since the earlier calibration, as a fraction of ``F``.
 DEFAULT_CHANGE_FRACTION = 0.1
 #: The ``option`` keys a quick recalibration takes.
-OPTIONS = ("prior_offset_sigma", "scale_sigma")
+OPTIONS = ("prior_offset_sigma", "scale_sigma", "inclination_deg", "inclination_sigma_deg")
 #: A component is identified when the data shrink its prior standard deviation below this fraction.
 IDENTIFIED_RATIO = 0.5
 #: ... and when its standard deviation (field scale free) is within this factor of the best component's.
 WEAK_RATIO = 10.0
 
-_NAMES = ("offset_x", "offset_y", "offset_z", "field_scale")
+_NAMES = ("offset_x", "offset_y", "offset_z", "field_scale", "inclination_rad")
+#: Default standard deviation of the given inclination (degrees): a model's against the local field.
+DEFAULT_INCLINATION_SIGMA_DEG = 0.2
 
 
 def file_digest(path: str | Path) -> str:
@@ -88,9 +93,9 @@ class _Problem:
     priors' whitened rows."""
 
     def __init__(self, M: NDArray[np.float64], X: NDArray[np.float64], F: NDArray[np.float64],
-                 down: NDArray[np.float64] | None, sin_incl: float, b_prior: NDArray[np.float64],
+                 down: NDArray[np.float64] | None, incl: float, incl_sigma: float, b_prior: NDArray[np.float64],
                  prior_cov: NDArray[np.float64], scale_sigma: float) -> None:
-        self.M, self.X, self.F, self.down, self.sin_incl = M, X, F, down, sin_incl
+        self.M, self.X, self.F, self.down, self.incl, self.incl_sigma = M, X, F, down, incl, incl_sigma
         self.b_prior = b_prior
         self.L_inv = np.linalg.inv(np.linalg.cholesky(prior_cov))  # whitening: L^-1 (b - b_prior)
         self.scale_sigma = scale_sigma
@@ -98,26 +103,28 @@ class _Problem:
 
     def data(self, q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Unweighted data residuals (N or 2N,) and their Jacobian (.., 4)."""
-        b, s = q[:3], q[3]
+        b, s, incl = q[:3], q[3], q[4]
         c = (self.X - b) @ self.M.T
         mag = np.linalg.norm(c, axis=1)
         n = c / mag[:, None]
         r = [mag - s * self.F]
-        J = [np.column_stack([-(n @ self.M), -self.F])]
+        J = [np.column_stack([-(n @ self.M), -self.F, np.zeros(len(c))])]
         if self.down is not None:
-            r.append(np.einsum("ij,ij->i", c, self.down) - s * self.F * self.sin_incl)
-            J.append(np.column_stack([-(self.down @ self.M), -self.F * self.sin_incl]))
+            r.append(np.einsum("ij,ij->i", c, self.down) - s * self.F * np.sin(incl))
+            J.append(np.column_stack([-(self.down @ self.M), -self.F * np.sin(incl), -s * self.F * np.cos(incl)]))
         return np.concatenate(r), np.vstack(J)
 
     def residuals(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         r, _ = self.data(q)
-        return np.concatenate([self.weight * r, self.L_inv @ (q[:3] - self.b_prior), [(q[3] - 1.0) / self.scale_sigma]])
+        return np.concatenate([self.weight * r, self.L_inv @ (q[:3] - self.b_prior),
+                               [(q[3] - 1.0) / self.scale_sigma, (q[4] - self.incl) / self.incl_sigma]])
 
     def jacobian(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         _, J = self.data(q)
-        prior = np.zeros((4, 4))
+        prior = np.zeros((5, 5))
         prior[:3, :3] = self.L_inv
         prior[3, 3] = 1.0 / self.scale_sigma
+        prior[4, 4] = 1.0 / self.incl_sigma
         return np.vstack([self.weight * J, prior])
 
 
@@ -131,6 +138,7 @@ def refit_offset(
     inclination_deg: float | None = None,
     prior_offset_sigma: float | None = None,
     scale_sigma: float = DEFAULT_SCALE_SIGMA,
+    inclination_sigma_deg: float = DEFAULT_INCLINATION_SIGMA_DEG,
     prior_source: Mapping[str, Any] | None = None,
 ) -> Calibration:
     """Refit the offset of ``prior`` from new samples, its matrix and regressor terms kept (module docstring).
@@ -154,6 +162,8 @@ def refit_offset(
         Standard deviation of the offset's change since ``prior`` (data unit); default 10 % of ``F``.
     scale_sigma : float
         Standard deviation of the field scale ``s`` (relative).
+    inclination_sigma_deg : float
+        Standard deviation of ``inclination_deg`` (degrees): the inclination is fitted with this Gaussian prior.
     prior_source : mapping, optional
         Provenance of the prior (``path``, ``sha256``) stored in ``diagnostics["prior"]``.
 
@@ -190,22 +200,27 @@ def refit_offset(
     if not (change > 0 and np.isfinite(change)):
         raise TrimagInputError(f"`option prior_offset_sigma` must be a positive number; got {prior_offset_sigma}")
     prior_cov = _prior_offset_cov(prior) + change**2 * np.eye(3)
-    down, sin_incl = None, 0.0
+    down, incl = None, 0.0
+    if not (inclination_sigma_deg > 0 and np.isfinite(inclination_sigma_deg)):
+        raise TrimagInputError(f"`option inclination_sigma_deg` must be a positive number; got {inclination_sigma_deg}")
     if attitude is not None and inclination_deg is not None:
         down = np.atleast_2d(attitude.inv().apply([0.0, 0.0, 1.0]))
         if len(down) != n:
             raise TrimagInputError(f"`attitude` has {len(down)} rotations for {n} samples")
-        sin_incl = float(np.sin(np.radians(inclination_deg)))
+        incl = float(np.radians(inclination_deg))
     M = np.asarray(prior.matrix, dtype=np.float64)
     b_prior = np.asarray(prior.offset, dtype=np.float64)
-    problem = _Problem(M, X, F, down, sin_incl, b_prior, prior_cov, scale_sigma)
+    incl_sigma = float(np.radians(inclination_sigma_deg))
+    problem = _Problem(M, X, F, down, incl, incl_sigma, b_prior, prior_cov, scale_sigma)
     q, r, sigma, tau, nfev, converged = _solve(problem, prior, n)
     J_data = problem.weight * problem.data(q)[1]
     info = J_data.T @ J_data
-    prior_info = np.zeros((4, 4))
+    prior_info = np.zeros((5, 5))
     prior_info[:3, :3] = problem.L_inv.T @ problem.L_inv
-    cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2])), dtype=np.float64)
-    free = prior_info + np.diag([0, 0, 0, 1e-12])  # field scale left free: what the data alone say of b
+    prior_info[4, 4] = 1.0 / incl_sigma**2
+    cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2, 0])), dtype=np.float64)
+    # the field scale left free (and the inclination with its prior): what the data say of b beyond |F|
+    free = prior_info + np.diag([0, 0, 0, 1e-12, 0])
     cov_free = np.linalg.inv(info + free)
     prior_std = np.sqrt(np.diag(prior_cov))
     std = np.sqrt(np.diag(cov))
@@ -222,14 +237,15 @@ def refit_offset(
             f"{prior.units}): turn the vehicle through several headings (at least three, spread over the circle)"
         )
     return _assemble(prior, X, F, q, r, sigma, tau, cov, std, std_free, prior_std, identified, axes, nfev,
-                     converged, change, scale_sigma, down is not None, inclination_deg, prior_source)
+                     converged, change, scale_sigma, down is not None, inclination_deg, inclination_sigma_deg,
+                     prior_source)
 
 
 def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
     """Two passes: the noise from the prior (or 0.1 % of F), then from the residuals of the first fit."""
     from scipy.optimize import least_squares
 
-    q0 = np.concatenate([problem.b_prior, [1.0]])
+    q0 = np.concatenate([problem.b_prior, [1.0, problem.incl]])
     noise0 = (prior.uncertainty or {}).get("noise_std") or prior.stats.get("rms_after") or 1e-3 * float(
         np.mean(problem.F))
     sigma, tau = float(noise0), 1.0
@@ -241,7 +257,7 @@ def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
                             gtol=1e-12, max_nfev=200)
         q, nfev, converged = np.asarray(res.x, dtype=np.float64), nfev + int(res.nfev), bool(res.success)
         r = problem.data(q)[0]
-        sigma = float(np.sqrt(r @ r / max(len(r) - 4, 1))) or sigma
+        sigma = float(np.sqrt(r @ r / max(len(r) - 5, 1))) or sigma
         tau = max(correlation_time(r[:n]), 1.0)
     problem.weight = 1.0 / (sigma * np.sqrt(tau))
     return q, r, sigma, tau, nfev, converged
@@ -251,7 +267,8 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
               r: NDArray[np.float64], sigma: float, tau: float, cov: NDArray[np.float64], std: NDArray[np.float64],
               std_free: NDArray[np.float64], prior_std: NDArray[np.float64], identified: NDArray[np.bool_],
               axes: tuple[str, ...], nfev: int, converged: bool, change: float, scale_sigma: float,
-              vertical: bool, inclination_deg: float | None, prior_source: Mapping[str, Any] | None) -> Calibration:
+              vertical: bool, inclination_deg: float | None, inclination_sigma_deg: float,
+              prior_source: Mapping[str, Any] | None) -> Calibration:
     """The Calibration of a quick recalibration: the prior's shape, the new offset, what was identified."""
     from .models import get_model
 
@@ -266,6 +283,8 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
     except Exception:  # an 'affine' prior, or a model whose parameters do not hold this matrix exactly
         params = dict(prior.params)
     unidentified = [f"offset_{a}" for a, ok in zip(axes, identified, strict=True) if not ok]
+    k_par = 5 if vertical else 4  # the inclination is a parameter only with the vertical component's residuals
+    names, cov, std = list(_NAMES[:k_par]), cov[:k_par, :k_par], std[:k_par]
     components = {
         f"offset_{a}": {
             "value": float(b[k]), "std": float(std[k]), "prior_value": float(prior.offset[k]),
@@ -285,8 +304,12 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
             "prior_offset_sigma": change,
             "residuals": "magnitude" + (" and vertical component (inclination, attitude)" if vertical else ""),
             "inclination_deg": inclination_deg,
+            **({"inclination": {"value_deg": float(np.degrees(q[4])), "std_deg": float(np.degrees(std[4])),
+                                "prior_deg": inclination_deg, "prior_std_deg": inclination_sigma_deg}}
+               if vertical else {}),
             "equations": "c = M (x - b); |c| = s F" + ("; c . d = s F sin(I)" if vertical else "")
-                     + "; b ~ N(b_prior, C_b + prior_offset_sigma^2 I), s ~ N(1, scale_sigma^2)",
+                     + "; b ~ N(b_prior, C_b + prior_offset_sigma^2 I), s ~ N(1, scale_sigma^2)"
+                     + ("; I ~ N(inclination_deg, inclination_sigma_deg^2)" if vertical else ""),
         },
     }
     if prior.diagnostics.get("regressors") is not None:
@@ -294,11 +317,11 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
     uncertainty = {
         "basis": "inverse of the augmented information: data (sigma from the residuals, times their autocorrelation "
                  "time) plus the Gaussian priors of the offset and the field scale (trimag.prior)",
-        "param_std": {**dict(zip(_NAMES, std.tolist(), strict=True)),
+        "param_std": {**dict(zip(names, std.tolist(), strict=True)),
                       **({f"hard_iron_{a}": float(std[k]) for k, a in enumerate(axes)} if prior.model == "ellipsoid"
                          else {})},
         "covariance": cov.tolist(),
-        "covariance_order": list(_NAMES),
+        "covariance_order": names,
         "noise_std": sigma,
         "inflation": {"total": tau, "correlated_residuals": tau},
     }

@@ -442,8 +442,8 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             )
     options = dict(req.options)
     sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
-    prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg")
-                     if k in options}
+    prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
+                                                                 "inclination_sigma_deg") if k in options}
     if prior_options and req.prior is None:
         raise TrimagInputError(f"`option {next(iter(prior_options))}` belongs to a quick recalibration; give `prior`")
     if sync_options and req.attitude.attitude_file is None:
@@ -608,6 +608,7 @@ def _refit_prior(
         prior, samples.field, F, regressors=regressor_values, attitude=attitude, inclination_deg=inclination,
         prior_offset_sigma=None if sigma is None else float(sigma),
         scale_sigma=float(options.get("scale_sigma", 0.005)),
+        inclination_sigma_deg=float(options.get("inclination_sigma_deg", 0.2)),
         prior_source={"path": str(req.prior), "sha256": file_digest(str(req.prior))},
     )
     cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
@@ -620,8 +621,8 @@ def _refit_prior(
                         f"{state}")
     if d["unidentified"]:
         messages.append(f"unidentified: {', '.join(d['unidentified'])}: a level turn cannot tell a vertical offset "
-                        "from the field's magnitude; give attitudes (or tilt the vehicle) and the site "
-                        "(`igrf_spec`) to fit it")
+                        "from the field's magnitude and inclination: tilt the vehicle (roll and pitch it while it "
+                        "turns) to fit it, or keep the prior's value")
     return samples, cal, regressor_values, messages
 
 
