@@ -25,7 +25,9 @@ The fit is a regularised (maximum a posteriori) least squares of ``(b, s)``: the
 ``sigma_change`` (``prior_offset_sigma``, data unit; default 10 % of ``F``) is how far the offset may have moved
 since the earlier calibration; ``scale_sigma`` (default 0.005: a reference good to 0.5 %, IGRF against a local
 field, plus a gain drift) the field scale's. The covariance of the estimate is the inverse of the augmented
-information ``J^T J`` (data rows times the residuals' autocorrelation time, :func:`trimag.honesty.correlation_time`).
+information ``J^T J`` (data rows times the residuals' autocorrelation time, :func:`trimag.honesty.correlation_time`),
+plus the prior matrix's own covariance propagated through the estimate (``G C_W G^T``, ``G = -cov J^T J_W`` the
+sensitivity of the estimate to the matrix entries; ellipsoid priors, whose covariance holds ``w11 .. w33``).
 
 An offset component counts as **identified by the data** when, with the field scale left free, its posterior
 standard deviation is below half its prior one and within 10x the best component's; the others are reported as
@@ -68,6 +70,23 @@ DEFAULT_INCLINATION_SIGMA_DEG = 0.2
 def file_digest(path: str | Path) -> str:
     """SHA-256 (hex) of a file's bytes: the provenance of a prior calibration."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _prior_matrix_cov(prior: Calibration) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]] | None:
+    """The covariance (6, 6) of an ellipsoid prior's upper-triangular matrix entries ``w11 .. w33`` and their row
+    and column indices; None when the prior has none."""
+    unc = prior.uncertainty or {}
+    order = list(unc.get("covariance_order") or [])
+    cov = unc.get("covariance")
+    names = ("w11", "w12", "w13", "w22", "w23", "w33")
+    if prior.model != "ellipsoid" or cov is None or not all(n in order for n in names):
+        return None
+    idx = [order.index(n) for n in names]
+    C = np.asarray(cov, dtype=np.float64)[np.ix_(idx, idx)]
+    if not np.isfinite(C).all():
+        return None
+    rows, cols = np.triu_indices(3)
+    return 0.5 * (C + C.T), rows.astype(np.intp), cols.astype(np.intp)
 
 
 def _prior_offset_cov(prior: Calibration) -> NDArray[np.float64]:
@@ -113,6 +132,18 @@ class _Problem:
             r.append(np.einsum("ij,ij->i", c, self.down) - s * self.F * np.sin(incl))
             J.append(np.column_stack([-(self.down @ self.M), -self.F * np.sin(incl), -s * self.F * np.cos(incl)]))
         return np.concatenate(r), np.vstack(J)
+
+    def matrix_jacobian(self, q: NDArray[np.float64], rows: NDArray[np.intp], cols: NDArray[np.intp]
+                        ) -> NDArray[np.float64]:
+        """Unweighted Jacobian (N or 2N, k) of the data residuals with respect to the matrix entries
+        ``M[rows[j], cols[j]]``."""
+        d = self.X - q[:3]
+        c = d @ self.M.T
+        n = c / np.linalg.norm(c, axis=1)[:, None]
+        J = [n[:, rows] * d[:, cols]]
+        if self.down is not None:
+            J.append(self.down[:, rows] * d[:, cols])
+        return np.vstack(J)
 
     def residuals(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         r, _ = self.data(q)
@@ -219,6 +250,11 @@ def refit_offset(
     prior_info[:3, :3] = problem.L_inv.T @ problem.L_inv
     prior_info[4, 4] = 1.0 / incl_sigma**2
     cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2, 0])), dtype=np.float64)
+    matrix_cov = _prior_matrix_cov(prior)
+    if matrix_cov is not None:  # the prior's matrix is uncertain too: its covariance propagated to the estimate
+        C_w, rows, cols = matrix_cov
+        G = -cov @ (J_data.T @ (problem.weight * problem.matrix_jacobian(q, rows, cols)))
+        cov = cov + G @ C_w @ G.T
     # the field scale left free (and the inclination with its prior): what the data say of b beyond |F|
     free = prior_info + np.diag([0, 0, 0, 1e-12, 0])
     cov_free = np.linalg.inv(info + free)
