@@ -201,3 +201,34 @@ def test_cli_refusals(files) -> None:
     assert proc.returncode == 2 and "--prior" in proc.stderr
     proc = run_trimag("fit", files["level"], "--prior", files["dir"] / "missing.json", "--reference", str(F))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
+
+
+def test_cli_prior_with_regressor_terms(tmp_path) -> None:
+    rng = np.random.default_rng(7)
+    n = 2000
+    k = np.array([30.0, -20.0, 50.0])
+    current = np.abs(np.sin(np.linspace(0, 9, n))) * 20
+    raw = _tumble(seed=7, n=n) + np.outer(current, k)
+    pd.DataFrame({"x": raw[:, 0], "y": raw[:, 1], "z": raw[:, 2], "current": current}).to_csv(tmp_path / "t.csv",
+                                                                                              index=False)
+    proc = run_trimag("fit", tmp_path / "t.csv", "--units", "nT", "--reference", str(F), "--regressors", "current",
+                      "-o", tmp_path / "cal.json", "-q")
+    assert proc.returncode == 0, proc.stderr
+    level, _ = _level(seed=8)
+    cur = rng.uniform(0, 20, len(level))
+    level = level + np.outer(cur, k)
+    pd.DataFrame({"x": level[:, 0], "y": level[:, 1], "z": level[:, 2], "current": cur}).to_csv(
+        tmp_path / "level.csv", index=False)
+    proc = run_trimag("fit", tmp_path / "level.csv", "--reference", str(F), "--prior", tmp_path / "cal.json", "-o",
+                      tmp_path / "quick.json", "--json")
+    assert proc.returncode == 0, proc.stderr
+    cal = Calibration.from_file(tmp_path / "quick.json")
+    assert cal.regressors is not None and cal.diagnostics["prior"]["kept"] == ["matrix", "regressors"]
+    expected = HARD_AFTER + np.asarray(cal.regressors["means"])[0] * k
+    comp = cal.diagnostics["prior"]["components"]
+    for i, axis in enumerate("xy"):
+        assert abs(comp[f"offset_{axis}"]["value"] - expected[i]) < 3 * comp[f"offset_{axis}"]["std"]
+    pd.DataFrame({"x": level[:, 0], "y": level[:, 1], "z": level[:, 2]}).to_csv(tmp_path / "bare.csv", index=False)
+    proc = run_trimag("fit", tmp_path / "bare.csv", "--reference", str(F), "--prior", tmp_path / "cal.json")
+    assert proc.returncode == 2 and "no column 'current'" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
