@@ -160,3 +160,19 @@ def test_cli_refusals(files) -> None:
     assert proc.returncode == 2 and "--attitude-file" in proc.stderr
     for p in (proc,):
         assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_cli_evaluate_applies_the_stored_lag(files) -> None:
+    out = files["dir"] / "cal_eval.json"
+    assert _fit(files, "--option", "estimate_lag=true", "-o", out, "-q").returncode == 0
+    args = ["evaluate", out, files["mag"], "--background-ned", "18000,1200,46000", "--attitude-file", files["att"],
+            "--quaternion-columns", "qw,qx,qy,qz", "--time-column", "time", "--attitude-time-column", "t_att",
+            "--json"]
+    proc = run_trimag(*args)
+    assert proc.returncode == 0, proc.stderr
+    v = json.loads(proc.stdout)
+    assert v["lag_s"] == pytest.approx(Calibration.from_file(out).diagnostics["time_sync"]["lag_s"])
+    assert v["rms_after"] < 1.05 * NOISE * np.sqrt(3)
+    assert v["angular_error_rms_deg"] < 0.05
+    _, tm, stream = _streams()
+    assert v["n_dropped"] == int(np.sum((tm + v["lag_s"] < 0.0) | (tm + v["lag_s"] > stream.times[-1])))

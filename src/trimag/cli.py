@@ -117,12 +117,13 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
     g.add_argument("--background-ned", metavar="N,E,D", help="background field vector in the data's unit")
     if fit:
         g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
-        g.add_argument("--attitude-file", metavar="FILE",
-                       help="attitudes from this file (its --attitude-columns or --quaternion-columns), with its own "
-                            "time column, interpolated (slerp) to the magnetometer's --time-column; "
-                            "--option estimate_lag=true estimates the lag between the two (docs/vehicle.md)")
-        g.add_argument("--attitude-time-column", metavar="NAME",
-                       help="time column (s) of --attitude-file (default: the same name as --time-column)")
+    g.add_argument("--attitude-file", metavar="FILE",
+                   help="attitudes from this file (its --attitude-columns or --quaternion-columns), with its own "
+                        "time column, interpolated (slerp) to the magnetometer's --time-column; "
+                        "fit: --option estimate_lag=true estimates the lag between the two; evaluate: the "
+                        "calibration's lag is applied (docs/vehicle.md)")
+    g.add_argument("--attitude-time-column", metavar="NAME",
+                   help="time column (s) of --attitude-file (default: the same name as --time-column)")
 
 
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
@@ -467,7 +468,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var, rows=args.rows,
             where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
             quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
-            background_ned=args.background_ned, igrf_spec=args.igrf_spec,
+            background_ned=args.background_ned, igrf_spec=args.igrf_spec, attitude_file=args.attitude_file,
+            time_column=args.time_column, attitude_time_column=args.attitude_time_column,
         )
         if args.json:
             print(json.dumps(v, allow_nan=False))

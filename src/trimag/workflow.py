@@ -27,7 +27,7 @@ from .io.atomic import atomic_write_text
 from .io.stream import chunk_columns
 from .io.tables import where_mask
 from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
-from .requests import FitRequest
+from .requests import FitRequest, InputSpec
 from .units import convert, normalise_unit
 
 __all__ = [
@@ -665,7 +665,7 @@ def _attach_attitude_file(
     }
     messages = [f"attitudes from {att.attitude_file}: {len(stream.times)} rows over {t0:.6g}..{t1:.6g} s "
                 f"(every {stream.median_interval:.4g} s), interpolated (slerp) to the magnetometer's time stamps"]
-    lag = 0.0
+    lag = float(options.get("lag_s", 0.0))  # a known lag (evaluate: the calibration's)
     if _truthy(options.get("estimate_lag", False)):
         if estimator.reference_kind != "vector" or req.reference.background_run is not None:
             raise TrimagInputError("`option estimate_lag=true` maximises the quality of the vector fit: it needs "
@@ -977,17 +977,33 @@ def evaluate_vector_file(
     quaternion_frame: str = "ned",
     background_ned: str | None = None,
     igrf_spec: str | None = None,
+    attitude_file: str | Path | None = None,
+    time_column: str | None = None,
+    attitude_time_column: str | None = None,
 ) -> dict[str, Any]:
     """Vector errors of an attitude-based calibration (``interference12``) on a log with attitudes.
 
     The background field (N, E, D) is rotated into the body frame at every sample (docs/conventions-attitude.md)
     and compared with the raw and the corrected vector: per-axis RMS, vector RMS, and the angle between the
-    corrected field and the background in degrees (RMS and maximum).
+    corrected field and the background in degrees (RMS and maximum). With ``attitude_file`` the attitudes come from
+    that file (its own ``attitude_time_column``), interpolated (slerp) to the data's ``time_column`` after the lag
+    the calibration stores (``diagnostics.time_sync.lag_s``, 0 when none); samples outside its span are dropped.
     """
     from . import attitude as _attitude
+    from .requests import AttitudeSpec
 
     cal = Calibration.from_file(cal_path)
     samples = read_samples(data_path, fmt=fmt, columns=columns, var=var, rows=rows, where=where)
+    lag = None
+    if attitude_file is not None:
+        lag = float((cal.diagnostics.get("time_sync") or {}).get("lag_s", 0.0))
+        req = FitRequest(InputSpec(data_path), attitude=AttitudeSpec(
+            attitude_columns=attitude_columns, quaternion_columns=quaternion_columns, quaternion_order=quaternion_order,
+            quaternion_frame=quaternion_frame, attitude_file=attitude_file, time_column=time_column,
+            attitude_time_column=attitude_time_column))
+        samples, req, _, _ = _attach_attitude_file(req, samples, cal.units, {"lag_s": lag}, None)
+        attitude_columns, quaternion_columns = None, req.attitude.quaternion_columns
+        quaternion_order, quaternion_frame = "wxyz", "ned"
     samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
     rot = _attitude.attitude_from_table(
         samples.table, euler_columns=attitude_columns, quaternion_columns=quaternion_columns,
@@ -1016,6 +1032,7 @@ def evaluate_vector_file(
         "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
         "n_used": len(raw), "n_dropped": samples.n_dropped + n_no_attitude,
         "background": {"ned": np.asarray(background).tolist(), "source": source},
+        **({"attitude_file": str(attitude_file), "lag_s": lag} if attitude_file is not None else {}),
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
