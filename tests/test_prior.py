@@ -232,3 +232,21 @@ def test_cli_prior_with_regressor_terms(tmp_path) -> None:
     proc = run_trimag("fit", tmp_path / "bare.csv", "--reference", str(F), "--prior", tmp_path / "cal.json")
     assert proc.returncode == 2 and "no column 'current'" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_cli_prior_on_a_real_autopilot_log(tmp_path) -> None:
+    """The PX4 log barely turned (refused without a prior); with its onboard calibration as the prior the offset is
+    refitted (docs/vehicle.md); a log that did not turn at all is refused (exit 3) even with a prior."""
+    logs = Path(__file__).parent / "data" / "logs"
+    onboard = Calibration.from_matrix_offset(np.diag([1.10669, 1.0409, 1.05836]), [0.09462, -0.06406, 0.00244],
+                                             units="G")
+    onboard.to_file(tmp_path / "onboard.json")
+    assert run_trimag("fit", logs / "px4tools_01_07_59.px4log", "-q").returncode == 3
+    proc = run_trimag("fit", logs / "px4tools_01_07_59.px4log", "--prior", tmp_path / "onboard.json", "--json")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["method"] == "prior-offset" and summary["rms_after"] < 0.5 * summary["rms_before"]
+    comp = summary["prior"]["components"]
+    assert abs(comp["offset_y"]["value"] - (-0.06406)) < 0.01
+    proc = run_trimag("fit", logs / "pyulog_sample_log_small.ulg", "--prior", tmp_path / "onboard.json")
+    assert proc.returncode == 3 and "identify no component" in proc.stderr

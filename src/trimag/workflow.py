@@ -456,6 +456,9 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
     prior = None
     if req.prior is not None:
+        if regressor_names is not None:
+            raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
+                                   "prior's regressor terms and refits only the offset; drop `regressors`")
         prior = Calibration.from_file(req.prior)
         req, prior_messages = _prior_units(req, prior)
         messages += prior_messages
@@ -726,7 +729,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None:
+    if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
         _refuse_static_log(samples, log_info)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
