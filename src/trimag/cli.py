@@ -120,12 +120,20 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
                         "survey line or a reference vector magnetometer")
     if fit:
         g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
+    g.add_argument("--attitude-file", metavar="FILE",
+                   help="attitudes from this file (its --attitude-columns or --quaternion-columns), with its own "
+                        "time column, interpolated (slerp) to the magnetometer's --time-column; "
+                        "fit: --option estimate_lag=true estimates the lag between the two; evaluate: the "
+                        "calibration's lag is applied (docs/vehicle.md)")
+    g.add_argument("--attitude-time-column", metavar="NAME",
+                   help="time column (s) of --attitude-file (default: the same name as --time-column)")
 
 
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
     g = p.add_argument_group("aircraft compensation (model tolles-lawson; docs/method-tolles-lawson.md)")
     g.add_argument("--scalar-column", metavar="S", help="scalar magnetometer column to compensate (nT)")
-    g.add_argument("--time-column", metavar="T", help="time column, seconds (gives the sample rate)")
+    g.add_argument("--time-column", metavar="T",
+                   help="time column, seconds (gives the sample rate; with --attitude-file the magnetometer's time)")
     g.add_argument("--rate", type=float, metavar="HZ", help="sample rate, Hz (when there is no time column)")
     g.add_argument("--segments", metavar="T0:T1[,T0:T1...]", help="time ranges (s) of calibration manoeuvres")
     if fit:
@@ -154,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="columns the offset depends on linearly (current, throttle, temperature, ...): "
                         "b = b0 + sum k_j (u_j - mean_j), fitted jointly and ranked (models ellipsoid, interference12; "
                         "docs/vehicle.md); apply and evaluate read the same columns")
+    p.add_argument("--prior", metavar="CAL.json",
+                   help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
+                        "only its offset, e.g. from a few headings at level (needs the field magnitude; "
+                        "docs/vehicle.md)")
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -349,8 +361,11 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
                                 reference_column=args.reference_column, background_ned=args.background_ned,
                                 background_run=args.background_run, background_columns=args.background_columns),
         attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
-                              quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame),
+                              quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
+                              attitude_file=args.attitude_file, attitude_time_column=args.attitude_time_column,
+                              time_column=args.time_column),
         out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
+        prior=args.prior,
     )
 
 
@@ -457,6 +472,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
             quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
             background_ned=args.background_ned, igrf_spec=args.igrf_spec, background_columns=args.background_columns,
+            attitude_file=args.attitude_file, time_column=args.time_column,
+            attitude_time_column=args.attitude_time_column,
         )
         if args.json:
             print(json.dumps(v, allow_nan=False))

@@ -55,19 +55,26 @@ class ReferenceSpec:
 @dataclass(frozen=True)
 class AttitudeSpec:
     """Where the attitudes are (vector models): Euler angle columns (yaw, pitch, roll, degrees, Z-Y-X, body ->
-    NED) or quaternion columns in ``quaternion_order`` (``"wxyz"`` or ``"xyzw"``) for ``quaternion_frame``."""
+    NED) or quaternion columns in ``quaternion_order`` (``"wxyz"`` or ``"xyzw"``) for ``quaternion_frame``, in the
+    data or in ``attitude_file`` (:mod:`trimag.timesync`)."""
 
     attitude_columns: str | None = None
     quaternion_columns: str | None = None
     quaternion_order: str = "wxyz"
     quaternion_frame: str = "ned"
+    #: attitudes from a second file with its own time column (``attitude_time_column``), interpolated (slerp) to
+    #: the magnetometer's time stamps (its ``time_column``); the columns above name that file's columns
+    attitude_file: str | Path | None = None
+    attitude_time_column: str | None = None
+    time_column: str | None = None
 
 
 @dataclass(frozen=True)
 class FitRequest:
     """One fit: read ``input``, take the ``reference`` (and ``attitude``), fit ``model`` by ``method`` with
     ``options`` (and the offset's ``regressors``: column names whose terms ``k_j (u_j - mean_j)`` are fitted
-    jointly, docs/vehicle.md), check ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration
+    jointly, docs/vehicle.md), or, with a ``prior`` calibration, refit only its offset (docs/vehicle.md), check
+    ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration
     JSON) and ``report`` (figure) when given."""
 
     input: InputSpec
@@ -80,6 +87,8 @@ class FitRequest:
     report: str | Path | None = None
     policy: str | None = None
     regressors: tuple[str, ...] | None = None
+    #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.prior`)
+    prior: str | Path | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

@@ -27,7 +27,7 @@ from .io.atomic import atomic_write_text
 from .io.stream import chunk_columns
 from .io.tables import where_mask
 from .reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
-from .requests import FitRequest
+from .requests import FitRequest, InputSpec
 from .units import convert, normalise_unit
 
 __all__ = [
@@ -477,16 +477,75 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             raise TrimagInputError(
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
-    estimator = make_estimator(req.model, req.method, dict(req.options))
+    options = dict(req.options)
+    sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
+    prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
+                                                                 "inclination_sigma_deg") if k in options}
+    if prior_options and req.prior is None:
+        raise TrimagInputError(f"`option {next(iter(prior_options))}` belongs to a quick recalibration; give `prior`")
+    if sync_options and req.attitude.attitude_file is None:
+        raise TrimagInputError(f"`option {next(iter(sync_options))}` needs attitudes from a second file; give "
+                               "`attitude_file`")
+    estimator = make_estimator(req.model, req.method, options)
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
     req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
+    prior = None
+    if req.prior is not None:
+        if regressor_names is not None:
+            raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
+                                   "prior's regressor terms and refits only the offset; drop `regressors`")
+        prior = Calibration.from_file(req.prior)
+        req, prior_messages = _prior_units(req, prior)
+        messages += prior_messages
     units, unit_messages = _check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
     messages += unit_messages + _reading_messages(samples)
-    samples, ref, attitude, ref_messages = _fit_reference(req, samples, estimator, unit)
-    messages += ref_messages
+    sync = None
+    if req.attitude.attitude_file is not None:
+        samples, req, sync, sync_messages = _attach_attitude_file(req, samples, unit, sync_options, estimator)
+        messages += sync_messages
+    if prior is not None:
+        samples, cal, regressor_values, prior_messages = _refit_prior(req, samples, unit, prior, prior_options)
+        ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
+        messages += prior_messages
+        warn_texts: list[str] = []
+    else:
+        samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
+                                                                                   regressor_names)
+        messages += fit_messages
+    if sync is not None:
+        cal = cal.with_diagnostics(time_sync=sync)
+    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
+    if warn_texts:
+        cal = cal.with_diagnostics(warnings=warn_texts)
+    igrf_spec = req.reference.igrf_spec
+    if limits is not None:
+        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
+    summary = fit_summary(cal, samples)
+    summary["warnings"] = warn_texts
+    if limits is not None:
+        summary["acceptance"] = cal.diagnostics["acceptance"]
+    if sync is not None:
+        summary["time_sync"] = sync
+    if prior is not None:
+        summary["prior"] = cal.diagnostics["prior"]
+    if (prior is None and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
+            and req.model == "ellipsoid"):
+        messages.append(_heading_message(cal, igrf_spec, summary))
+    cal, written = _write_fit_outputs(cal, samples, req, regressor_values)
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
+
+
+def _fit_model(
+    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None
+) -> tuple[Samples, Calibration, Any, dict[str, NDArray[np.float64]] | None, list[str], list[str]]:
+    """The estimator's fit (and the regressor terms' joint refit): ``(samples, calibration, reference, regressor
+    values, warnings, messages)``; refuses what cannot be right (an unidentified log, an impossible vector fit)."""
+    src = req.input
+    samples, ref, attitude, messages = _fit_reference(req, samples, estimator, unit)
     regressor_values = None if regressor_names is None else regressor_columns(
         samples, regressor_names, src.path, "named by `regressors`"
     )
@@ -510,21 +569,178 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
 
         cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
-    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
-    if warn_texts:
-        cal = cal.with_diagnostics(warnings=warn_texts)
-    igrf_spec = req.reference.igrf_spec
-    if limits is not None:
-        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
-    summary = fit_summary(cal, samples)
-    summary["warnings"] = warn_texts
-    if limits is not None:
-        summary["acceptance"] = cal.diagnostics["acceptance"]
-    if igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None and req.model == "ellipsoid":
-        messages.append(_heading_message(cal, igrf_spec, summary))
-    cal, written = _write_fit_outputs(cal, samples, req, regressor_values)
-    summary["outputs"] = written
-    return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
+    return samples, cal, ref, regressor_values, warn_texts, messages
+
+
+def _prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
+    """The data's unit against the prior calibration's: a clash is refused, an unstated unit is the prior's."""
+    given = req.input.units
+    if given is not None:
+        unit = normalise_unit(given)
+        if "unknown" not in (unit, prior.units) and unit != prior.units:
+            raise TrimagInputError(
+                f"the prior calibration {req.prior} is for data in {prior.units}, but `units={given}`: a quick "
+                "recalibration keeps the prior's matrix, so the data must be in its unit"
+            )
+        return req, []
+    if prior.units == "unknown":
+        return req, []
+    return (dataclasses.replace(req, input=dataclasses.replace(req.input, units=prior.units)),
+            [f"unit {prior.units} (from the prior calibration)"])
+
+
+def _inclination(igrf_spec: str | None) -> float | None:
+    """The IGRF inclination (degrees, positive down) at a site ``LAT,LON,ALT_M,DATE``; None without a site."""
+    if igrf_spec is None:
+        return None
+    north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+    return float(np.degrees(np.arctan2(down, np.hypot(north, east))))
+
+
+def _refit_prior(
+    req: FitRequest, samples: Samples, unit: str, prior: Calibration, options: dict[str, Any]
+) -> tuple[Samples, Calibration, dict[str, NDArray[np.float64]] | None, list[str]]:
+    """Quick recalibration (:func:`trimag.prior.refit_offset`): ``(samples, calibration, regressor values,
+    messages)``."""
+    from . import attitude as _attitude
+    from .prior import file_digest, refit_offset
+
+    given, att = req.reference, req.attitude
+    messages = [f"quick recalibration: the matrix{' and regressor terms' if prior.regressors else ''} of "
+                f"{req.prior} (model {prior.model}, method {prior.method}) kept; the offset refitted"]
+    if given.background_ned is not None or given.background_run is not None:
+        raise TrimagInputError("a quick recalibration (`prior`) uses the field magnitude (and the inclination), not "
+                               "a background vector: give `reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
+    attitude = None
+    if att.attitude_columns is not None or att.quaternion_columns is not None:
+        samples, n_no_attitude = _drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+        if n_no_attitude:
+            messages.append(f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric")
+        attitude = _attitude.attitude_from_table(
+            samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+            scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+        )
+    ref = scalar_reference_from_options(samples, units=unit, reference=given.reference, igrf_spec=given.igrf_spec,
+                                        reference_column=given.reference_column)
+    F: Any = ref.values
+    if F is None:
+        value = (prior.reference or {}).get("value")
+        if value is None:
+            raise TrimagInputError("a quick recalibration (`prior`) needs the field magnitude: give `reference=F`, "
+                                   "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME` (the prior states none)")
+        F = float(value)
+        messages.append(f"field magnitude F = {F:.6g} {unit} (the prior calibration's reference)")
+    elif ref.source.startswith("igrf"):
+        messages.append(f"reference from {ref.source}: F = {float(np.asarray(F).ravel()[0]):.6g} {unit}")
+    inclination = options.get("inclination_deg")
+    inclination = float(inclination) if inclination is not None else _inclination(given.igrf_spec)
+    if attitude is not None and inclination is None:
+        messages.append("warning: attitudes given without an inclination (`igrf_spec` or `option inclination_deg`): "
+                        "only the magnitude is used")
+    if attitude is None:
+        inclination = None
+    regressor_values = None
+    if prior.regressors is not None:
+        regressor_values = regressor_columns(samples, tuple(prior.regressors["names"]), req.input.path,
+                                             "a regressor of the prior calibration")
+    sigma = options.get("prior_offset_sigma")
+    cal = refit_offset(
+        prior, samples.field, F, regressors=regressor_values, attitude=attitude, inclination_deg=inclination,
+        prior_offset_sigma=None if sigma is None else float(sigma),
+        scale_sigma=float(options.get("scale_sigma", 0.005)),
+        inclination_sigma_deg=float(options.get("inclination_sigma_deg", 0.2)),
+        prior_source={"path": str(req.prior), "sha256": file_digest(str(req.prior))},
+    )
+    cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
+                                              "prior", "unit": unit})
+    d = cal.diagnostics["prior"]
+    for name, c in d["components"].items():
+        state = ("identified" if c["identified_by_data"] else
+                 "NOT identified by these data (value and sigma from the priors)")
+        messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit} (prior {c['prior_value']:.6g}): "
+                        f"{state}")
+    if d["unidentified"]:
+        messages.append(f"unidentified: {', '.join(d['unidentified'])}: a level turn cannot tell a vertical offset "
+                        "from the field's magnitude and inclination: tilt the vehicle (roll and pitch it while it "
+                        "turns) to fit it, or keep the prior's value")
+    return samples, cal, regressor_values, messages
+
+
+def _truthy(value: Any) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("1", "true", "yes", "on")
+    return bool(value)
+
+
+def _attach_attitude_file(
+    req: FitRequest, samples: Samples, unit: str, options: dict[str, Any], estimator: Any
+) -> tuple[Samples, FitRequest, dict[str, Any], list[str]]:
+    """Attitudes from ``attitude_file`` interpolated (slerp) to the samples' time stamps, after the lag when
+    ``estimate_lag`` (:mod:`trimag.timesync`): the samples outside the stream's span dropped, the attitudes put in
+    the table as quaternion columns and the request pointed at them."""
+    from .requests import AttitudeSpec
+    from .timesync import estimate_lag, interpolate_attitude, read_attitude_stream, time_values
+
+    att = req.attitude
+    if att.time_column is None:
+        raise TrimagInputError("`attitude_file` needs the time stamps of the magnetometer's samples: give "
+                               "`time_column=NAME` (and `attitude_time_column=NAME` if the attitude file's differs)")
+    if att.attitude_columns is None and att.quaternion_columns is None:
+        raise TrimagInputError("name the attitude file's columns: `attitude_columns=YAW,PITCH,ROLL` or "
+                               "`quaternion_columns=W,X,Y,Z`")
+    stream = read_attitude_stream(
+        att.attitude_file, time_column=att.attitude_time_column or att.time_column,  # type: ignore[arg-type]
+        attitude_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+    )
+    t = time_values(samples.table, att.time_column, str(req.input.path))
+    t0, t1 = stream.span
+    sync: dict[str, Any] = {
+        "attitude_file": str(att.attitude_file), "time_column": att.time_column,
+        "attitude_time_column": att.attitude_time_column or att.time_column, "n_attitudes": len(stream.times),
+        "attitude_span_s": [t0, t1], "attitude_interval_s": stream.median_interval,
+        "n_attitude_rows_dropped": stream.n_dropped, "interpolation": "slerp",
+        "lag_convention": "lag = attitude clock - magnetometer clock: the sample stamped t takes the attitude at "
+                          "t + lag", "lag_s": 0.0, "lag_estimated": False,
+    }
+    messages = [f"attitudes from {att.attitude_file}: {len(stream.times)} rows over {t0:.6g}..{t1:.6g} s "
+                f"(every {stream.median_interval:.4g} s), interpolated (slerp) to the magnetometer's time stamps"]
+    lag = float(options.get("lag_s", 0.0))  # a known lag (evaluate: the calibration's)
+    if _truthy(options.get("estimate_lag", False)):
+        if estimator.reference_kind != "vector" or req.reference.background_run is not None:
+            raise TrimagInputError("`option estimate_lag=true` maximises the quality of the vector fit: it needs "
+                                   "`model=interference12` with `background_ned=N,E,D` or `igrf_spec=...`")
+        background, _ = vector_reference_from_options(units=unit, background_ned=req.reference.background_ned,
+                                                      igrf_spec=req.reference.igrf_spec)
+        ok = np.isfinite(t)
+        result = estimate_lag(samples.field[ok], t[ok], stream, background,
+                              max_lag=float(options.get("max_lag", 1.0)))
+        lag = float(result["lag_s"])
+        sync.update(result, lag_estimated=True)
+        messages.append(
+            f"lag between the streams (attitude clock - magnetometer clock): {lag:+.5f} +- {result['lag_std_s']:.2g} "
+            f"s; vector RMS of the interference12 fit {result['rms_at_lag']:.4g} {unit} at that lag against "
+            f"{result['rms_at_zero']:.4g} at zero lag"
+        )
+    rot, inside = interpolate_attitude(stream, t, lag)
+    n_out = int((~inside).sum())
+    sync["n_outside"] = n_out
+    if rot is None:
+        raise TrimagInputError(
+            f"none of the {len(t)} magnetometer samples (time {np.nanmin(t):.6g}..{np.nanmax(t):.6g} s) lies inside "
+            f"the attitude stream's span {t0:.6g}..{t1:.6g} s: check the time columns and their units"
+        )
+    if n_out:
+        messages.append(f"dropped {n_out} of {len(t)} magnetometer samples outside the attitude stream's span "
+                        f"({t0:.6g}..{t1:.6g} s{f', lag {lag:+.4g} s' if lag else ''}) or without a time stamp")
+    table = samples.table[inside].reset_index(drop=True)
+    names = ("_attitude_qw", "_attitude_qx", "_attitude_qy", "_attitude_qz")
+    q = rot.as_quat(scalar_first=True)
+    table = table.assign(**{name: q[:, k] for k, name in enumerate(names)})
+    samples = dataclasses.replace(samples, field=samples.field[inside], table=table,
+                                  n_dropped=samples.n_dropped + n_out)
+    req = dataclasses.replace(req, attitude=AttitudeSpec(quaternion_columns=",".join(names)))
+    return samples, req, sync, messages
 
 
 def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
@@ -550,7 +766,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None:
+    if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
         _refuse_static_log(samples, log_info)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
@@ -811,18 +1027,34 @@ def evaluate_vector_file(
     background_ned: str | None = None,
     igrf_spec: str | None = None,
     background_columns: str | None = None,
+    attitude_file: str | Path | None = None,
+    time_column: str | None = None,
+    attitude_time_column: str | None = None,
 ) -> dict[str, Any]:
     """Vector errors of an attitude-based calibration (``interference12``) on a log with attitudes.
 
     The background field (N, E, D) -- one vector, or one per row from ``background_columns`` -- is rotated into
     the body frame at every sample (docs/conventions-attitude.md) and compared with the raw and the corrected
     vector: per-axis RMS, vector RMS, and the angle between the corrected field and the background in degrees
-    (RMS and maximum).
+    (RMS and maximum). With ``attitude_file`` the attitudes come from that file (its own ``attitude_time_column``),
+    interpolated (slerp) to the data's ``time_column`` after the lag the calibration stores
+    (``diagnostics.time_sync.lag_s``, 0 when none); samples outside its span are dropped.
     """
     from . import attitude as _attitude
+    from .requests import AttitudeSpec
 
     cal = Calibration.from_file(cal_path)
     samples = read_samples(data_path, fmt=fmt, columns=columns, var=var, rows=rows, where=where)
+    lag = None
+    if attitude_file is not None:
+        lag = float((cal.diagnostics.get("time_sync") or {}).get("lag_s", 0.0))
+        req = FitRequest(InputSpec(data_path), attitude=AttitudeSpec(
+            attitude_columns=attitude_columns, quaternion_columns=quaternion_columns, quaternion_order=quaternion_order,
+            quaternion_frame=quaternion_frame, attitude_file=attitude_file, time_column=time_column,
+            attitude_time_column=attitude_time_column))
+        samples, req, _, _ = _attach_attitude_file(req, samples, cal.units, {"lag_s": lag}, None)
+        attitude_columns, quaternion_columns = None, req.attitude.quaternion_columns
+        quaternion_order, quaternion_frame = "wxyz", "ned"
     samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
     samples, n_no_background = _drop_rows_without_background(samples, background_columns)
     rot = _attitude.attitude_from_table(
@@ -854,6 +1086,7 @@ def evaluate_vector_file(
         "n_used": len(raw), "n_dropped": samples.n_dropped + n_no_attitude + n_no_background,
         "background": {"ned": (background.mean(axis=0) if background.ndim == 2 else background).tolist(),
                        "source": source, "per_sample": background.ndim == 2},
+        **({"attitude_file": str(attitude_file), "lag_s": lag} if attitude_file is not None else {}),
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
