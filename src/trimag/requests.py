@@ -66,7 +66,9 @@ class FitRequest:
     """One fit: read ``input``, take the ``reference`` (and ``attitude``), fit ``model`` by ``method`` with
     ``options`` (and the offset's ``regressors``: column names whose terms ``k_j (u_j - mean_j)`` are fitted
     jointly, docs/vehicle.md), check ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration
-    JSON) and ``report`` (figure) when given."""
+    JSON) and ``report`` (figure) when given. With ``accel_columns`` (``"AX,AY,AZ"``, specific force at rest or
+    moving slowly) the rotation from the corrected magnetometer frame to the accelerometer frame and the dip angle
+    are estimated after the calibration (:func:`trimag.alignment.fit_alignment`, docs/vehicle.md)."""
 
     input: InputSpec
     model: str = "ellipsoid"
@@ -78,6 +80,7 @@ class FitRequest:
     report: str | Path | None = None
     policy: str | None = None
     regressors: tuple[str, ...] | None = None
+    accel_columns: str | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
