@@ -8,6 +8,7 @@ accelerometer noise, at rest in random attitudes (yaw 0-360, pitch within 75, ro
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -254,3 +255,15 @@ def test_cli_refusals(tmp_path):
     r = run_trimag("evaluate", tmp_path / "c.json", fit_csv, "--accel-columns", "ax,ay,az", "--heading-column",
                    "heading", "--declination", "east")
     assert r.returncode == 2 and "--declination" in r.stderr
+
+
+def test_policy_measures_the_inclination_error_from_the_fitted_dip(fitted):
+    from trimag.policy import check_policy
+
+    sim, cal = fitted
+    verdict = check_policy(cal, {"max_inclination_error_deg": 0.5}, inclination_deg=sim.dip_deg + 1.0)
+    assert not verdict["accepted"]
+    assert verdict["failed"][0]["measured"] == pytest.approx(1.0, abs=0.01)
+    plain = dataclasses.replace(cal, diagnostics={})
+    assert check_policy(plain, {"max_inclination_error_deg": 0.5}, inclination_deg=60.0)["not_evaluated"] == [
+        "max_inclination_error_deg"]
