@@ -128,8 +128,11 @@ def test_reported_sigmas_hold_over_repeated_logs():
 
 
 def test_nearest_board_rotation_of_a_yaw_90_mounting_plus_2_degrees(fitted):
-    _, cal = fitted
+    sim, cal = fitted
     board = cal.diagnostics["alignment"]["board_rotation"]
+    # the sensor's own axes (symmetric soft iron, as simulated): the true mounting
+    sensor = np.asarray(cal.diagnostics["alignment"]["sensor_matrix"])
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(sensor @ sim.alignment.T).as_rotvec())) < 0.02
     assert board["name"] == "ROTATION_YAW_90" and board["number"] == 2
     assert board["remaining_angle_deg"] == pytest.approx(2.0, abs=0.01)
     np.testing.assert_allclose(board["remaining_rotvec_deg"], np.degrees(SMALL.as_rotvec()), atol=0.01)
@@ -267,3 +270,17 @@ def test_policy_measures_the_inclination_error_from_the_fitted_dip(fitted):
     plain = dataclasses.replace(cal, diagnostics={})
     assert check_policy(plain, {"max_inclination_error_deg": 0.5}, inclination_deg=60.0)["not_evaluated"] == [
         "max_inclination_error_deg"]
+
+
+def test_cli_dip_against_igrf_and_an_accelerometer_of_the_wrong_sign(tmp_path):
+    sim = simulate_vehicle(600, 7)
+    csv = _csv(sim, tmp_path / "fit.csv")
+    r = run_trimag("fit", csv, "--units", "nT", "--accel-columns", "ax,ay,az", "--igrf", "52.5,13.3,40,2025-06-01")
+    assert r.returncode == 0, r.stderr
+    assert "against IGRF's" in r.stdout and "opposite sign" not in r.stderr
+    flipped = pd.read_csv(csv)
+    flipped[["ax", "ay", "az"]] *= -1.0  # gravity (+g down) instead of specific force
+    flipped.to_csv(tmp_path / "flipped.csv", index=False)
+    r = run_trimag("fit", tmp_path / "flipped.csv", "--units", "nT", "--accel-columns", "ax,ay,az", "--igrf",
+                   "52.5,13.3,40,2025-06-01", "-q")
+    assert r.returncode == 0 and "opposite sign of IGRF's" in r.stderr

@@ -21,9 +21,11 @@ Uncertainty: ``sigma^2 (J^T J)^-1`` with ``sigma^2`` from the residuals times th
 (:func:`trimag.honesty.correlation_time`); with an ellipsoid-model calibration whose covariance is known, the
 calibration's uncertainty is propagated too (``G C_cal G'``, ``G = -(J^T J)^-1 J^T dr/dtheta_cal``).
 
-The rotation is also expressed as the nearest standard autopilot board rotation (ArduPilot's ``COMPASS_ORIENT`` /
-``AHRS_ORIENTATION`` list, ``libraries/AP_Math/rotations.h``; ``v_body = R_board v_sensor`` with
-``R_board = Rz(yaw) Ry(pitch) Rx(roll)``) and the remaining rotation.
+The rotation of the sensor's own axes, ``R Q`` with ``W = Q P`` the polar decomposition of the calibration matrix
+(the frame a symmetric soft-iron correction, as ArduPilot and PX4 apply, leaves), is also expressed as the nearest
+standard autopilot board rotation (ArduPilot's ``COMPASS_ORIENT`` / ``AHRS_ORIENTATION`` list,
+``libraries/AP_Math/rotations.h``; ``v_body = R_board v_sensor`` with ``R_board = Rz(yaw) Ry(pitch) Rx(roll)``) and
+the remaining rotation.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ __all__ = [
     "check_tilt_variation",
     "fit_alignment",
     "nearest_board_rotation",
+    "polar_rotation",
 ]
 
 #: ArduPilot's board rotations (``enum Rotation`` of ``libraries/AP_Math/rotations.h``; MAVLink's
@@ -154,6 +157,21 @@ def nearest_board_rotation(matrix: ArrayLike) -> dict[str, Any]:
     angle, name, rest = best
     return {"name": name, "number": BOARD_ROTATIONS[name][0], "remaining_angle_deg": angle,
             "remaining_rotvec_deg": np.degrees(rest).tolist()}
+
+
+def polar_rotation(matrix: ArrayLike) -> NDArray[np.float64]:
+    """The rotation ``Q`` of the polar decomposition ``W = Q P`` (``P`` symmetric positive definite), shape (3, 3).
+
+    ``W (x - b) = Q P (x - b)``: ``P`` is the symmetric soft-iron correction that autopilots apply in the sensor's
+    own axes (docs/autopilot.md), ``Q`` the rotation from the sensor's axes to the calibration's corrected frame
+    (the gauge of the fit: upper-triangular ``W`` for the ellipsoid estimators).
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    Q = U @ Vt
+    if np.linalg.det(Q) < 0:  # a reflecting W (never a fitted one): keep a proper rotation
+        U[:, -1] = -U[:, -1]
+        Q = U @ Vt
+    return np.asarray(Q, dtype=np.float64)
 
 
 def _unit_down(accel: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -300,11 +318,13 @@ def fit_alignment(
     -------
     dict
         ``matrix`` (3x3, corrected magnetometer -> accelerometer), ``rotvec_deg`` (its rotation vector),
-        ``euler_zyx_deg`` (yaw, pitch, roll of it), ``rotation_std_deg`` (3, 1-sigma of a small rotation about
-        the accelerometer's x, y, z axes), ``dip_deg``, ``dip_std_deg``, ``covariance`` (4x4, radians^2, order
-        ``covariance_order``), ``board_rotation`` (:func:`nearest_board_rotation`), ``rms_residual`` (of the
-        dot products), ``correlation_time``, ``calibration_uncertainty_propagated``, ``n_used``,
-        ``n_dropped_accelerating``, ``weakest_rotation_axis`` and ``singular_value_ratio``.
+        ``euler_zyx_deg`` (yaw, pitch, roll of it), ``sensor_matrix`` and ``sensor_euler_zyx_deg`` (the rotation
+        of the sensor's own axes, ``R Q``, :func:`polar_rotation`), ``rotation_std_deg`` (3, 1-sigma of a small
+        rotation about the accelerometer's x, y, z axes), ``dip_deg``, ``dip_std_deg``, ``covariance`` (4x4,
+        radians^2, order ``covariance_order``), ``board_rotation`` (:func:`nearest_board_rotation` of
+        ``sensor_matrix``), ``rms_residual`` (of the dot products) and ``rms_residual_deg``, ``correlation_time``,
+        ``calibration_uncertainty_propagated``, ``n_used``, ``n_dropped_accelerating``, ``weakest_rotation_axis``
+        and ``singular_value_ratio``.
 
     Raises
     ------
@@ -367,6 +387,7 @@ def fit_alignment(
         propagated = True
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     rot = Rotation.from_matrix(R)
+    sensor = R @ polar_rotation(np.asarray(cal.matrix, dtype=np.float64))
     return {
         "matrix": R.tolist(),
         "rotvec_deg": np.degrees(rot.as_rotvec()).tolist(),
@@ -376,7 +397,9 @@ def fit_alignment(
         "dip_std_deg": float(np.degrees(std[3])),
         "covariance": cov.tolist(),
         "covariance_order": ["rotation_x", "rotation_y", "rotation_z", "dip"],
-        "board_rotation": nearest_board_rotation(R),
+        "sensor_matrix": sensor.tolist(),
+        "sensor_euler_zyx_deg": Rotation.from_matrix(sensor).as_euler("ZYX", degrees=True).tolist(),
+        "board_rotation": nearest_board_rotation(sensor),
         "rms_residual": float(np.sqrt(np.mean(r**2))),
         "rms_residual_deg": float(np.degrees(np.sqrt(np.mean(r**2)) / max(np.cos(inc), 1e-12))),
         "correlation_time": tau,

@@ -312,7 +312,7 @@ class VehicleSimulation:
     alignment : ndarray, shape (3, 3)
         The true rotation, corrected magnetometer frame -> accelerometer (body) frame.
     matrix, offset : ndarray
-        The true correction ``W`` (upper triangular) and hard iron ``b``: ``W (raw - b)`` is the field in the
+        The true correction ``W`` (symmetric by default) and hard iron ``b``: ``W (raw - b)`` is the field in the
         magnetometer's frame.
     field_ned : ndarray, shape (3,)
         The Earth's field, nT.
@@ -363,8 +363,8 @@ def simulate_vehicle(
         Corrected magnetometer frame -> body frame (a ``Rotation`` or a 3x3 matrix); default a 90-degree yaw
         mounting plus 2 degrees about (1, -1, 2)/|.|.
     matrix : array_like, shape (3, 3), optional
-        The correction ``W`` (upper triangular keeps the calibration's gauge the true frame); default a mild soft
-        iron.
+        The correction ``W``; default a mild symmetric soft iron (a symmetric ``W`` leaves the sensor's axes where
+        they are, so ``alignment`` is also the rotation of the sensor's own axes).
     offset : array_like, shape (3,)
         Hard iron, nT.
     field_ned_nT : array_like, shape (3,)
@@ -382,7 +382,7 @@ def simulate_vehicle(
         R_al = alignment.as_matrix()
     else:
         R_al = np.asarray(alignment, dtype=np.float64)
-    W = (np.array([[1.04, 0.02, -0.01], [0.0, 0.97, 0.03], [0.0, 0.0, 1.01]]) if matrix is None
+    W = (np.array([[1.04, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]]) if matrix is None
          else np.asarray(matrix, dtype=np.float64))
     b = np.asarray(offset, dtype=np.float64)
     H = np.asarray(field_ned_nT, dtype=np.float64)
