@@ -284,3 +284,21 @@ def test_cli_dip_against_igrf_and_an_accelerometer_of_the_wrong_sign(tmp_path):
     r = run_trimag("fit", tmp_path / "flipped.csv", "--units", "nT", "--accel-columns", "ax,ay,az", "--igrf",
                    "52.5,13.3,40,2025-06-01", "-q")
     assert r.returncode == 0 and "opposite sign of IGRF's" in r.stderr
+
+
+def test_heading_sigma_of_the_alignment_holds():
+    """The heading error of a level vehicle that the alignment's error alone causes, over repeated fits, against
+    the predicted ``heading_sigma_deg`` (held-out noise-free level samples, fitted against true alignment)."""
+    held = simulate_vehicle(720, 99, mag_noise_nT=0.0, accel_noise=0.0, max_pitch_deg=0.0, max_roll_deg=0.0)
+    errors, predicted = [], []
+    for seed in range(200, 212):
+        sim = simulate_vehicle(800, seed)
+        cal = trimag.fit(sim.raw)
+        al = fit_alignment(cal, sim.raw, sim.accel)
+        y = cal.apply(held.raw)
+        fitted = tilt_compensated_heading(y @ np.asarray(al["matrix"]).T, held.accel)
+        true = tilt_compensated_heading(y @ _expected_rotation(sim, cal).T, held.accel)
+        errors.append(heading_difference(fitted, true))
+        predicted.append(al["heading_sigma_deg"]["rms_deg"])
+    ratio = float(np.sqrt(np.mean(np.square(errors)))) / float(np.mean(predicted))
+    assert 0.5 < ratio < 1.5, ratio

@@ -45,6 +45,7 @@ __all__ = [
     "MIN_COS_DIP",
     "MIN_TILT_SPREAD_DEG",
     "RANK_TOLERANCE",
+    "alignment_heading_sigma",
     "board_rotation_matrix",
     "check_tilt_variation",
     "fit_alignment",
@@ -289,6 +290,43 @@ def _calibration_jacobian(
     return G, C
 
 
+def alignment_heading_sigma(rotation_covariance: ArrayLike, dip_deg: float) -> dict[str, float]:
+    """1-sigma heading error (degrees) of a level vehicle that the alignment's uncertainty alone causes.
+
+    A small rotation ``delta`` (accelerometer frame) of the aligned field moves the tilt-compensated heading by
+    ``g . delta``; ``g`` is taken by central differences of :func:`trimag.heading.tilt_compensated_heading` at
+    every 5 degrees of heading, level, at the dip ``dip_deg``, and ``sigma^2 = g C g'``.
+
+    Parameters
+    ----------
+    rotation_covariance : array_like, shape (3, 3)
+        Covariance of the rotation vector, rad^2.
+    dip_deg : float
+
+    Returns
+    -------
+    dict
+        ``rms_deg`` (over headings) and ``max_deg``.
+    """
+    from .heading import heading_difference, tilt_compensated_heading
+
+    C = np.asarray(rotation_covariance, dtype=np.float64)
+    psi = np.radians(np.arange(0.0, 360.0, 5.0))
+    inc = np.radians(dip_deg)
+    h = np.column_stack([np.cos(inc) * np.cos(psi), -np.cos(inc) * np.sin(psi), np.full(len(psi), np.sin(inc))])
+    a = np.tile([0.0, 0.0, -1.0], (len(psi), 1))
+    eps = 1e-6
+    g = np.empty((len(psi), 3))
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = eps
+        plus = tilt_compensated_heading(h @ Rotation.from_rotvec(step).as_matrix().T, a)
+        minus = tilt_compensated_heading(h @ Rotation.from_rotvec(-step).as_matrix().T, a)
+        g[:, k] = np.radians(heading_difference(plus, minus)) / (2 * eps)
+    sigma = np.degrees(np.sqrt(np.clip(np.einsum("ni,ij,nj->n", g, C, g), 0.0, None)))
+    return {"rms_deg": float(np.sqrt(np.mean(sigma**2))), "max_deg": float(sigma.max())}
+
+
 def fit_alignment(
     cal: Calibration,
     B: ArrayLike,
@@ -323,8 +361,9 @@ def fit_alignment(
         rotation about the accelerometer's x, y, z axes), ``dip_deg``, ``dip_std_deg``, ``covariance`` (4x4,
         radians^2, order ``covariance_order``), ``board_rotation`` (:func:`nearest_board_rotation` of
         ``sensor_matrix``), ``rms_residual`` (of the dot products) and ``rms_residual_deg``, ``correlation_time``,
-        ``calibration_uncertainty_propagated``, ``n_used``, ``n_dropped_accelerating``, ``weakest_rotation_axis``
-        and ``singular_value_ratio``.
+        ``calibration_uncertainty_propagated``, ``n_used``, ``n_dropped_accelerating``, ``weakest_rotation_axis``,
+        ``singular_value_ratio`` and ``heading_sigma_deg`` (:func:`alignment_heading_sigma`: ``rms_deg``,
+        ``max_deg``).
 
     Raises
     ------
@@ -389,6 +428,7 @@ def fit_alignment(
     rot = Rotation.from_matrix(R)
     sensor = R @ polar_rotation(np.asarray(cal.matrix, dtype=np.float64))
     return {
+        "heading_sigma_deg": alignment_heading_sigma(cov[:3, :3], float(np.degrees(inc))),
         "matrix": R.tolist(),
         "rotvec_deg": np.degrees(rot.as_rotvec()).tolist(),
         "euler_zyx_deg": rot.as_euler("ZYX", degrees=True).tolist(),

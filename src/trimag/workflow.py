@@ -241,7 +241,9 @@ def alignment_lines(alignment: dict[str, Any]) -> list[str]:
         + f": yaw {yaw:.3f}, pitch {pitch:.3f}, roll {roll:.3f} deg (Z-Y-X); 1 sigma about x, y, z "
           f"{sx:.2g}, {sy:.2g}, {sz:.2g} deg{note}",
         f"dip (inclination) {alignment['dip_deg']:.3f} +- {alignment['dip_std_deg']:.2g} deg; RMS of the "
-        f"field-gravity angle residual {alignment['rms_residual_deg']:.3g} deg",
+        f"field-gravity angle residual {alignment['rms_residual_deg']:.3g} deg; heading error of a level vehicle "
+        f"from the alignment's uncertainty {alignment['heading_sigma_deg']['rms_deg']:.2g} deg RMS over headings "
+        "(1 sigma)",
         f"sensor axes -> accelerometer (symmetric soft iron): yaw {sensor[0]:.3f}, pitch {sensor[1]:.3f}, roll "
         f"{sensor[2]:.3f} deg; nearest board rotation {board['name']} (COMPASS_ORIENT = {board['number']}), "
         "remaining rotation "
