@@ -302,3 +302,10 @@ def test_heading_sigma_of_the_alignment_holds():
         predicted.append(al["heading_sigma_deg"]["rms_deg"])
     ratio = float(np.sqrt(np.mean(np.square(errors)))) / float(np.mean(predicted))
     assert 0.5 < ratio < 1.5, ratio
+
+
+def test_cli_tolles_lawson_refuses_accel_columns(tmp_path):
+    csv = _csv(simulate_vehicle(100, 1), tmp_path / "log.csv")
+    r = run_trimag("fit", csv, "--model", "tolles-lawson", "--columns", "mx,my,mz", "--scalar-column", "heading",
+                   "--rate", "10", "--accel-columns", "ax,ay,az")
+    assert r.returncode == 2 and "--accel-columns" in r.stderr and len(r.stderr.strip().splitlines()) == 1

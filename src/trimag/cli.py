@@ -377,6 +377,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
     if args.model == "tolles-lawson":
+        if args.accel_columns:
+            raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
+                                   "scalar (drop --accel-columns)")
         return _cmd_fit_tolles_lawson(args)
 
     result = fit_file(_fit_request(args, parse_options(args.option)))
