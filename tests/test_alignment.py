@@ -309,3 +309,12 @@ def test_cli_tolles_lawson_refuses_accel_columns(tmp_path):
     r = run_trimag("fit", csv, "--model", "tolles-lawson", "--columns", "mx,my,mz", "--scalar-column", "heading",
                    "--rate", "10", "--accel-columns", "ax,ay,az")
     assert r.returncode == 2 and "--accel-columns" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_poorly_holding_invariance_is_warned(fitted):
+    sim, cal = fitted
+    assert cal.diagnostics["alignment"]["warning"] is None
+    rng = np.random.default_rng(8)
+    wobble = Rotation.from_rotvec(rng.normal(0.0, np.radians(2.0), (len(sim.accel), 3)))  # 3.5 deg of tilt error
+    al = fit_alignment(cal, sim.raw, wobble.apply(sim.accel))
+    assert al["rms_residual_deg"] > 1.0 and "holds poorly" in al["warning"]

@@ -45,6 +45,7 @@ __all__ = [
     "MIN_COS_DIP",
     "MIN_TILT_SPREAD_DEG",
     "RANK_TOLERANCE",
+    "RESIDUAL_WARNING_DEG",
     "alignment_heading_sigma",
     "board_rotation_matrix",
     "check_tilt_variation",
@@ -109,6 +110,9 @@ RANK_TOLERANCE = 0.05
 MIN_COS_DIP = 0.05
 #: Least RMS angle (degrees) of the gravity directions about their mean before any fit is tried.
 MIN_TILT_SPREAD_DEG = 3.0
+#: RMS (degrees) of the field-gravity angle's residual above which the fit warns that the invariance holds poorly
+#: (sensor noise gives a few tenths of a degree at most).
+RESIDUAL_WARNING_DEG = 1.0
 #: Samples whose ``|a|`` differs from the median by more than this fraction are dropped (the vehicle accelerated).
 MAX_ACCEL_DEVIATION = 0.05
 
@@ -362,8 +366,8 @@ def fit_alignment(
         radians^2, order ``covariance_order``), ``board_rotation`` (:func:`nearest_board_rotation` of
         ``sensor_matrix``), ``rms_residual`` (of the dot products) and ``rms_residual_deg``, ``correlation_time``,
         ``calibration_uncertainty_propagated``, ``n_used``, ``n_dropped_accelerating``, ``weakest_rotation_axis``,
-        ``singular_value_ratio`` and ``heading_sigma_deg`` (:func:`alignment_heading_sigma`: ``rms_deg``,
-        ``max_deg``).
+        ``singular_value_ratio``, ``heading_sigma_deg`` (:func:`alignment_heading_sigma`: ``rms_deg``,
+        ``max_deg``) and ``warning`` (a line when the residual exceeds :data:`RESIDUAL_WARNING_DEG`, else None).
 
     Raises
     ------
@@ -427,7 +431,15 @@ def fit_alignment(
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     rot = Rotation.from_matrix(R)
     sensor = R @ polar_rotation(np.asarray(cal.matrix, dtype=np.float64))
+    rms_deg = float(np.degrees(np.sqrt(np.mean(r**2))) / max(np.cos(inc), 1e-12))
+    warning = None
+    if rms_deg > RESIDUAL_WARNING_DEG:
+        warning = (f"the field-gravity angle varies by {rms_deg:.3g} deg RMS over the samples: the invariance holds "
+                   "poorly (the vehicle moving, a field that changes over the place, as indoors, or a calibration that "
+                   "does not fit), and the alignment can be off by more than its sigmas; record at rest, outdoors, "
+                   "away from iron")
     return {
+        "warning": warning,
         "heading_sigma_deg": alignment_heading_sigma(cov[:3, :3], float(np.degrees(inc))),
         "matrix": R.tolist(),
         "rotvec_deg": np.degrees(rot.as_rotvec()).tolist(),
@@ -441,7 +453,7 @@ def fit_alignment(
         "sensor_euler_zyx_deg": Rotation.from_matrix(sensor).as_euler("ZYX", degrees=True).tolist(),
         "board_rotation": nearest_board_rotation(sensor),
         "rms_residual": float(np.sqrt(np.mean(r**2))),
-        "rms_residual_deg": float(np.degrees(np.sqrt(np.mean(r**2)) / max(np.cos(inc), 1e-12))),
+        "rms_residual_deg": rms_deg,
         "correlation_time": tau,
         "calibration_uncertainty_propagated": propagated,
         "n_used": n,

@@ -250,6 +250,8 @@ def alignment_lines(alignment: dict[str, Any]) -> list[str]:
         f"{board['remaining_angle_deg']:.3f} deg (rotation vector {np.round(board['remaining_rotvec_deg'], 3).tolist()}"
         " deg, body frame)",
     ]
+    if alignment.get("warning"):
+        lines.append(f"warning: alignment: {alignment['warning']}")
     return lines
 
 
