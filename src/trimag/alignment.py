@@ -259,6 +259,9 @@ def _solve(
             lam = 1e-3 if lam == 0.0 else lam * 10.0
             if lam > 1e8:
                 break
+    if np.cos(inc) < 0:  # the same sin(I) with the dip within -90..90 (the steps never cross 90 from the start)
+        inc = float(np.arcsin(np.clip(np.sin(inc), -1.0, 1.0)))
+        r, J = evaluate(R, inc)
     return R, inc, r, J, it
 
 
