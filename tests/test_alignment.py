@@ -318,3 +318,12 @@ def test_a_poorly_holding_invariance_is_warned(fitted):
     wobble = Rotation.from_rotvec(rng.normal(0.0, np.radians(2.0), (len(sim.accel), 3)))  # 3.5 deg of tilt error
     al = fit_alignment(cal, sim.raw, wobble.apply(sim.accel))
     assert al["rms_residual_deg"] > 1.0 and "holds poorly" in al["warning"]
+
+
+def test_ardupilot_export_names_the_board_rotation(fitted):
+    from trimag.io.export import export_calibration
+
+    _, cal = fitted
+    exp = export_calibration(dataclasses.replace(cal, units="nT"), "ardupilot")
+    assert any("ROTATION_YAW_90 (COMPASS_ORIENT = 2)" in note for note in exp.notes)
+    assert "COMPASS_ORIENT" not in exp.text
