@@ -166,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
                         "only its offset, e.g. from a few headings at level (needs the field magnitude; "
                         "docs/vehicle.md)")
+    p.add_argument("--accel-columns", metavar="AX,AY,AZ",
+                   help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
+                        "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
+                        "and the nearest autopilot board rotation (docs/vehicle.md)")
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -204,6 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reference_options(p)
     _add_attitude_options(p, fit=False)
     _add_tolles_lawson_options(p, fit=False)
+    g = p.add_argument_group("heading (tilt-compensated, against a reference; docs/vehicle.md)")
+    g.add_argument("--accel-columns", metavar="AX,AY,AZ",
+                   help="accelerometer columns: evaluate the true heading against --heading-column or the yaw of "
+                        "--attitude-columns")
+    g.add_argument("--heading-column", metavar="H", help="reference heading, degrees clockwise from true north")
+    g.add_argument("--declination", metavar="DEG",
+                   help="magnetic declination, degrees east (instead of --igrf; default 0: magnetic heading)")
     p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
@@ -366,6 +377,7 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
                               time_column=args.time_column),
         out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
         prior=args.prior,
+        accel_columns=args.accel_columns,
     )
 
 
@@ -383,6 +395,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
     if args.model == "tolles-lawson":
+        if args.accel_columns:
+            raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
+                                   "scalar (drop --accel-columns)")
         return _cmd_fit_tolles_lawson(args)
 
     result = fit_file(_fit_request(args, parse_options(args.option)))
@@ -464,6 +479,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .aircraft import evaluate_compensation_file, is_compensation_file
     from .workflow import evaluate_file
 
+    if args.accel_columns or args.heading_column or args.declination is not None:
+        return _cmd_evaluate_heading(args)
     if args.attitude_columns or args.quaternion_columns:
         from .workflow import evaluate_vector_file
 
@@ -523,6 +540,34 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         k_b = f"{key}_before"
         k_a = f"{key}_after"
         _say(f"{label:16}{r[k_b]:14.6g}{r[k_a]:14.6g}", args)
+    return EXIT_OK
+
+
+def _cmd_evaluate_heading(args: argparse.Namespace) -> int:
+    from .workflow import evaluate_heading_file
+
+    if not args.accel_columns:
+        raise TrimagInputError("--heading-column and --declination need --accel-columns AX,AY,AZ (the heading is "
+                               "tilt-compensated with the accelerometer)")
+    h = evaluate_heading_file(
+        args.calibration, args.data, accel_columns=args.accel_columns, heading_column=args.heading_column,
+        attitude_columns=args.attitude_columns, igrf_spec=args.igrf_spec, declination=args.declination,
+        fmt=args.fmt, columns=args.columns, var=args.var, units=args.units, rows=args.rows, where=args.where,
+    )
+    if h["alignment"] == "none":
+        _err("warning: the calibration has no alignment (fit with --accel-columns): the magnetometer's axes are "
+             "taken as the accelerometer's")
+    if h["n_dropped"]:
+        _err(f"skipped {h['n_dropped']} of {h['n_samples']} rows with missing or non-numeric values")
+    if args.json:
+        print(json.dumps(h, allow_nan=False))
+        return EXIT_OK
+    _say(f"{h['n_used']} samples; true heading = tilt-compensated magnetic heading + declination "
+         f"{h['declination_deg']:.3f} deg ({h['declination_source']}); alignment: "
+         + (f"from the calibration (nearest board rotation {h['board_rotation']})" if h["alignment"] != "none"
+            else "none") + f"; reference: {h['reference_heading']}", args)
+    for what in ("rms", "max", "mean", "std"):
+        _say(f"{'heading error ' + what:22}{h[f'heading_error_{what}_deg']:12.4g} deg", args)
     return EXIT_OK
 
 

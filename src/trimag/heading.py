@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .calibration import Calibration
 from .errors import TrimagInputError
@@ -64,3 +64,61 @@ def predicted_heading_sigma(
     return {"headings_deg": np.degrees(psi).tolist(), "sigma_deg": sigma.tolist(),
             "rms_deg": float(np.sqrt(np.mean(sigma**2))), "max_deg": float(sigma.max()),
             "inclination_deg": float(inclination_deg)}
+
+
+def tilt_compensated_heading(
+    field: ArrayLike, accel: ArrayLike, *, declination_deg: float = 0.0
+) -> NDArray[np.float64]:
+    """Heading (degrees clockwise from north, 0-360) from a body-frame field and the accelerometer.
+
+    The down direction is ``d = -a / |a|`` (specific force; at rest and level ``a = (0, 0, -g)``), magnetic east
+    ``e = d x h / |d x h|`` and north ``n = e x d`` in the body frame (forward-right-down); the heading is the angle
+    of the forward axis, ``atan2(e_x, n_x)``, plus the declination. It is the yaw of the Z-Y-X attitude
+    (docs/conventions-attitude.md) at any tilt short of the forward axis pointing straight up or down.
+
+    Parameters
+    ----------
+    field : array_like, shape (N, 3)
+        Corrected field in the accelerometer's (body) frame, any unit.
+    accel : array_like, shape (N, 3)
+        Specific force, any unit.
+    declination_deg : float
+        Magnetic declination, degrees east of true north: the result is true heading.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+
+    Examples
+    --------
+    >>> float(tilt_compensated_heading([[0.0, -20.0, 40.0]], [[0.0, 0.0, -9.81]])[0])   # north on the left: east
+    90.0
+    """
+    h = np.atleast_2d(np.asarray(field, dtype=np.float64))
+    a = np.atleast_2d(np.asarray(accel, dtype=np.float64))
+    if h.shape != a.shape or h.shape[-1] != 3:
+        raise TrimagInputError(f"field and accelerometer must both have shape (N, 3); got {h.shape} and {a.shape}")
+    d = -a / np.linalg.norm(a, axis=1, keepdims=True)
+    east = np.cross(d, h)
+    east /= np.linalg.norm(east, axis=1, keepdims=True)
+    north = np.cross(east, d)
+    psi = np.degrees(np.arctan2(east[:, 0], north[:, 0])) + declination_deg
+    return np.asarray(np.mod(psi, 360.0), dtype=np.float64)
+
+
+def heading_difference(a_deg: ArrayLike, b_deg: ArrayLike) -> NDArray[np.float64]:
+    """``a - b`` wrapped into [-180, 180) degrees (359 against 1 is -2, not 358)."""
+    diff = np.asarray(a_deg, dtype=np.float64) - np.asarray(b_deg, dtype=np.float64)
+    return np.asarray(np.mod(diff + 180.0, 360.0) - 180.0, dtype=np.float64)
+
+
+def heading_error_stats(estimate_deg: ArrayLike, reference_deg: ArrayLike) -> dict[str, float]:
+    """RMS, maximum absolute, mean and standard deviation (degrees) of the wrapped heading error."""
+    e = heading_difference(estimate_deg, reference_deg)
+    return {"heading_error_rms_deg": float(np.sqrt(np.mean(e**2))),
+            "heading_error_max_deg": float(np.max(np.abs(e))),
+            "heading_error_mean_deg": float(np.mean(e)),
+            "heading_error_std_deg": float(np.std(e))}
+
+
+__all__ += ["heading_difference", "heading_error_stats", "tilt_compensated_heading"]

@@ -11,7 +11,7 @@ is reported as not evaluated, never as passed. ``--policy default`` uses :data:`
 | ``min_coverage`` | fraction of the sphere of field directions seen (0-1) |
 | ``max_offset`` | largest hard-iron component, in the data's unit |
 | ``max_heading_sigma_deg`` | largest predicted 1-sigma heading error of a level sensor (needs ``--igrf``) |
-| ``max_inclination_error_deg`` | not evaluated by ``fit`` yet (needs an accelerometer: issue 20) |
+| ``max_inclination_error_deg`` | dip fitted with the accelerometer (``--accel-columns``) against IGRF's (needs both) |
 """
 
 from __future__ import annotations
@@ -75,7 +75,10 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
     )
     measured["min_coverage"] = (diag.get("coverage") or {}).get("fraction")
     measured["max_offset"] = float(np.abs(np.asarray(cal.offset)).max())
-    measured["max_inclination_error_deg"] = None
+    dip = (diag.get("alignment") or {}).get("dip_deg")
+    measured["max_inclination_error_deg"] = (
+        abs(float(dip) - inclination_deg) if dip is not None and inclination_deg is not None else None
+    )
     measured["max_heading_sigma_deg"] = None
     if inclination_deg is not None and "max_heading_sigma_deg" in limits:
         from .heading import predicted_heading_sigma

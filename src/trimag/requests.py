@@ -74,8 +74,10 @@ class FitRequest:
     """One fit: read ``input``, take the ``reference`` (and ``attitude``), fit ``model`` by ``method`` with
     ``options`` (and the offset's ``regressors``: column names whose terms ``k_j (u_j - mean_j)`` are fitted
     jointly, docs/vehicle.md), or, with a ``prior`` calibration, refit only its offset (docs/vehicle.md), check
-    ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration
-    JSON) and ``report`` (figure) when given."""
+    ``policy`` (a TOML file or ``"default"``) and write ``out`` (calibration JSON) and ``report`` (figure) when
+    given. With ``accel_columns`` (``"AX,AY,AZ"``, specific force at rest or moving slowly) the rotation from the
+    corrected magnetometer frame to the accelerometer frame and the dip angle are estimated after the calibration
+    (:func:`trimag.alignment.fit_alignment`, docs/vehicle.md)."""
 
     input: InputSpec
     model: str = "ellipsoid"
@@ -89,6 +91,7 @@ class FitRequest:
     regressors: tuple[str, ...] | None = None
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.prior`)
     prior: str | Path | None = None
+    accel_columns: str | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

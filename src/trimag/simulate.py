@@ -289,3 +289,112 @@ def temperature_ramp(
 
 
 __all__ += ["current_profile", "temperature_ramp"]
+
+
+#: Standard gravity, m/s^2 (the simulated accelerometer's scale).
+GRAVITY = 9.80665
+
+
+@dataclass(frozen=True)
+class VehicleSimulation:
+    """A simulated vehicle log with a magnetometer mounted at an angle to the accelerometer (:func:`simulate_vehicle`).
+
+    Attributes
+    ----------
+    raw : ndarray, shape (N, 3)
+        Magnetometer output, nT: ``W^-1 (R_align^T h_body) + b + noise``.
+    accel : ndarray, shape (N, 3)
+        Accelerometer specific force in the body frame, m/s^2 (level and at rest ``(0, 0, -g)``), with noise.
+    attitude_deg : ndarray, shape (N, 3)
+        Yaw (= true heading, 0-360), pitch, roll, degrees; Z-Y-X, body -> NED.
+    field_body : ndarray, shape (N, 3)
+        The true field in the body (accelerometer) frame, nT.
+    alignment : ndarray, shape (3, 3)
+        The true rotation, corrected magnetometer frame -> accelerometer (body) frame.
+    matrix, offset : ndarray
+        The true correction ``W`` (symmetric by default) and hard iron ``b``: ``W (raw - b)`` is the field in the
+        magnetometer's frame.
+    field_ned : ndarray, shape (3,)
+        The Earth's field, nT.
+    """
+
+    raw: NDArray[np.float64]
+    accel: NDArray[np.float64]
+    attitude_deg: NDArray[np.float64]
+    field_body: NDArray[np.float64]
+    alignment: NDArray[np.float64]
+    matrix: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    field_ned: NDArray[np.float64]
+
+    @property
+    def dip_deg(self) -> float:
+        """The true inclination of the field, degrees (positive down)."""
+        n, e, d = self.field_ned
+        return float(np.degrees(np.arctan2(d, np.hypot(n, e))))
+
+    @property
+    def declination_deg(self) -> float:
+        """The true declination, degrees east of true north."""
+        return float(np.degrees(np.arctan2(self.field_ned[1], self.field_ned[0])))
+
+
+def simulate_vehicle(
+    n: int,
+    seed: int | np.random.Generator | None = 0,
+    *,
+    alignment: ArrayLike | Rotation | None = None,
+    matrix: ArrayLike | None = None,
+    offset: ArrayLike = (300.0, -200.0, 150.0),
+    field_ned_nT: ArrayLike = (19_000.0, 1_000.0, 45_150.0),
+    max_pitch_deg: float = 75.0,
+    max_roll_deg: float = 180.0,
+    mag_noise_nT: float = 20.0,
+    accel_noise: float = 0.005,
+) -> VehicleSimulation:
+    """A vehicle at rest in ``n`` attitudes (yaw uniform over 0-360 degrees, pitch and roll uniform within the
+    limits) with an accelerometer and a magnetometer mounted at an angle (issue 20, item 2; docs/vehicle.md).
+
+    Parameters
+    ----------
+    n : int
+        Samples.
+    alignment : rotation, optional
+        Corrected magnetometer frame -> body frame (a ``Rotation`` or a 3x3 matrix); default a 90-degree yaw
+        mounting plus 2 degrees about (1, -1, 2)/|.|.
+    matrix : array_like, shape (3, 3), optional
+        The correction ``W``; default a mild symmetric soft iron (a symmetric ``W`` leaves the sensor's axes where
+        they are, so ``alignment`` is also the rotation of the sensor's own axes).
+    offset : array_like, shape (3,)
+        Hard iron, nT.
+    field_ned_nT : array_like, shape (3,)
+        The Earth's field (N, E, D), nT; the default is 49 000 nT, inclination 67.2 deg, declination 3.0 deg.
+    max_pitch_deg, max_roll_deg : float
+        Limits of the uniform pitch (at most 90) and roll, degrees; small values give a (nearly) level vehicle.
+    mag_noise_nT, accel_noise : float
+        White noise per axis: magnetometer nT, accelerometer m/s^2.
+    """
+    rng = np.random.default_rng(seed)
+    if alignment is None:
+        tilt = np.radians(2.0) * np.array([1.0, -1.0, 2.0]) / np.sqrt(6.0)
+        R_al = (Rotation.from_rotvec(tilt) * Rotation.from_euler("Z", 90.0, degrees=True)).as_matrix()
+    elif isinstance(alignment, Rotation):
+        R_al = alignment.as_matrix()
+    else:
+        R_al = np.asarray(alignment, dtype=np.float64)
+    W = (np.array([[1.04, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]]) if matrix is None
+         else np.asarray(matrix, dtype=np.float64))
+    b = np.asarray(offset, dtype=np.float64)
+    H = np.asarray(field_ned_nT, dtype=np.float64)
+    yaw = rng.uniform(0.0, 360.0, n)
+    pitch = rng.uniform(-max_pitch_deg, max_pitch_deg, n)
+    roll = rng.uniform(-max_roll_deg, max_roll_deg, n)
+    att = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]), degrees=True)
+    h_body = body_field(att, H)
+    accel = body_field(att, [0.0, 0.0, -GRAVITY]) + rng.normal(0.0, accel_noise, (n, 3))
+    h_mag = h_body @ R_al  # R_al^T h per row
+    raw = np.linalg.solve(W, h_mag.T).T + b + rng.normal(0.0, mag_noise_nT, (n, 3))
+    return VehicleSimulation(raw, accel, np.column_stack([yaw, pitch, roll]), h_body, R_al, W, b, H)
+
+
+__all__ += ["GRAVITY", "VehicleSimulation", "simulate_vehicle"]

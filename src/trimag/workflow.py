@@ -35,6 +35,7 @@ __all__ = [
     "FitResult",
     "apply_to_file",
     "evaluate_file",
+    "evaluate_heading_file",
     "fit_file",
     "fit_summary",
     "parse_options",
@@ -226,6 +227,69 @@ def _drop_rows_without_background(samples: Samples, background_columns: str | No
         return _drop_rows_without_attitude(samples, names, None)
     except TrimagInputError:
         raise TrimagInputError(f"none of the rows has a finite background in columns {names}") from None
+
+
+def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.float64]:
+    """The accelerometer columns ``"AX,AY,AZ"`` of the kept rows of ``samples``, shape (N, 3); one line naming the
+    missing column, or the rows with a non-numeric value, when they are not there."""
+    from .attitude import parse_columns
+
+    names = parse_columns(accel_columns, 3, option="`accel_columns`")
+    assert names is not None
+    missing = [n for n in names if n not in samples.table.columns]
+    if missing:
+        raise TrimagInputError(
+            f"{path}: no column {missing[0]!r} (named by `accel_columns`); the columns are "
+            f"{', '.join(map(str, samples.table.columns))}"
+        )
+    values = np.column_stack([pd.to_numeric(samples.table[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    bad = ~np.isfinite(values).all(axis=1)
+    if bad.any():
+        raise TrimagInputError(
+            f"{path}: {int(bad.sum())} rows have a missing or non-numeric accelerometer value in {accel_columns} "
+            f"(first at kept row {int(np.flatnonzero(bad)[0])}); drop them first (e.g. with `where`)"
+        )
+    return values
+
+
+def _dip_check(dip_deg: float, igrf_spec: str) -> str:
+    """The fitted dip against IGRF's at the site, as a line; a warning when the signs differ (an accelerometer
+    that reads gravity instead of specific force, or a flipped axis)."""
+    expected = igrf(*parse_igrf_spec(igrf_spec)).inclination_deg
+    if dip_deg * expected < 0 and abs(expected) > 5.0:
+        return (f"warning: the fitted dip {dip_deg:.2f} deg has the opposite sign of IGRF's {expected:.2f} deg here: "
+                "the accelerometer columns may read gravity (+g down at rest) instead of specific force (-g), or "
+                "have a flipped axis; negate them (the heading would be mirrored)")
+    return f"dip {dip_deg:.3f} deg against IGRF's {expected:.3f} deg here (difference {dip_deg - expected:+.3f} deg)"
+
+
+def alignment_lines(alignment: dict[str, Any]) -> list[str]:
+    """The text lines ``trimag fit --accel-columns`` prints about the alignment."""
+    board = alignment["board_rotation"]
+    yaw, pitch, roll = alignment["euler_zyx_deg"]
+    sensor = alignment["sensor_euler_zyx_deg"]
+    sx, sy, sz = alignment["rotation_std_deg"]
+    note = ("" if alignment["calibration_uncertainty_propagated"]
+            else " (the calibration's own uncertainty not included)")
+    lines = [
+        f"alignment, corrected magnetometer -> accelerometer, from {alignment['n_used']} samples"
+        + (f" ({alignment['n_dropped_accelerating']} accelerating samples dropped)"
+           if alignment["n_dropped_accelerating"] else "")
+        + f": yaw {yaw:.3f}, pitch {pitch:.3f}, roll {roll:.3f} deg (Z-Y-X); 1 sigma about x, y, z "
+          f"{sx:.2g}, {sy:.2g}, {sz:.2g} deg{note}",
+        f"dip (inclination) {alignment['dip_deg']:.3f} +- {alignment['dip_std_deg']:.2g} deg; RMS of the "
+        f"field-gravity angle residual {alignment['rms_residual_deg']:.3g} deg; heading error of a level vehicle "
+        f"from the alignment's uncertainty {alignment['heading_sigma_deg']['rms_deg']:.2g} deg RMS over headings "
+        "(1 sigma)",
+        f"sensor axes -> accelerometer (symmetric soft iron): yaw {sensor[0]:.3f}, pitch {sensor[1]:.3f}, roll "
+        f"{sensor[2]:.3f} deg; nearest board rotation {board['name']} (COMPASS_ORIENT = {board['number']}), "
+        "remaining rotation "
+        f"{board['remaining_angle_deg']:.3f} deg (rotation vector {np.round(board['remaining_rotvec_deg'], 3).tolist()}"
+        " deg, body frame)",
+    ]
+    if alignment.get("warning"):
+        lines.append(f"warning: alignment: {alignment['warning']}")
+    return lines
 
 
 def _drop_rows_without_attitude(
@@ -506,6 +570,11 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     if req.attitude.attitude_file is not None:
         samples, req, sync, sync_messages = _attach_attitude_file(req, samples, unit, sync_options, estimator)
         messages += sync_messages
+    if req.accel_columns is not None:
+        from .alignment import check_tilt_variation
+
+        # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
+        check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
     if prior is not None:
         samples, cal, regressor_values, prior_messages = _refit_prior(req, samples, unit, prior, prior_options)
         ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
@@ -517,6 +586,14 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         messages += fit_messages
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
+    alignment_messages: list[str] = []
+    if req.accel_columns is not None:
+        from .alignment import fit_alignment
+
+        accel = accel_values(samples, req.accel_columns, src.path)  # the rows the fit kept
+        alignment = fit_alignment(cal, samples.field, accel, regressors=regressor_values)
+        cal = cal.with_diagnostics(alignment={**alignment, "accel_columns": req.accel_columns})
+        alignment_messages = alignment_lines(alignment)
     cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
     if warn_texts:
         cal = cal.with_diagnostics(warnings=warn_texts)
@@ -531,6 +608,11 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         summary["time_sync"] = sync
     if prior is not None:
         summary["prior"] = cal.diagnostics["prior"]
+    if req.accel_columns is not None:
+        summary["alignment"] = cal.diagnostics["alignment"]
+        messages += alignment_messages
+        if igrf_spec is not None:
+            messages.append(_dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
     if (prior is None and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
             and req.model == "ellipsoid"):
         messages.append(_heading_message(cal, igrf_spec, summary))
@@ -549,6 +631,12 @@ def _fit_model(
     regressor_values = None if regressor_names is None else regressor_columns(
         samples, regressor_names, src.path, "named by `regressors`"
     )
+    accel = None
+    if req.accel_columns is not None:
+        from .alignment import check_tilt_variation
+
+        accel = accel_values(samples, req.accel_columns, src.path)
+        check_tilt_variation(accel)  # before the fit: a level log cannot give the alignment (exit 3)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", TrimagWarning)
         estimator.fit(samples.field, ref, units=unit, attitude=attitude)
@@ -1090,6 +1178,104 @@ def evaluate_vector_file(
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
+    }
+
+
+def evaluate_heading_file(
+    cal_path: str | Path,
+    data_path: str | Path,
+    *,
+    accel_columns: str,
+    heading_column: str | None = None,
+    attitude_columns: str | None = None,
+    igrf_spec: str | None = None,
+    declination: float | str | None = None,
+    fmt: str | None = None,
+    columns: str | None = None,
+    var: str | None = None,
+    units: str | None = None,
+    rows: str | None = None,
+    where: str | None = None,
+) -> dict[str, Any]:
+    """Tilt-compensated true heading of a calibrated log against a reference heading (issue 20, item 3).
+
+    The corrected field is rotated into the accelerometer frame by the calibration's alignment
+    (``diagnostics.alignment``, from ``fit --accel-columns``; without one the frames are taken as the same), the
+    heading computed with the accelerometer (:func:`trimag.heading.tilt_compensated_heading`) plus the declination
+    (IGRF at ``igrf_spec``, or ``declination`` in degrees east; 0 when neither: magnetic heading), and compared with
+    ``heading_column`` (degrees clockwise from true north) or the yaw of ``attitude_columns`` (yaw, pitch, roll).
+
+    Returns
+    -------
+    dict
+        ``heading_error_rms_deg``, ``heading_error_max_deg``, ``heading_error_mean_deg``, ``heading_error_std_deg``
+        (wrapped into -180..180), ``n_used``, ``declination_deg`` and its ``declination_source``, ``alignment``
+        (``"calibration"`` or ``"none"``), ``reference_heading`` and the usual ``calibration``, ``data``,
+        ``units``, ``columns``, ``n_samples``, ``n_dropped``.
+    """
+    from .heading import heading_error_stats, tilt_compensated_heading
+
+    cal = Calibration.from_file(cal_path)
+    if units is not None:
+        cal.apply(np.zeros(3), units=normalise_unit(units))
+    if (heading_column is None) == (attitude_columns is None):
+        raise TrimagInputError("a heading evaluation needs exactly one reference: `heading_column=H` (degrees "
+                               "clockwise from true north) or `attitude_columns=yaw,pitch,roll`")
+    if igrf_spec is not None and declination is not None:
+        raise TrimagInputError("give only one of `igrf_spec` and `declination`")
+    if igrf_spec is not None:
+        decl, decl_source = igrf(*parse_igrf_spec(igrf_spec)).declination_deg, f"igrf {igrf_spec}"
+    elif declination is not None:
+        try:
+            decl, decl_source = float(declination), "given"
+        except ValueError:
+            raise TrimagInputError(f"`declination` takes degrees east of north; got {declination!r}") from None
+        if not -180.0 <= decl <= 180.0:
+            raise TrimagInputError(f"`declination` must be within -180..180 degrees; got {decl}")
+    else:
+        decl, decl_source = 0.0, "none (magnetic heading compared)"
+    samples = read_samples(data_path, fmt=fmt, columns=columns, var=var, rows=rows, where=where)
+    ref_col = heading_column if heading_column is not None else (attitude_columns or "").split(",")[0].strip()
+    from .attitude import parse_columns
+
+    if attitude_columns is not None:
+        parse_columns(attitude_columns, 3, option="`attitude_columns`")
+    if ref_col not in samples.table.columns:
+        raise TrimagInputError(f"{data_path}: no column {ref_col!r} (the reference heading); the columns are "
+                               f"{', '.join(map(str, samples.table.columns))}")
+    reference = pd.to_numeric(samples.table[ref_col], errors="coerce").to_numpy(dtype=float)
+    names = parse_columns(accel_columns, 3, option="`accel_columns`")
+    assert names is not None
+    missing = [n for n in names if n not in samples.table.columns]
+    if missing:
+        raise TrimagInputError(f"{data_path}: no column {missing[0]!r} (named by `accel_columns`); the columns are "
+                               f"{', '.join(map(str, samples.table.columns))}")
+    accel = np.column_stack([pd.to_numeric(samples.table[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    u = None
+    if cal.regressors is not None:
+        u = np.column_stack(list(regressor_columns(samples, tuple(cal.regressors["names"]), data_path).values()))
+    ok = np.isfinite(reference) & np.isfinite(accel).all(axis=1) & (np.linalg.norm(accel, axis=1) > 0)
+    if u is not None:
+        ok &= np.isfinite(u).all(axis=1)
+    if not ok.any():
+        raise TrimagInputError(f"{data_path}: no row has a finite reference heading and accelerometer")
+    corrected = cal.apply(samples.field[ok], regressors=None if u is None else u[ok])
+    alignment = cal.diagnostics.get("alignment")
+    if alignment is not None:
+        corrected = corrected @ np.asarray(alignment["matrix"], dtype=np.float64).T
+    heading = tilt_compensated_heading(corrected, accel[ok], declination_deg=decl)
+    stats = heading_error_stats(heading, reference[ok])
+    return {
+        "calibration": str(cal_path), "data": str(data_path), "model": cal.model, "method": cal.method,
+        "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
+        "n_used": int(ok.sum()), "n_dropped": samples.n_dropped + int((~ok).sum()),
+        "accel_columns": accel_columns,
+        "reference_heading": f"column {heading_column}" if heading_column is not None
+        else f"yaw of attitude columns {attitude_columns}",
+        "declination_deg": float(decl), "declination_source": decl_source,
+        "alignment": "calibration" if alignment is not None else "none",
+        "board_rotation": None if alignment is None else alignment["board_rotation"]["name"],
+        **stats,
     }
 
 

@@ -205,7 +205,15 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
     if target == "ardupilot":
         if instance > 2:
             raise TrimagInputError("ArduPilot calibrates compasses 0..2 (COMPASS_OFS, OFS2, OFS3)")
-        return _ardupilot(cal, instance)
+        exp = _ardupilot(cal, instance)
+        board = (cal.diagnostics.get("alignment") or {}).get("board_rotation")
+        if board is not None:  # the alignment of fit --accel-columns: said, not written (docs/vehicle.md)
+            exp.notes.append(
+                f"the calibration's alignment is nearest to {board['name']} (COMPASS_ORIENT = {board['number']}) "
+                f"with {board['remaining_angle_deg']:.2f} deg remaining; COMPASS_ORIENT is not written: set it "
+                "yourself for an external compass"
+            )
+        return exp
     if target == "px4":
         return _px4(cal, instance)
     return {"c-header": _c_header, "json": _json, "ros-yaml": _ros_yaml, "matlab": _matlab}[target](cal)
