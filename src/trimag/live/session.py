@@ -75,10 +75,14 @@ def next_orientations(geometry: Mapping[str, Any] | None) -> str:
     if never is None:
         return "every region of the sphere of field directions has been seen: keep turning to fill it evenly, or save"
     axis = _axis_name(never)
-    side = axis.replace(" axis", "") if axis.endswith("axis") else axis
     within = geometry.get("never_seen_within_deg") or 0.0
-    region = f"the {side} hemisphere" if within >= 60.0 else f"a cap of about {within:.0f} deg around the {axis}"
-    return (f"still unseen: {region} of field directions (no sample within {within:.0f} deg of the sensor's {axis}). "
+    if axis.endswith(" axis"):
+        side = axis.removesuffix(" axis")
+        region = f"the {side} hemisphere" if within >= 60.0 else f"a cap of about {within:.0f} deg around the {axis}"
+    else:
+        region = f"the region around the sensor's {axis}"
+    return (f"the field has not been seen from {region} yet (no sample within {within:.0f} deg of the sensor's "
+            f"{axis}). "
             f"Next: turn the sensor so that its {axis} points along the Earth's field (towards magnetic north and, "
             "in the northern hemisphere, steeply down; in the southern, up), then rock it around that attitude")
 
@@ -315,7 +319,8 @@ class LiveSession:
         except Exception:
             geometry, advice = None, next_orientations(None)
         return {"coverage": geometry, "coverage_fraction": (geometry or {}).get("fraction"),
-                "next_orientations": f"{advice}. {next_orientations(geometry)}" if geometry else advice,
+                "next_orientations": advice if geometry is None or geometry.get("shape") != "surround"
+                else next_orientations(geometry),
                 "good_enough": False, "not_good_enough_because": ["no calibration can be fitted yet"]}
 
     @staticmethod

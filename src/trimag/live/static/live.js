@@ -14,13 +14,15 @@ function fmt(v, d) {
   return String(v);
 }
 
-function centred(points) {
-  // points centred on their mean and scaled so that their RMS radius is 1
+function centred(points, centre) {
+  // points centred (on `centre`, else their mean) and scaled so that their RMS radius is 1
   const n = points.length;
   if (!n) return [];
-  const m = [0, 0, 0];
-  for (const p of points) { m[0] += p[0]; m[1] += p[1]; m[2] += p[2]; }
-  m[0] /= n; m[1] /= n; m[2] /= n;
+  const m = centre ? centre.slice() : [0, 0, 0];
+  if (!centre) {
+    for (const p of points) { m[0] += p[0]; m[1] += p[1]; m[2] += p[2]; }
+    m[0] /= n; m[1] /= n; m[2] /= n;
+  }
   let r2 = 0;
   for (const p of points) r2 += (p[0] - m[0]) ** 2 + (p[1] - m[1]) ** 2 + (p[2] - m[2]) ** 2;
   const s = Math.sqrt(r2 / n) || 1;
@@ -65,7 +67,7 @@ function drawCloud() {
     g.fillText("+" + names[i], s[0] * k + 3, s[1] * k);
   }
   if (state) {
-    const raw = centred(state.points_raw || []);
+    const raw = centred(state.points_raw || [], state.offset);
     const radius = state.fitted_magnitude || 1;
     const cor = state.points_corrected ? scaled(state.points_corrected, radius) : [];
     const layers = [[raw, "rgba(224,122,31,0.55)"], [cor, "rgba(47,111,222,0.75)"]];
@@ -96,14 +98,14 @@ function drawCoverage() {
     const cx = side > 0 ? w * 0.25 : w * 0.75, cy = h / 2;
     g.strokeStyle = "#8a939e"; g.beginPath(); g.arc(cx, cy, R, 0, 2 * Math.PI); g.stroke();
     g.fillStyle = "#4a5562"; g.font = "13px sans-serif";
-    g.fillText(side > 0 ? "+z side" : "−z side", cx - 22, 14);
+    g.fillText(side > 0 ? "+z side" : "−z side", cx - 22, h - 4);
     g.fillText("+x", cx + R + 4, cy + 4);
     g.fillText(side > 0 ? "+y" : "−y", cx - 8, cy - R - 2);
     if (!centres || !counts) continue;
     centres.forEach((p, i) => {
       if (side * p[2] < -0.05) return;
       const s = lambert(p, side), seen = counts[i] >= minCount;
-      const isNever = never && Math.abs(p[0] - never[0]) + Math.abs(p[1] - never[1]) + Math.abs(p[2] - never[2]) < 1e-6;
+      const isNever = never && Math.abs(p[0] - never[0]) + Math.abs(p[1] - never[1]) + Math.abs(p[2] - never[2]) < 1e-3;
       g.beginPath(); g.arc(cx + s[0] * R, cy + s[1] * R, R * 0.085, 0, 2 * Math.PI);
       g.fillStyle = isNever ? "#b3261e" : seen ? "#1b7f3b" : "#e0e3e8";
       g.fill();
@@ -116,7 +118,7 @@ function drawHist() {
   const c = $("hist"), g = c.getContext("2d"), w = c.width, h = c.height;
   g.clearRect(0, 0, w, h);
   if (!state || !state.points_raw || !state.points_raw.length) return;
-  const raw = centred(state.points_raw).map(p => Math.hypot(p[0], p[1], p[2]));
+  const raw = centred(state.points_raw, state.offset).map(p => Math.hypot(p[0], p[1], p[2]));
   const cor = (state.points_corrected || []).map(p => Math.hypot(p[0], p[1], p[2]));
   const bins = 60, lo = 0.5, hi = 1.5;
   const series = [[raw, "rgba(224,122,31,0.6)"], [cor, "rgba(47,111,222,0.7)"]];
