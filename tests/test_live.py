@@ -231,6 +231,25 @@ def test_save_button_writes_while_running_and_stdin_garbage_is_counted(tmp_path)
     assert np.allclose(saved.offset, trimag.fit(raw, units="counts").offset, atol=1e-3)
 
 
+def test_mavlink_stream_from_a_telemetry_log(tmp_path):
+    """``--mavlink`` reads SCALED_IMU (mG) as an autopilot sends it; a .tlog file is a recorded stream."""
+    import struct
+
+    common = pytest.importorskip("pymavlink.dialects.v20.common", reason="pymavlink (the logs extra) is missing")
+    raw = np.round(_sensor(uniform_directions(600, seed=6)))
+    mav = common.MAVLink(None, srcSystem=1)
+    tlog = tmp_path / "imu.tlog"
+    with open(tlog, "wb") as f:
+        for i, (x, y, z) in enumerate(raw):
+            msg = mav.scaled_imu_encode(i * 20, 0, 0, 1000, 0, 0, 0, int(x), int(y), int(z))
+            f.write(struct.pack(">Q", 1_700_000_000_000_000 + i * 20_000) + msg.pack(mav))
+    result = run_live(LiveRequest(mavlink=str(tlog), port=0, open_browser=False, exit_at_end=True,
+                                  out=tmp_path / "cal.json", interval=0.05), say=lambda m: None)
+    assert result.status["n_samples"] == 600 and result.status["units"] == "mG"
+    assert np.array_equal(read_samples(result.written["samples"]).field, raw)
+    assert trimag.Calibration.from_file(result.written["calibration"]).units == "mG"
+
+
 def _run(*args: str, cwd: Path, blocked: tuple[str, ...] = ()) -> subprocess.CompletedProcess[str]:
     code = ("import sys\n" + "".join(f"sys.modules[{b!r}] = None\n" for b in blocked)
             + "from trimag.cli import main\nraise SystemExit(main(sys.argv[1:]))\n")

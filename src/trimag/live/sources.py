@@ -204,7 +204,7 @@ def _mavlink_batches(conn: Any, from_file: bool, message: str | None, timeout: f
     last = time.monotonic()
     rows: list[tuple[float, float, float]] = []
     while True:
-        msg = conn.recv_match(type=wanted, blocking=True, timeout=0.2)
+        msg = conn.recv_match(type=wanted, blocking=not from_file, timeout=0.2)
         now = time.monotonic()
         if msg is None:
             if rows:
