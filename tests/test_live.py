@@ -250,6 +250,38 @@ def test_mavlink_stream_from_a_telemetry_log(tmp_path):
     assert trimag.Calibration.from_file(result.written["calibration"]).units == "mG"
 
 
+def test_a_single_axis_turn_exits_3_with_the_samples_written(tmp_path):
+    a = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    raw = _sensor(np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]))
+    text = "\n".join(f"{x:.3f},{y:.3f},{z:.3f}" for x, y, z in raw) + "\n"
+    proc = subprocess.run([sys.executable, "-m", "trimag", "live", "--stdin", "--units", "counts", "--no-browser",
+                           "--port", "0", "--exit-at-end", "-o", str(tmp_path / "cal.json")], input=text,
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    assert "Traceback" not in proc.stderr and "no calibration written" in proc.stderr
+    assert "turn" in proc.stdout  # the advice names the single-axis turn
+    assert not (tmp_path / "cal.json").exists()
+    assert len(read_samples(tmp_path / "cal-samples.csv").field) == 400
+
+
+def test_a_flooding_source_never_blocks_the_status(tmp_path):
+    """200 000 samples as fast as they can be read: the fit lags behind, /status answers at once."""
+    raw = _sensor(uniform_directions(200_000, seed=7))
+    session = LiveSession(units="counts", interval=0.0)
+    session.start(Batch(raw[k : k + 5000]) for k in range(0, len(raw), 5000))
+    slowest = 0.0
+    t0 = time.monotonic()
+    while not (session.ended and session.up_to_date) and time.monotonic() - t0 < 60:
+        t = time.monotonic()
+        st = session.status()
+        slowest = max(slowest, time.monotonic() - t)
+        time.sleep(0.01)
+    session.stop()
+    assert st["n_samples"] == 200_000 and session.up_to_date
+    assert slowest < 0.25, f"status took {slowest:.3f} s"
+    assert session.status()["rms_after"] == pytest.approx(trimag.fit(raw, units="counts").stats["rms_after"])
+
+
 def _run(*args: str, cwd: Path, blocked: tuple[str, ...] = ()) -> subprocess.CompletedProcess[str]:
     code = ("import sys\n" + "".join(f"sys.modules[{b!r}] = None\n" for b in blocked)
             + "from trimag.cli import main\nraise SystemExit(main(sys.argv[1:]))\n")
