@@ -320,6 +320,7 @@ def _chromium() -> str | None:
     return None
 
 
+@pytest.mark.slow
 def test_the_page_in_a_real_browser(tmp_path):
     """Headless Chromium (the distribution's package) driven by Selenium loads the page, sees the cloud and the
     coverage drawn, and takes screenshots (test artefacts in tmp_path; copied into docs/ when
