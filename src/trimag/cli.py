@@ -258,6 +258,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("-q", "--quiet", action="store_true")
 
+    p = sub.add_parser("live", help="fit while recording: a local page shows the coverage and when to stop",
+                       description="Fit while recording: a local web page (127.0.0.1 only) shows the clouds, the "
+                                   "coverage of the sphere of directions, the RMS, the next orientations and when the "
+                                   "data are good enough; GET /status returns the same as JSON. The save button and "
+                                   "Ctrl-C write the calibration and the samples (docs/recording.md).")
+    g = p.add_argument_group("source (exactly one)")
+    g.add_argument("--replay", metavar="FILE", help="play back a log (any file `trimag fit` reads)")
+    g.add_argument("--rate", type=float, default=2000.0, metavar="HZ",
+                   help="replay rate, samples per second (default 2000)")
+    g.add_argument("--stdin", action="store_true", help="lines of x,y,z (or a CSV header) on standard input")
+    g.add_argument("--serial", metavar="PORT", help="lines of x,y,z (or a CSV header) from a serial port "
+                                                    "(needs the live extra: pip install \"trimag[live]\")")
+    g.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    g.add_argument("--mavlink", metavar="URL", help="an autopilot's MAVLink stream (udpin:0.0.0.0:14550, "
+                                                    "tcp:HOST:5760, a serial device or a .tlog): SCALED_IMU/RAW_IMU "
+                                                    "(needs the logs extra)")
+    g = p.add_argument_group("data")
+    g.add_argument("--format", dest="fmt", help="replay: the log's format (default: from the extension)")
+    g.add_argument("--columns", help="x,y,z column names (replay: also 0-based indices)")
+    g.add_argument("--sensor", metavar="N|NAME", help="replay of an autopilot log: which magnetometer")
+    g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (default: the source's own, or unknown)")
+    g.add_argument("--reference", type=float, metavar="F", help="field magnitude in the data's unit, when known")
+    p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`; default ellipsoid)")
+    p.add_argument("--method", help="identification method (default: the model's default)")
+    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    p.add_argument("--port", type=int, default=8765, help="local port of the page (default 8765; 0: a free one)")
+    p.add_argument("-o", "--out", default="trimag-live-calibration.json", metavar="CAL.json",
+                   help="calibration written on save (default trimag-live-calibration.json)")
+    p.add_argument("--samples-out", metavar="SAMPLES.csv",
+                   help="recorded samples written on save (default: CAL-samples.csv beside --out)")
+    p.add_argument("--no-browser", dest="open_browser", action="store_false", help="do not open a browser")
+    p.add_argument("--exit-at-end", action="store_true", help="save and exit when the source ends")
+    p.add_argument("--interval", type=float, default=0.25, metavar="S", help="seconds between refits (default 0.25)")
+    p.add_argument("--json", action="store_true", help="print the final state as one JSON object on stdout")
+    p.add_argument("-q", "--quiet", action="store_true")
+
     # the benchmarks are not subcommands: they live in the repository's benchmarks/ folder (not installed)
     p = sub.add_parser("reproduce", help="reproduce a paper's figures and tables",
                        description="Reproduce a paper's figures and tables.")
@@ -661,6 +697,44 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_live(args: argparse.Namespace) -> int:
+    from .live import run_live
+    from .requests import LiveRequest
+    from .workflow import parse_options
+
+    _check_writable(args.out, suffixes=(".json",))
+    _check_writable(args.samples_out, suffixes=(".csv", ".txt"))
+    request = LiveRequest(
+        replay=args.replay, rate=args.rate, stdin=args.stdin, serial=args.serial, baud=args.baud,
+        mavlink=args.mavlink, fmt=args.fmt, columns=args.columns, sensor=args.sensor, units=args.units,
+        model=args.model, method=args.method, options=parse_options(args.option), reference=args.reference,
+        port=args.port, out=args.out, samples_out=args.samples_out, open_browser=args.open_browser,
+        exit_at_end=args.exit_at_end, interval=args.interval,
+    )
+    def say(msg: str) -> None:  # flushed: the page's address must reach a pipe (a script, tee) at once
+        _say(msg, args)
+        sys.stdout.flush()
+
+    result = run_live(request, say=say)
+    st = result.status
+    if args.json:
+        print(json.dumps({**st, "written": result.written, "reason": result.reason}, allow_nan=False))
+        return EXIT_OK
+
+    def num(value: Any) -> str:
+        return "-" if value is None else f"{value:.4g}"
+
+    _say(f"{st['n_samples']} samples ({st['n_garbage']} lines not understood); coverage "
+         f"{num(st['coverage_fraction'])}, RMS before {num(st['rms_before'])}, after {num(st['rms_after'])} "
+         f"{st['units']}; {'good enough' if st['good_enough'] else 'NOT good enough'}", args)
+    if not st["good_enough"]:
+        _say(f"next: {st['next_orientations']}", args)
+    if "calibration" not in result.written:
+        _err(f"no calibration written: {st.get('fit_message') or 'too few samples'}")
+        return EXIT_IDENTIFIABILITY if st["n_samples"] else EXIT_INPUT
+    return EXIT_OK
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
@@ -681,6 +755,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "demo": _cmd_demo,
         "batch": _cmd_batch,
         "reproduce": _cmd_reproduce,
+        "live": _cmd_live,
     }
     import signal
 

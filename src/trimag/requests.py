@@ -15,7 +15,7 @@ from typing import Any
 
 from .errors import TrimagInputError
 
-__all__ = ["AttitudeSpec", "FitRequest", "InputSpec", "ReferenceSpec"]
+__all__ = ["AttitudeSpec", "FitRequest", "InputSpec", "LiveRequest", "ReferenceSpec"]
 
 
 @dataclass(frozen=True)
@@ -113,3 +113,48 @@ class FitRequest:
             attitude=AttitudeSpec(**groups[AttitudeSpec]),
             **groups[cls],
         )
+
+
+#: The sources of ``trimag live`` (the :class:`LiveRequest` field that names each).
+LIVE_SOURCES = ("replay", "stdin", "serial", "mavlink")
+
+
+@dataclass(frozen=True)
+class LiveRequest:
+    """One live recording (``trimag live``, :func:`trimag.live.run_live`): exactly one source (``replay`` a log at
+    ``rate`` samples/s, ``stdin`` lines, a ``serial`` port at ``baud``, or a ``mavlink`` URL), fitted with ``model``
+    (and ``method``, ``options``, the field magnitude ``reference`` in ``units`` when known), served on ``port``
+    (127.0.0.1 only; 0 picks a free port), saved to ``out`` (calibration JSON) and ``samples_out`` (CSV; default
+    beside ``out``) on the page's save button, on SIGINT, and (``exit_at_end``) when the source ends."""
+
+    replay: str | Path | None = None
+    rate: float | None = 2000.0
+    stdin: bool = False
+    serial: str | None = None
+    baud: int = 115200
+    mavlink: str | None = None
+    fmt: str | None = None
+    columns: str | None = None
+    sensor: str | None = None
+    units: str | None = None
+    model: str = "ellipsoid"
+    method: str | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+    reference: float | None = None
+    port: int = 8765
+    out: str | Path = "trimag-live-calibration.json"
+    samples_out: str | Path | None = None
+    open_browser: bool = True
+    exit_at_end: bool = False
+    interval: float = 0.25
+
+    @property
+    def source(self) -> str:
+        """The one source given (``"replay"``, ``"stdin"``, ``"serial"`` or ``"mavlink"``)."""
+        given = [name for name in LIVE_SOURCES if getattr(self, name) not in (None, False)]
+        if len(given) != 1:
+            named = ", ".join(f"`{name}`" for name in given) if given else "none"
+            raise TrimagInputError(
+                f"give exactly one source: `replay`, `stdin`, `serial` or `mavlink` (given: {named})"
+            )
+        return given[0]

@@ -10,7 +10,8 @@ extra          packages                                   what needs them
 ``parquet``    pyarrow                                    Parquet files (read and write), the fast CSV reader
 ``mat``        h5py                                       MATLAB v7.3 (HDF5) files
 ``batch``      dask[distributed]                          ``trimag batch --scheduler`` (a Dask cluster)
-``logs``       pymavlink, pyulog, rosbags                 autopilot and ROS logs
+``logs``       pymavlink, pyulog, rosbags                 autopilot and ROS logs, ``trimag live --mavlink``
+``live``       pyserial                                   ``trimag live --serial``
 =============  ========================================  ====================================================
 """
 
@@ -32,6 +33,7 @@ EXTRAS: dict[str, str] = {
     "pymavlink": "logs",
     "pyulog": "logs",
     "rosbags": "logs",
+    "serial": "live",
 }
 
 
