@@ -87,3 +87,12 @@ def simulate_ellipsoid(n: int = 2000, noise: float = 0.0, seed: int = 0, F: floa
     W, b = ellipsoid_truth()
     raw = np.linalg.solve(W, (F * u).T).T + b
     return raw + rng.normal(scale=noise, size=raw.shape) if noise else raw
+
+
+def restore_sigint() -> None:
+    """``preexec_fn`` of a subprocess a test interrupts with SIGINT: the default disposition, so that Python installs
+    its KeyboardInterrupt handler. A shell without job control starts background commands (e.g. a CI job run with
+    ``&``) with SIGINT ignored, and a child inherits that: Ctrl-C would then never reach trimag."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

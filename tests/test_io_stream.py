@@ -21,7 +21,7 @@ from trimag.errors import TrimagInputError
 from trimag.io import MagnitudeAccumulator, apply_file, iter_chunks, open_chunks
 from trimag.workflow import apply_to_file, evaluate_file
 
-from _helpers import simulate_ellipsoid
+from _helpers import restore_sigint, simulate_ellipsoid
 
 N = 103  # not a multiple of the chunk sizes used below
 BAD = {7: "nan", 20: "", 41: "abc", 66: "inf"}  # row -> bad x cell
@@ -333,7 +333,7 @@ def test_sigint_during_apply_leaves_no_temporary_or_partial_file(
     proc = subprocess.Popen(
         [sys.executable, "-m", "trimag", "apply", str(cal_path), str(src), "-o", str(out), "--chunk-rows", "1000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", "TMPDIR": str(scratch)},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "TMPDIR": str(scratch)}, preexec_fn=restore_sigint,
     )
     deadline = time.monotonic() + 60
     while not list(out_dir.glob(".*.tmp")) and proc.poll() is None and time.monotonic() < deadline:

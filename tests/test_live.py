@@ -28,6 +28,8 @@ from trimag.live.sources import Batch, LineParser, line_source, replay_source
 from trimag.requests import LiveRequest
 from trimag.simulate import hemisphere_directions, uniform_directions
 
+from _helpers import restore_sigint
+
 DEMO = Path(str(resources.files("trimag") / "data" / "qmc5883l_noisy_raw_data.csv"))
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -53,7 +55,8 @@ def _start_live(*args: str, cwd: Path, stdin: int | None = None) -> tuple[subpro
     """``trimag live ARGS --no-browser --port 0`` in a subprocess; returns it and the page's address."""
     env = {**os.environ, "MPLBACKEND": "Agg"}
     proc = subprocess.Popen([sys.executable, "-m", "trimag", "live", *args, "--no-browser", "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env, stdin=stdin)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env, stdin=stdin,
+                            preexec_fn=restore_sigint)
     stream = proc.stderr if "--json" in args else proc.stdout  # --json keeps stdout for the JSON object
     assert stream is not None
     first = stream.readline()

@@ -199,6 +199,15 @@ def mavlink_source(url: str, *, message: str | None = None, timeout: float = 5.0
 
 
 def _mavlink_batches(conn: Any, from_file: bool, message: str | None, timeout: float) -> Iterator[Batch]:
+    try:
+        yield from _mavlink_readings(conn, from_file, message, timeout)
+    finally:  # the file or socket pymavlink opened
+        close = getattr(conn, "close", None)
+        if callable(close):
+            close()
+
+
+def _mavlink_readings(conn: Any, from_file: bool, message: str | None, timeout: float) -> Iterator[Batch]:
     wanted = [message] if message else list(MAVLINK_MESSAGES)
     chosen = message
     last = time.monotonic()
