@@ -12,6 +12,7 @@ from the start, so the result is never worse than MINPACK's.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,6 +41,71 @@ class GaussNewtonResult(dict[str, Any]):
             raise AttributeError(name) from None
 
 
+@dataclass
+class GaussNewtonRun:
+    """Where :func:`gauss_newton_rule` stopped: the point ``p``, the ``state`` and ``model`` evaluated there (what
+    the caller's ``evaluate`` and ``linearise`` returned), its ``cost`` (``sum r^2``), the counts and the sizes of the
+    accepted steps."""
+
+    p: NDArray[np.float64]
+    state: Any
+    cost: float
+    model: Any
+    nfev: int
+    njev: int
+    steps: int
+    step_norms: list[float]
+
+
+def gauss_newton_rule(
+    evaluate: Callable[[NDArray[np.float64]], tuple[Any, float]],
+    linearise: Callable[[NDArray[np.float64], Any], Any],
+    direction: Callable[[Any, Any], NDArray[np.float64] | None],
+    p0: NDArray[np.float64],
+    *,
+    max_steps: int,
+    xtol: float = XTOL,
+) -> GaussNewtonRun | None:
+    """The one undamped Gauss-Newton rule of trimag, whatever the linear algebra of a step.
+
+    ``evaluate(p) -> (state, sum r^2)`` is called at every trial point (``state`` None: no usable evaluation);
+    ``linearise(p, state) -> model`` only at accepted points (the Jacobian, or the state itself when ``evaluate``
+    already factored the system); ``direction(state, model) -> delta`` gives the step ``p <- p + delta`` (None when
+    the system is singular). Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step
+    that raised the cost by rounding only (relative step below :data:`ROUNDING_STEP`) keeps the point before it.
+    Returns None as soon as a step raises ``sum r^2`` (far from the minimum) or after ``max_steps`` steps without
+    convergence: the caller then runs Levenberg-Marquardt. Used by :func:`gauss_newton` (normal equations from
+    ``r`` and ``J``) and by ``geometric`` (a :class:`~trimag._core.qr.BlockedQR` of ``[J | -r]``).
+    """
+    p = np.asarray(p0, dtype=np.float64).copy()
+    state, cost = evaluate(p)
+    model = linearise(p, state) if state is not None else None
+    nfev = njev = 1
+    step_norms: list[float] = []
+    for step_no in range(1, max_steps + 1):
+        if state is None or not np.isfinite(cost):
+            return None
+        delta = direction(state, model)
+        if delta is None:
+            return None
+        p_new = p + delta
+        state_new, cost_new = evaluate(p_new)
+        nfev += 1
+        step_norm = float(np.linalg.norm(delta))
+        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
+        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
+            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
+                return GaussNewtonRun(p, state, cost, model, nfev, njev, step_no, step_norms)
+            return None
+        p, state, cost = p_new, state_new, cost_new
+        step_norms.append(step_norm)
+        model = linearise(p, state)
+        njev += 1
+        if rel_step <= xtol:
+            return GaussNewtonRun(p, state, cost, model, nfev, njev, step_no, step_norms)
+    return None
+
+
 def gauss_newton(
     fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     jac: Callable[[NDArray[np.float64]], NDArray[np.float64]],
@@ -48,49 +114,34 @@ def gauss_newton(
     max_steps: int = 50,
     xtol: float = XTOL,
 ) -> GaussNewtonResult | None:
-    """Undamped Gauss-Newton from ``p0``, or None as soon as a step raises ``sum fun(p)^2`` (far from the minimum)
-    or ``max_steps`` pass without convergence; the caller then runs Levenberg-Marquardt.
+    """Undamped Gauss-Newton from ``p0`` by :func:`gauss_newton_rule`, each step from the Jacobi-scaled normal
+    equations, or None as soon as a step raises ``sum fun(p)^2`` (far from the minimum) or ``max_steps`` pass
+    without convergence; the caller then runs Levenberg-Marquardt.
 
-    Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
-    rounding only (relative step below :data:`ROUNDING_STEP`) keeps the point before it. ``fun`` is evaluated at
-    every trial point and ``jac`` only at accepted ones (a caller whose ``fun`` and ``jac`` share one evaluation
-    can cache it). Returns a :class:`GaussNewtonResult` with the fields of :func:`gauss_newton_then_lm`'s.
+    ``fun`` is evaluated at every trial point and ``jac`` only at accepted ones (a caller whose ``fun`` and ``jac``
+    share one evaluation can cache it). Returns a :class:`GaussNewtonResult` with the fields of
+    :func:`gauss_newton_then_lm`'s.
     """
-    p = np.asarray(p0, dtype=np.float64).copy()
-    r = fun(p)
-    J = jac(p)
-    cost = float(r @ r)
-    nfev = njev = 1
-    step_norms: list[float] = []
-    for step_no in range(1, max_steps + 1):
-        if not np.isfinite(cost):
-            return None
+
+    def evaluate(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        r = fun(p)
+        return r, float(r @ r)
+
+    def direction(r: NDArray[np.float64], J: NDArray[np.float64]) -> NDArray[np.float64] | None:
         A = J.T @ J
         g = J.T @ r
         d = np.sqrt(np.diag(A))
         if not np.all(np.isfinite(d)) or np.any(d == 0):
             return None
         try:  # Jacobi-scaled normal equations (columns of very different size stay well conditioned)
-            step = np.linalg.solve(A / np.outer(d, d), g / d) / d
+            return -(np.linalg.solve(A / np.outer(d, d), g / d) / d)
         except np.linalg.LinAlgError:
             return None
-        p_new = p - step
-        r_new = fun(p_new)
-        nfev += 1
-        cost_new = float(r_new @ r_new)
-        step_norm = float(np.linalg.norm(step))
-        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
-        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
-            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
-                return _result(p, r, J, nfev, njev, step_no, xtol, step_norms)
-            return None
-        p, r, cost = p_new, r_new, cost_new
-        step_norms.append(step_norm)
-        J = jac(p)
-        njev += 1
-        if rel_step <= xtol:
-            return _result(p, r, J, nfev, njev, step_no, xtol, step_norms)
-    return None
+
+    run = gauss_newton_rule(evaluate, lambda p, r: jac(p), direction, p0, max_steps=max_steps, xtol=xtol)
+    if run is None:
+        return None
+    return _result(run.p, run.state, run.model, run.nfev, run.njev, run.steps, xtol, run.step_norms)
 
 
 def gauss_newton_then_lm(

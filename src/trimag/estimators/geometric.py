@@ -33,7 +33,7 @@ from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import scratch, sum_squares, transposed_blocks
-from .._core.solve import ROUNDING_STEP, XTOL, GaussNewtonResult
+from .._core.solve import XTOL, GaussNewtonResult, gauss_newton_rule
 from .._core.threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
@@ -243,54 +243,31 @@ def _linearise(
 def _gauss_newton(
     system: Callable[[NDArray[np.float64]], _System], p0: NDArray[np.float64], *, max_steps: int, xtol: float = XTOL
 ) -> tuple[GaussNewtonResult, BlockedQR, float] | None:
-    """Undamped Gauss-Newton from ``p0`` by the rule of :func:`trimag._core.solve.gauss_newton`, each step
-    from the QR factorisation of ``[J | -r]`` (``system(p)``) instead of the normal equations; None when a step
-    raises ``sum r^2`` (far from the minimum) or ``max_steps`` pass without convergence.
-
-    Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step that raised the cost by
-    rounding only (relative step below :data:`~trimag._core.solve.ROUNDING_STEP`) keeps the point before it.
-    The system is linearised at every trial point (a rejected trial ends the run). Returns the result (fields of
-    ``scipy.optimize.OptimizeResult`` without ``fun`` and ``jac``), the system at the solution and its ``sum r^2``.
+    """Undamped Gauss-Newton from ``p0`` by :func:`trimag._core.solve.gauss_newton_rule`, each step from the QR
+    factorisation of ``[J | -r]`` (``system(p)``) instead of the normal equations; None when a step raises
+    ``sum r^2`` (far from the minimum) or ``max_steps`` pass without convergence. The system is linearised at every
+    trial point (a rejected trial ends the run). Returns the result (fields of ``scipy.optimize.OptimizeResult``
+    without ``fun`` and ``jac``), the system at the solution and its ``sum r^2``.
     """
-    p = np.asarray(p0, dtype=np.float64).copy()
-    qr, rss = system(p)
-    nfev = njev = 1
-    step_norms: list[float] = []
 
-    def done(steps: int) -> tuple[GaussNewtonResult, BlockedQR, float]:
-        assert qr is not None
-        result = GaussNewtonResult(
-            x=p, nfev=nfev, njev=njev, success=True, status=2, method="gauss-newton",
-            message=f"Gauss-Newton converged in {steps} steps (relative step <= {xtol:g})", step_norms=step_norms,
-        )
-        return result, qr, rss
-
-    for step_no in range(1, max_steps + 1):
-        if qr is None or not np.isfinite(rss):
-            return None
+    def direction(qr: BlockedQR, _: Any) -> NDArray[np.float64] | None:
         R = qr.R
         d = np.linalg.norm(R, axis=0)  # the column norms of J
         if not np.all(np.isfinite(d)) or np.any(d == 0):
             return None
         try:  # Jacobi-scaled (columns of very different size stay well conditioned)
-            delta = np.linalg.solve(R / d, qr.qtb) / d
+            return np.asarray(np.linalg.solve(R / d, qr.qtb) / d, dtype=np.float64)
         except np.linalg.LinAlgError:
             return None
-        p_new = p + delta
-        qr_new, rss_new = system(p_new)
-        nfev += 1
-        step_norm = float(np.linalg.norm(delta))
-        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
-        if not np.isfinite(rss_new) or rss_new > rss * (1.0 + 1e-12):
-            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
-                return done(step_no)
-            return None
-        p, qr, rss = p_new, qr_new, rss_new
-        step_norms.append(step_norm)
-        njev += 1
-        if rel_step <= xtol:
-            return done(step_no)
-    return None
+
+    run = gauss_newton_rule(system, lambda p, qr: None, direction, p0, max_steps=max_steps, xtol=xtol)
+    if run is None:
+        return None
+    result = GaussNewtonResult(
+        x=run.p, nfev=run.nfev, njev=run.njev, success=True, status=2, method="gauss-newton",
+        message=f"Gauss-Newton converged in {run.steps} steps (relative step <= {xtol:g})", step_norms=run.step_norms,
+    )
+    return result, run.state, run.cost
 
 
 def _levenberg_marquardt(
