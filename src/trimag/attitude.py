@@ -35,6 +35,7 @@ __all__ = [
     "attitude_from_table",
     "background_from_samples",
     "body_field",
+    "column_names",
     "from_euler",
     "from_quaternion",
     "parse_columns",
@@ -157,6 +158,13 @@ def parse_columns(spec: str | Sequence[str] | None, n: int, *, option: str) -> l
     return names
 
 
+def column_names(items: Sequence[str], available: Sequence[str]) -> list[str]:
+    """``items`` with each 0-based index that is not itself a column name replaced by that column's name (indices
+    are accepted wherever a column is named, as ``columns`` does); out-of-range indices are left as they are."""
+    return [available[int(c)] if c not in available and c.isdigit() and int(c) < len(available) else c
+            for c in items]
+
+
 def attitude_from_table(
     table: object,
     *,
@@ -201,9 +209,7 @@ def attitude_from_table(
     )
     assert cols is not None
     available = [str(c) for c in getattr(table, "columns", [])]
-    # 0-based indices are accepted wherever a column is named (as --columns does)
-    cols = [available[int(c)] if c not in available and c.isdigit() and int(c) < len(available) else c
-            for c in cols]
+    cols = column_names(cols, available)
     missing = [c for c in cols if c not in available]
     if missing:
         raise TrimagInputError(f"attitude column(s) {missing} not found; the table has columns {available}")

@@ -207,15 +207,13 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     items = [c.strip() for c in spec.split(",") if c.strip()]
     if len(items) != 3:
         raise TrimagInputError(f"`{arg}` needs exactly three columns (N, E, D); got {len(items)}")
+    from .attitude import column_names
+
     names = [str(c) for c in samples.table.columns]
-    out = []
     for item in items:
-        if item not in names and item.isdigit():
-            if int(item) >= len(names):
-                raise TrimagInputError(f"`{arg}`: index {item} is out of range; the file has {len(names)} columns")
-            item = names[int(item)]
-        out.append(item)
-    return out
+        if item not in names and item.isdigit() and int(item) >= len(names):
+            raise TrimagInputError(f"`{arg}`: index {item} is out of range; the file has {len(names)} columns")
+    return column_names(items, names)
 
 
 def _drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
