@@ -377,72 +377,22 @@ def fit_alignment(
     IdentifiabilityError
         Too little tilt variation (a rotation component is unobserved), or fewer than 10 samples.
     """
-    raw, a = _check_inputs(B, accel)
-    norm_a = np.linalg.norm(a, axis=1)
-    keep = np.abs(norm_a / np.median(norm_a) - 1.0) <= max_accel_deviation
-    n_drop = int((~keep).sum())
-    raw, a = raw[keep], a[keep]
-    u = None
-    if regressors is not None:
-        u = np.asarray(regressors, dtype=np.float64)[keep] if not isinstance(regressors, dict) else {
-            k: np.asarray(v, dtype=np.float64)[keep] for k, v in regressors.items()}
-    if len(raw) < 10:
-        raise IdentifiabilityError(f"only {len(raw)} samples at rest (|a| within {100 * max_accel_deviation:g}% of "
-                                   f"the median): too few to align the magnetometer; {_RECORD}")
+    raw, a, u, n_drop = _at_rest(B, accel, regressors, max_accel_deviation)
     check_tilt_variation(a)
     y = cal.apply(raw, regressors=u)
     m = y / np.linalg.norm(y, axis=1, keepdims=True)
     d = _unit_down(a)
-    best: tuple[float, Any] | None = None
-    for R0 in _starts(m, d):
-        out = _solve(m, d, R0)
-        cost = float(out[2] @ out[2])
-        if best is None or cost < best[0]:
-            best = (cost, out)
-    assert best is not None
-    R, inc, r, J, iterations = best[1]
+    R, inc, r, J, iterations = min((_solve(m, d, R0) for R0 in _starts(m, d)), key=lambda out: float(out[2] @ out[2]))
+    ratio, weak = _check_identified(J, inc)
     n = len(r)
-    # the rotation's three columns share one unit (radians): no column scaling, which would blow a component
-    # that only noise carries up to the size of the others
-    _, s, vt = np.linalg.svd(J[:, :3], full_matrices=False)
-    ratio = float(s[-1] / s[0]) if s[0] > 0 else 0.0
-    weak = vt[-1]
-    if not ratio >= RANK_TOLERANCE:
-        raise IdentifiabilityError(
-            f"the field-gravity angle of these {n} samples cannot identify the rotation between magnetometer and "
-            f"accelerometer about the axis {np.round(weak, 2).tolist()} (accelerometer frame; singular value ratio "
-            f"{ratio:.2g} < {RANK_TOLERANCE}): the vehicle turned about too few axes; {_RECORD}"
-        )
-    if not np.cos(inc) >= MIN_COS_DIP:
-        raise IdentifiabilityError(
-            f"the fitted field-gravity angle is {90.0 - abs(np.degrees(inc)):.2g} deg (dip "
-            f"{np.degrees(inc):.4g} deg): in these {n} samples the field stays at one place relative to gravity, "
-            f"as when the vehicle turns about magnetic east only, and the rotation between magnetometer and "
-            f"accelerometer cannot be identified; {_RECORD}"
-        )
     tau = correlation_time(r)
-    sigma2 = float(r @ r) / max(n - 4, 1) * tau
-    JtJ_inv = np.linalg.inv(J.T @ J)
-    cov = sigma2 * JtJ_inv
-    propagated = False
-    cal_part = _calibration_jacobian(cal, raw, d, R) if u is None else None
-    if cal_part is not None:
-        G_r, C_cal = cal_part
-        G = -JtJ_inv @ (J.T @ G_r)
-        cov = cov + G @ C_cal @ G.T
-        propagated = True
+    cov, propagated = _covariance(J, r, tau, cal, raw, d, R, calibration_known=u is None)
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     rot = Rotation.from_matrix(R)
     sensor = R @ polar_rotation(np.asarray(cal.matrix, dtype=np.float64))
     rms_deg = float(np.degrees(np.sqrt(np.mean(r**2))) / max(np.cos(inc), 1e-12))
-    warning = None
-    if rms_deg > RESIDUAL_WARNING_DEG:
-        warning = (f"the field-gravity angle varies by {rms_deg:.3g} deg RMS over the samples: the invariance holds "
-                   "poorly (the vehicle moving, a field that changes over the place, as indoors, or a calibration that "
-                   "does not fit), and the alignment can be off by more than its sigmas; record at rest, outdoors, "
-                   "away from iron")
     return {
-        "warning": warning,
+        "warning": _residual_warning(rms_deg),
         "heading_sigma_deg": alignment_heading_sigma(cov[:3, :3], float(np.degrees(inc))),
         "matrix": R.tolist(),
         "rotvec_deg": np.degrees(rot.as_rotvec()).tolist(),
@@ -465,3 +415,76 @@ def fit_alignment(
         "weakest_rotation_axis": weak.tolist(),
         "iterations": iterations,
     }
+
+
+def _at_rest(
+    B: ArrayLike, accel: ArrayLike, regressors: Any, max_accel_deviation: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], Any, int]:
+    """The samples where ``|a|`` is within ``max_accel_deviation`` of its median (gravity is the down direction
+    there): ``(B, accel, regressors, number dropped)``; fewer than 10 raise."""
+    raw, a = _check_inputs(B, accel)
+    norm_a = np.linalg.norm(a, axis=1)
+    keep = np.abs(norm_a / np.median(norm_a) - 1.0) <= max_accel_deviation
+    u = None
+    if regressors is not None:
+        u = np.asarray(regressors, dtype=np.float64)[keep] if not isinstance(regressors, dict) else {
+            k: np.asarray(v, dtype=np.float64)[keep] for k, v in regressors.items()}
+    raw, a = raw[keep], a[keep]
+    if len(raw) < 10:
+        raise IdentifiabilityError(f"only {len(raw)} samples at rest (|a| within {100 * max_accel_deviation:g}% of "
+                                   f"the median): too few to align the magnetometer; {_RECORD}")
+    return raw, a, u, int((~keep).sum())
+
+
+def _check_identified(J: NDArray[np.float64], inc: float) -> tuple[float, NDArray[np.float64]]:
+    """Refuse a rotation component the samples do not observe, or a field that stays at one angle to gravity;
+    return the singular value ratio of the rotation's Jacobian columns and its weakest axis."""
+    n = len(J)
+    # the rotation's three columns share one unit (radians): no column scaling, which would blow a component
+    # that only noise carries up to the size of the others
+    _, s, vt = np.linalg.svd(J[:, :3], full_matrices=False)
+    ratio = float(s[-1] / s[0]) if s[0] > 0 else 0.0
+    weak = vt[-1]
+    if not ratio >= RANK_TOLERANCE:
+        raise IdentifiabilityError(
+            f"the field-gravity angle of these {n} samples cannot identify the rotation between magnetometer and "
+            f"accelerometer about the axis {np.round(weak, 2).tolist()} (accelerometer frame; singular value ratio "
+            f"{ratio:.2g} < {RANK_TOLERANCE}): the vehicle turned about too few axes; {_RECORD}"
+        )
+    if not np.cos(inc) >= MIN_COS_DIP:
+        raise IdentifiabilityError(
+            f"the fitted field-gravity angle is {90.0 - abs(np.degrees(inc)):.2g} deg (dip "
+            f"{np.degrees(inc):.4g} deg): in these {n} samples the field stays at one place relative to gravity, "
+            f"as when the vehicle turns about magnetic east only, and the rotation between magnetometer and "
+            f"accelerometer cannot be identified; {_RECORD}"
+        )
+    return ratio, weak
+
+
+def _covariance(
+    J: NDArray[np.float64], r: NDArray[np.float64], tau: float, cal: Calibration, raw: NDArray[np.float64],
+    d: NDArray[np.float64], R: NDArray[np.float64], *, calibration_known: bool,
+) -> tuple[NDArray[np.float64], bool]:
+    """Covariance (4x4, radians^2) of the rotation and dip: the residuals' ``sigma^2 (J^T J)^-1`` inflated by the
+    correlation time ``tau``, plus the calibration's own uncertainty propagated when it is known (no regressor
+    terms); returns ``(covariance, propagated)``."""
+    n = len(r)
+    sigma2 = float(r @ r) / max(n - 4, 1) * tau
+    JtJ_inv = np.linalg.inv(J.T @ J)
+    cov = sigma2 * JtJ_inv
+    cal_part = _calibration_jacobian(cal, raw, d, R) if calibration_known else None
+    if cal_part is None:
+        return cov, False
+    G_r, C_cal = cal_part
+    G = -JtJ_inv @ (J.T @ G_r)
+    return cov + G @ C_cal @ G.T, True
+
+
+def _residual_warning(rms_deg: float) -> str | None:
+    """A line when the field-gravity angle varies by more than :data:`RESIDUAL_WARNING_DEG` RMS, else None."""
+    if not rms_deg > RESIDUAL_WARNING_DEG:
+        return None
+    return (f"the field-gravity angle varies by {rms_deg:.3g} deg RMS over the samples: the invariance holds "
+            "poorly (the vehicle moving, a field that changes over the place, as indoors, or a calibration that "
+            "does not fit), and the alignment can be off by more than its sigmas; record at rest, outdoors, "
+            "away from iron")
