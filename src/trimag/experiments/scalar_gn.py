@@ -496,6 +496,19 @@ def run(
     rows, example = sigma_sweep(n_per_axis=n_per_axis, trials=n_trials, seed=seed, workers=workers,
                                 progress=False if json_mode else "noise sweep trials")
     before_clean = magnitude_stats(TRUTH.distort(body_field(axis_turns(n_per_axis), FIELD_NAV)), F_PAPER)
+    _write_sigma_table(out, rows)
+    sim_axes = per_axis_simulated(n_per_turn=n_per_axis // 2, sigma=10.0, tilt_deg=tilt, seed=seed + 1)
+    reals = [real_log_experiment(p) for p in real_paths]
+    _write_cross_tables(out, sim_axes, reals)
+    figures = _figures(out, rows, example, reals)
+    truth_deg = {**TRUTH.as_dict(), **{f"{k}_deg": v for k, v in TRUTH.angles_deg().items()}}
+    text = _text(rows, sim_axes, reals, truth_deg, before_clean, figures, n_per_axis=n_per_axis, n_trials=n_trials,
+                 seed=seed, tilt=tilt)
+    return _summary(rows, sim_axes, reals, truth_deg, figures, tilt=tilt, text=text)
+
+
+def _write_sigma_table(out: Path, rows: list[dict[str, Any]]) -> None:
+    """``sigma_table.csv``: the noise sweep beside the paper's rows."""
     keys = ["sigma", "rms_before", "rms_after", "amp_before", "amp_after", "p2p_before", "p2p_after",
             "rms_noise_limit", "ratio_to_noise_limit", "rms_after_held_out", "rms_noise_limit_held_out",
             "ratio_held_out", "rms_param_only", "amp_param_only", "iterations",
@@ -504,8 +517,10 @@ def run(
                                    "paper_amp_after"],
          [[r[k] for k in keys] + list(PAPER_ROWS.get(r["sigma"], (math.nan,) * 4)) for r in rows])
 
-    sim_axes = per_axis_simulated(n_per_turn=n_per_axis // 2, sigma=10.0, tilt_deg=tilt, seed=seed + 1)
-    reals = [real_log_experiment(p) for p in real_paths]
+
+
+def _write_cross_tables(out: Path, sim_axes: dict[str, Any], reals: list[dict[str, Any]]) -> None:
+    """``per_axis_*.csv``: per-axis against pooled fits, simulated and real."""
     cross_keys = ["fit_on", "n", "rms_before", "rms_after", "iterations", "rms_on_X", "rms_on_Y", "rms_on_Z",
                   "rms_on_pooled", "std_on_pooled", "error"]
     tables = [("per_axis_sim_pure", sim_axes["pure"]), ("per_axis_sim_tilted", sim_axes["tilted"])]
@@ -513,9 +528,13 @@ def run(
     for name, table in tables:
         if table:
             write_csv(out / f"{name}.csv", cross_keys, [[r.get(k, "") for k in cross_keys] for r in table])
-    figures = _figures(out, rows, example, reals)
 
-    truth_deg = {**TRUTH.as_dict(), **{f"{k}_deg": v for k, v in TRUTH.angles_deg().items()}}
+
+def _text(
+    rows: list[dict[str, Any]], sim_axes: dict[str, Any], reals: list[dict[str, Any]], truth_deg: dict[str, float],
+    before_clean: dict[str, float], figures: list[str], *, n_per_axis: int, n_trials: int, seed: int, tilt: float,
+) -> str:
+    """The reproduction's text summary."""
     text = [
         "Paper B reproduction (trimag reproduce scalar-gn)",
         f"F = {F_PAPER:.0f} nT; field NED {np.round(FIELD_NAV, 1).tolist()} nT; turns about X, Y, Z, "
@@ -550,10 +569,19 @@ def run(
             "",
         ]
     text.append("outputs: sigma_table.csv, per_axis_*.csv, " + ", ".join(figures))
+    return "\n".join(text)
 
-    def _clean_table(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        return [{k: v for k, v in r.items() if k != "params"} for r in table]
 
+
+def _clean_table(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in r.items() if k != "params"} for r in table]
+
+
+def _summary(
+    rows: list[dict[str, Any]], sim_axes: dict[str, Any], reals: list[dict[str, Any]], truth_deg: dict[str, float],
+    figures: list[str], *, tilt: float, text: str,
+) -> dict[str, Any]:
+    """The JSON summary."""
     return {
         "rows": [
             {k: r[k] for k in ("sigma", "rms_before", "rms_after", "amp_before", "amp_after", "iterations",
@@ -577,5 +605,5 @@ def run(
             for real in reals
         ],
         "figures": figures,
-        "text": "\n".join(text),
+        "text": text,
     }

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -505,17 +506,7 @@ def run(
     strong_runs = runs(strong_setup, TEST_ATTITUDES, seeds[:n_runs], "strong-case runs")
     weak_runs = runs(weak_setup, WEAK_TEST_ATTITUDES, seeds[n_runs:], "weak-case runs")
     strong, weak = _summary(strong_runs), _summary(weak_runs)
-    # error budget: which source makes the after-compensation error (fewer runs; every row reuses the same
-    # trial seeds)
-    budget = {}
-    n_b = max(n_runs // 4, 5)
-    seeds_b = trial_seeds(seed + 1, 2 * n_b)
-    for label, over in (("noise+quantisation", {"attitude_error_deg": 0.0, "hysteresis": 0.0}),
-                        ("+turntable error", {"hysteresis": 0.0}), ("+hysteresis (all)", {})):
-        cases = runs(strong_setup, TEST_ATTITUDES, seeds_b[:n_b], f"error budget {label}", **over)
-        weak_cases = runs(weak_setup, WEAK_TEST_ATTITUDES, seeds_b[n_b:], f"error budget {label}", **over)
-        budget[label] = {"strong_rms_after": _summary(cases)["rms_after"],
-                         "weak_rms_after": _summary(weak_cases)["rms_after"]}
+    budget = _error_budget(runs, strong_setup, weak_setup, n_runs, seed)
     table_strong = _table(strong_runs[0], TEST_ATTITUDES)
     table_weak = _table(weak_runs[0], WEAK_TEST_ATTITUDES)
     write_dict_csv(out_dir / "vehicle12_table2_strong.csv", table_strong)
@@ -552,6 +543,23 @@ def run(
     atomic_write_text(out_dir / "vehicle12_summary.json", json.dumps(summary, indent=2, default=float))
     atomic_write_text(out_dir / "vehicle12_report.txt", text + "\n")
     return summary
+
+
+def _error_budget(
+    runs: Callable[..., list[dict[str, Any]]], strong_setup: Setup, weak_setup: Setup, n_runs: int, seed: int
+) -> dict[str, dict[str, float]]:
+    """Which source makes the after-compensation error: RMS after with noise and quantisation only, then the
+    turntable error added, then hysteresis (fewer runs; every row reuses the same trial seeds)."""
+    budget = {}
+    n_b = max(n_runs // 4, 5)
+    seeds_b = trial_seeds(seed + 1, 2 * n_b)
+    for label, over in (("noise+quantisation", {"attitude_error_deg": 0.0, "hysteresis": 0.0}),
+                        ("+turntable error", {"hysteresis": 0.0}), ("+hysteresis (all)", {})):
+        cases = runs(strong_setup, TEST_ATTITUDES, seeds_b[:n_b], f"error budget {label}", **over)
+        weak_cases = runs(weak_setup, WEAK_TEST_ATTITUDES, seeds_b[n_b:], f"error budget {label}", **over)
+        budget[label] = {"strong_rms_after": _summary(cases)["rms_after"],
+                         "weak_rms_after": _summary(weak_cases)["rms_after"]}
+    return budget
 
 
 def _comparison_text(strong: dict[str, Any], weak: dict[str, Any], n_runs: int) -> str:

@@ -25,6 +25,7 @@ import argparse
 import math
 import time
 import warnings
+from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -309,7 +310,33 @@ def run(
     sigmas5 = SIGMAS_FIG5_QUICK if quick else SIGMAS_FIG5
     progress = not json_mode
 
-    # ---- Fig. 3 / 4
+    fig3 = _fig3(out, k_trials, seed, workers, attitudes, pairing, n_grid, progress)
+    fig5 = _fig5(out, k_trials, seed, workers, attitudes, pairing, sigmas5, progress)
+    fig6 = _fig6(out, data_dir, quick)
+    checks = _checks(fig3, fig5)
+    summary: dict[str, Any] = {
+        "fig3": [{k: _finite(r[k]) if k != "N" else r["N"] for k in ("sigma", "N", "J_median", "J_p90")}
+                 for r in fig3],
+        "fig5": [{k: _finite(v) for k, v in r.items()} for r in fig5],
+        "fig6": fig6,
+        "checks": checks,
+        "settings": {"trials": k_trials, "seed": seed, "quick": quick, "attitudes": attitudes,
+                     "pairing": pairing, "truth": TRUTH.as_dict(),
+                     "old_truth": {k: float(getattr(WEN_TRUTH, k)) for k in WEN_KEYS},
+                     "field": FIELD.tolist(), "sigma_meaning": "standard deviation per axis"},
+    }
+    summary["runtime_s"] = time.monotonic() - t0
+    summary["text"] = _text(summary)
+    atomic_write_text(out / "summary.txt", summary["text"] + "\n")
+    return summary
+
+
+def _fig3(
+    out: Path, k_trials: int, seed: int, workers: int, attitudes: str, pairing: str, n_grid: Sequence[Any],
+    progress: bool,
+) -> list[dict[str, Any]]:
+    """Fig. 3/4: J against N for each sigma (median, 10th and 90th percentiles over the trials); writes their CSV
+    and PNG."""
     items3 = [(n, s) for s in SIGMAS_FIG3 for n in n_grid]
     seeds = trial_seeds(seed, len(items3) * k_trials)
     tasks3 = [(n, s, seeds[i * k_trials + k]) for i, (n, s) in enumerate(items3) for k in range(k_trials)]
@@ -327,8 +354,15 @@ def run(
     _fig34_png(fig3, out, 0, "fig3_J_vs_N.png", "Fig. 3: J versus N (pairwise)")
     _fig34_png(fig3, out, 400, "fig4_J_vs_N_large.png", "Fig. 4: J versus N, N >= 400")
     write_csv(out / "fig4_J_vs_N_large.csv", keys3, [[r[k] for k in keys3] for r in fig3 if r["N"] >= 400])
+    return fig3
 
-    # ---- Fig. 5
+
+def _fig5(
+    out: Path, k_trials: int, seed: int, workers: int, attitudes: str, pairing: str, sigmas5: Sequence[Any],
+    progress: bool,
+) -> list[dict[str, Any]]:
+    """Fig. 5: J against sigma for the pairwise, geometric and old methods (medians, 90th percentiles); writes its
+    CSV and PNG."""
     seeds5 = trial_seeds(seed + 1, len(sigmas5) * k_trials)
     tasks5 = [(s, seeds5[i * k_trials + k]) for i, s in enumerate(sigmas5) for k in range(k_trials)]
     res5 = map_trials(partial(fig5_trial, attitudes=attitudes, pairing=pairing), tasks5, workers=workers,
@@ -348,8 +382,11 @@ def run(
     keys5 = list(fig5[0])
     write_csv(out / "fig5_J_vs_sigma.csv", keys5, [[r[k] for k in keys5] for r in fig5])
     _fig5_png(fig5, out)
+    return fig5
 
-    # ---- Fig. 6 analogue
+
+def _fig6(out: Path, data_dir: Path, quick: bool) -> dict[str, Any]:
+    """Fig. 6 analogue on the shared real logs present (``{"skipped": reason}`` without them)."""
     fig6: dict[str, Any]
     logs = [data_dir / "qmc5883l-suarez" / "noisy_raw_data.csv",
             data_dir / "broad" / "01_undisturbed_slow_rotation_A.mat"]
@@ -362,23 +399,7 @@ def run(
             warnings.simplefilter("ignore")
             fig6 = {"logs": [real_log_figure(p, out, stride=(8 if quick else 2) if p.suffix == ".mat"
                                              else (2 if quick else 1)) for p in present]}
-
-    checks = _checks(fig3, fig5)
-    summary: dict[str, Any] = {
-        "fig3": [{k: _finite(r[k]) if k != "N" else r["N"] for k in ("sigma", "N", "J_median", "J_p90")}
-                 for r in fig3],
-        "fig5": [{k: _finite(v) for k, v in r.items()} for r in fig5],
-        "fig6": fig6,
-        "checks": checks,
-        "settings": {"trials": k_trials, "seed": seed, "quick": quick, "attitudes": attitudes,
-                     "pairing": pairing, "truth": TRUTH.as_dict(),
-                     "old_truth": {k: float(getattr(WEN_TRUTH, k)) for k in WEN_KEYS},
-                     "field": FIELD.tolist(), "sigma_meaning": "standard deviation per axis"},
-    }
-    summary["runtime_s"] = time.monotonic() - t0
-    summary["text"] = _text(summary)
-    atomic_write_text(out / "summary.txt", summary["text"] + "\n")
-    return summary
+    return fig6
 
 
 def _checks(fig3: list[dict[str, Any]], fig5: list[dict[str, Any]]) -> dict[str, Any]:

@@ -310,6 +310,17 @@ def run(
     sweep = noise_sweep(trials=n_trials, seed=seed, workers=workers, sigmas=sigmas, tilt_deg=tilt,
                         inclination_deg=inc)
 
+    _write_tables(out, case, sphere, sweep)
+    figure = _figure(out, sweep, case["V"])
+    text = _text(case, sphere, sweep, tilt=tilt, inc=inc, n_trials=n_trials, figure=figure)
+    summary = _summary(case, sphere, sweep, tilt=tilt, inc=inc, n_trials=n_trials, seed=seed, figure=figure,
+                       text=text)
+    cleaned: dict[str, Any] = jsonable(summary)
+    return cleaned
+
+
+def _write_tables(out: Path, case: dict[str, Any], sphere: dict[str, Any], sweep: list[dict[str, Any]]) -> None:
+    """Write ``w_table.csv``, ``param_errors.csv`` and ``noise_sweep.csv`` into ``out``."""
     terms = ("xx", "yy", "zz", "xy", "xz", "yz", "x", "y", "z", "1")
     w_rows = []
     for i, t in enumerate(terms):
@@ -332,8 +343,13 @@ def run(
          p_rows)
     sweep_keys = list(sweep[0].keys())
     write_csv(out / "noise_sweep.csv", sweep_keys, [[r[k] for k in sweep_keys] for r in sweep])
-    figure = _figure(out, sweep, case["V"])
 
+
+def _text(
+    case: dict[str, Any], sphere: dict[str, Any], sweep: list[dict[str, Any]], *, tilt: float, inc: float,
+    n_trials: int, figure: str,
+) -> str:
+    """The reproduction's text summary."""
     ident = case["identifiability"]
     single = case["single_axis"]
     fits = case["fits"]
@@ -380,8 +396,18 @@ def run(
             + f" {r['uncorrected_vector_error']:11.2e}"
         )
     text.append(f"outputs: w_table.csv, param_errors.csv, noise_sweep.csv, {figure}")
+    return "\n".join(text)
 
-    summary = {
+
+def _summary(
+    case: dict[str, Any], sphere: dict[str, Any], sweep: list[dict[str, Any]], *, tilt: float, inc: float,
+    n_trials: int, seed: int, figure: str, text: str,
+) -> dict[str, Any]:
+    """The JSON summary (before :func:`jsonable`)."""
+    ident = case["identifiability"]
+    single = case["single_axis"]
+    fits = case["fits"]
+    return {
         "W_true": case["W_true"],
         "W_paper_first3": list(PAPER_W_FIRST3),
         **{f"W_{m}": fits[m].get("W") for m in METHODS},
@@ -409,7 +435,5 @@ def run(
         "trials": n_trials,
         "seed": seed,
         "outputs": ["w_table.csv", "param_errors.csv", "noise_sweep.csv", figure],
-        "text": "\n".join(text),
+        "text": text,
     }
-    cleaned: dict[str, Any] = jsonable(summary)
-    return cleaned
