@@ -75,12 +75,22 @@ def read_ulog(path: Path) -> VehicleLog:
         raise TrimagInputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {exc})") from None
     params = {k: float(v) for k, v in ulog.initial_parameters.items()}
     data = {(d.name, d.multi_id): d.data for d in ulog.data_list}
-    slot_of = {int(params[f"CAL_MAG{k}_ID"]): k for k in range(8) if params.get(f"CAL_MAG{k}_ID")}
-    vm = data.get(("vehicle_magnetometer", 0))
-    minor = _ulog_version_minor(ulog)
-    mags: list[MagnetometerStream] = []
-    messages: list[str] = []
-    prime = int(params.get("CAL_MAG_PRIME", 0))
+    mags = _ulog_magnetometers(data, params, _ulog_version_minor(ulog))
+    log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
+    _ulog_channels(log, data)
+    log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)))
+    log.messages = [w for w in (_slow_warning(m) for m in mags) if w]
+    if not mags:
+        raise TrimagInputError(f"{path}: the log has no sensor_mag or vehicle_magnetometer messages")
+    return log
+
+
+_Topics = dict[tuple[str, int], Any]
+
+
+def _ulog_calibrated_in_log(data: _Topics, vm: Any, prime: int, slot_of: dict[int, int], minor: int | None) -> bool:
+    """Whether ``sensor_mag`` holds calibrated values: compared with ``vehicle_magnetometer`` of the prime sensor
+    when both are there, else from the log's version (v1.11 and older logged calibrated values)."""
     calibrated_in_log: bool | None = None
     if vm is not None and prime in slot_of:
         for (name, _), d in data.items():
@@ -91,6 +101,17 @@ def read_ulog(path: Path) -> VehicleLog:
                 calibrated_in_log = bool(np.abs(vmx - smx).max() < 1e-6)
     if calibrated_in_log is None:
         calibrated_in_log = minor is not None and minor <= 11
+    return calibrated_in_log
+
+
+def _ulog_magnetometers(data: _Topics, params: dict[str, float], minor: int | None) -> list[MagnetometerStream]:
+    """Every ``sensor_mag`` instance, then the prime ``vehicle_magnetometer``, with the on-board calibration
+    undone where the log holds calibrated values."""
+    slot_of = {int(params[f"CAL_MAG{k}_ID"]): k for k in range(8) if params.get(f"CAL_MAG{k}_ID")}
+    vm = data.get(("vehicle_magnetometer", 0))
+    prime = int(params.get("CAL_MAG_PRIME", 0))
+    calibrated_in_log = _ulog_calibrated_in_log(data, vm, prime, slot_of, minor)
+    mags: list[MagnetometerStream] = []
     for (name, multi), d in sorted(data.items(), key=lambda kv: kv[0][1]):
         if name != "sensor_mag":
             continue
@@ -112,7 +133,12 @@ def read_ulog(path: Path) -> VehicleLog:
                           "compensation, which were not undone")
         mags.append(MagnetometerStream("vehicle_magnetometer", slot, vm["timestamp"].astype(np.float64) * 1e-6, raw,
                                        logged, "G", undone, prime, onboard))
-    log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
+    return mags
+
+
+def _ulog_channels(log: VehicleLog, data: _Topics) -> None:
+    """The attitude (yaw, pitch, roll from ``vehicle_attitude.q``), battery current, throttle and magnetometer
+    temperatures, into ``log``."""
     att = data.get(("vehicle_attitude", 0))
     if att is not None:
         from scipy.spatial.transform import Rotation
@@ -134,25 +160,22 @@ def read_ulog(path: Path) -> VehicleLog:
             log.channels[f"temperature_C_mag{multi}"] = Channel(d["timestamp"] * 1e-6,
                                                                  d["temperature"].astype(np.float64), "degC",
                                                                  f"sensor_mag[{multi}].temperature")
-    gps = data.get(("vehicle_gps_position", 0))
-    if gps is not None and len(gps["timestamp"]):
-        fix = gps.get("fix_type", np.full(len(gps["timestamp"]), 3))
-        good = np.flatnonzero(fix >= 3)
-        if len(good):
-            k = good[len(good) // 2]
-            scale = 1e-7 if np.issubdtype(gps["lat"].dtype, np.integer) else 1.0
-            utc = int(gps["time_utc_usec"][k]) if "time_utc_usec" in gps else 0
-            log.gps = {"lat_deg": float(gps["lat"][k]) * scale, "lon_deg": float(gps["lon"][k]) * scale,
-                       "alt_m": float(gps["alt"][k]) * (1e-3 if scale == 1e-7 else 1.0),
-                       "date": _dt.datetime.fromtimestamp(utc / 1e6, _dt.UTC).date().isoformat() if utc else None}
-    for m in mags:
-        w = _slow_warning(m)
-        if w:
-            messages.append(w)
-    log.messages = messages
-    if not mags:
-        raise TrimagInputError(f"{path}: the log has no sensor_mag or vehicle_magnetometer messages")
-    return log
+
+
+def _ulog_gps(gps: Any) -> dict[str, Any] | None:
+    """The middle 3-D fix of ``vehicle_gps_position`` (latitude, longitude, altitude, UTC date), or None."""
+    if gps is None or not len(gps["timestamp"]):
+        return None
+    fix = gps.get("fix_type", np.full(len(gps["timestamp"]), 3))
+    good = np.flatnonzero(fix >= 3)
+    if not len(good):
+        return None
+    k = good[len(good) // 2]
+    scale = 1e-7 if np.issubdtype(gps["lat"].dtype, np.integer) else 1.0
+    utc = int(gps["time_utc_usec"][k]) if "time_utc_usec" in gps else 0
+    return {"lat_deg": float(gps["lat"][k]) * scale, "lon_deg": float(gps["lon"][k]) * scale,
+            "alt_m": float(gps["alt"][k]) * (1e-3 if scale == 1e-7 else 1.0),
+            "date": _dt.datetime.fromtimestamp(utc / 1e6, _dt.UTC).date().isoformat() if utc else None}
 
 
 def read_px4log(path: Path) -> VehicleLog:
