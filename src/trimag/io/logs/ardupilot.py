@@ -153,6 +153,14 @@ def _time_s(cols: dict[str, NDArray[Any]], *, receipt: bool = False) -> NDArray[
 
 
 def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
+    log = VehicleLog(str(path), "ArduPilot DataFlash", _dataflash_magnetometers(rows, params), parameters=params)
+    _dataflash_channels(log, rows)
+    log.gps = _dataflash_gps(rows.get("GPS"))
+    return log
+
+
+def _dataflash_magnetometers(rows: Columns, params: dict[str, float]) -> list[MagnetometerStream]:
+    """Every compass of ``MAG``/``MAG2``/``MAG3`` (or ``MAG`` by instance ``I``), onboard calibration undone."""
     mags: list[MagnetometerStream] = []
     streams: list[tuple[int, str, dict[str, NDArray[Any]]]] = []
     for name in ("MAG", "MAG2", "MAG3"):
@@ -182,7 +190,11 @@ def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLo
         dev = params.get(f"COMPASS_DEV_ID{_suffix(inst)}")
         mags.append(MagnetometerStream(label, inst, _time_s(rs), raw, logged, "mG", undone,
                                        int(dev) if dev else None, onboard))
-    log = VehicleLog(str(path), "ArduPilot DataFlash", mags, parameters=params)
+    return mags
+
+
+def _dataflash_channels(log: VehicleLog, rows: Columns) -> None:
+    """The attitude (``ATT``), battery current and voltage, throttle and the servo outputs that move, into ``log``."""
     att = rows.get("ATT")
     if _n(att):
         assert att is not None
@@ -207,14 +219,18 @@ def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLo
                 v = _array(rc, [key])[:, 0]
                 if np.ptp(v) > 0:
                     log.channels[f"rcou_{key}"] = Channel(_time_s(rc), v, "us", f"RCOU.{key}")
-    gps = rows.get("GPS")
-    if _n(gps) and gps is not None and "Status" in gps:
-        good = np.flatnonzero(np.asarray(gps["Status"]) >= 3)
-        if len(good):
-            k = int(good[len(good) // 2])
-            log.gps = {"lat_deg": float(gps["Lat"][k]), "lon_deg": float(gps["Lng"][k]), "alt_m": float(gps["Alt"][k]),
-                       "date": _gps_date(gps["GWk"][k], gps["GMS"][k]) if "GWk" in gps else None}
-    return log
+
+
+def _dataflash_gps(gps: Any) -> dict[str, Any] | None:
+    """The middle 3-D fix of ``GPS`` (latitude, longitude, altitude, date), or None."""
+    if not (_n(gps) and gps is not None and "Status" in gps):
+        return None
+    good = np.flatnonzero(np.asarray(gps["Status"]) >= 3)
+    if not len(good):
+        return None
+    k = int(good[len(good) // 2])
+    return {"lat_deg": float(gps["Lat"][k]), "lon_deg": float(gps["Lng"][k]), "alt_m": float(gps["Alt"][k]),
+            "date": _gps_date(gps["GWk"][k], gps["GMS"][k]) if "GWk" in gps else None}
 
 
 def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
