@@ -54,25 +54,41 @@ def read_dataflash(path: str | Path, types: list[str]) -> dict[str, dict[str, ND
         data = np.memmap(p, dtype=np.uint8, mode="r")
     except (OSError, ValueError) as exc:
         raise TrimagInputError(f"{p}: cannot read the log ({exc})") from None
+    lengths, formats, starts = _scan(data, set(types))
+    if not formats:
+        raise TrimagInputError(f"{p}: not a binary DataFlash log (no FMT messages)")
+    out: dict[str, dict[str, NDArray[np.generic]]] = {}
+    for mtype, positions in starts.items():
+        if not positions:
+            continue
+        name, fmt, cols = formats[mtype]
+        fields = _decode(p, data, name, fmt, cols, positions, lengths[mtype])
+        if fields is not None:
+            out[name] = fields
+    return out
+
+
+def _scan(
+    data: NDArray[np.uint8], wanted_names: set[str]
+) -> tuple[list[int], dict[int, tuple[str, str, list[str]]], dict[int, list[int]]]:
+    """One pass over the log's messages: each type's length and ``(name, format, columns)`` from the FMT messages,
+    and the byte offsets of the messages of the wanted types. Bytes that do not start a known message are
+    skipped one at a time (a torn write, a log cut short)."""
     raw = data.tobytes() if len(data) < 1 << 20 else data.data  # small files: bytes are faster to index
     n = len(data)
     lengths = [0] * 256
     lengths[_FMT_TYPE] = _FMT_LENGTH
     formats: dict[int, tuple[str, str, list[str]]] = {}
-    wanted_names = set(types)
     wanted: set[int] = set()
     starts: dict[int, list[int]] = {}
     pos = 0
-    n_skipped = 0
     while pos + 3 <= n:
         if raw[pos] != 0xA3 or raw[pos + 1] != 0x95:
-            n_skipped += 1
             pos += 1
             continue
         mtype = raw[pos + 2]
         length = lengths[mtype]
         if length == 0 or pos + length > n:
-            n_skipped += 1
             pos += 1
             continue
         if mtype == _FMT_TYPE:
@@ -86,30 +102,30 @@ def read_dataflash(path: str | Path, types: list[str]) -> dict[str, dict[str, ND
         elif mtype in wanted:
             starts[mtype].append(pos)
         pos += length
-    if not formats:
-        raise TrimagInputError(f"{p}: not a binary DataFlash log (no FMT messages)")
-    out: dict[str, dict[str, NDArray[np.generic]]] = {}
-    for mtype, positions in starts.items():
-        if not positions:
-            continue
-        name, fmt, cols = formats[mtype]
-        try:
-            dtype = np.dtype([(f"f{k}", _FORMATS[c][0]) for k, c in enumerate(fmt)])
-        except KeyError as exc:
-            raise TrimagInputError(f"{p}: message {name} has an unknown field format {exc.args[0]!r}") from None
-        if dtype.itemsize != lengths[mtype] - 3:
-            continue  # a format this reader does not size like the firmware: skip the type rather than misread
-        idx = np.asarray(positions, dtype=np.int64)[:, None] + 3 + np.arange(dtype.itemsize)
-        records = np.ascontiguousarray(data[idx]).view(dtype).ravel()
-        fields: dict[str, NDArray[np.generic]] = {}
-        for k, (c, col) in enumerate(zip(fmt, cols, strict=False)):
-            values = records[f"f{k}"]
-            kind, scale = _FORMATS[c]
-            if kind.startswith("S"):
-                fields[col] = np.char.decode(np.char.rstrip(values, b"\x00"), "ascii", "replace")
-            elif scale != 1.0:
-                fields[col] = values.astype(np.float64) * scale
-            else:
-                fields[col] = values
-        out[name] = fields
-    return out
+    return lengths, formats, starts
+
+
+def _decode(
+    p: Path, data: NDArray[np.uint8], name: str, fmt: str, cols: list[str], positions: list[int], length: int
+) -> dict[str, NDArray[np.generic]] | None:
+    """The columns of one message type from its messages' offsets (None for a format this reader does not size
+    like the firmware: the type is skipped rather than misread)."""
+    try:
+        dtype = np.dtype([(f"f{k}", _FORMATS[c][0]) for k, c in enumerate(fmt)])
+    except KeyError as exc:
+        raise TrimagInputError(f"{p}: message {name} has an unknown field format {exc.args[0]!r}") from None
+    if dtype.itemsize != length - 3:
+        return None
+    idx = np.asarray(positions, dtype=np.int64)[:, None] + 3 + np.arange(dtype.itemsize)
+    records = np.ascontiguousarray(data[idx]).view(dtype).ravel()
+    fields: dict[str, NDArray[np.generic]] = {}
+    for k, (c, col) in enumerate(zip(fmt, cols, strict=False)):
+        values = records[f"f{k}"]
+        kind, scale = _FORMATS[c]
+        if kind.startswith("S"):
+            fields[col] = np.char.decode(np.char.rstrip(values, b"\x00"), "ascii", "replace")
+        elif scale != 1.0:
+            fields[col] = values.astype(np.float64) * scale
+        else:
+            fields[col] = values
+    return fields
