@@ -18,6 +18,7 @@ deviation is the profile-likelihood one, ``sigma_L^2 = 2 sigma^2 / SS''(L)`` wit
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -187,8 +188,6 @@ def estimate_lag(
         The fit's quality does not depend on the lag (the attitude does not change), or the best lag is at the
         edge of the search.
     """
-    from scipy.optimize import minimize_scalar
-
     X = np.asarray(B, dtype=np.float64)
     tm = np.asarray(t, dtype=np.float64)
     H_n = np.asarray(background_ned, dtype=np.float64)
@@ -208,21 +207,7 @@ def estimate_lag(
         return _vector_ss(X[::every], body_field(slerp(tm[::every] + lag), H_n))[0]
 
     step = max(min(0.5 * stream.median_interval, max_lag / 20), 2 * max_lag / (MAX_GRID - 1))
-    grid = np.arange(-max_lag, max_lag + 0.5 * step, step)
-    every = max(len(X) // GRID_SAMPLES, 1)  # the grid on a regular subsample; the refinement on every sample
-    values = np.array([ss(float(g), every) for g in grid])
-    k = int(np.argmin(values))
-    if values.max() - values.min() <= 1e-12 * max(values.max(), 1e-300):
-        raise IdentifiabilityError("the vector fit's quality does not depend on the lag (the attitude barely "
-                                   "changes): record the vehicle turning to estimate the lag")
-    if k in (0, len(grid) - 1):
-        raise IdentifiabilityError(
-            f"the best lag is at the edge of the search (+-{max_lag:g} s): widen it (`option max_lag`) or check that "
-            "the two files share a clock"
-        )
-    res = minimize_scalar(ss, bounds=(float(grid[k - 1]), float(grid[k + 1])), method="bounded",
-                          options={"xatol": 1e-6 * max(step, 1e-9)})
-    lag = float(res.x)
+    lag = _minimise_on_grid(ss, max_lag, step, every=max(len(X) // GRID_SAMPLES, 1))
     ss_lag, resid = _vector_ss(X, body_field(slerp(tm + lag), H_n))
     n = len(X)
     sigma2 = ss_lag / max(3 * n - 12, 1)
@@ -242,3 +227,25 @@ def estimate_lag(
         "method": "minimum of the interference12 residual sum of squares over a lag grid, refined; sigma from its "
                   "curvature (profile likelihood), times the residuals' autocorrelation time",
     }
+
+
+def _minimise_on_grid(ss: Callable[..., float], max_lag: float, step: float, *, every: int) -> float:
+    """The lag (s) minimising ``ss(lag)``: a grid over ``[-max_lag, max_lag]`` with ``step`` on every ``every``-th
+    sample, then a bounded scalar minimisation between the grid points around the best one, on every sample.
+    Refuses a flat ``ss`` (the attitude does not change) and a best lag at the edge of the search."""
+    from scipy.optimize import minimize_scalar
+
+    grid = np.arange(-max_lag, max_lag + 0.5 * step, step)
+    values = np.array([ss(float(g), every) for g in grid])
+    k = int(np.argmin(values))
+    if values.max() - values.min() <= 1e-12 * max(values.max(), 1e-300):
+        raise IdentifiabilityError("the vector fit's quality does not depend on the lag (the attitude barely "
+                                   "changes): record the vehicle turning to estimate the lag")
+    if k in (0, len(grid) - 1):
+        raise IdentifiabilityError(
+            f"the best lag is at the edge of the search (+-{max_lag:g} s): widen it (`option max_lag`) or check that "
+            "the two files share a clock"
+        )
+    res = minimize_scalar(ss, bounds=(float(grid[k - 1]), float(grid[k + 1])), method="bounded",
+                          options={"xatol": 1e-6 * max(step, 1e-9)})
+    return float(res.x)
