@@ -149,3 +149,38 @@ def test_no_benchmark_harness_inside_the_package():
     """``trimag.experiments`` holds the four papers' reproductions only; benchmarks live in benchmarks/."""
     experiments = {m.rsplit(".", 1)[1] for m in MODULES if m.startswith("trimag.experiments.")}
     assert experiments == {"wu2013", "scalar_gn", "vehicle12", "zhang2009", "_data", "_output"}
+
+
+def _experiment_imports() -> list[tuple[str, str, str]]:
+    """``(experiment module, imported module, name)`` for every ``from trimag... import name`` in
+    ``trimag.experiments`` (at any depth) that reaches outside the experiments package."""
+    out = []
+    for name, path in MODULES.items():
+        if not name.startswith("trimag.experiments"):
+            continue
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = package.split(".")
+                module = ".".join(base[: len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+                if not module.startswith("trimag.experiments"):
+                    out += [(name, module, alias.name) for alias in node.names]
+    return out
+
+
+def test_experiments_use_only_the_public_api():
+    """The reproductions import only public modules' public names (in the module's ``__all__``), as
+    ``trimag.experiments`` promises: a reproduction is what a user of the package could write."""
+    import importlib
+
+    private = []
+    for experiment, module, attr in _experiment_imports():
+        public = set(getattr(importlib.import_module(module), "__all__", ()))
+        if any(part.startswith("_") for part in module.split(".")) or attr not in public:
+            private.append(f"{experiment}: {module}.{attr}")
+    assert private == []
+
+
+def test_the_public_api_check_sees_the_experiments_imports():
+    found = {(m, a) for _, m, a in _experiment_imports()}
+    assert ("trimag.estimators.gauss_newton", "GaussNewton") in found

@@ -471,13 +471,13 @@ def _covariance(
     n = len(r)
     sigma2 = float(r @ r) / max(n - 4, 1) * tau
     JtJ_inv = np.linalg.inv(J.T @ J)
-    cov = sigma2 * JtJ_inv
+    cov = np.asarray(sigma2 * JtJ_inv, dtype=np.float64)
     cal_part = _calibration_jacobian(cal, raw, d, R) if calibration_known else None
     if cal_part is None:
         return cov, False
     G_r, C_cal = cal_part
     G = -JtJ_inv @ (J.T @ G_r)
-    return cov + G @ C_cal @ G.T, True
+    return np.asarray(cov + G @ C_cal @ G.T, dtype=np.float64), True
 
 
 def _residual_warning(rms_deg: float) -> str | None:

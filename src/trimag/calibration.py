@@ -36,7 +36,7 @@ from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit
 
-__all__ = ["FORMAT_VERSION", "Calibration"]
+__all__ = ["FORMAT_VERSION", "Calibration", "jsonable"]
 
 FORMAT_VERSION = "1.0.0"
 _FORMAT_MAJOR = 1
@@ -67,14 +67,15 @@ def file_major_version(data: Any, kind: str, current: str) -> int:
     return major
 
 
-def _jsonable(obj: Any) -> Any:
-    """Convert numpy scalars/arrays (nested in dicts and lists) to plain JSON types; NaN/inf become None."""
+def jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays (nested in dicts and lists) to plain JSON types; NaN/inf become None (as in
+    calibration files)."""
     if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, (np.bool_, bool)):
         return bool(obj)
     if isinstance(obj, (np.integer,)):
@@ -374,7 +375,7 @@ class Calibration:
     def as_dict(self) -> dict[str, Any]:
         """All content as plain JSON types (the file format; see ``docs/calibration-file.md``). A calibration
         without regressor terms has no ``regressors`` key (format 1.0.0, as before they existed)."""
-        out = _jsonable(
+        out = jsonable(
             {
                 "format": "trimag-calibration",
                 "format_version": self.format_version,
@@ -398,7 +399,7 @@ class Calibration:
         if self.regressors is not None:
             out["format_version"] = REGRESSORS_FORMAT_VERSION
             out["convention"] = "B_corrected = matrix @ (B_raw - offset - sum_j k_j (u_j - mean_j))"
-            out["regressors"] = _jsonable(dict(self.regressors))
+            out["regressors"] = jsonable(dict(self.regressors))
         return dict(out)
 
     def to_json(self, indent: int | None = 2) -> str:

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ._core.chunks import chunk_rows
 from ._version import __version__
-from .calibration import _jsonable, file_major_version
+from .calibration import file_major_version, jsonable
 from .errors import CalibrationFormatError, TrimagInputError
 from .filtering import BandPass, finite_runs
 from .io.atomic import atomic_write_text
@@ -149,7 +149,7 @@ class ScalarCompensation:
     # ------------------------------------------------------------------ file
     def as_dict(self) -> dict[str, Any]:
         """All content as plain JSON types (the compensation file)."""
-        return _jsonable(
+        return jsonable(
             {
                 "format": "trimag-compensation",
                 "format_version": COMPENSATION_FORMAT_VERSION,

@@ -8,16 +8,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..calibration import _jsonable
+from ..calibration import jsonable
 from ..io.atomic import atomic_write_text
 from ..report import save_figure
 
 __all__ = ["jsonable", "save_figure", "write_csv", "write_dict_csv"]
-
-
-def jsonable(obj: Any) -> Any:
-    """Nested numpy values to plain JSON types; NaN and inf become ``None``."""
-    return _jsonable(obj)
 
 
 def _cell(value: Any, digits: int) -> Any:

@@ -329,14 +329,11 @@ def _load_broad(path: Path) -> dict[str, Any]:
 
 
 def _load_hmc(path: Path) -> dict[str, Any]:
-    from .._core.extras import require
+    from ..io import read_table
 
-    h5py = require("h5py", f"{path.name}: reading MATLAB v7.3 (HDF5) files")
-
-    with h5py.File(path, "r") as fh:
-        c = np.array(fh["compassBuffer"], dtype=np.float64)
-    with h5py.File(path.with_name(path.name.replace("hmc5883l_compass", "mpu6050_gyroscope")), "r") as fh:
-        g = np.array(fh["gyroBuffer"], dtype=np.float64)
+    c = read_table(path, var="compassBuffer").to_numpy(dtype=np.float64).T
+    gyro_path = path.with_name(path.name.replace("hmc5883l_compass", "mpu6050_gyroscope"))
+    g = read_table(gyro_path, var="gyroBuffer").to_numpy(dtype=np.float64).T
     t, mag = c[0], c[1:4].T
     # gyro (deg/s, MPU6050 axes) interpolated to the compass timestamps
     rate = np.column_stack([np.interp(t, g[0], g[1 + i]) for i in range(3)]) * (np.pi / 180.0)

@@ -50,12 +50,13 @@ from scipy.special import elliprd
 
 from ..attitude import background_from_samples, body_field, from_euler, from_quaternion
 from ..errors import TrimagInputError
-from ..estimators.linear_vector import LinearVector, fit_with_background, solve_interference
+from ..estimators.linear_vector import LinearVector
 from ..io.atomic import atomic_write_text
 from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
 from ..parallel import map_trials, trial_seeds
 from ..reference import igrf
+from ..solvers import fit_with_background, solve_interference
 from ._data import shared_data_dir
 from ._output import write_dict_csv
 

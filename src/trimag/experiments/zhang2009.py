@@ -40,10 +40,11 @@ from ..calibration import Calibration
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..estimators.bfgs import BFGS
 from ..estimators.lms import LMS
-from ..estimators.quadric import Quadric, identifiability_report
+from ..estimators.quadric import Quadric
 from ..models.zhang_cheng import ZhangCheng
 from ..parallel import map_trials
 from ..simulate import body_field, random_attitudes, uniform_directions
+from ..solvers import identifiability_report
 from ._output import jsonable, save_figure, write_csv
 
 __all__ = [
