@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._core.solve import levenberg_marquardt
 from .calibration import Calibration
 from .errors import IdentifiabilityError, TrimagInputError
 from .honesty import correlation_time
@@ -279,8 +280,6 @@ def refit_offset(
 
 def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
     """Two passes: the noise from the prior (or 0.1 % of F), then from the residuals of the first fit."""
-    from scipy.optimize import least_squares
-
     q0 = np.concatenate([problem.b_prior, [1.0, problem.incl]])
     noise0 = (prior.uncertainty or {}).get("noise_std") or prior.stats.get("rms_after") or 1e-3 * float(
         np.mean(problem.F))
@@ -289,8 +288,8 @@ def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
     q = q0
     for _ in range(2):
         problem.weight = 1.0 / (sigma * np.sqrt(tau))
-        res = least_squares(problem.residuals, q, jac=problem.jacobian, method="lm", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=200)
+        res = levenberg_marquardt(problem.residuals, q, jac=problem.jacobian, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                  max_nfev=200)
         q, nfev, converged = np.asarray(res.x, dtype=np.float64), nfev + int(res.nfev), bool(res.success)
         r = problem.data(q)[0]
         sigma = float(np.sqrt(r @ r / max(len(r) - 5, 1))) or sigma

@@ -47,6 +47,7 @@ from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import column_means, scratch, transposed_blocks
+from .._core.solve import gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..diagnostics import (
     CONDITION_ERROR,
@@ -254,40 +255,32 @@ def gauss_newton(
         ``cost`` = 0.5 sum r^2, ``step_norm``, ``step_fraction``), ``stalled`` (no halving lowered the cost),
         ``system`` (the :class:`._qr.BlockedQR` of the system at ``p``) and ``cost`` at ``p``.
     """
-    p = np.array(p0, dtype=np.float64)
-    qr, cost = linearise(B, F, scale, p)
-    history: list[dict[str, Any]] = [{"iteration": 0, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0}]
-    converged = stalled = False
-    it = 0
-    for it in range(1, max_iter + 1):
-        delta = qr.solve()
-        frac = 1.0
-        for _ in range(max_halvings + 1):
-            trial = p + frac * delta
-            try:
-                cost_new = half_sum_squares(B, F, scale, trial)
-            except (np.linalg.LinAlgError, FloatingPointError):
-                cost_new = math.inf
-            if np.isfinite(cost_new) and cost_new <= cost * (1 + 1e-12):
-                break
-            frac *= 0.5
-        else:
-            stalled = True
-            history.append({"iteration": it, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0})
-            break
-        step = frac * delta
-        p = p + step
-        step_norm = float(np.linalg.norm(step))
-        decrease = cost - cost_new
-        qr, cost = linearise(B, F, scale, p)
-        history.append({"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": frac})
-        if step_norm <= xtol * (xtol + float(np.linalg.norm(p))) or (
-            frac == 1.0 and decrease <= ftol * max(cost, 1e-300)
-        ):
-            converged = True
-            break
-    return {"p": p, "converged": converged, "iterations": it, "history": history, "stalled": stalled,
-            "system": qr, "cost": cost}
+
+    def evaluate(q: NDArray[np.float64]) -> tuple[bool, float]:
+        try:
+            return True, half_sum_squares(B, F, scale, q)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            return True, math.inf
+
+    def converged(q: NDArray[np.float64], step_norm: float, cost: float, cost_new: float, fraction: float) -> bool:
+        return step_norm <= xtol * (xtol + float(np.linalg.norm(q))) or (
+            fraction == 1.0 and cost - cost_new <= ftol * max(cost_new, 1e-300)
+        )
+
+    run = gauss_newton_rule(
+        evaluate, lambda q, _: linearise(B, F, scale, q)[0], lambda _, qr: qr.solve(), p0, max_steps=max_iter,
+        converged=converged, rounding_step=None, halvings=max_halvings,
+    )
+    history: list[dict[str, Any]] = [
+        {"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": fraction}
+        for it, (cost, step_norm, fraction) in enumerate(
+            zip(run.costs, [0.0, *run.step_norms], [0.0, *run.fractions], strict=True)
+        )
+    ]
+    if run.stalled:
+        history.append({"iteration": run.steps, "cost": run.cost, "step_norm": 0.0, "step_fraction": 0.0})
+    return {"p": run.p, "converged": run.converged, "iterations": run.steps, "history": history,
+            "stalled": run.stalled, "system": run.model, "cost": run.cost}
 
 
 # ---------------------------------------------------------------------------------------------- estimator
@@ -416,15 +409,13 @@ class GaussNewton(Estimator):
                 else f"not converged after max_iter={self.max_iter} iterations"
             )
             if self.fallback:
-                from scipy.optimize import least_squares
-
                 # (the fallback holds the whole (N, 9) Jacobian: MINPACK needs it)
                 x, target = B / s, F / s
-                res = least_squares(
+                res = levenberg_marquardt(
                     lambda q: residual_jacobian(x, target, q, jacobian=False)[0],
                     p,
-                    jac=lambda q: residual_jacobian(x, target, q)[1],
-                    method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000,
+                    jac=lambda q: np.asarray(residual_jacobian(x, target, q)[1]),
+                    xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000,
                 )
                 p = res.x
                 converged = bool(res.success)

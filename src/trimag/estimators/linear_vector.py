@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR, panel_rows
 from .._core.rowwise import count_duplicate_rows
+from .._core.solve import levenberg_marquardt
 from ..attitude import body_field
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
@@ -367,8 +367,8 @@ def fit_with_background(
     if np.linalg.det(K0) < 0:
         h0 = -h0
     proj = _ReducedProjection(R, magnitude, h0)
-    res = least_squares(
-        proj.residual, np.zeros(2), jac=proj.jacobian, method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
+    res = levenberg_marquardt(
+        proj.residual, np.zeros(2), jac=proj.jacobian, xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
     )
     H_n = proj.background(res.x)
     K, c, info = solve_interference(B, body_field(attitude, H_n))

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.rowwise import scratch, sum_squares
-from .._core.solve import GaussNewtonResult, contraction, gauss_newton
+from .._core.solve import GaussNewtonResult, contraction, gauss_newton, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
@@ -168,11 +168,8 @@ def weighted_ml(
         gn = gauss_newton(fun, jac, p0, max_steps=max_iter, xtol=xtol)
         if gn is not None:
             return np.asarray(gn.x, dtype=np.float64), gn, int(gn.nfev)
-    from scipy.optimize import least_squares
-
-    method = "lm" if loss == "linear" else "trf"
-    res = least_squares(
-        fun, np.asarray(p0, dtype=np.float64), jac=jac, method=method, loss=loss, xtol=1e-12, ftol=1e-12,
+    res = levenberg_marquardt(
+        fun, p0, jac=jac, method="lm" if loss == "linear" else "trf", loss=loss, xtol=1e-12, ftol=1e-12,
         gtol=1e-12, max_nfev=max_iter * 10,
     )
     return np.asarray(res.x, dtype=np.float64), res, int(res.nfev)
@@ -288,28 +285,39 @@ def gauss_newton_polish(
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
     point before the final step).
     """
-    evaluations = 0
-    previous: float | None = None  # the size of the step before (no contraction estimate after the first)
     dof = max(len(u) - 9, 1)
-    while True:
-        JtJ, Jtr, ss = _normal_equations(u, p, target, norm=norm)
+    sizes: list[float] = []  # the steps' sizes in standard deviations of the estimate
+
+    def evaluate(q: NDArray[np.float64]) -> tuple[tuple[NDArray[np.float64], NDArray[np.float64], float], float]:
+        JtJ, Jtr, ss = _normal_equations(u, q, target, norm=norm)
         assert JtJ is not None
-        evaluations += 1
+        return (JtJ, Jtr, ss), ss
+
+    def direction(state: tuple[NDArray[np.float64], NDArray[np.float64], float], _: Any) -> NDArray[np.float64]:
+        JtJ, Jtr, ss = state
         try:
             step = np.linalg.solve(JtJ, Jtr)
             std = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0.0, None) * (ss / dof))
         except np.linalg.LinAlgError as exc:
             raise IdentifiabilityError(_SINGULAR) from exc
-        p = p - step
-        size = float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf
-        rho = contraction if previous is None else size / previous
-        if (
-            np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p))
-            or (rho is not None and rho * size <= tolerance)
-            or evaluations >= max_steps
-        ):
-            return p, ss, JtJ, evaluations
-        previous = size
+        sizes.append(float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf)
+        return np.asarray(-step, dtype=np.float64)
+
+    def final(p_new: NDArray[np.float64], delta: NDArray[np.float64], state: Any, model: Any) -> bool:
+        rho = contraction if len(sizes) == 1 else sizes[-1] / sizes[-2]
+        return bool(
+            np.linalg.norm(delta) <= 1e-10 * (1.0 + np.linalg.norm(p_new))
+            or (rho is not None and rho * sizes[-1] <= tolerance)
+            or len(sizes) >= max_steps
+        )
+
+    # every step is taken (the start is close and the steps contract: no cost check between them)
+    run = gauss_newton_rule(
+        evaluate, lambda q, state: None, direction, p, max_steps=max_steps, converged=lambda *_: False,
+        rises=lambda *_: False, rounding_step=None, final=final,
+    )
+    JtJ, _, ss = run.state
+    return run.p, ss, JtJ, run.nfev
 
 
 #: Unit vectors to the vertices of a regular tetrahedron: ``sum v = 0`` and ``sum v v^T = 4/3 I``, so

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.rowwise import row_dot, scratch, sum_squares, transposed_blocks
+from .._core.solve import GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -209,50 +210,45 @@ def _weighted_residual_sum(
     return total
 
 
-class _Step2Result:
-    """The attributes of ``scipy.optimize.OptimizeResult`` that TWOSTEP reads."""
-
-    def __init__(self, x: NDArray[np.float64], nfev: int) -> None:
-        self.x, self.nfev, self.success = x, nfev, True
-        self.message = f"Gauss-Newton on sufficient statistics converged in {nfev - 1} steps"
-
-
 def _gauss_newton_step2(
     stats: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float, float],
     p0: NDArray[np.float64], const_and_grad: Any, *, max_steps: int = 50, xtol: float = 1e-12,
-) -> _Step2Result | None:
-    """Step 2 by Gauss-Newton on 9 x 9 sufficient statistics, or None when a step raises the cost.
+) -> GaussNewtonResult | None:
+    """Step 2 by Gauss-Newton (:func:`trimag._core.solve.gauss_newton_rule`) on 9 x 9 sufficient statistics, or
+    None when a step raises the cost.
 
     The residual ``r = sw (L p - const(p) - z)`` is linear in ``p`` but for the scalar ``const``, so ``J^T J``,
     ``J^T r`` and ``r^T r`` follow from ``stats`` = (``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw``, and three
     scalars; ``Lw = sw L``, ``zw = sw z``; :func:`_step2_statistics`), computed once: each step costs O(1)
-    instead of an (N, 9) Jacobian.
+    instead of an (N, 9) Jacobian. A step counts as raising the cost above ``1e-10`` relative plus ``1e-12``
+    of ``zw^T zw``; converged when ``|step| <= xtol (1 + |p|)``.
     """
     G, h, k, s0, s1, s2 = stats
 
-    def cost(p: NDArray[np.float64], const: float) -> float:
-        return float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
+    def evaluate(p: NDArray[np.float64]) -> tuple[tuple[NDArray[np.float64], float, NDArray[np.float64]], float]:
+        const, dconst = const_and_grad(p)
+        return (p, const, dconst), float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
 
-    p = np.asarray(p0, dtype=np.float64).copy()
-    const, dconst = const_and_grad(p)
-    f = cost(p, const)
-    for step_no in range(1, max_steps + 1):
+    def direction(state: tuple[NDArray[np.float64], float, NDArray[np.float64]], _: Any) -> NDArray[np.float64] | None:
+        p, const, dconst = state
         JtJ = G - np.outer(h, dconst) - np.outer(dconst, h) + s0 * np.outer(dconst, dconst)
         Jtr = (G @ p - h * const - k) - dconst * (h @ p - s0 * const - s1)
         try:
-            step = np.linalg.solve(JtJ, Jtr)
+            return np.asarray(-np.linalg.solve(JtJ, Jtr), dtype=np.float64)
         except np.linalg.LinAlgError:
             return None
-        p_new = p - step
-        const_new, dconst_new = const_and_grad(p_new)
-        f_new = cost(p_new, const_new)
-        converged = bool(np.linalg.norm(step) <= xtol * (1.0 + np.linalg.norm(p_new)))
-        if not np.isfinite(f_new) or f_new > f + 1e-10 * abs(f) + 1e-12 * s2:
-            return _Step2Result(p, step_no + 1) if converged else None
-        p, const, dconst, f = p_new, const_new, dconst_new, f_new
-        if converged:
-            return _Step2Result(p, step_no + 1)
-    return None
+
+    run = gauss_newton_rule(
+        evaluate, lambda p, state: None, direction, p0, max_steps=max_steps,
+        converged=lambda p, step, *_: bool(step <= xtol * (1.0 + np.linalg.norm(p))),
+        rises=lambda f_new, f: f_new > f + 1e-10 * abs(f) + 1e-12 * s2, rounding_step=0.0,
+    )
+    if not run.converged:
+        return None
+    return GaussNewtonResult(
+        x=run.p, nfev=run.nfev, success=True,
+        message=f"Gauss-Newton on sufficient statistics converged in {run.nfev - 1} steps",
+    )
 
 
 class TwoStep(Estimator):
@@ -370,11 +366,8 @@ class TwoStep(Estimator):
             def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
                 return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
 
-            from scipy.optimize import least_squares
-
-
-            res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
-                                xtol=1e-12, ftol=1e-12, gtol=1e-12)
+            res = levenberg_marquardt(fun, x1[:9], jac=jac, max_nfev=self.max_iter * 10, xtol=1e-12, ftol=1e-12,
+                                      gtol=1e-12)
         E, c = _sym(res.x[:6]), res.x[6:9]
         M = np.eye(3) + E
         ev, evec = np.linalg.eigh(M)
