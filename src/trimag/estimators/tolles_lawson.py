@@ -361,8 +361,7 @@ def fit_tolles_lawson(
     ok = np.isfinite(B).all(axis=1) & np.isfinite(S)
     block_rows = max(round(bootstrap_block_s * rate_hz), 10)
     sums = filtered_sums(B, S, _finite_segments(ok, segments), model_terms, bandpass, block_rows)
-    names = model_terms.names
-    n, p = int(sums.n.sum()), len(names)
+    n, p = int(sums.n.sum()), len(model_terms.names)
     if n <= p:
         raise IdentifiabilityError(
             f"{n} band-passed samples cannot identify {p} Tolles–Lawson coefficients; record a longer calibration"
@@ -370,10 +369,9 @@ def fit_tolles_lawson(
     lam, cv_info = _ridge_lambda(ridge, sums)
     G_all, g_all, _ = sums.total()
     coef = _solve_gram(G_all, g_all, lam)
-    uncertainty = _coefficient_uncertainty(sums, coef, lam, names, int(bootstrap), bootstrap_block_s, block_rows,
-                                           seed)
-    att = None if attitude_deg is None else np.asarray(attitude_deg, dtype=np.float64)
-    stats = _fit_stats(B, ok, sums, coef, att)
+    uncertainty = _coefficient_uncertainty(sums, coef, lam, model_terms.names, int(bootstrap), bootstrap_block_s,
+                                           block_rows, seed)
+    stats = _fit_stats(B, ok, sums, coef, None if attitude_deg is None else np.asarray(attitude_deg, dtype=float))
     diagnostics = _fit_diagnostics(sums, model_terms, lam, cv_info, int(bootstrap), seed,
                                    stats["std_before_nT"], stats["std_after_nT"])
     return ScalarCompensation(
