@@ -361,6 +361,57 @@ def bias_correction(
         raise IdentifiabilityError(_SINGULAR) from exc
 
 
+def _scaled_target(values: NDArray[np.float64] | None) -> tuple[float, Target]:
+    """The reference's RMS ``f_scale`` and the magnitudes the fit targets (reference / ``f_scale``; 1 when
+    unknown)."""
+    if values is None:
+        return 1.0, 1.0
+    f_scale = float(np.sqrt(np.mean(values**2)))
+    return f_scale, values / f_scale
+
+
+def _solve_samples(B: NDArray[np.float64], large: bool) -> tuple[NDArray[np.float64], Normalisation, Any]:
+    """The normalised samples the ML solve runs on, the normalisation and their indices in ``B``: all of them,
+    or on large logs an evenly spread subsample of :data:`LARGE_N` (the polish on all samples then normalises
+    block by block, so no normalised copy of the log is made: memory independent of N)."""
+    if not large:
+        u, norm = normalise(B)
+        return u, norm, slice(None)
+    norm = normalisation_stats(B)
+    idx = np.linspace(0, len(B) - 1, LARGE_N).astype(np.int64)
+    return norm.forward(B[idx]), norm, idx
+
+
+def _jacobian_condition(
+    res: Any,
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64], tuple[NDArray[np.float64], NDArray[np.float64]] | None]:
+    """Condition number, singular values and right singular vectors of the solve's Jacobian, and its ``(J^T J,
+    J^T r)`` when Gauss-Newton converged (the bias correction's first sums at the estimate)."""
+    J = res.jac
+    JtJ = J.T @ J
+    cond, s, vt = gram_condition(JtJ)  # (N, 9) -> (9, 9): no QR of the Jacobian ...
+    if not cond <= GRAM_CONDITION_EXACT:  # ... unless squaring it would cost digits the checks need
+        cond, s, vt = design_condition(J)
+    at_p = (JtJ, J.T @ res.fun) if getattr(res, "method", "") == "gauss-newton" else None
+    return cond, s, vt, at_p
+
+
+def _sample_bias(
+    B: NDArray[np.float64], u_sub: NDArray[np.float64], p: NDArray[np.float64], target: Target, sigma2_u: float,
+    norm: Normalisation, large: bool, at_p: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+) -> NDArray[np.float64]:
+    """:func:`bias_correction` of the estimate ``p``: the bias is a ratio of two sums over samples, so an evenly
+    spread subsample estimates it as well (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself,
+    0.003 standard deviations)."""
+    n_samples = len(B)
+    bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
+    u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
+    return bias_correction(
+        u_bias, p, _take(target, bias_idx), sigma2_u,
+        normal_equations=at_p if u_bias.shape == u_sub.shape else None,
+    )
+
+
 class MaximumLikelihood(Estimator):
     """Magnitude-residual maximum likelihood with second-order bias correction (trimag's default for
     ``ellipsoid``).
@@ -409,24 +460,10 @@ class MaximumLikelihood(Estimator):
             raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {self.balance!r}")
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        target: Target
-        if ref.values is not None:
-            f_scale = float(np.sqrt(np.mean(ref.values**2)))
-            target = ref.values / f_scale
-        else:
-            f_scale, target = 1.0, 1.0
+        f_scale, target = _scaled_target(ref.values)
         n_samples = len(B)
         large = n_samples > LARGE_N and self.loss == "linear"
-        at_p: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-        if large:
-            # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N); the
-            # polish normalises block by block, so no normalised copy of the log is made (memory independent of N)
-            norm = normalisation_stats(B)
-            sub_idx: Any = np.linspace(0, n_samples - 1, LARGE_N).astype(np.int64)
-            u_sub = norm.forward(B[sub_idx])
-        else:
-            u_sub, norm = normalise(B)
-            sub_idx = slice(None)
+        u_sub, norm, sub_idx = _solve_samples(B, large)
         # the start only has to lie in the basin of the subsample's minimum: the algebraic fit of that subsample
         W0, c0, _ = algebraic_ellipsoid(u_sub)
         p0 = np.concatenate([W0[UPPER], c0])
@@ -439,15 +476,10 @@ class MaximumLikelihood(Estimator):
             )
             nfev += n_polish
             cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
+            at_p = None
         else:
             sum_sq = float(np.sum(res.fun**2))
-            J = res.jac
-            JtJ = J.T @ J
-            cond, s, vt = gram_condition(JtJ)  # (N, 9) -> (9, 9): no QR of the Jacobian ...
-            if not cond <= GRAM_CONDITION_EXACT:  # ... unless squaring it would cost digits the checks need
-                cond, s, vt = design_condition(J)
-            if getattr(res, "method", "") == "gauss-newton":  # J and r at p: the bias correction's first sums
-                at_p = (JtJ, J.T @ res.fun)
+            cond, s, vt, at_p = _jacobian_condition(res)
         check_condition(
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
@@ -457,14 +489,7 @@ class MaximumLikelihood(Estimator):
             sigma2_u = (float(self.noise_std) / norm.scale) ** 2
         correction = np.zeros(9)
         if self.bias_correction and self.loss == "linear" and sigma2_u > 0:
-            # the bias is a ratio of two sums over samples: an evenly spread subsample estimates it as well
-            # (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself, 0.003 standard deviations)
-            bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
-            u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
-            correction = bias_correction(
-                u_bias, p, _take(target, bias_idx), sigma2_u,
-                normal_equations=at_p if u_bias.shape == u_sub.shape else None,
-            )
+            correction = _sample_bias(B, u_sub, p, target, sigma2_u, norm, large, at_p)
             p = p - correction
         W_u, b_u = _unpack(p)
         W = _positive_diagonal(W_u) * f_scale / norm.scale
