@@ -213,11 +213,39 @@ def refit_offset(
     IdentifiabilityError
         The data identify no component of the offset.
     """
+    X, F = _checked_samples(prior, B, reference, regressors)
+    n = len(X)
+    change = _checked_change(scale_sigma, prior_offset_sigma, float(np.mean(F)))
+    prior_cov = _prior_offset_cov(prior) + change**2 * np.eye(3)
+    down, incl = _down_directions(attitude, inclination_deg, inclination_sigma_deg, n)
+    M = np.asarray(prior.matrix, dtype=np.float64)
+    b_prior = np.asarray(prior.offset, dtype=np.float64)
+    incl_sigma = float(np.radians(inclination_sigma_deg))
+    problem = _Problem(M, X, F, down, incl, incl_sigma, b_prior, prior_cov, scale_sigma)
+    q, r, sigma, tau, nfev, converged = _solve(problem, prior, n)
+    cov, info, prior_info = _posterior(problem, prior, q, incl_sigma, scale_sigma)
+    std = np.sqrt(np.diag(cov))
+    std_free, prior_std, informed, identified = _identified_components(info, prior_info, prior_cov)
+    axes = ("x", "y", "z")
+    if not informed.any():
+        raise IdentifiabilityError(
+            f"these {n} samples identify no component of the offset beyond the prior (with the field scale free, "
+            f"the sigmas stay {np.round(std_free, 3).tolist()} against the prior's {np.round(prior_std, 3).tolist()} "
+            f"{prior.units}): turn the vehicle through several headings (at least three, spread over the circle)"
+        )
+    return _assemble(prior, X, F, q, r, sigma, tau, cov, std, std_free, prior_std, identified, axes, nfev,
+                     converged, change, scale_sigma, down is not None, inclination_deg, inclination_sigma_deg,
+                     prior_source)
+
+
+def _checked_samples(
+    prior: Calibration, B: ArrayLike, reference: ArrayLike, regressors: Mapping[str, ArrayLike] | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The samples (N, 3) with the prior's regressor terms removed, and the field magnitude per sample (N,)."""
     X = np.asarray(B, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3 or len(X) < 3:
         raise TrimagInputError(f"`B` must have shape (N, 3) with N >= 3; got {X.shape}")
-    n = len(X)
-    F = np.broadcast_to(np.asarray(reference, dtype=np.float64), (n,)).astype(np.float64)
+    F = np.broadcast_to(np.asarray(reference, dtype=np.float64), (len(X),)).astype(np.float64)
     if not (np.isfinite(F).all() and np.all(F > 0)):
         raise TrimagInputError("a quick recalibration (`prior`) needs a known, positive field magnitude: give "
                                "`reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
@@ -225,26 +253,40 @@ def refit_offset(
         X = X - prior.regressor_shift(regressors, X.shape)
     elif regressors:
         raise TrimagInputError("the prior calibration has no regressor terms; drop `regressors`")
+    return X, F
+
+
+def _checked_change(scale_sigma: float, prior_offset_sigma: float | None, F_mean: float) -> float:
+    """The standard deviation of the offset's change since the prior (data unit; default 10 % of ``F_mean``),
+    after checking it and ``scale_sigma``."""
     if not (scale_sigma > 0 and np.isfinite(scale_sigma)):
         raise TrimagInputError(f"`option scale_sigma` must be a positive number; got {scale_sigma}")
-    F_mean = float(np.mean(F))
     change = DEFAULT_CHANGE_FRACTION * F_mean if prior_offset_sigma is None else float(prior_offset_sigma)
     if not (change > 0 and np.isfinite(change)):
         raise TrimagInputError(f"`option prior_offset_sigma` must be a positive number; got {prior_offset_sigma}")
-    prior_cov = _prior_offset_cov(prior) + change**2 * np.eye(3)
-    down, incl = None, 0.0
+    return change
+
+
+def _down_directions(
+    attitude: Any, inclination_deg: float | None, inclination_sigma_deg: float, n: int
+) -> tuple[NDArray[np.float64] | None, float]:
+    """The body-frame down direction of each sample (N, 3; None without attitudes and inclination) and the
+    inclination (radians; 0 without)."""
     if not (inclination_sigma_deg > 0 and np.isfinite(inclination_sigma_deg)):
         raise TrimagInputError(f"`option inclination_sigma_deg` must be a positive number; got {inclination_sigma_deg}")
-    if attitude is not None and inclination_deg is not None:
-        down = np.atleast_2d(attitude.inv().apply([0.0, 0.0, 1.0]))
-        if len(down) != n:
-            raise TrimagInputError(f"`attitude` has {len(down)} rotations for {n} samples")
-        incl = float(np.radians(inclination_deg))
-    M = np.asarray(prior.matrix, dtype=np.float64)
-    b_prior = np.asarray(prior.offset, dtype=np.float64)
-    incl_sigma = float(np.radians(inclination_sigma_deg))
-    problem = _Problem(M, X, F, down, incl, incl_sigma, b_prior, prior_cov, scale_sigma)
-    q, r, sigma, tau, nfev, converged = _solve(problem, prior, n)
+    if attitude is None or inclination_deg is None:
+        return None, 0.0
+    down = np.atleast_2d(attitude.inv().apply([0.0, 0.0, 1.0]))
+    if len(down) != n:
+        raise TrimagInputError(f"`attitude` has {len(down)} rotations for {n} samples")
+    return down, float(np.radians(inclination_deg))
+
+
+def _posterior(
+    problem: _Problem, prior: Calibration, q: NDArray[np.float64], incl_sigma: float, scale_sigma: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The covariance (5, 5) of ``q`` (with the prior matrix's own covariance propagated when it has one), the
+    data's information ``J^T J`` and the priors' information (scale prior excluded)."""
     J_data = problem.weight * problem.data(q)[1]
     info = J_data.T @ J_data
     prior_info = np.zeros((5, 5))
@@ -256,26 +298,24 @@ def refit_offset(
         C_w, rows, cols = matrix_cov
         G = -cov @ (J_data.T @ (problem.weight * problem.matrix_jacobian(q, rows, cols)))
         cov = cov + G @ C_w @ G.T
+    return cov, info, prior_info
+
+
+def _identified_components(
+    info: NDArray[np.float64], prior_info: NDArray[np.float64], prior_cov: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per offset component: its standard deviation with the field scale free, the prior's, whether the data
+    inform it (beyond the prior) and whether they identify it (informed, and not far worse than the best)."""
     # the field scale left free (and the inclination with its prior): what the data say of b beyond |F|
     free = prior_info + np.diag([0, 0, 0, 1e-12, 0])
     cov_free = np.linalg.inv(info + free)
     prior_std = np.sqrt(np.diag(prior_cov))
-    std = np.sqrt(np.diag(cov))
     std_free = np.asarray(np.sqrt(np.clip(np.diag(cov_free)[:3], 0.0, None)), dtype=np.float64)
     informed = std_free < IDENTIFIED_RATIO * prior_std
     # a component the data determine far worse than the best one (e.g. the vertical offset of a level turn, which
     # only the small tilts of the log inform) is reported as unidentified too, with the sigma it has
     identified = informed & (std_free < WEAK_RATIO * std_free.min())
-    axes = ("x", "y", "z")
-    if not informed.any():
-        raise IdentifiabilityError(
-            f"these {n} samples identify no component of the offset beyond the prior (with the field scale free, "
-            f"the sigmas stay {np.round(std_free, 3).tolist()} against the prior's {np.round(prior_std, 3).tolist()} "
-            f"{prior.units}): turn the vehicle through several headings (at least three, spread over the circle)"
-        )
-    return _assemble(prior, X, F, q, r, sigma, tau, cov, std, std_free, prior_std, identified, axes, nfev,
-                     converged, change, scale_sigma, down is not None, inclination_deg, inclination_sigma_deg,
-                     prior_source)
+    return std_free, prior_std, informed, identified
 
 
 def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
