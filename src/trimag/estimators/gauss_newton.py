@@ -500,12 +500,7 @@ class GaussNewton(Estimator):
     ) -> Calibration:
         self._check_options()
         check_not_degenerate(B)
-        ref = scalar_reference(reference, len(B), units)
-        if ref.values is None:
-            f_mean = float(np.linalg.norm(B, axis=1).mean())
-            ref = ScalarReference(
-                np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit
-            )
+        ref = _reference_or_mean(scalar_reference(reference, len(B), units), B)
         F = ref.values
         assert F is not None
         s = float(np.sqrt(F @ F / len(F)))
@@ -531,30 +526,8 @@ class GaussNewton(Estimator):
             )
 
         cond, cov_n, noise, thickness_ratio = self._covariance(B, F, s, p, gn, sv, flatness, units, geometry_hint)
-        # ---- back to data units
-        scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
-        params_vec = p * scale_vec
-        fitted = Scalar9.from_vector(params_vec)
+        fitted, uncertainty = _in_data_units(p, cov_n, s, noise)
         matrix, offset = fitted.correction()
-        cov = cov_n * np.outer(scale_vec, scale_vec)
-        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
-        uncertainty = make_uncertainty(
-            PARAM_NAMES, covariance=cov, noise_std=float(noise),
-            basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
-            param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
-        )
-        n = len(B)
-        hist_out = [
-            {
-                **h,
-                "cost": float(h["cost"]) * s * s,
-                "rms": float(math.sqrt(2.0 * h["cost"] / n)) * s,
-                "step_norm": float(h["step_norm"]),
-            }
-            for h in history
-        ]
-        gn_iters = int(gn["iterations"])
         diagnostics: dict[str, Any] = {
             "condition_number": cond,
             "planarity": flatness,
@@ -562,7 +535,7 @@ class GaussNewton(Estimator):
             "optimizer": optimizer,
             "start": start_kind,
             "start_params": {k: float(v) for k, v in start.as_dict().items()},
-            "history": hist_out,
+            "history": _history_in_data_units(history, s, len(B)),
             "history_units": {"cost": f"0.5*sum((|B|-F)^2) in {units}^2", "rms": units,
                               "step_norm": "normalised parameters (biases / field scale)"},
             "angles_deg": fitted.angles_deg(),
@@ -572,10 +545,50 @@ class GaussNewton(Estimator):
             diagnostics["fallback_info"] = fallback_info
         return build_calibration(
             B, matrix, offset, model=model, method=self.name, units=units, reference=ref,
-            params=fitted.as_dict(), iterations=gn_iters, converged=converged,
+            params=fitted.as_dict(), iterations=int(gn["iterations"]), converged=converged,
             uncertainty=uncertainty, diagnostics=diagnostics,
             extra_stats={"gn_converged": bool(gn["converged"])},
         )
+
+
+def _reference_or_mean(ref: ScalarReference, B: NDArray[np.float64]) -> ScalarReference:
+    """``ref``, or without values the mean raw magnitude ``mean |B_m|`` for every sample (paper B's "mean value"
+    reference)."""
+    if ref.values is not None:
+        return ref
+    f_mean = float(np.linalg.norm(B, axis=1).mean())
+    return ScalarReference(np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit)
+
+
+def _in_data_units(
+    p: NDArray[np.float64], cov_n: NDArray[np.float64], s: float, noise: float
+) -> tuple[Scalar9, dict[str, Any]]:
+    """The fitted model and its uncertainty record in data units from the normalised solution ``p`` (biases /
+    ``s``) and its covariance."""
+    scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
+    fitted = Scalar9.from_vector(p * scale_vec)
+    cov = cov_n * np.outer(scale_vec, scale_vec)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
+    uncertainty = make_uncertainty(
+        PARAM_NAMES, covariance=cov, noise_std=float(noise),
+        basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
+        param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
+    )
+    return fitted, uncertainty
+
+
+def _history_in_data_units(history: list[dict[str, Any]], s: float, n: int) -> list[dict[str, Any]]:
+    """The Gauss-Newton history with ``cost`` (0.5 sum r^2) and ``rms`` in the data unit (squared for the cost)."""
+    return [
+        {
+            **h,
+            "cost": float(h["cost"]) * s * s,
+            "rms": float(math.sqrt(2.0 * h["cost"] / n)) * s,
+            "step_norm": float(h["step_norm"]),
+        }
+        for h in history
+    ]
 
 
 def params_text(cal: Calibration) -> str:
