@@ -66,13 +66,42 @@ class GaussNewtonRun:
     costs: list[float] = field(default_factory=list)
 
 
-def _relative_step(p_new: NDArray[np.float64], step_norm: float, cost: float, cost_new: float, fraction: float,
-                   xtol: float) -> bool:
-    return step_norm / (1.0 + float(np.linalg.norm(p_new))) <= xtol
+def _relative_step(p_new: NDArray[np.float64], step_norm: float) -> float:
+    return step_norm / (1.0 + float(np.linalg.norm(p_new)))
 
 
 def _rises(cost_new: float, cost: float) -> bool:
     return cost_new > cost * (1.0 + 1e-12)
+
+
+@dataclass
+class _Trial:
+    """The last point tried from ``p`` along ``delta`` (``fraction`` of it), and whether its cost was accepted."""
+
+    p: NDArray[np.float64]
+    state: Any
+    cost: float
+    step_norm: float
+    fraction: float
+    accepted: bool
+    evaluations: int
+
+
+def _trial(
+    evaluate: Callable[[NDArray[np.float64]], tuple[Any, float]], rises: Callable[[float, float], bool],
+    p: NDArray[np.float64], cost: float, delta: NDArray[np.float64], halvings: int,
+) -> _Trial:
+    """``p + delta``, halved up to ``halvings`` times while its cost is not finite or ``rises``."""
+    fraction = 1.0
+    for k in range(halvings + 1):
+        step = delta if fraction == 1.0 else fraction * delta
+        p_new = p + step
+        state_new, cost_new = evaluate(p_new)
+        step_norm = float(np.linalg.norm(step))
+        if np.isfinite(cost_new) and not rises(cost_new, cost):
+            return _Trial(p_new, state_new, cost_new, step_norm, fraction, True, k + 1)
+        fraction *= 0.5
+    return _Trial(p_new, state_new, cost_new, step_norm, 2.0 * fraction, False, halvings + 1)
 
 
 def gauss_newton_rule(
@@ -112,7 +141,7 @@ def gauss_newton_rule(
     equations from ``r`` and ``J``), ``geometric`` (a :class:`~trimag._core.qr.BlockedQR` of ``[J | -r]``),
     ``gauss-newton`` (the same with step halving), ``twostep`` (9 x 9 sufficient statistics) and ``ml``'s polish.
     """
-    test = converged or (lambda p, s, c, c_new, f: _relative_step(p, s, c, c_new, f, xtol))
+    test = converged or (lambda p_new, step_norm, *_: _relative_step(p_new, step_norm) <= xtol)
     p = np.asarray(p0, dtype=np.float64).copy()
     state, cost = evaluate(p)
     model = linearise(p, state) if state is not None else None
@@ -126,34 +155,22 @@ def gauss_newton_rule(
                               stalled, fractions, costs)
 
     for step_no in range(1, max_steps + 1):
-        if state is None or not np.isfinite(cost):
-            return stop(step_no, False, True)
-        delta = direction(state, model)
+        delta = direction(state, model) if state is not None and np.isfinite(cost) else None
         if delta is None:
             return stop(step_no, False, True)
         if final is not None and final(p + delta, delta, state, model):
             return stop(step_no, True, at=p + delta)
-        fraction = 1.0
-        for _ in range(halvings + 1):
-            step = delta if fraction == 1.0 else fraction * delta
-            p_new = p + step
-            state_new, cost_new = evaluate(p_new)
-            nfev += 1
-            step_norm = float(np.linalg.norm(step))
-            if np.isfinite(cost_new) and not rises(cost_new, cost):
-                break
-            fraction *= 0.5
-        else:
-            if rounding_step is not None and (
-                test(p_new, step_norm, cost, cost_new, 2.0 * fraction)
-                or step_norm / (1.0 + float(np.linalg.norm(p_new))) <= rounding_step
-            ):  # the minimum, to rounding: keep the better point
-                return stop(step_no, True)
-            return stop(step_no, False, True)
-        done = test(p_new, step_norm, cost, cost_new, fraction)
-        p, state, cost = p_new, state_new, cost_new
-        step_norms.append(step_norm)
-        fractions.append(fraction)
+        t = _trial(evaluate, rises, p, cost, delta, halvings)
+        nfev += t.evaluations
+        if not t.accepted:  # the minimum to rounding (keep the better point), or far from it (stalled)
+            keep = rounding_step is not None and (
+                test(t.p, t.step_norm, cost, t.cost, t.fraction) or _relative_step(t.p, t.step_norm) <= rounding_step
+            )
+            return stop(step_no, keep, not keep)
+        done = test(t.p, t.step_norm, cost, t.cost, t.fraction)
+        p, state, cost = t.p, t.state, t.cost
+        step_norms.append(t.step_norm)
+        fractions.append(t.fraction)
         costs.append(cost)
         model = linearise(p, state)
         njev += 1
