@@ -5,8 +5,13 @@ data, so the problem is nearly linear there and undamped Gauss-Newton converges 
 Each step solves the p x p normal equations ``(J^T J) delta = J^T r`` (one BLAS product over the N x p Jacobian),
 where MINPACK's Levenberg-Marquardt factors the N x p Jacobian by QR at every iteration and, at the tight
 tolerances these fits use, iterates well past the point where the parameters stop changing. When a Gauss-Newton
-step raises the cost (far from the minimum), the solver hands over to ``scipy.optimize.least_squares(method="lm")``
-from the start, so the result is never worse than MINPACK's.
+step raises the cost (far from the minimum), the solver hands over to Levenberg-Marquardt (:func:`levenberg_marquardt`,
+MINPACK through ``scipy.optimize.least_squares(method="lm")``) from the start, so the result is never worse than
+MINPACK's.
+
+This module is trimag's one Gauss-Newton / Levenberg-Marquardt driver: :func:`gauss_newton_rule` is the only
+Gauss-Newton loop (every estimator's steps run through it, whatever their linear algebra) and
+:func:`levenberg_marquardt` the only ``least_squares`` call (scipy.optimize is imported there, lazily).
 """
 
 from __future__ import annotations

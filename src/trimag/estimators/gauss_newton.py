@@ -15,7 +15,7 @@ factored block by block, :class:`~trimag._core.qr.BlockedQR`), so memory does no
   (:func:`~trimag.models.scalar9.lq_gauge`).
 * Step control: a step that does not lower the cost is halved (up to ``max_halvings`` times). If no halving
   helps, or ``max_iter`` is reached before convergence, the fit continues with Levenberg-Marquardt
-  (``scipy.optimize.least_squares(method="lm")``) from the last point, warns with
+  (:func:`trimag._core.solve.levenberg_marquardt`) from the last point, warns with
   :class:`GaussNewtonFallbackWarning`, and records ``"fallback": "levenberg-marquardt"`` in the diagnostics.
 * Converged when the step is below ``xtol`` relative to the parameters, or the cost stops falling
   (relative decrease below ``ftol``).

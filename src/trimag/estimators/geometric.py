@@ -274,7 +274,8 @@ def _levenberg_marquardt(
     B: NDArray[np.float64], centre: NDArray[np.float64], scale: float, bias: bool, p0: NDArray[np.float64],
     max_iter: int,
 ) -> tuple[Any, BlockedQR, float]:
-    """``scipy.optimize.least_squares(method="lm")`` from ``p0`` on all samples at once (the fallback: MINPACK
+    """Levenberg-Marquardt (:func:`trimag._core.solve.levenberg_marquardt`) from ``p0`` on all samples at once
+    (the fallback: MINPACK
     holds the (N, p) Jacobian). Returns the result without ``fun`` and ``jac``, the QR factorisation of
     ``[J | -r]`` at the solution and ``sum r^2``."""
     n, npar = len(B), len(p0)

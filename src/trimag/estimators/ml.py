@@ -7,7 +7,8 @@ magnitude cannot see) and the offset ``b`` (3).
 
 1. **Start**: the algebraic fit (``ellipsoid-fit``) on normalised data.
 2. **Maximum likelihood** (first order): Gauss-Newton from the start (:func:`gauss_newton_solve`;
-   Levenberg-Marquardt, ``scipy.optimize.least_squares``, when a step raises the cost), analytic Jacobian, on
+   Levenberg-Marquardt, :func:`trimag._core.solve.levenberg_marquardt`, when a step raises the cost), analytic
+   Jacobian, on
    the geometric residual ``r_i = (|W (x_i - b)| - F_i) / |W^T n_i|`` (``n_i`` the corrected direction): the
    first-order signed distance of the sample from the ellipsoid, of variance ``sigma^2``. This is the ML
    weighting (it attains the Cramér–Rao bound of :func:`trimag.crlb.crlb` to first order); the weight sits
@@ -180,7 +181,7 @@ def gauss_newton_solve(
     xtol: float = 1e-12,
 ) -> GaussNewtonResult | None:
     """Undamped Gauss-Newton on the geometric residual from ``p0``, or None as soon as a step does not lower
-    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``): :func:`._solve.gauss_newton`.
+    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``): :func:`trimag._core.solve.gauss_newton`.
 
     From the algebraic start the problem is nearly linear, so Gauss-Newton converges quadratically (4-6 steps),
     each a 9 x 9 solve, where MINPACK's Levenberg-Marquardt factors the (N, 9) Jacobian at every step. It stops
@@ -275,12 +276,14 @@ def gauss_newton_polish(
     of the estimate (from ``J^T J`` and the residuals), the error left after step ``k`` is about
     ``(s_k / s_{k-1}) s_k``; the polish stops when that is below ``tolerance``, when the relative step is below
     1e-10 (noise-free data), or after ``max_steps`` evaluations. ``contraction``, the factor measured while
-    Gauss-Newton converged on the subsample (:func:`._solve.contraction`; the same data geometry, so the same
+    Gauss-Newton converged on the subsample (:func:`trimag._core.solve.contraction`; the same data geometry, so the same
     ``rho`` up to sampling noise), predicts the error left after the first step as ``contraction * s_1``: when
     that is below ``tolerance`` the polish stops after one evaluation. One step on well-covered logs up to a few
     1e5 samples, two above; 3-5 on poorly covered data.
 
-    With ``norm``, ``u`` are the raw samples, normalised block by block (:func:`_normal_equations`).
+    With ``norm``, ``u`` are the raw samples, normalised block by block (:func:`_normal_equations`). The steps
+    are :func:`trimag._core.solve.gauss_newton_rule`'s, every one taken (no cost check between them), the stop
+    tested before the next evaluation (``final``).
 
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
     point before the final step).
