@@ -248,3 +248,32 @@ def test_blocked_sums_give_the_whole_log_solution(small_chunks) -> None:
         np.testing.assert_allclose(blocked.diagnostics[key], whole.diagnostics[key], rtol=1e-10)
     np.testing.assert_allclose([h["cost"] for h in blocked.diagnostics["history"]],
                                [h["cost"] for h in whole.diagnostics["history"]], rtol=1e-9)
+
+
+_FAR = {"b1": 9000.0, "b2": -4000.0, "b3": 3000.0, "k1": 1.3, "k2": 0.8, "k3": 1.1, "alpha": 0.4, "beta": -0.3,
+        "gamma": 0.2}
+
+
+def test_step_halving_from_a_far_start_lowers_the_cost_at_every_step() -> None:
+    """Paper B's step control (the core's Gauss-Newton rule with halving): from a far start the first full step
+    raises the cost, a halved one is taken, and the cost falls at every accepted step until full steps converge."""
+    cal = GaussNewton(start=_FAR).fit(turns(300, sigma=5.0, seed=4), F, units="nT").calibration_
+    history = cal.diagnostics["history"]
+    fractions = [h["step_fraction"] for h in history[1:]]
+    assert fractions[0] < 1.0 and fractions[-1] == 1.0
+    costs = [h["cost"] for h in history]
+    assert all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(costs))
+    assert cal.diagnostics["optimizer"] == "gauss-newton" and cal.stats["converged"]
+    assert cal.stats["iterations"] == len(history) - 1
+
+
+def test_without_halving_the_far_start_stalls_and_hands_over() -> None:
+    raw = turns(300, sigma=5.0, seed=4)
+    with pytest.warns(GaussNewtonFallbackWarning, match="no step along the Gauss-Newton direction"):
+        cal = GaussNewton(start=_FAR, max_halvings=0).fit(raw, F, units="nT").calibration_
+    history = cal.diagnostics["history"]
+    assert history[1]["step_fraction"] == 0.0 and history[1]["cost"] == history[0]["cost"]  # the stalled step
+    assert history[-1]["note"] == "levenberg-marquardt"
+    assert cal.stats["iterations"] == 1 and not cal.stats["gn_converged"]
+    ref = GaussNewton(start=_FAR).fit(raw, F, units="nT").calibration_
+    assert cal.stats["rms_after"] == pytest.approx(ref.stats["rms_after"], rel=1e-6)

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ._core.chunks import chunk_rows
 from ._core.rowwise import row_dot, scratch
+from ._core.solve import levenberg_marquardt
 from ._core.sphere import fibonacci_sphere
 from .errors import IdentifiabilityError, IdentifiabilityWarning
 
@@ -241,8 +242,6 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
     field : float, optional
         The field magnitude in the samples' unit.
     """
-    from scipy.optimize import least_squares
-
     x = np.asarray(B, dtype=np.float64)[:: max(1, len(B) // _GEOMETRY_SAMPLES)]
     centroid = x.mean(axis=0)
     xc = x - centroid
@@ -260,7 +259,8 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
         depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
         best = None
         for sign in (1.0, -1.0):
-            res = least_squares(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal)
+            res = levenberg_marquardt(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal,
+                                      method="trf")
             if best is None or res.cost < best.cost:
                 best = res
         assert best is not None

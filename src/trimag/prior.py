@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._core.solve import levenberg_marquardt
 from .calibration import Calibration
 from .errors import IdentifiabilityError, TrimagInputError
 from .honesty import correlation_time
@@ -212,59 +213,19 @@ def refit_offset(
     IdentifiabilityError
         The data identify no component of the offset.
     """
-    X = np.asarray(B, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != 3 or len(X) < 3:
-        raise TrimagInputError(f"`B` must have shape (N, 3) with N >= 3; got {X.shape}")
+    X, F = _checked_samples(prior, B, reference, regressors)
     n = len(X)
-    F = np.broadcast_to(np.asarray(reference, dtype=np.float64), (n,)).astype(np.float64)
-    if not (np.isfinite(F).all() and np.all(F > 0)):
-        raise TrimagInputError("a quick recalibration (`prior`) needs a known, positive field magnitude: give "
-                               "`reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
-    if prior.regressors is not None:
-        X = X - prior.regressor_shift(regressors, X.shape)
-    elif regressors:
-        raise TrimagInputError("the prior calibration has no regressor terms; drop `regressors`")
-    if not (scale_sigma > 0 and np.isfinite(scale_sigma)):
-        raise TrimagInputError(f"`option scale_sigma` must be a positive number; got {scale_sigma}")
-    F_mean = float(np.mean(F))
-    change = DEFAULT_CHANGE_FRACTION * F_mean if prior_offset_sigma is None else float(prior_offset_sigma)
-    if not (change > 0 and np.isfinite(change)):
-        raise TrimagInputError(f"`option prior_offset_sigma` must be a positive number; got {prior_offset_sigma}")
+    change = _checked_change(scale_sigma, prior_offset_sigma, float(np.mean(F)))
     prior_cov = _prior_offset_cov(prior) + change**2 * np.eye(3)
-    down, incl = None, 0.0
-    if not (inclination_sigma_deg > 0 and np.isfinite(inclination_sigma_deg)):
-        raise TrimagInputError(f"`option inclination_sigma_deg` must be a positive number; got {inclination_sigma_deg}")
-    if attitude is not None and inclination_deg is not None:
-        down = np.atleast_2d(attitude.inv().apply([0.0, 0.0, 1.0]))
-        if len(down) != n:
-            raise TrimagInputError(f"`attitude` has {len(down)} rotations for {n} samples")
-        incl = float(np.radians(inclination_deg))
+    down, incl = _down_directions(attitude, inclination_deg, inclination_sigma_deg, n)
     M = np.asarray(prior.matrix, dtype=np.float64)
     b_prior = np.asarray(prior.offset, dtype=np.float64)
     incl_sigma = float(np.radians(inclination_sigma_deg))
     problem = _Problem(M, X, F, down, incl, incl_sigma, b_prior, prior_cov, scale_sigma)
     q, r, sigma, tau, nfev, converged = _solve(problem, prior, n)
-    J_data = problem.weight * problem.data(q)[1]
-    info = J_data.T @ J_data
-    prior_info = np.zeros((5, 5))
-    prior_info[:3, :3] = problem.L_inv.T @ problem.L_inv
-    prior_info[4, 4] = 1.0 / incl_sigma**2
-    cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2, 0])), dtype=np.float64)
-    matrix_cov = _prior_matrix_cov(prior)
-    if matrix_cov is not None:  # the prior's matrix is uncertain too: its covariance propagated to the estimate
-        C_w, rows, cols = matrix_cov
-        G = -cov @ (J_data.T @ (problem.weight * problem.matrix_jacobian(q, rows, cols)))
-        cov = cov + G @ C_w @ G.T
-    # the field scale left free (and the inclination with its prior): what the data say of b beyond |F|
-    free = prior_info + np.diag([0, 0, 0, 1e-12, 0])
-    cov_free = np.linalg.inv(info + free)
-    prior_std = np.sqrt(np.diag(prior_cov))
+    cov, info, prior_info = _posterior(problem, prior, q, incl_sigma, scale_sigma)
     std = np.sqrt(np.diag(cov))
-    std_free = np.asarray(np.sqrt(np.clip(np.diag(cov_free)[:3], 0.0, None)), dtype=np.float64)
-    informed = std_free < IDENTIFIED_RATIO * prior_std
-    # a component the data determine far worse than the best one (e.g. the vertical offset of a level turn, which
-    # only the small tilts of the log inform) is reported as unidentified too, with the sigma it has
-    identified = informed & (std_free < WEAK_RATIO * std_free.min())
+    std_free, prior_std, informed, identified = _identified_components(info, prior_info, prior_cov)
     axes = ("x", "y", "z")
     if not informed.any():
         raise IdentifiabilityError(
@@ -277,10 +238,88 @@ def refit_offset(
                      prior_source)
 
 
+def _checked_samples(
+    prior: Calibration, B: ArrayLike, reference: ArrayLike, regressors: Mapping[str, ArrayLike] | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The samples (N, 3) with the prior's regressor terms removed, and the field magnitude per sample (N,)."""
+    X = np.asarray(B, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or len(X) < 3:
+        raise TrimagInputError(f"`B` must have shape (N, 3) with N >= 3; got {X.shape}")
+    F = np.broadcast_to(np.asarray(reference, dtype=np.float64), (len(X),)).astype(np.float64)
+    if not (np.isfinite(F).all() and np.all(F > 0)):
+        raise TrimagInputError("a quick recalibration (`prior`) needs a known, positive field magnitude: give "
+                               "`reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
+    if prior.regressors is not None:
+        X = X - prior.regressor_shift(regressors, X.shape)
+    elif regressors:
+        raise TrimagInputError("the prior calibration has no regressor terms; drop `regressors`")
+    return X, F
+
+
+def _checked_change(scale_sigma: float, prior_offset_sigma: float | None, F_mean: float) -> float:
+    """The standard deviation of the offset's change since the prior (data unit; default 10 % of ``F_mean``),
+    after checking it and ``scale_sigma``."""
+    if not (scale_sigma > 0 and np.isfinite(scale_sigma)):
+        raise TrimagInputError(f"`option scale_sigma` must be a positive number; got {scale_sigma}")
+    change = DEFAULT_CHANGE_FRACTION * F_mean if prior_offset_sigma is None else float(prior_offset_sigma)
+    if not (change > 0 and np.isfinite(change)):
+        raise TrimagInputError(f"`option prior_offset_sigma` must be a positive number; got {prior_offset_sigma}")
+    return change
+
+
+def _down_directions(
+    attitude: Any, inclination_deg: float | None, inclination_sigma_deg: float, n: int
+) -> tuple[NDArray[np.float64] | None, float]:
+    """The body-frame down direction of each sample (N, 3; None without attitudes and inclination) and the
+    inclination (radians; 0 without)."""
+    if not (inclination_sigma_deg > 0 and np.isfinite(inclination_sigma_deg)):
+        raise TrimagInputError(f"`option inclination_sigma_deg` must be a positive number; got {inclination_sigma_deg}")
+    if attitude is None or inclination_deg is None:
+        return None, 0.0
+    down = np.atleast_2d(attitude.inv().apply([0.0, 0.0, 1.0]))
+    if len(down) != n:
+        raise TrimagInputError(f"`attitude` has {len(down)} rotations for {n} samples")
+    return down, float(np.radians(inclination_deg))
+
+
+def _posterior(
+    problem: _Problem, prior: Calibration, q: NDArray[np.float64], incl_sigma: float, scale_sigma: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The covariance (5, 5) of ``q`` (with the prior matrix's own covariance propagated when it has one), the
+    data's information ``J^T J`` and the priors' information (scale prior excluded)."""
+    J_data = problem.weight * problem.data(q)[1]
+    info = J_data.T @ J_data
+    prior_info = np.zeros((5, 5))
+    prior_info[:3, :3] = problem.L_inv.T @ problem.L_inv
+    prior_info[4, 4] = 1.0 / incl_sigma**2
+    cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2, 0])), dtype=np.float64)
+    matrix_cov = _prior_matrix_cov(prior)
+    if matrix_cov is not None:  # the prior's matrix is uncertain too: its covariance propagated to the estimate
+        C_w, rows, cols = matrix_cov
+        G = -cov @ (J_data.T @ (problem.weight * problem.matrix_jacobian(q, rows, cols)))
+        cov = cov + G @ C_w @ G.T
+    return cov, info, prior_info
+
+
+def _identified_components(
+    info: NDArray[np.float64], prior_info: NDArray[np.float64], prior_cov: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per offset component: its standard deviation with the field scale free, the prior's, whether the data
+    inform it (beyond the prior) and whether they identify it (informed, and not far worse than the best)."""
+    # the field scale left free (and the inclination with its prior): what the data say of b beyond |F|
+    free = prior_info + np.diag([0, 0, 0, 1e-12, 0])
+    cov_free = np.linalg.inv(info + free)
+    prior_std = np.sqrt(np.diag(prior_cov))
+    std_free = np.asarray(np.sqrt(np.clip(np.diag(cov_free)[:3], 0.0, None)), dtype=np.float64)
+    informed = std_free < IDENTIFIED_RATIO * prior_std
+    # a component the data determine far worse than the best one (e.g. the vertical offset of a level turn, which
+    # only the small tilts of the log inform) is reported as unidentified too, with the sigma it has
+    identified = informed & (std_free < WEAK_RATIO * std_free.min())
+    return std_free, prior_std, informed, identified
+
+
 def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
     """Two passes: the noise from the prior (or 0.1 % of F), then from the residuals of the first fit."""
-    from scipy.optimize import least_squares
-
     q0 = np.concatenate([problem.b_prior, [1.0, problem.incl]])
     noise0 = (prior.uncertainty or {}).get("noise_std") or prior.stats.get("rms_after") or 1e-3 * float(
         np.mean(problem.F))
@@ -289,8 +328,8 @@ def _solve(problem: _Problem, prior: Calibration, n: int) -> tuple[Any, ...]:
     q = q0
     for _ in range(2):
         problem.weight = 1.0 / (sigma * np.sqrt(tau))
-        res = least_squares(problem.residuals, q, jac=problem.jacobian, method="lm", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=200)
+        res = levenberg_marquardt(problem.residuals, q, jac=problem.jacobian, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                  max_nfev=200)
         q, nfev, converged = np.asarray(res.x, dtype=np.float64), nfev + int(res.nfev), bool(res.success)
         r = problem.data(q)[0]
         sigma = float(np.sqrt(r @ r / max(len(r) - 5, 1))) or sigma

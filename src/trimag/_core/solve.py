@@ -5,23 +5,28 @@ data, so the problem is nearly linear there and undamped Gauss-Newton converges 
 Each step solves the p x p normal equations ``(J^T J) delta = J^T r`` (one BLAS product over the N x p Jacobian),
 where MINPACK's Levenberg-Marquardt factors the N x p Jacobian by QR at every iteration and, at the tight
 tolerances these fits use, iterates well past the point where the parameters stop changing. When a Gauss-Newton
-step raises the cost (far from the minimum), the solver hands over to ``scipy.optimize.least_squares(method="lm")``
-from the start, so the result is never worse than MINPACK's.
+step raises the cost (far from the minimum), the solver hands over to Levenberg-Marquardt (:func:`levenberg_marquardt`,
+MINPACK through ``scipy.optimize.least_squares(method="lm")``) from the start, so the result is never worse than
+MINPACK's.
+
+This module is trimag's one Gauss-Newton / Levenberg-Marquardt driver: :func:`gauss_newton_rule` is the only
+Gauss-Newton loop (every estimator's steps run through it, whatever their linear algebra) and
+:func:`levenberg_marquardt` the only ``least_squares`` call (scipy.optimize is imported there, lazily).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:  # scipy.optimize is imported only when Levenberg-Marquardt runs (it costs ~0.3 s to import)
-    from scipy.optimize import OptimizeResult
-
-__all__ = ["GaussNewtonResult", "contraction", "gauss_newton", "gauss_newton_then_lm"]
+__all__ = [
+    "GaussNewtonResult", "GaussNewtonRun", "contraction", "gauss_newton", "gauss_newton_rule", "gauss_newton_then_lm",
+    "levenberg_marquardt",
+]
 
 #: Relative step (``|delta| <= XTOL (1 + |p|)``) at which Gauss-Newton has converged: about 100 x rounding.
 XTOL = 1e-13
@@ -40,12 +45,17 @@ class GaussNewtonResult(dict[str, Any]):
         except KeyError:
             raise AttributeError(name) from None
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        self[name] = value
+
 
 @dataclass
 class GaussNewtonRun:
     """Where :func:`gauss_newton_rule` stopped: the point ``p``, the ``state`` and ``model`` evaluated there (what
-    the caller's ``evaluate`` and ``linearise`` returned), its ``cost`` (``sum r^2``), the counts and the sizes of the
-    accepted steps."""
+    the caller's ``evaluate`` and ``linearise`` returned; with ``final``, those of the point before the last
+    step), its ``cost`` (``sum r^2``), the counts, the sizes, fractions and costs of the accepted steps, whether it
+    ``converged``, and whether it ``stalled`` (a step that raised the cost, a singular system or a non-finite cost;
+    otherwise unconverged runs stopped after ``max_steps``)."""
 
     p: NDArray[np.float64]
     state: Any
@@ -55,6 +65,48 @@ class GaussNewtonRun:
     njev: int
     steps: int
     step_norms: list[float]
+    converged: bool = True
+    stalled: bool = False
+    fractions: list[float] = field(default_factory=list)
+    costs: list[float] = field(default_factory=list)
+
+
+def _relative_step(p_new: NDArray[np.float64], step_norm: float) -> float:
+    return step_norm / (1.0 + float(np.linalg.norm(p_new)))
+
+
+def _rises(cost_new: float, cost: float) -> bool:
+    return cost_new > cost * (1.0 + 1e-12)
+
+
+@dataclass
+class _Trial:
+    """The last point tried from ``p`` along ``delta`` (``fraction`` of it), and whether its cost was accepted."""
+
+    p: NDArray[np.float64]
+    state: Any
+    cost: float
+    step_norm: float
+    fraction: float
+    accepted: bool
+    evaluations: int
+
+
+def _trial(
+    evaluate: Callable[[NDArray[np.float64]], tuple[Any, float]], rises: Callable[[float, float], bool],
+    p: NDArray[np.float64], cost: float, delta: NDArray[np.float64], halvings: int,
+) -> _Trial:
+    """``p + delta``, halved up to ``halvings`` times while its cost is not finite or ``rises``."""
+    fraction = 1.0
+    for k in range(halvings + 1):
+        step = delta if fraction == 1.0 else fraction * delta
+        p_new = p + step
+        state_new, cost_new = evaluate(p_new)
+        step_norm = float(np.linalg.norm(step))
+        if np.isfinite(cost_new) and not rises(cost_new, cost):
+            return _Trial(p_new, state_new, cost_new, step_norm, fraction, True, k + 1)
+        fraction *= 0.5
+    return _Trial(p_new, state_new, cost_new, step_norm, 2.0 * fraction, False, halvings + 1)
 
 
 def gauss_newton_rule(
@@ -65,45 +117,71 @@ def gauss_newton_rule(
     *,
     max_steps: int,
     xtol: float = XTOL,
-) -> GaussNewtonRun | None:
-    """The one undamped Gauss-Newton rule of trimag, whatever the linear algebra of a step.
+    converged: Callable[[NDArray[np.float64], float, float, float, float], bool] | None = None,
+    rises: Callable[[float, float], bool] = _rises,
+    rounding_step: float | None = ROUNDING_STEP,
+    halvings: int = 0,
+    final: Callable[[NDArray[np.float64], NDArray[np.float64], Any, Any], bool] | None = None,
+) -> GaussNewtonRun:
+    """The one Gauss-Newton rule of trimag, whatever the linear algebra of a step.
 
-    ``evaluate(p) -> (state, sum r^2)`` is called at every trial point (``state`` None: no usable evaluation);
+    ``evaluate(p) -> (state, cost)`` is called at every trial point (``state`` None: no usable evaluation);
     ``linearise(p, state) -> model`` only at accepted points (the Jacobian, or the state itself when ``evaluate``
     already factored the system); ``direction(state, model) -> delta`` gives the step ``p <- p + delta`` (None when
-    the system is singular). Converged when the relative step ``|delta| / (1 + |p|)`` is at most ``xtol``; a step
-    that raised the cost by rounding only (relative step below :data:`ROUNDING_STEP`) keeps the point before it.
-    Returns None as soon as a step raises ``sum r^2`` (far from the minimum) or after ``max_steps`` steps without
-    convergence: the caller then runs Levenberg-Marquardt. Used by :func:`gauss_newton` (normal equations from
-    ``r`` and ``J``) and by ``geometric`` (a :class:`~trimag._core.qr.BlockedQR` of ``[J | -r]``).
+    the system is singular).
+
+    * Acceptance: a trial whose cost is not finite or ``rises(cost_new, cost)`` (default: above
+      ``cost (1 + 1e-12)``) is rejected. With ``halvings`` > 0 the step is halved and tried again, up to
+      ``halvings`` times (paper B's step control). A rejected (last) trial that is converged, or whose relative
+      step is at most ``rounding_step`` (the cost rose by rounding only), keeps the point before it as
+      converged (``rounding_step`` None: never); any other rejected step stalls the run (far from the minimum).
+    * Convergence: ``converged(p_new, |step|, cost, cost_new, fraction)`` after an accepted step (``fraction``:
+      1, 1/2, 1/4, ... of the Gauss-Newton step); default the relative step ``|step| / (1 + |p_new|) <= xtol``.
+    * ``final(p_new, delta, state, model)``: a test before the trial is evaluated; True ends the run at
+      ``p_new`` unevaluated (``state``, ``cost`` and ``model`` of the point before; ``ml``'s polish, whose
+      evaluations each pass over every sample).
+
+    Always returns a :class:`GaussNewtonRun`: ``converged`` False after ``max_steps`` steps, or ``stalled`` (the
+    caller then runs Levenberg-Marquardt, :func:`levenberg_marquardt`). Used by :func:`gauss_newton` (normal
+    equations from ``r`` and ``J``), ``geometric`` (a :class:`~trimag._core.qr.BlockedQR` of ``[J | -r]``),
+    ``gauss-newton`` (the same with step halving), ``twostep`` (9 x 9 sufficient statistics) and ``ml``'s polish.
     """
+    test = converged or (lambda p_new, step_norm, *_: _relative_step(p_new, step_norm) <= xtol)
     p = np.asarray(p0, dtype=np.float64).copy()
     state, cost = evaluate(p)
     model = linearise(p, state) if state is not None else None
     nfev = njev = 1
     step_norms: list[float] = []
+    fractions: list[float] = []
+    costs: list[float] = [cost]
+
+    def stop(steps: int, ok: bool, stalled: bool = False, at: NDArray[np.float64] | None = None) -> GaussNewtonRun:
+        return GaussNewtonRun(p if at is None else at, state, cost, model, nfev, njev, steps, step_norms, ok,
+                              stalled, fractions, costs)
+
     for step_no in range(1, max_steps + 1):
-        if state is None or not np.isfinite(cost):
-            return None
-        delta = direction(state, model)
+        delta = direction(state, model) if state is not None and np.isfinite(cost) else None
         if delta is None:
-            return None
-        p_new = p + delta
-        state_new, cost_new = evaluate(p_new)
-        nfev += 1
-        step_norm = float(np.linalg.norm(delta))
-        rel_step = step_norm / (1.0 + float(np.linalg.norm(p_new)))
-        if not np.isfinite(cost_new) or cost_new > cost * (1.0 + 1e-12):
-            if rel_step <= max(xtol, ROUNDING_STEP):  # the minimum, to rounding: keep the better point
-                return GaussNewtonRun(p, state, cost, model, nfev, njev, step_no, step_norms)
-            return None
-        p, state, cost = p_new, state_new, cost_new
-        step_norms.append(step_norm)
+            return stop(step_no, False, True)
+        if final is not None and final(p + delta, delta, state, model):
+            return stop(step_no, True, at=p + delta)
+        t = _trial(evaluate, rises, p, cost, delta, halvings)
+        nfev += t.evaluations
+        if not t.accepted:  # the minimum to rounding (keep the better point), or far from it (stalled)
+            keep = rounding_step is not None and (
+                test(t.p, t.step_norm, cost, t.cost, t.fraction) or _relative_step(t.p, t.step_norm) <= rounding_step
+            )
+            return stop(step_no, keep, not keep)
+        done = test(t.p, t.step_norm, cost, t.cost, t.fraction)
+        p, state, cost = t.p, t.state, t.cost
+        step_norms.append(t.step_norm)
+        fractions.append(t.fraction)
+        costs.append(cost)
         model = linearise(p, state)
         njev += 1
-        if rel_step <= xtol:
-            return GaussNewtonRun(p, state, cost, model, nfev, njev, step_no, step_norms)
-    return None
+        if done:
+            return stop(step_no, True)
+    return stop(max_steps, False)
 
 
 def gauss_newton(
@@ -139,7 +217,7 @@ def gauss_newton(
             return None
 
     run = gauss_newton_rule(evaluate, lambda p, r: jac(p), direction, p0, max_steps=max_steps, xtol=xtol)
-    if run is None:
+    if not run.converged:
         return None
     return _result(run.p, run.state, run.model, run.nfev, run.njev, run.steps, xtol, run.step_norms)
 
@@ -152,7 +230,7 @@ def gauss_newton_then_lm(
     max_steps: int = 50,
     xtol: float = XTOL,
     lm_options: dict[str, Any] | None = None,
-) -> GaussNewtonResult | OptimizeResult:
+) -> GaussNewtonResult:
     """Minimise ``sum fun(p)^2`` from ``p0`` by :func:`gauss_newton`; fall back to Levenberg-Marquardt.
 
     Parameters
@@ -172,7 +250,7 @@ def gauss_newton_then_lm(
 
     Returns
     -------
-    scipy.optimize.OptimizeResult
+    GaussNewtonResult
         ``x``, ``fun`` (residuals at ``x``), ``jac`` (at ``x``), ``nfev``, ``njev``, ``success``, ``status``,
         ``message``, ``step_norms`` (Gauss-Newton only: sizes of the accepted steps) and ``method``
         (``"gauss-newton"`` or ``"levenberg-marquardt"``), as ``least_squares``
@@ -181,12 +259,52 @@ def gauss_newton_then_lm(
     gn = gauss_newton(fun, jac, p0, max_steps=max_steps, xtol=xtol)
     if gn is not None:
         return gn
-    from scipy.optimize import least_squares
-
-    res = least_squares(fun, np.asarray(p0, dtype=np.float64), jac=jac, method="lm", **(lm_options or {}))
-    res.method = "levenberg-marquardt"
+    res = levenberg_marquardt(fun, p0, jac=jac, **(lm_options or {}))
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
     return res
+
+
+def levenberg_marquardt(
+    fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    p0: NDArray[np.float64],
+    *,
+    jac: Callable[[NDArray[np.float64]], NDArray[np.float64]] | str = "2-point",
+    method: str = "lm",
+    **options: Any,
+) -> GaussNewtonResult:
+    """The one entry to ``scipy.optimize.least_squares`` in trimag: Levenberg-Marquardt (MINPACK) by default.
+
+    scipy.optimize is imported here, on first use (~0.3 s), so that trimag imports fast and fits that converge by
+    Gauss-Newton never load it.
+
+    Parameters
+    ----------
+    fun : callable
+        Residuals ``r(p)``, shape (N,).
+    p0 : ndarray, shape (P,)
+        Start.
+    jac : callable or str
+        Jacobian ``dr/dp`` (N, P), or a finite-difference scheme (``"2-point"``).
+    method : {"lm", "trf"}
+        ``"lm"`` (Levenberg-Marquardt, the default), or ``"trf"`` where a robust ``loss`` is given or
+        MINPACK's ``N >= P`` cannot be promised.
+    **options
+        Other keyword arguments of ``least_squares`` (``xtol``, ``ftol``, ``gtol``, ``max_nfev``, ``loss``);
+        scipy's defaults where not given.
+
+    Returns
+    -------
+    GaussNewtonResult
+        ``least_squares``' fields (``x``, ``fun``, ``jac``, ``cost``, ``nfev``, ``njev``, ``success``,
+        ``status``, ``message``, ...) and ``method`` (``"levenberg-marquardt"`` or ``"trust-region"``), in the
+        result type of :func:`gauss_newton`.
+    """
+    from scipy.optimize import least_squares
+
+    res = least_squares(fun, np.asarray(p0, dtype=np.float64), jac=jac, method=method, **options)
+    out = GaussNewtonResult(res)
+    out["method"] = "levenberg-marquardt" if method == "lm" else "trust-region"
+    return out
 
 
 def _result(

@@ -357,57 +357,24 @@ def ellipsoid_result(
     uncertainty: dict[str, Any] | None = None
     diag: dict[str, Any] = dict(diagnostics or {})
     cov: NDArray[np.float64] | None = None
-    names: tuple[str, ...] = _NAMES
+    J: NDArray[np.float64] | None = None
+    names: tuple[str, ...] = _NAMES if known else (*_NAMES, "F")
     if sigma > 0:
-        theta = np.concatenate([W[UPPER], offset])
         # the information is a sum over samples: on large logs, an evenly spread subsample scaled up
         J = ellipsoid_fisher(geometry, sigma, known_magnitude=known) * (len(B) / len(idx))
-        grad = None
-        if not known:
-            names = (*_NAMES, "F")
-            Winv = np.linalg.inv(W)
-            gW = np.zeros(6)
-            for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
-                gW[k] = Winv[j, i]
-            grad = np.concatenate([gW, np.zeros(3), [0.0]])
-        try:
-            cov = _constrained_inverse(J, grad)
-        except IdentifiabilityError:
-            cov = np.full_like(J, np.inf)
+        cov = _ellipsoid_covariance(J, W, known)
         if balance != "never" and np.isfinite(cov).all():
-            test = balance_test(B, offset, cov[6:9, 6:9], sigma)
-            apply_mean = balance == "always" or test["balanced"]
-            test["applied"] = bool(apply_mean)
-            diag["balanced_offset"] = test
-            if apply_mean:
-                # the sample mean is the offset; its error (mean noise) is uncorrelated to first order with
-                # the ML estimate of W (docs/method-ml.md, "Balanced sampling"), so only the b block changes
-                offset = np.asarray(test["sample_mean"], dtype=np.float64)
-                cov = cov.copy()
-                cov[6:9, :] = 0.0
-                cov[:, 6:9] = 0.0
-                cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
+            offset, cov = _balanced_offset(B, offset, cov, sigma, balance, diag)
     if balance == "always" and "balanced_offset" not in diag:  # no noise estimate or no covariance: no test
         offset = column_means(B)
         diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
                                    "note": "forced by balance='always'; not tested (no noise estimate)"}
     offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
     coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal.T)
-    if cov is not None:
-        theta = np.concatenate([W[UPPER], offset])
+    if cov is not None and J is not None:
         Fm = float(np.mean(ref.values)) if ref.values is not None else float(target_sub)
-        X_test = (Fm * fibonacci_sphere(500)) @ np.linalg.inv(W).T + offset
-        field_rms, mag_rms = (
-            predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
-        )
-        # the information the same number of samples would carry on a full sphere, at the same estimate
-        J_ref = ellipsoid_fisher(ellipsoid_geometry(X_test, W, offset), sigma, known_magnitude=known)
-        diag["identifiability"] = identifiability(J, names, cov, coverage, reference_fisher=J_ref * (len(B) / 500))
-        diag["identifiability"]["plane_noise_ratio"] = plane_ratio  # check_not_planar_within_noise
-        uncertainty = make_uncertainty(
-            names, basis=uncertainty_note, covariance=cov, noise_std=sigma,
-            gauge="upper-triangular W" + ("" if known else ", det(W) = 1, F estimated"),
-            predicted_field_rms=field_rms, predicted_magnitude_rms=mag_rms,
+        uncertainty = _ellipsoid_uncertainty(
+            J, cov, W, offset, Fm, sigma, known, len(B), names, coverage, plane_ratio, uncertainty_note, diag
         )
     W_out = to_symmetric(W) if form == "symmetric" else W
     upper = form == "upper"  # then the corrected directions and their coverage are those computed above
@@ -416,6 +383,67 @@ def ellipsoid_result(
         params=Ellipsoid.from_matrix_offset(W_out, offset).as_dict(), iterations=iterations,
         converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag,
         coverage=coverage if upper else None,
+    )
+
+
+def _ellipsoid_covariance(J: NDArray[np.float64], W: NDArray[np.float64], known: bool) -> NDArray[np.float64]:
+    """The covariance of ``(W upper, b[, F])`` from the Fisher information ``J``, in the gauge ``det W = 1`` when
+    the magnitude is unknown; infinite when ``J`` is singular."""
+    grad = None
+    if not known:
+        Winv = np.linalg.inv(W)
+        gW = np.zeros(6)
+        for k, (i, j) in enumerate(zip(*UPPER, strict=True)):
+            gW[k] = Winv[j, i]
+        grad = np.concatenate([gW, np.zeros(3), [0.0]])
+    try:
+        return _constrained_inverse(J, grad)
+    except IdentifiabilityError:
+        return np.full_like(J, np.inf)
+
+
+def _balanced_offset(
+    B: NDArray[np.float64], offset: NDArray[np.float64], cov: NDArray[np.float64], sigma: float, balance: str,
+    diag: dict[str, Any],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`balance_test` of the samples (recorded in ``diag["balanced_offset"]``); the sample mean and its
+    covariance replace the offset and its block of ``cov`` when the test accepts it or ``balance`` is ``"always"``.
+    """
+    test = balance_test(B, offset, cov[6:9, 6:9], sigma)
+    apply_mean = balance == "always" or test["balanced"]
+    test["applied"] = bool(apply_mean)
+    diag["balanced_offset"] = test
+    if not apply_mean:
+        return offset, cov
+    # the sample mean is the offset; its error (mean noise) is uncorrelated to first order with
+    # the ML estimate of W (docs/method-ml.md, "Balanced sampling"), so only the b block changes
+    cov = cov.copy()
+    cov[6:9, :] = 0.0
+    cov[:, 6:9] = 0.0
+    cov[6:9, 6:9] = (sigma**2 / len(B)) * np.eye(3)
+    return np.asarray(test["sample_mean"], dtype=np.float64), cov
+
+
+def _ellipsoid_uncertainty(
+    J: NDArray[np.float64], cov: NDArray[np.float64], W: NDArray[np.float64], offset: NDArray[np.float64],
+    Fm: float, sigma: float, known: bool, n: int, names: tuple[str, ...], coverage: Any, plane_ratio: Any,
+    note: str, diag: dict[str, Any],
+) -> dict[str, Any]:
+    """The uncertainty record (covariance, predicted field and magnitude errors over a sphere of radius ``Fm``)
+    and ``diag["identifiability"]`` of an ellipsoid fit on ``n`` samples."""
+    theta = np.concatenate([W[UPPER], offset])
+    X_test = (Fm * fibonacci_sphere(500)) @ np.linalg.inv(W).T + offset
+    field_rms, mag_rms = (
+        predicted_errors(cov, _upper_param, theta, X_test) if np.isfinite(cov).all() else (np.inf, np.inf)
+    )
+    # the information the same number of samples would carry on a full sphere, at the same estimate
+    J_ref = ellipsoid_fisher(ellipsoid_geometry(X_test, W, offset), sigma, known_magnitude=known)
+    diag["identifiability"] = identifiability(J, names, cov, coverage, reference_fisher=J_ref * (n / 500))
+    diag["identifiability"]["plane_noise_ratio"] = plane_ratio  # check_not_planar_within_noise
+    return make_uncertainty(
+        names, basis=note, covariance=cov, noise_std=sigma,
+        gauge="upper-triangular W" + ("" if known else ", det(W) = 1, F estimated"),
+        predicted_field_rms=field_rms, predicted_magnitude_rms=mag_rms,
     )
 
 

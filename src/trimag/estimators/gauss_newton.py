@@ -15,7 +15,7 @@ factored block by block, :class:`~trimag._core.qr.BlockedQR`), so memory does no
   (:func:`~trimag.models.scalar9.lq_gauge`).
 * Step control: a step that does not lower the cost is halved (up to ``max_halvings`` times). If no halving
   helps, or ``max_iter`` is reached before convergence, the fit continues with Levenberg-Marquardt
-  (``scipy.optimize.least_squares(method="lm")``) from the last point, warns with
+  (:func:`trimag._core.solve.levenberg_marquardt`) from the last point, warns with
   :class:`GaussNewtonFallbackWarning`, and records ``"fallback": "levenberg-marquardt"`` in the diagnostics.
 * Converged when the step is below ``xtol`` relative to the parameters, or the cost stops falling
   (relative decrease below ``ftol``).
@@ -47,6 +47,7 @@ from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import column_means, scratch, transposed_blocks
+from .._core.solve import gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..diagnostics import (
     CONDITION_ERROR,
@@ -254,40 +255,32 @@ def gauss_newton(
         ``cost`` = 0.5 sum r^2, ``step_norm``, ``step_fraction``), ``stalled`` (no halving lowered the cost),
         ``system`` (the :class:`._qr.BlockedQR` of the system at ``p``) and ``cost`` at ``p``.
     """
-    p = np.array(p0, dtype=np.float64)
-    qr, cost = linearise(B, F, scale, p)
-    history: list[dict[str, Any]] = [{"iteration": 0, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0}]
-    converged = stalled = False
-    it = 0
-    for it in range(1, max_iter + 1):
-        delta = qr.solve()
-        frac = 1.0
-        for _ in range(max_halvings + 1):
-            trial = p + frac * delta
-            try:
-                cost_new = half_sum_squares(B, F, scale, trial)
-            except (np.linalg.LinAlgError, FloatingPointError):
-                cost_new = math.inf
-            if np.isfinite(cost_new) and cost_new <= cost * (1 + 1e-12):
-                break
-            frac *= 0.5
-        else:
-            stalled = True
-            history.append({"iteration": it, "cost": cost, "step_norm": 0.0, "step_fraction": 0.0})
-            break
-        step = frac * delta
-        p = p + step
-        step_norm = float(np.linalg.norm(step))
-        decrease = cost - cost_new
-        qr, cost = linearise(B, F, scale, p)
-        history.append({"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": frac})
-        if step_norm <= xtol * (xtol + float(np.linalg.norm(p))) or (
-            frac == 1.0 and decrease <= ftol * max(cost, 1e-300)
-        ):
-            converged = True
-            break
-    return {"p": p, "converged": converged, "iterations": it, "history": history, "stalled": stalled,
-            "system": qr, "cost": cost}
+
+    def evaluate(q: NDArray[np.float64]) -> tuple[bool, float]:
+        try:
+            return True, half_sum_squares(B, F, scale, q)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            return True, math.inf
+
+    def converged(q: NDArray[np.float64], step_norm: float, cost: float, cost_new: float, fraction: float) -> bool:
+        return step_norm <= xtol * (xtol + float(np.linalg.norm(q))) or (
+            fraction == 1.0 and cost - cost_new <= ftol * max(cost_new, 1e-300)
+        )
+
+    run = gauss_newton_rule(
+        evaluate, lambda q, _: linearise(B, F, scale, q)[0], lambda _, qr: qr.solve(), p0, max_steps=max_iter,
+        converged=converged, rounding_step=None, halvings=max_halvings,
+    )
+    history: list[dict[str, Any]] = [
+        {"iteration": it, "cost": cost, "step_norm": step_norm, "step_fraction": fraction}
+        for it, (cost, step_norm, fraction) in enumerate(
+            zip(run.costs, [0.0, *run.step_norms], [0.0, *run.fractions], strict=True)
+        )
+    ]
+    if run.stalled:
+        history.append({"iteration": run.steps, "cost": run.cost, "step_norm": 0.0, "step_fraction": 0.0})
+    return {"p": run.p, "converged": run.converged, "iterations": run.steps, "history": history,
+            "stalled": run.stalled, "system": run.model, "cost": run.cost}
 
 
 # ---------------------------------------------------------------------------------------------- estimator
@@ -416,15 +409,13 @@ class GaussNewton(Estimator):
                 else f"not converged after max_iter={self.max_iter} iterations"
             )
             if self.fallback:
-                from scipy.optimize import least_squares
-
                 # (the fallback holds the whole (N, 9) Jacobian: MINPACK needs it)
                 x, target = B / s, F / s
-                res = least_squares(
+                res = levenberg_marquardt(
                     lambda q: residual_jacobian(x, target, q, jacobian=False)[0],
                     p,
-                    jac=lambda q: residual_jacobian(x, target, q)[1],
-                    method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000,
+                    jac=lambda q: np.asarray(residual_jacobian(x, target, q)[1]),
+                    xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000,
                 )
                 p = res.x
                 converged = bool(res.success)
@@ -509,12 +500,7 @@ class GaussNewton(Estimator):
     ) -> Calibration:
         self._check_options()
         check_not_degenerate(B)
-        ref = scalar_reference(reference, len(B), units)
-        if ref.values is None:
-            f_mean = float(np.linalg.norm(B, axis=1).mean())
-            ref = ScalarReference(
-                np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit
-            )
+        ref = _reference_or_mean(scalar_reference(reference, len(B), units), B)
         F = ref.values
         assert F is not None
         s = float(np.sqrt(F @ F / len(F)))
@@ -540,30 +526,8 @@ class GaussNewton(Estimator):
             )
 
         cond, cov_n, noise, thickness_ratio = self._covariance(B, F, s, p, gn, sv, flatness, units, geometry_hint)
-        # ---- back to data units
-        scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
-        params_vec = p * scale_vec
-        fitted = Scalar9.from_vector(params_vec)
+        fitted, uncertainty = _in_data_units(p, cov_n, s, noise)
         matrix, offset = fitted.correction()
-        cov = cov_n * np.outer(scale_vec, scale_vec)
-        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
-        uncertainty = make_uncertainty(
-            PARAM_NAMES, covariance=cov, noise_std=float(noise),
-            basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
-            param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
-        )
-        n = len(B)
-        hist_out = [
-            {
-                **h,
-                "cost": float(h["cost"]) * s * s,
-                "rms": float(math.sqrt(2.0 * h["cost"] / n)) * s,
-                "step_norm": float(h["step_norm"]),
-            }
-            for h in history
-        ]
-        gn_iters = int(gn["iterations"])
         diagnostics: dict[str, Any] = {
             "condition_number": cond,
             "planarity": flatness,
@@ -571,7 +535,7 @@ class GaussNewton(Estimator):
             "optimizer": optimizer,
             "start": start_kind,
             "start_params": {k: float(v) for k, v in start.as_dict().items()},
-            "history": hist_out,
+            "history": _history_in_data_units(history, s, len(B)),
             "history_units": {"cost": f"0.5*sum((|B|-F)^2) in {units}^2", "rms": units,
                               "step_norm": "normalised parameters (biases / field scale)"},
             "angles_deg": fitted.angles_deg(),
@@ -581,10 +545,50 @@ class GaussNewton(Estimator):
             diagnostics["fallback_info"] = fallback_info
         return build_calibration(
             B, matrix, offset, model=model, method=self.name, units=units, reference=ref,
-            params=fitted.as_dict(), iterations=gn_iters, converged=converged,
+            params=fitted.as_dict(), iterations=int(gn["iterations"]), converged=converged,
             uncertainty=uncertainty, diagnostics=diagnostics,
             extra_stats={"gn_converged": bool(gn["converged"])},
         )
+
+
+def _reference_or_mean(ref: ScalarReference, B: NDArray[np.float64]) -> ScalarReference:
+    """``ref``, or without values the mean raw magnitude ``mean |B_m|`` for every sample (paper B's "mean value"
+    reference)."""
+    if ref.values is not None:
+        return ref
+    f_mean = float(np.linalg.norm(B, axis=1).mean())
+    return ScalarReference(np.full(len(B), f_mean), f"mean |B_raw| of the {len(B)} fitted samples", ref.unit)
+
+
+def _in_data_units(
+    p: NDArray[np.float64], cov_n: NDArray[np.float64], s: float, noise: float
+) -> tuple[Scalar9, dict[str, Any]]:
+    """The fitted model and its uncertainty record in data units from the normalised solution ``p`` (biases /
+    ``s``) and its covariance."""
+    scale_vec = np.concatenate([np.full(3, s), np.ones(6)])
+    fitted = Scalar9.from_vector(p * scale_vec)
+    cov = cov_n * np.outer(scale_vec, scale_vec)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    param_std = dict(zip(PARAM_NAMES, std.tolist(), strict=True))
+    uncertainty = make_uncertainty(
+        PARAM_NAMES, covariance=cov, noise_std=float(noise),
+        basis="cov = s^2 (J^T J)^-1 at the solution, s^2 = sum(r^2)/(N-9); biases in the data unit",
+        param_std_deg={a: math.degrees(param_std[a]) for a in _ANGLES},
+    )
+    return fitted, uncertainty
+
+
+def _history_in_data_units(history: list[dict[str, Any]], s: float, n: int) -> list[dict[str, Any]]:
+    """The Gauss-Newton history with ``cost`` (0.5 sum r^2) and ``rms`` in the data unit (squared for the cost)."""
+    return [
+        {
+            **h,
+            "cost": float(h["cost"]) * s * s,
+            "rms": float(math.sqrt(2.0 * h["cost"] / n)) * s,
+            "step_norm": float(h["step_norm"]),
+        }
+        for h in history
+    ]
 
 
 def params_text(cal: Calibration) -> str:

@@ -33,7 +33,7 @@ from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import scratch, sum_squares, transposed_blocks
-from .._core.solve import XTOL, GaussNewtonResult, gauss_newton_rule
+from .._core.solve import XTOL, GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from .._core.threads import one_blas_thread
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
@@ -261,7 +261,7 @@ def _gauss_newton(
             return None
 
     run = gauss_newton_rule(system, lambda p, qr: None, direction, p0, max_steps=max_steps, xtol=xtol)
-    if run is None:
+    if not run.converged:
         return None
     result = GaussNewtonResult(
         x=run.p, nfev=run.nfev, njev=run.njev, success=True, status=2, method="gauss-newton",
@@ -274,11 +274,10 @@ def _levenberg_marquardt(
     B: NDArray[np.float64], centre: NDArray[np.float64], scale: float, bias: bool, p0: NDArray[np.float64],
     max_iter: int,
 ) -> tuple[Any, BlockedQR, float]:
-    """``scipy.optimize.least_squares(method="lm")`` from ``p0`` on all samples at once (the fallback: MINPACK
+    """Levenberg-Marquardt (:func:`trimag._core.solve.levenberg_marquardt`) from ``p0`` on all samples at once
+    (the fallback: MINPACK
     holds the (N, p) Jacobian). Returns the result without ``fun`` and ``jac``, the QR factorisation of
     ``[J | -r]`` at the solution and ``sum r^2``."""
-    from scipy.optimize import least_squares
-
     n, npar = len(B), len(p0)
     ut = np.empty((3, n))  # component-major (3, N): contiguous passes (trimag._core.rowwise)
     for start, t in transposed_blocks(B, centre, block=chunk_rows()):
@@ -295,11 +294,7 @@ def _levenberg_marquardt(
         _system_block(ut - b[:, None], C, h, bias, out, np.empty((3, n)))
         return out[:npar].T
 
-    res = least_squares(
-        fun, np.asarray(p0, dtype=np.float64), jac=jac, method="lm",
-        xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10,
-    )
-    res.method = "levenberg-marquardt"
+    res = levenberg_marquardt(fun, p0, jac=jac, xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10)
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
     J, r = res.pop("jac"), res.pop("fun")
     qr = BlockedQR(npar)

@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .._core.chunks import chunk_rows
 from .._core.qr import BlockedQR, panel_rows
 from .._core.rowwise import count_duplicate_rows
+from .._core.solve import levenberg_marquardt
 from ..attitude import body_field
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
@@ -305,8 +305,9 @@ def fit_with_background(
 
     ``K C_i^T H_n`` is linear in the 27 products ``K[a, b] H_n[j]``: a 10-unknown linear least squares per
     axis on the entries of ``C_i^T`` gives them, and the rank-1 factorisation (SVD) of the 9 x 3 matrix
-    ``vec(K) H_n^T`` gives the start. The direction of ``H_n`` is then refined by variable projection
-    (``K``, ``c`` solved linearly for each trial direction; ``scipy.optimize.least_squares``, Levenberg-Marquardt).
+    ``vec(K) H_n^T`` gives the start (:func:`_background_start`). The direction of ``H_n`` is then refined by
+    variable projection (``K``, ``c`` solved linearly for each trial direction; Levenberg-Marquardt,
+    :func:`trimag._core.solve.levenberg_marquardt`).
 
     Both steps work on one blocked QR factorisation ``[D10 | B] = Q R`` (N x 13, ``D10 = [vec(C_i^T), 1]``;
     :func:`_factor_background_design`), taken once: memory O(block x 13), and every later step is independent
@@ -352,23 +353,10 @@ def fit_with_background(
         raise TrimagInputError(f"H_m must have shape (N, 3), got {B.shape}")
     _check_attitude(attitude, len(B))
     R = _factor_background_design(B, attitude)
-    R11, R12 = R[:10, :10], R[:10, 10:]  # fewer rows when N < 10: the same singular values as D10
-    cond_lin, _, _ = design_condition(R11)
-    if not np.isfinite(cond_lin) or cond_lin > CONDITION_ERROR:
-        raise IdentifiabilityError(
-            f"the attitudes cannot separate K from the background field (condition number {cond_lin:.3g}); "
-            "record the vehicle turning about all three axes, or give the background vector"
-        )
-    X, *_ = np.linalg.lstsq(R11, R12, rcond=None)  # (10, 3): lstsq(D10, B)
-    Z = X[:9].T.reshape(9, 3)  # rows (a, b), columns j: K[a, b] * H_n[j]
-    u, sv, vt = np.linalg.svd(Z, full_matrices=False)
-    h0 = vt[0]
-    K0 = (sv[0] * u[:, 0]).reshape(3, 3)
-    if np.linalg.det(K0) < 0:
-        h0 = -h0
+    h0, cond_lin = _background_start(R)
     proj = _ReducedProjection(R, magnitude, h0)
-    res = least_squares(
-        proj.residual, np.zeros(2), jac=proj.jacobian, method="lm", xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
+    res = levenberg_marquardt(
+        proj.residual, np.zeros(2), jac=proj.jacobian, xtol=1e-14, ftol=1e-14, max_nfev=max_iter * 3
     )
     H_n = proj.background(res.x)
     K, c, info = solve_interference(B, body_field(attitude, H_n))
@@ -384,6 +372,27 @@ def fit_with_background(
         }
     )
     return K, c, H_n, info
+
+
+def _background_start(R: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """The linear start of :func:`fit_with_background` from the triangular factor ``R`` of ``[D10 | B]``: the
+    direction of ``H_n`` (3,), unit, from the rank-1 factorisation of ``vec(K) H_n^T`` (sign: ``det K > 0``), and the
+    condition number of ``D10``."""
+    R11, R12 = R[:10, :10], R[:10, 10:]  # fewer rows when N < 10: the same singular values as D10
+    cond_lin, _, _ = design_condition(R11)
+    if not np.isfinite(cond_lin) or cond_lin > CONDITION_ERROR:
+        raise IdentifiabilityError(
+            f"the attitudes cannot separate K from the background field (condition number {cond_lin:.3g}); "
+            "record the vehicle turning about all three axes, or give the background vector"
+        )
+    X, *_ = np.linalg.lstsq(R11, R12, rcond=None)  # (10, 3): lstsq(D10, B)
+    Z = X[:9].T.reshape(9, 3)  # rows (a, b), columns j: K[a, b] * H_n[j]
+    u, sv, vt = np.linalg.svd(Z, full_matrices=False)
+    h0 = vt[0]
+    K0 = (sv[0] * u[:, 0]).reshape(3, 3)
+    if np.linalg.det(K0) < 0:
+        h0 = -h0
+    return h0, cond_lin
 
 
 class LinearVector(Estimator):

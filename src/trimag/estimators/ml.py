@@ -7,7 +7,8 @@ magnitude cannot see) and the offset ``b`` (3).
 
 1. **Start**: the algebraic fit (``ellipsoid-fit``) on normalised data.
 2. **Maximum likelihood** (first order): Gauss-Newton from the start (:func:`gauss_newton_solve`;
-   Levenberg-Marquardt, ``scipy.optimize.least_squares``, when a step raises the cost), analytic Jacobian, on
+   Levenberg-Marquardt, :func:`trimag._core.solve.levenberg_marquardt`, when a step raises the cost), analytic
+   Jacobian, on
    the geometric residual ``r_i = (|W (x_i - b)| - F_i) / |W^T n_i|`` (``n_i`` the corrected direction): the
    first-order signed distance of the sample from the ellipsoid, of variance ``sigma^2``. This is the ML
    weighting (it attains the Cramér–Rao bound of :func:`trimag.crlb.crlb` to first order); the weight sits
@@ -38,7 +39,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.rowwise import scratch, sum_squares
-from .._core.solve import GaussNewtonResult, contraction, gauss_newton
+from .._core.solve import GaussNewtonResult, contraction, gauss_newton, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..crlb import (
     UPPER,
@@ -168,11 +169,8 @@ def weighted_ml(
         gn = gauss_newton(fun, jac, p0, max_steps=max_iter, xtol=xtol)
         if gn is not None:
             return np.asarray(gn.x, dtype=np.float64), gn, int(gn.nfev)
-    from scipy.optimize import least_squares
-
-    method = "lm" if loss == "linear" else "trf"
-    res = least_squares(
-        fun, np.asarray(p0, dtype=np.float64), jac=jac, method=method, loss=loss, xtol=1e-12, ftol=1e-12,
+    res = levenberg_marquardt(
+        fun, p0, jac=jac, method="lm" if loss == "linear" else "trf", loss=loss, xtol=1e-12, ftol=1e-12,
         gtol=1e-12, max_nfev=max_iter * 10,
     )
     return np.asarray(res.x, dtype=np.float64), res, int(res.nfev)
@@ -183,7 +181,7 @@ def gauss_newton_solve(
     xtol: float = 1e-12,
 ) -> GaussNewtonResult | None:
     """Undamped Gauss-Newton on the geometric residual from ``p0``, or None as soon as a step does not lower
-    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``): :func:`._solve.gauss_newton`.
+    the sum of squares (the caller then runs Levenberg-Marquardt from ``p0``): :func:`trimag._core.solve.gauss_newton`.
 
     From the algebraic start the problem is nearly linear, so Gauss-Newton converges quadratically (4-6 steps),
     each a 9 x 9 solve, where MINPACK's Levenberg-Marquardt factors the (N, 9) Jacobian at every step. It stops
@@ -278,38 +276,51 @@ def gauss_newton_polish(
     of the estimate (from ``J^T J`` and the residuals), the error left after step ``k`` is about
     ``(s_k / s_{k-1}) s_k``; the polish stops when that is below ``tolerance``, when the relative step is below
     1e-10 (noise-free data), or after ``max_steps`` evaluations. ``contraction``, the factor measured while
-    Gauss-Newton converged on the subsample (:func:`._solve.contraction`; the same data geometry, so the same
+    Gauss-Newton converged on the subsample (:func:`trimag._core.solve.contraction`; the same data geometry, so the same
     ``rho`` up to sampling noise), predicts the error left after the first step as ``contraction * s_1``: when
     that is below ``tolerance`` the polish stops after one evaluation. One step on well-covered logs up to a few
     1e5 samples, two above; 3-5 on poorly covered data.
 
-    With ``norm``, ``u`` are the raw samples, normalised block by block (:func:`_normal_equations`).
+    With ``norm``, ``u`` are the raw samples, normalised block by block (:func:`_normal_equations`). The steps
+    are :func:`trimag._core.solve.gauss_newton_rule`'s, every one taken (no cost check between them), the stop
+    tested before the next evaluation (``final``).
 
     Returns ``(p, sum of squared residuals, JtJ, evaluations)``, the last two from the last evaluation (at the
     point before the final step).
     """
-    evaluations = 0
-    previous: float | None = None  # the size of the step before (no contraction estimate after the first)
     dof = max(len(u) - 9, 1)
-    while True:
-        JtJ, Jtr, ss = _normal_equations(u, p, target, norm=norm)
+    sizes: list[float] = []  # the steps' sizes in standard deviations of the estimate
+
+    def evaluate(q: NDArray[np.float64]) -> tuple[tuple[NDArray[np.float64], NDArray[np.float64], float], float]:
+        JtJ, Jtr, ss = _normal_equations(u, q, target, norm=norm)
         assert JtJ is not None
-        evaluations += 1
+        return (JtJ, Jtr, ss), ss
+
+    def direction(state: tuple[NDArray[np.float64], NDArray[np.float64], float], _: Any) -> NDArray[np.float64]:
+        JtJ, Jtr, ss = state
         try:
             step = np.linalg.solve(JtJ, Jtr)
             std = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0.0, None) * (ss / dof))
         except np.linalg.LinAlgError as exc:
             raise IdentifiabilityError(_SINGULAR) from exc
-        p = p - step
-        size = float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf
-        rho = contraction if previous is None else size / previous
-        if (
-            np.linalg.norm(step) <= 1e-10 * (1.0 + np.linalg.norm(p))
-            or (rho is not None and rho * size <= tolerance)
-            or evaluations >= max_steps
-        ):
-            return p, ss, JtJ, evaluations
-        previous = size
+        sizes.append(float(np.max(np.abs(step) / std)) if np.all(std > 0) else np.inf)
+        return np.asarray(-step, dtype=np.float64)
+
+    def final(p_new: NDArray[np.float64], delta: NDArray[np.float64], state: Any, model: Any) -> bool:
+        rho = contraction if len(sizes) == 1 else sizes[-1] / sizes[-2]
+        return bool(
+            np.linalg.norm(delta) <= 1e-10 * (1.0 + np.linalg.norm(p_new))
+            or (rho is not None and rho * sizes[-1] <= tolerance)
+            or len(sizes) >= max_steps
+        )
+
+    # every step is taken (the start is close and the steps contract: no cost check between them)
+    run = gauss_newton_rule(
+        evaluate, lambda q, state: None, direction, p, max_steps=max_steps, converged=lambda *_: False,
+        rises=lambda *_: False, rounding_step=None, final=final,
+    )
+    JtJ, _, ss = run.state
+    return run.p, ss, JtJ, run.nfev
 
 
 #: Unit vectors to the vertices of a regular tetrahedron: ``sum v = 0`` and ``sum v v^T = 4/3 I``, so
@@ -351,6 +362,57 @@ def bias_correction(
         return np.asarray(-np.linalg.solve(H, 0.5 * sigma2 * lap), dtype=np.float64)
     except np.linalg.LinAlgError as exc:
         raise IdentifiabilityError(_SINGULAR) from exc
+
+
+def _scaled_target(values: NDArray[np.float64] | None) -> tuple[float, Target]:
+    """The reference's RMS ``f_scale`` and the magnitudes the fit targets (reference / ``f_scale``; 1 when
+    unknown)."""
+    if values is None:
+        return 1.0, 1.0
+    f_scale = float(np.sqrt(np.mean(values**2)))
+    return f_scale, values / f_scale
+
+
+def _solve_samples(B: NDArray[np.float64], large: bool) -> tuple[NDArray[np.float64], Normalisation, Any]:
+    """The normalised samples the ML solve runs on, the normalisation and their indices in ``B``: all of them,
+    or on large logs an evenly spread subsample of :data:`LARGE_N` (the polish on all samples then normalises
+    block by block, so no normalised copy of the log is made: memory independent of N)."""
+    if not large:
+        u, norm = normalise(B)
+        return u, norm, slice(None)
+    norm = normalisation_stats(B)
+    idx = np.linspace(0, len(B) - 1, LARGE_N).astype(np.int64)
+    return norm.forward(B[idx]), norm, idx
+
+
+def _jacobian_condition(
+    res: Any,
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64], tuple[NDArray[np.float64], NDArray[np.float64]] | None]:
+    """Condition number, singular values and right singular vectors of the solve's Jacobian, and its ``(J^T J,
+    J^T r)`` when Gauss-Newton converged (the bias correction's first sums at the estimate)."""
+    J = res.jac
+    JtJ = J.T @ J
+    cond, s, vt = gram_condition(JtJ)  # (N, 9) -> (9, 9): no QR of the Jacobian ...
+    if not cond <= GRAM_CONDITION_EXACT:  # ... unless squaring it would cost digits the checks need
+        cond, s, vt = design_condition(J)
+    at_p = (JtJ, J.T @ res.fun) if getattr(res, "method", "") == "gauss-newton" else None
+    return cond, s, vt, at_p
+
+
+def _sample_bias(
+    B: NDArray[np.float64], u_sub: NDArray[np.float64], p: NDArray[np.float64], target: Target, sigma2_u: float,
+    norm: Normalisation, large: bool, at_p: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+) -> NDArray[np.float64]:
+    """:func:`bias_correction` of the estimate ``p``: the bias is a ratio of two sums over samples, so an evenly
+    spread subsample estimates it as well (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself,
+    0.003 standard deviations)."""
+    n_samples = len(B)
+    bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
+    u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
+    return bias_correction(
+        u_bias, p, _take(target, bias_idx), sigma2_u,
+        normal_equations=at_p if u_bias.shape == u_sub.shape else None,
+    )
 
 
 class MaximumLikelihood(Estimator):
@@ -401,24 +463,10 @@ class MaximumLikelihood(Estimator):
             raise TrimagInputError(f"`balance` must be one of {', '.join(BALANCE_CHOICES)}; got {self.balance!r}")
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        target: Target
-        if ref.values is not None:
-            f_scale = float(np.sqrt(np.mean(ref.values**2)))
-            target = ref.values / f_scale
-        else:
-            f_scale, target = 1.0, 1.0
+        f_scale, target = _scaled_target(ref.values)
         n_samples = len(B)
         large = n_samples > LARGE_N and self.loss == "linear"
-        at_p: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-        if large:
-            # large logs: solve on an evenly spread subsample, then polish on every sample (linear in N); the
-            # polish normalises block by block, so no normalised copy of the log is made (memory independent of N)
-            norm = normalisation_stats(B)
-            sub_idx: Any = np.linspace(0, n_samples - 1, LARGE_N).astype(np.int64)
-            u_sub = norm.forward(B[sub_idx])
-        else:
-            u_sub, norm = normalise(B)
-            sub_idx = slice(None)
+        u_sub, norm, sub_idx = _solve_samples(B, large)
         # the start only has to lie in the basin of the subsample's minimum: the algebraic fit of that subsample
         W0, c0, _ = algebraic_ellipsoid(u_sub)
         p0 = np.concatenate([W0[UPPER], c0])
@@ -431,15 +479,10 @@ class MaximumLikelihood(Estimator):
             )
             nfev += n_polish
             cond, s, vt = gram_condition(JtJ)  # the condition of J from J^T J (never fails when singular)
+            at_p = None
         else:
             sum_sq = float(np.sum(res.fun**2))
-            J = res.jac
-            JtJ = J.T @ J
-            cond, s, vt = gram_condition(JtJ)  # (N, 9) -> (9, 9): no QR of the Jacobian ...
-            if not cond <= GRAM_CONDITION_EXACT:  # ... unless squaring it would cost digits the checks need
-                cond, s, vt = design_condition(J)
-            if getattr(res, "method", "") == "gauss-newton":  # J and r at p: the bias correction's first sums
-                at_p = (JtJ, J.T @ res.fun)
+            cond, s, vt, at_p = _jacobian_condition(res)
         check_condition(
             cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
@@ -449,14 +492,7 @@ class MaximumLikelihood(Estimator):
             sigma2_u = (float(self.noise_std) / norm.scale) ** 2
         correction = np.zeros(9)
         if self.bias_correction and self.loss == "linear" and sigma2_u > 0:
-            # the bias is a ratio of two sums over samples: an evenly spread subsample estimates it as well
-            # (measured at N = 2e5: 20 000 samples change it by 0.3 % of itself, 0.003 standard deviations)
-            bias_idx: Any = diagnostic_subsample(n_samples) if n_samples > DIAGNOSTIC_SAMPLES else slice(None)
-            u_bias = norm.forward(B[bias_idx]) if large else u_sub[bias_idx]
-            correction = bias_correction(
-                u_bias, p, _take(target, bias_idx), sigma2_u,
-                normal_equations=at_p if u_bias.shape == u_sub.shape else None,
-            )
+            correction = _sample_bias(B, u_sub, p, target, sigma2_u, norm, large, at_p)
             p = p - correction
         W_u, b_u = _unpack(p)
         W = _positive_diagonal(W_u) * f_scale / norm.scale

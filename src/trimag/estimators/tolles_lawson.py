@@ -355,53 +355,93 @@ def fit_tolles_lawson(
     IdentifiabilityError
         No segment long enough, fewer filtered rows than coefficients.
     """
+    B, S = _checked_series(vector_nT, scalar_nT, Bt_source)
+    model_terms = TollesLawsonTerms(parse_terms(terms), float(Bt_scale), derivative_scheme, Bt_source)
+    bandpass = BandPass(float(band_hz[0]), float(band_hz[1]), float(rate_hz), int(poles), int(trim))
+    ok = np.isfinite(B).all(axis=1) & np.isfinite(S)
+    block_rows = max(round(bootstrap_block_s * rate_hz), 10)
+    sums = filtered_sums(B, S, _finite_segments(ok, segments), model_terms, bandpass, block_rows)
+    n, p = int(sums.n.sum()), len(model_terms.names)
+    if n <= p:
+        raise IdentifiabilityError(
+            f"{n} band-passed samples cannot identify {p} Tolles–Lawson coefficients; record a longer calibration"
+        )
+    lam, cv_info = _ridge_lambda(ridge, sums)
+    G_all, g_all, _ = sums.total()
+    coef = _solve_gram(G_all, g_all, lam)
+    uncertainty = _coefficient_uncertainty(sums, coef, lam, model_terms.names, int(bootstrap), bootstrap_block_s,
+                                           block_rows, seed)
+    stats = _fit_stats(B, ok, sums, coef, None if attitude_deg is None else np.asarray(attitude_deg, dtype=float))
+    diagnostics = _fit_diagnostics(sums, model_terms, lam, cv_info, int(bootstrap), seed,
+                                   stats["std_before_nT"], stats["std_after_nT"])
+    return ScalarCompensation(
+        terms=model_terms, coefficients=coef, bandpass=bandpass, ridge=lam, sensors=dict(sensors or {}),
+        uncertainty=uncertainty, stats=stats, diagnostics=diagnostics,
+    )
+
+
+def _checked_series(
+    vector_nT: ArrayLike, scalar_nT: ArrayLike, Bt_source: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The vector (N, 3) and scalar (N,) series as float arrays, after the shape and option checks."""
     B = np.asarray(vector_nT, dtype=np.float64)
     S = np.asarray(scalar_nT, dtype=np.float64)
     if B.ndim != 2 or B.shape[1] != 3 or S.shape != (len(B),):
         raise TrimagInputError(f"need a vector (N, 3) and a scalar (N,) series; got {B.shape} and {S.shape}")
     if Bt_source not in ("vector", "scalar"):
         raise TrimagInputError(f"Bt_source must be 'vector' or 'scalar'; got {Bt_source!r}")
-    model_terms = TollesLawsonTerms(parse_terms(terms), float(Bt_scale), derivative_scheme, Bt_source)
-    bandpass = BandPass(float(band_hz[0]), float(band_hz[1]), float(rate_hz), int(poles), int(trim))
-    ok = np.isfinite(B).all(axis=1) & np.isfinite(S)
+    return B, S
+
+
+def _finite_segments(ok: NDArray[np.bool_], segments: Sequence[tuple[int, int]] | None) -> list[tuple[int, int]]:
+    """The runs of finite rows (``ok``), within the given ``segments`` when there are any."""
     if segments is None:
-        segments = finite_runs(ok)
-    else:
-        segments = [run for a, b in segments for run in ((a + s, a + e) for s, e in finite_runs(ok[a:b]))]
-    block_rows = max(round(bootstrap_block_s * rate_hz), 10)
-    sums = filtered_sums(B, S, segments, model_terms, bandpass, block_rows)
-    names = model_terms.names
-    n, p = int(sums.n.sum()), len(names)
-    if n <= p:
-        raise IdentifiabilityError(
-            f"{n} band-passed samples cannot identify {p} Tolles–Lawson coefficients; record a longer calibration"
-        )
-    cv_info: dict[str, Any] | None = None
+        return list(finite_runs(ok))
+    return [run for a, b in segments for run in ((a + s, a + e) for s, e in finite_runs(ok[a:b]))]
+
+
+def _ridge_lambda(ridge: float | str, sums: FilteredSums) -> tuple[float, dict[str, Any] | None]:
+    """The ridge lambda (a number >= 0, or chosen by cross-validation for ``"cv"``) and the cross-validation
+    record (None for a number)."""
     if isinstance(ridge, str):
         if ridge.strip().lower() != "cv":
             raise TrimagInputError(f"ridge must be a number >= 0 or 'cv'; got {ridge!r}")
-        lam, cv_info = _cv_lambda(sums)
-    else:
-        lam = float(ridge)
-        if not (lam >= 0 and np.isfinite(lam)):
-            raise TrimagInputError(f"ridge must be a number >= 0 or 'cv'; got {ridge!r}")
-    G_all, g_all, _ = sums.total()
-    coef = _solve_gram(G_all, g_all, lam)
+        return _cv_lambda(sums)
+    lam = float(ridge)
+    if not (lam >= 0 and np.isfinite(lam)):
+        raise TrimagInputError(f"ridge must be a number >= 0 or 'cv'; got {ridge!r}")
+    return lam, None
+
+
+def _coefficient_uncertainty(
+    sums: FilteredSums, coef: NDArray[np.float64], lam: float, names: list[str], bootstrap: int, block_s: float,
+    block_rows: int, seed: int,
+) -> dict[str, Any]:
+    """Formal and block-bootstrap standard deviations of the coefficients (nT per term unit) and the reported
+    ``std = max(formal, bootstrap)``."""
     formal = _formal_std(sums, coef, lam)
     uncertainty: dict[str, Any] = {"formal_std": dict(zip(names, formal.tolist(), strict=True))}
     std = formal
     if bootstrap:
-        boot = _block_bootstrap_std(sums, lam, int(bootstrap), seed)
+        boot = _block_bootstrap_std(sums, lam, bootstrap, seed)
         std = np.maximum(formal, boot)
         uncertainty.update({
             "bootstrap_std": dict(zip(names, boot.tolist(), strict=True)),
-            "bootstrap": {"replicates": int(bootstrap), "block_s": bootstrap_block_s, "block_rows": block_rows,
+            "bootstrap": {"replicates": bootstrap, "block_s": block_s, "block_rows": block_rows,
                           "blocks": len(sums.n), "seed": seed},
         })
     uncertainty["std"] = dict(zip(names, std.tolist(), strict=True))
     uncertainty["note"] = ("std = max(formal, block bootstrap); formal sigmas assume white residuals and "
                            "understate the spread between calibration segments")
-    att = None if attitude_deg is None else np.asarray(attitude_deg, dtype=np.float64)
+    return uncertainty
+
+
+def _fit_stats(
+    B: NDArray[np.float64], ok: NDArray[np.bool_], sums: FilteredSums, coef: NDArray[np.float64],
+    att: NDArray[np.float64] | None,
+) -> dict[str, Any]:
+    """Sample counts, band-passed std before and after compensation (nT), overall and per segment with its
+    manoeuvre content."""
     per_segment = []
     for k, (start, stop) in enumerate(sums.segments):
         mask = sums.segment_of_block == k
@@ -412,10 +452,10 @@ def fit_tolles_lawson(
         per_segment.append(entry)
     y_std = sums.residual_std(None)
     r_std = sums.residual_std(coef)
-    stats = {
+    return {
         "n_samples": len(B),
         "n_used": int(sum(b - a for a, b in sums.segments)),
-        "n_filtered_rows": int(n),
+        "n_filtered_rows": int(sums.n.sum()),
         "n_dropped_rows": int((~ok).sum()),
         "n_skipped_segments": sums.n_skipped_segments,
         "n_skipped_rows": sums.n_skipped_rows,
@@ -424,11 +464,18 @@ def fit_tolles_lawson(
         "improvement_ratio": y_std / r_std if r_std > 0 else None,
         "segments": per_segment,
     }
+
+
+def _fit_diagnostics(
+    sums: FilteredSums, model_terms: TollesLawsonTerms, lam: float, cv_info: dict[str, Any] | None,
+    bootstrap: int, seed: int, y_std: float, r_std: float,
+) -> dict[str, Any]:
+    """Term kinds, collinearity, the ridge cross-validation, segment consistency and the warnings of a fit."""
     diagnostics: dict[str, Any] = {"term_kinds": {g: TERM_KINDS[g] for g in model_terms.terms}}
-    diagnostics.update(_collinear_terms(sums, names))
+    diagnostics.update(_collinear_terms(sums, model_terms.names))
     if cv_info is not None:
         diagnostics["ridge_cv"] = cv_info
-    consistency = _segment_consistency(sums, lam, min(int(bootstrap), 100), seed)
+    consistency = _segment_consistency(sums, lam, min(bootstrap, 100), seed)
     if consistency is not None:
         diagnostics["segment_consistency"] = consistency
     warnings_list = []
@@ -440,7 +487,4 @@ def fit_tolles_lawson(
     if y_std > 0 and r_std >= y_std:
         warnings_list.append("the compensation does not reduce the band-passed scalar: check the columns and units")
     diagnostics["warnings"] = warnings_list
-    return ScalarCompensation(
-        terms=model_terms, coefficients=coef, bandpass=bandpass, ridge=lam, sensors=dict(sensors or {}),
-        uncertainty=uncertainty, stats=stats, diagnostics=diagnostics,
-    )
+    return diagnostics

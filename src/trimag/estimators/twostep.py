@@ -27,6 +27,8 @@ step 2 reduces but does not remove at strong noise (``docs/accuracy.md``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,6 +36,7 @@ from numpy.typing import NDArray
 
 from .._core.chunks import chunk_rows
 from .._core.rowwise import row_dot, scratch, sum_squares, transposed_blocks
+from .._core.solve import GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
 from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
@@ -209,50 +212,45 @@ def _weighted_residual_sum(
     return total
 
 
-class _Step2Result:
-    """The attributes of ``scipy.optimize.OptimizeResult`` that TWOSTEP reads."""
-
-    def __init__(self, x: NDArray[np.float64], nfev: int) -> None:
-        self.x, self.nfev, self.success = x, nfev, True
-        self.message = f"Gauss-Newton on sufficient statistics converged in {nfev - 1} steps"
-
-
 def _gauss_newton_step2(
     stats: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float, float],
     p0: NDArray[np.float64], const_and_grad: Any, *, max_steps: int = 50, xtol: float = 1e-12,
-) -> _Step2Result | None:
-    """Step 2 by Gauss-Newton on 9 x 9 sufficient statistics, or None when a step raises the cost.
+) -> GaussNewtonResult | None:
+    """Step 2 by Gauss-Newton (:func:`trimag._core.solve.gauss_newton_rule`) on 9 x 9 sufficient statistics, or
+    None when a step raises the cost.
 
     The residual ``r = sw (L p - const(p) - z)`` is linear in ``p`` but for the scalar ``const``, so ``J^T J``,
     ``J^T r`` and ``r^T r`` follow from ``stats`` = (``G = Lw^T Lw``, ``h = Lw^T sw``, ``k = Lw^T zw``, and three
     scalars; ``Lw = sw L``, ``zw = sw z``; :func:`_step2_statistics`), computed once: each step costs O(1)
-    instead of an (N, 9) Jacobian.
+    instead of an (N, 9) Jacobian. A step counts as raising the cost above ``1e-10`` relative plus ``1e-12``
+    of ``zw^T zw``; converged when ``|step| <= xtol (1 + |p|)``.
     """
     G, h, k, s0, s1, s2 = stats
 
-    def cost(p: NDArray[np.float64], const: float) -> float:
-        return float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
+    def evaluate(p: NDArray[np.float64]) -> tuple[tuple[NDArray[np.float64], float, NDArray[np.float64]], float]:
+        const, dconst = const_and_grad(p)
+        return (p, const, dconst), float(p @ G @ p - 2.0 * p @ (h * const + k) + s0 * const**2 + 2.0 * const * s1 + s2)
 
-    p = np.asarray(p0, dtype=np.float64).copy()
-    const, dconst = const_and_grad(p)
-    f = cost(p, const)
-    for step_no in range(1, max_steps + 1):
+    def direction(state: tuple[NDArray[np.float64], float, NDArray[np.float64]], _: Any) -> NDArray[np.float64] | None:
+        p, const, dconst = state
         JtJ = G - np.outer(h, dconst) - np.outer(dconst, h) + s0 * np.outer(dconst, dconst)
         Jtr = (G @ p - h * const - k) - dconst * (h @ p - s0 * const - s1)
         try:
-            step = np.linalg.solve(JtJ, Jtr)
+            return np.asarray(-np.linalg.solve(JtJ, Jtr), dtype=np.float64)
         except np.linalg.LinAlgError:
             return None
-        p_new = p - step
-        const_new, dconst_new = const_and_grad(p_new)
-        f_new = cost(p_new, const_new)
-        converged = bool(np.linalg.norm(step) <= xtol * (1.0 + np.linalg.norm(p_new)))
-        if not np.isfinite(f_new) or f_new > f + 1e-10 * abs(f) + 1e-12 * s2:
-            return _Step2Result(p, step_no + 1) if converged else None
-        p, const, dconst, f = p_new, const_new, dconst_new, f_new
-        if converged:
-            return _Step2Result(p, step_no + 1)
-    return None
+
+    run = gauss_newton_rule(
+        evaluate, lambda p, state: None, direction, p0, max_steps=max_steps,
+        converged=lambda p, step, *_: bool(step <= xtol * (1.0 + np.linalg.norm(p))),
+        rises=lambda f_new, f: f_new > f + 1e-10 * abs(f) + 1e-12 * s2, rounding_step=0.0,
+    )
+    if not run.converged:
+        return None
+    return GaussNewtonResult(
+        x=run.p, nfev=run.nfev, success=True,
+        message=f"Gauss-Newton on sufficient statistics converged in {run.nfev - 1} steps",
+    )
 
 
 class TwoStep(Estimator):
@@ -287,124 +285,151 @@ class TwoStep(Estimator):
         check_ellipsoid_options(self.form, self.noise_std)
         principal = check_not_degenerate(B)
         ref = scalar_reference(reference, len(B), units)
-        n_samples = len(B)
-        F: Magnitudes
+        f_scale = 1.0
+        F: Magnitudes = 1.0
         if ref.values is not None:
             f_scale = float(np.sqrt(np.mean(ref.values**2)))
             F = ref.values / f_scale
-        else:
-            f_scale, F = 1.0, 1.0
-        # step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting
-        constant_F = np.ndim(F) == 0 or float(np.ptp(F)) <= 1e-9 * float(np.mean(F))
-        w: Weights
-        src: NDArray[np.float64]  # the samples the block sums read: raw with `src_norm`, or normalised
-        src_norm: Normalisation | None
-        if constant_F:
-            # one magnitude for every sample: z_k = |u_k|^2 - F^2 and the weights are recomputed block by block
-            # from the raw samples, so no normalised copy and no per-sample array is made (memory independent
-            # of N). The centred problem is degenerate here (E = -I, c = 0 fits z exactly: |x|^2 is a
-            # combination of the design's columns), so step 1 starts from the algebraic fit.
-            F = float(np.mean(F))
-            norm = normalisation_stats(B)
-            src, src_norm = B, norm
-            W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
-            M1 = F**2 * (W0.T @ W0)
-            b1 = c0
-            x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
-            w = (b1, np.ascontiguousarray(M1))
-            start = "algebraic"
-        else:
-            u, norm = normalise(B)
-            src, src_norm = u, None
-            # the algebraic start (scaled to the mean magnitude) is always made; the centred linear estimate
-            # only replaces it when it fits the per-sample magnitudes better. When F varies little (a
-            # per-sample IGRF or scalar-magnetometer reference over a survey) the centred problem is as
-            # degenerate as with one magnitude (E = -I, c = 0 nearly fits z): used alone it found no ellipsoid,
-            # or one with a wrong scale (issue 22: mean |B| 22 420 against a 53 941 reference)
-            W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
-            M1 = float(np.mean(F**2)) * (W0.T @ W0)
-            b1 = c0
-            start = "algebraic"
-            centred = _centred_start(u, np.asarray(F, dtype=np.float64))
-            if centred is not None:
-                ev_c, evec_c = np.linalg.eigh(centred[0])
-                ev_a, evec_a = np.linalg.eigh(M1)
-                misfit_c = _magnitude_misfit(u, (evec_c * np.sqrt(ev_c)) @ evec_c.T, centred[1], F)
-                misfit_a = _magnitude_misfit(u, (evec_a * np.sqrt(ev_a)) @ evec_a.T, b1, F)
-                if misfit_c < misfit_a:
-                    M1, b1 = centred
-                    start = "centred"
-            x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
-            w = _weights(u, b1, M1)
+        s1 = _step1(B, F)
         if self.noise_std is not None:
-            sigma2 = (float(self.noise_std) / norm.scale) ** 2
+            sigma2 = (float(self.noise_std) / s1.norm.scale) ** 2
         else:
-            sigma2 = _weighted_residual_sum(src, w, F, x1, src_norm) / (4.0 * max(n_samples - 10, 1))
-
-        # step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted
-
-        def const_and_grad(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-            """The model's constant ``c^T M^-1 c - sigma^2 tr(M)`` and its gradient in ``p`` (9,)."""
-            E, c = _sym(p[:6]), p[6:9]
-            M = np.eye(3) + E
-            bb = np.linalg.solve(M, c)
-            dconst = np.empty(9)
-            # d(c^T M^-1 c)/dE_ij = -(b b^T)_ij (x2 off the diagonal); d tr(M)/dE_ii = 1
-            outer = np.outer(bb, bb)
-            for k, (i, j) in enumerate(zip(*_SYM, strict=True)):
-                dconst[k] = -outer[i, j] * (1.0 if i == j else 2.0) - (sigma2 if i == j else 0.0)
-            dconst[6:9] = 2 * bb
-            return float(c @ bb - sigma2 * np.trace(M)), dconst
-
-        res = _gauss_newton_step2(_step2_statistics(src, w, F, src_norm), x1[:9], const_and_grad,
-                                  max_steps=self.max_iter)
-        if res is None:  # a step raised the cost: Levenberg-Marquardt from the same start, on the whole design
-            u_all = src if src_norm is None else src_norm.forward(src)
-            w_all = _weights(u_all, *w) if isinstance(w, tuple) else w
-            z = row_dot(u_all, u_all) - np.square(F)
-            L, sw = _design(u_all), np.sqrt(w_all)
-
-            def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
-                return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
-
-            def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
-                return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
-
-            from scipy.optimize import least_squares
-
-
-            res = least_squares(fun, x1[:9], jac=jac, method="lm", max_nfev=self.max_iter * 10,
-                                xtol=1e-12, ftol=1e-12, gtol=1e-12)
-        E, c = _sym(res.x[:6]), res.x[6:9]
-        M = np.eye(3) + E
-        ev, evec = np.linalg.eigh(M)
-        if np.any(ev <= 0):
-            raise IdentifiabilityError(
-                "TWOSTEP converged to a matrix that is not positive definite; record the sensor turning "
-                "through many more attitudes (or use `method=ml`)"
-            )
-        A = (evec * np.sqrt(ev)) @ evec.T
-        b_u = np.linalg.solve(M, c)
-        # guard: step 2 can run away on poorly covered data (e.g. one hemisphere at strong noise); keep the
-        # step-1 estimate when step 2 fits the magnitudes worse
-        ev1, evec1 = np.linalg.eigh(M1)
-        A1m = (evec1 * np.sqrt(np.clip(ev1, 0, None))) @ evec1.T
-        fit2 = _magnitude_misfit(src, A, b_u, F, src_norm)
-        fit1 = _magnitude_misfit(src, A1m, b1, F, src_norm)
-        step2_used = bool(res.success) and fit2 <= fit1 * 1.5
-        if not step2_used:
-            A, b_u = A1m, b1
-        W = to_upper(A) * f_scale / norm.scale
-        offset = norm.centre + norm.scale * b_u
+            sigma2 = _weighted_residual_sum(s1.src, s1.w, s1.F, s1.x1, s1.src_norm) / (4.0 * max(len(B) - 10, 1))
+        res = _step2(s1, sigma2, self.max_iter)
+        A, b_u, step2_used = _guarded_estimate(res, s1)
+        W = to_upper(A) * f_scale / s1.norm.scale
+        offset = s1.norm.centre + s1.norm.scale * b_u
         F_hat = None
         if ref.values is None:
             W, F_hat = gauge_scale(W, None)
         return ellipsoid_result(
-            B, W, offset, ref=ref, F_hat=F_hat, sigma=float(np.sqrt(sigma2) * norm.scale), model=model,
+            B, W, offset, ref=ref, F_hat=F_hat, sigma=float(np.sqrt(sigma2) * s1.norm.scale), model=model,
             method=self.name, units=units, form=self.form, iterations=int(res.nfev), converged=bool(res.success),
-            diagnostics={"condition_number": cond, "optimizer": str(res.message), "step2_used": step2_used,
-                         "step1_start": start},
+            diagnostics={"condition_number": s1.cond, "optimizer": str(res.message), "step2_used": step2_used,
+                         "step1_start": s1.start},
             uncertainty_note="Fisher information at the estimate (a lower bound; TWOSTEP is not bias-free at "
             "strong noise)",
             principal=principal,
         )
+
+
+@dataclass
+class _Step1:
+    """Step 1's estimate ``M1``, ``b1`` (normalised units) and its linear parameters ``x1`` (10,), the magnitudes
+    ``F`` (one number when constant), the normalisation, the samples the block sums read (``src``: raw with
+    ``src_norm``, or normalised), the measurement weights, the condition number and the start's kind."""
+
+    F: Magnitudes
+    norm: Normalisation
+    src: NDArray[np.float64]
+    src_norm: Normalisation | None
+    M1: NDArray[np.float64]
+    b1: NDArray[np.float64]
+    x1: NDArray[np.float64]
+    w: Weights
+    cond: float
+    start: str
+
+
+def _step1(B: NDArray[np.float64], F: Magnitudes) -> _Step1:
+    """Step 1: centred linear estimate (the constant as an extra unknown), unit weights then one reweighting."""
+    if np.ndim(F) == 0 or float(np.ptp(F)) <= 1e-9 * float(np.mean(F)):
+        # one magnitude for every sample: z_k = |u_k|^2 - F^2 and the weights are recomputed block by block
+        # from the raw samples, so no normalised copy and no per-sample array is made (memory independent
+        # of N). The centred problem is degenerate here (E = -I, c = 0 fits z exactly: |x|^2 is a
+        # combination of the design's columns), so step 1 starts from the algebraic fit.
+        F = float(np.mean(F))
+        norm = normalisation_stats(B)
+        W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
+        M1 = F**2 * (W0.T @ W0)
+        b1 = c0
+        x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
+        return _Step1(F, norm, B, norm, M1, b1, x1, (b1, np.ascontiguousarray(M1)), cond, "algebraic")
+    u, norm = normalise(B)
+    # the algebraic start (scaled to the mean magnitude) is always made; the centred linear estimate
+    # only replaces it when it fits the per-sample magnitudes better. When F varies little (a
+    # per-sample IGRF or scalar-magnetometer reference over a survey) the centred problem is as
+    # degenerate as with one magnitude (E = -I, c = 0 nearly fits z): used alone it found no ellipsoid,
+    # or one with a wrong scale (issue 22: mean |B| 22 420 against a 53 941 reference)
+    W0, c0, cond = algebraic_ellipsoid(B, norm)  # also the identifiability check
+    M1 = float(np.mean(F**2)) * (W0.T @ W0)
+    b1 = c0
+    start = "algebraic"
+    centred = _centred_start(u, np.asarray(F, dtype=np.float64))
+    if centred is not None:
+        ev_c, evec_c = np.linalg.eigh(centred[0])
+        ev_a, evec_a = np.linalg.eigh(M1)
+        misfit_c = _magnitude_misfit(u, (evec_c * np.sqrt(ev_c)) @ evec_c.T, centred[1], F)
+        misfit_a = _magnitude_misfit(u, (evec_a * np.sqrt(ev_a)) @ evec_a.T, b1, F)
+        if misfit_c < misfit_a:
+            M1, b1 = centred
+            start = "centred"
+    x1 = np.concatenate([(M1 - np.eye(3))[_SYM], M1 @ b1, [b1 @ M1 @ b1]])
+    return _Step1(F, norm, u, None, M1, b1, x1, _weights(u, b1, M1), cond, start)
+
+
+def _const_and_grad(sigma2: float) -> Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64]]]:
+    """Step 2's constant ``c^T M^-1 c - sigma^2 tr(M)`` and its gradient in ``p`` (9,), as a function of ``p``."""
+
+    def const_and_grad(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        E, c = _sym(p[:6]), p[6:9]
+        M = np.eye(3) + E
+        bb = np.linalg.solve(M, c)
+        dconst = np.empty(9)
+        # d(c^T M^-1 c)/dE_ij = -(b b^T)_ij (x2 off the diagonal); d tr(M)/dE_ii = 1
+        outer = np.outer(bb, bb)
+        for k, (i, j) in enumerate(zip(*_SYM, strict=True)):
+            dconst[k] = -outer[i, j] * (1.0 if i == j else 2.0) - (sigma2 if i == j else 0.0)
+        dconst[6:9] = 2 * bb
+        return float(c @ bb - sigma2 * np.trace(M)), dconst
+
+    return const_and_grad
+
+
+def _step2(s1: _Step1, sigma2: float, max_iter: int) -> GaussNewtonResult:
+    """Step 2: Gauss-Newton on the nonlinear model with the noise mean subtracted (sufficient statistics,
+    :func:`_gauss_newton_step2`); when a step raises the cost, Levenberg-Marquardt from the same start on the whole
+    design."""
+    const_and_grad = _const_and_grad(sigma2)
+    res = _gauss_newton_step2(_step2_statistics(s1.src, s1.w, s1.F, s1.src_norm), s1.x1[:9], const_and_grad,
+                              max_steps=max_iter)
+    if res is not None:
+        return res
+    u_all = s1.src if s1.src_norm is None else s1.src_norm.forward(s1.src)
+    w_all = _weights(u_all, *s1.w) if isinstance(s1.w, tuple) else s1.w
+    z = row_dot(u_all, u_all) - np.square(s1.F)
+    L, sw = _design(u_all), np.sqrt(w_all)
+
+    def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(sw * (L @ p - const_and_grad(p)[0] - z), dtype=np.float64)
+
+    def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(sw[:, None] * (L - const_and_grad(p)[1][None, :]), dtype=np.float64)
+
+    return levenberg_marquardt(fun, s1.x1[:9], jac=jac, max_nfev=max_iter * 10, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+
+
+def _guarded_estimate(
+    res: GaussNewtonResult, s1: _Step1
+) -> tuple[NDArray[np.float64], NDArray[np.float64], bool]:
+    """``A`` (symmetric square root of ``M``) and ``b`` of step 2, or of step 1 when step 2 failed or fits the
+    magnitudes worse (it can run away on poorly covered data, e.g. one hemisphere at strong noise); and whether
+    step 2 was used."""
+    E, c = _sym(res.x[:6]), res.x[6:9]
+    M = np.eye(3) + E
+    ev, evec = np.linalg.eigh(M)
+    if np.any(ev <= 0):
+        raise IdentifiabilityError(
+            "TWOSTEP converged to a matrix that is not positive definite; record the sensor turning "
+            "through many more attitudes (or use `method=ml`)"
+        )
+    A = (evec * np.sqrt(ev)) @ evec.T
+    b_u = np.linalg.solve(M, c)
+    ev1, evec1 = np.linalg.eigh(s1.M1)
+    A1m = (evec1 * np.sqrt(np.clip(ev1, 0, None))) @ evec1.T
+    fit2 = _magnitude_misfit(s1.src, A, b_u, s1.F, s1.src_norm)
+    fit1 = _magnitude_misfit(s1.src, A1m, s1.b1, s1.F, s1.src_norm)
+    step2_used = bool(res.success) and fit2 <= fit1 * 1.5
+    if not step2_used:
+        return A1m, s1.b1, False
+    return A, b_u, True

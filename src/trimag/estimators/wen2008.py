@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
+from .._core.solve import levenberg_marquardt
 from ..calibration import Calibration
 from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import TrimagInputError
@@ -93,9 +93,7 @@ def solve_wen_pairs(B1: NDArray[np.float64], B2: NDArray[np.float64], *, max_ite
         return np.asarray(R @ _gram_entries(p)[1], dtype=np.float64)
 
     p0 = np.array([start.k1, start.k2, start.alpha, start.gamma])
-    res = least_squares(
-        fun, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10
-    )
+    res = levenberg_marquardt(fun, p0, jac=jac, xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=max_iter * 10)
     model = Wen2008Model.in_gauge(*res.x)
     return WenSolution(model, start, float(np.sum(res.fun**2)) * scale**4, cond, res)
 
