@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from ._core.solve import gauss_newton_then_lm
 from .calibration import Calibration
 from .errors import IdentifiabilityError, TrimagInputError
 from .honesty import correlation_time
@@ -224,45 +225,52 @@ def _check_inputs(field: ArrayLike, accel: ArrayLike) -> tuple[NDArray[np.float6
     return y, a
 
 
+def _left_jacobian(phi: NDArray[np.float64]) -> NDArray[np.float64]:
+    """SO(3)'s left Jacobian: ``exp(phi + dphi) = exp(J_l(phi) dphi) exp(phi)`` to first order."""
+    theta = float(np.linalg.norm(phi))
+    Phi = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * Phi
+    return np.eye(3) + (1.0 - np.cos(theta)) / theta**2 * Phi + (theta - np.sin(theta)) / theta**3 * (Phi @ Phi)
+
+
+def _residuals(
+    m: NDArray[np.float64], d: NDArray[np.float64], R: NDArray[np.float64], inc: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(R m_i) . d_i - sin I`` (N,) and its Jacobian (N, 4) for a small rotation ``exp(w) R`` and the dip."""
+    v = m @ R.T
+    r = np.einsum("ij,ij->i", v, d) - np.sin(inc)
+    return r, np.column_stack([np.cross(v, d), np.full(len(v), -np.cos(inc))])
+
+
 def _solve(
     m: NDArray[np.float64], d: NDArray[np.float64], R0: NDArray[np.float64], max_iter: int = 50
 ) -> tuple[NDArray[np.float64], float, NDArray[np.float64], NDArray[np.float64], int]:
-    """Gauss-Newton / Levenberg on ``(R m_i) . d_i - sin I``: ``(R, I, residuals, Jacobian, iterations)``."""
+    """Least squares on ``(R m_i) . d_i - sin I`` from ``R0``: ``(R, I, residuals, Jacobian, evaluations)``.
 
-    def evaluate(R: NDArray[np.float64], inc: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        v = m @ R.T
-        r = np.einsum("ij,ij->i", v, d) - np.sin(inc)
-        J = np.column_stack([np.cross(v, d), np.full(len(v), -np.cos(inc))])
-        return r, J
+    The rotation is ``R = exp(phi) R0`` (``phi`` a rotation vector, so the parameters ``(phi, I)`` are a vector
+    space and the core's one Gauss-Newton / Levenberg-Marquardt driver, :func:`trimag._core.solve.gauss_newton_then_lm`,
+    runs on them); the Jacobian in ``phi`` is the small-rotation one times SO(3)'s left Jacobian.
+    """
+    inc0 = float(np.arcsin(np.clip(np.mean(np.einsum("ij,ij->i", m @ R0.T, d)), -1.0, 1.0)))
 
-    R = R0
-    inc = float(np.arcsin(np.clip(np.mean(np.einsum("ij,ij->i", m @ R.T, d)), -1.0, 1.0)))
-    r, J = evaluate(R, inc)
-    cost = float(r @ r)
-    lam = 0.0
-    it = 0
-    while it < max_iter:
-        it += 1
-        A, g = J.T @ J, J.T @ r
-        step = np.linalg.lstsq(A + lam * np.diag(np.diag(A)), -g, rcond=None)[0]
-        R_new = Rotation.from_rotvec(step[:3]).as_matrix() @ R
-        inc_new = inc + float(step[3])
-        r_new, J_new = evaluate(R_new, inc_new)
-        cost_new = float(r_new @ r_new)
-        if cost_new <= cost:
-            R, inc, r, J = R_new, inc_new, r_new, J_new
-            done = cost - cost_new <= 1e-15 * max(cost, 1e-300) or np.linalg.norm(step) < 1e-12
-            cost, lam = cost_new, lam / 10.0 if lam > 1e-6 else 0.0
-            if done:
-                break
-        else:
-            lam = 1e-3 if lam == 0.0 else lam * 10.0
-            if lam > 1e8:
-                break
-    if np.cos(inc) < 0:  # the same sin(I) with the dip within -90..90 (the steps never cross 90 from the start)
+    def rotation(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(Rotation.from_rotvec(p[:3]).as_matrix() @ R0, dtype=np.float64)
+
+    def fun(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return _residuals(m, d, rotation(p), float(p[3]))[0]
+
+    def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        J = _residuals(m, d, rotation(p), float(p[3]))[1]
+        return np.column_stack([J[:, :3] @ _left_jacobian(p[:3]), J[:, 3]])
+
+    res = gauss_newton_then_lm(fun, jac, np.array([0.0, 0.0, 0.0, inc0]), max_steps=max_iter,
+                               lm_options={"xtol": 1e-15, "ftol": 1e-15, "gtol": 1e-15, "max_nfev": 20 * max_iter})
+    R, inc = rotation(res.x), float(res.x[3])
+    if np.cos(inc) < 0:  # the same sin(I) with the dip within -90..90
         inc = float(np.arcsin(np.clip(np.sin(inc), -1.0, 1.0)))
-        r, J = evaluate(R, inc)
-    return R, inc, r, J, it
+    r, J = _residuals(m, d, R, inc)
+    return R, inc, r, J, int(res.nfev)
 
 
 def _starts(m: NDArray[np.float64], d: NDArray[np.float64], k: int = 3) -> list[NDArray[np.float64]]:
