@@ -149,3 +149,19 @@ def test_no_benchmark_harness_inside_the_package():
     """``trimag.experiments`` holds the four papers' reproductions only; benchmarks live in benchmarks/."""
     experiments = {m.rsplit(".", 1)[1] for m in MODULES if m.startswith("trimag.experiments.")}
     assert experiments == {"wu2013", "scalar_gn", "vehicle12", "zhang2009", "_data", "_output"}
+
+
+def test_only_the_workflow_facade_imports_the_app_layer():
+    """The application layer (``trimag.app``, one module per command) sits on top: the library never imports it,
+    and the CLI and batch runs reach it through ``trimag.workflow`` (its stable names)."""
+    outside = {
+        name: sorted(m for m in GRAPH[name] if m == "trimag.app" or m.startswith("trimag.app."))
+        for name in GRAPH if not name.startswith("trimag.app") and name != "trimag.workflow"
+    }
+    assert {name: found for name, found in outside.items() if found} == {}
+
+
+@pytest.mark.parametrize("name", sorted(m for m in MODULES if m.startswith("trimag.app")))
+def test_the_app_layer_does_not_import_its_callers(name):
+    callers = {"trimag.cli", "trimag.batch", "trimag.workflow", "trimag.live"}
+    assert GRAPH[name] & callers == set(), f"{name} imports {sorted(GRAPH[name] & callers)}"
