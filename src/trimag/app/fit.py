@@ -38,8 +38,8 @@ from ._inputs import (
     vector_reference_from_options,
 )
 from ._outputs import _write_fit_outputs
-from ._timesync import _attach_attitude_file
 from ._recalibrate import _prior_units, _refit_prior
+from ._timesync import _attach_attitude_file
 
 __all__ = ["FitResult", "fit_file", "fit_summary"]
 
