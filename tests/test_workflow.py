@@ -26,3 +26,34 @@ def test_interference12_rows_without_attitude_are_counted(tmp_path: Path) -> Non
     assert result.summary["n_used"] == 58 and result.summary["n_dropped"] == 2
     assert any("dropped 2 rows whose attitude" in m for m in result.messages)
     np.testing.assert_allclose(result.calibration.offset, [300.0, -150.0, 80.0], atol=1e-6)
+
+
+def test_export_and_simulate_take_one_request(tmp_path: Path, capsys) -> None:
+    """export_to_file and simulate_to_file take a typed request (what the CLI builds from its flags) or its fields;
+    ``trimag export --json`` prints exactly what export_to_file returns."""
+    import pytest
+
+    from trimag.cli import main
+    from trimag.errors import TrimagInputError
+    from trimag.requests import ExportRequest, SimulateRequest
+    from trimag.workflow import export_to_file
+
+    W = np.eye(3) + np.array([[0.05, 0.01, 0.0], [0.01, -0.03, 0.02], [0.0, 0.02, 0.04]])
+    params = {f"w{i + 1}{j + 1}": float(W[i, j]) for i in range(3) for j in range(3)}
+    params.update({"hard_iron_x": 0.1, "hard_iron_y": -0.2, "hard_iron_z": 0.05})
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    req = SimulateRequest("ellipsoid", tmp_path / "p.json", n=300, out=tmp_path / "sim.csv", noise=1e-3, seed=4)
+    assert simulate_to_file(req)["n"] == 300
+    first = (tmp_path / "sim.csv").read_bytes()
+    simulate_to_file(model="ellipsoid", params_path=tmp_path / "p.json", n=300, out=tmp_path / "sim.csv",
+                     noise=1e-3, seed=4)
+    assert (tmp_path / "sim.csv").read_bytes() == first
+    with pytest.raises(TrimagInputError, match="not both"):
+        simulate_to_file(req, seed=5)
+    fit_file(tmp_path / "sim.csv", units="uT", out=tmp_path / "cal.json")
+    r = export_to_file(ExportRequest(tmp_path / "cal.json", "ardupilot", tmp_path / "a.parm", instance=2))
+    assert r["target"] == "ardupilot" and r["out"] == str(tmp_path / "a.parm")
+    assert any(k.startswith("COMPASS_OFS2") for k in r["parameters"])
+    assert main(["export", str(tmp_path / "cal.json"), "--to", "ardupilot", "--instance", "2", "-o",
+                 str(tmp_path / "a.parm"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(r))

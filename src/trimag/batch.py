@@ -247,8 +247,8 @@ def fit_batch(
         The fit asked for every file (what ``trimag batch`` builds from its flags): its input's path and ``out`` are
         replaced per file, and ``model``, ``method``, ``options`` and ``fit_options`` are not used.
     **fit_options
-        Without ``request``: further :func:`trimag.workflow.fit_file` arguments, the same for every file: ``fmt``,
-        ``columns``, ``units``, ``strict``, ``reference``, ``igrf_spec``, ``reference_column``, ...
+        Without ``request``: further :func:`trimag.workflow.fit_file` arguments for every file (``fmt``, ``units``,
+        ``reference``, ``igrf_spec``, ...).
 
     Returns
     -------
@@ -258,23 +258,19 @@ def fit_batch(
     Raises
     ------
     TrimagInputError
-        A pattern matches no file, or an unknown model/method (checked once, before any work).
+        A pattern matches no file, an unknown model/method/argument, or both ``request`` and fit arguments
+        (checked once, before any work).
     """
     from .estimators import make_estimator
     from .parallel import map_trials
 
-    if request is not None:
-        if fit_options:
-            raise TrimagInputError(f"give either a FitRequest or fit arguments, not both (got "
-                                   f"{', '.join(fit_options)})")
-        model, method, options = request.model, request.method, dict(request.options)
-    make_estimator(model, method, options)  # unknown model, method or option: fail once, up front
+    request = _batch_request(request, model=model, method=method, options=options, **fit_options)
+    make_estimator(request.model, request.method, dict(request.options))  # unknown model, method or option: fail once
     files = expand_inputs(patterns)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(str(f), str(out / f"{name}.json")) for f, name in zip(files, calibration_names(files), strict=True)]
-    task = (partial(fit_one, request=request) if request is not None
-            else partial(fit_one, model=model, method=method, options=options, **fit_options))
+    task = partial(fit_one, request=request)
     t0 = time.perf_counter()
     rows = map_trials(task, jobs, workers=workers, scheduler=scheduler,
                       progress="batch fits" if progress is True else progress, chunksize=chunksize,
@@ -288,3 +284,14 @@ def fit_batch(
     if parquet is not None:
         written["summary_parquet"] = str(parquet)
     return BatchResult(table, written, seconds)
+
+
+def _batch_request(request: FitRequest | None, **arguments: Any) -> FitRequest:
+    """The fit asked for every file: ``request``, or one from the flat fit ``arguments`` (its path is replaced per
+    file); a request with arguments other than :func:`fit_batch`'s defaults is refused."""
+    if request is None:
+        return FitRequest.of("", **arguments)
+    defaults = {"model": "ellipsoid", "method": None, "options": None}
+    if any(arguments.get(k, v) != v for k, v in defaults.items()) or set(arguments) - set(defaults):
+        raise TrimagInputError("give either a FitRequest or fit arguments, not both")
+    return request
