@@ -438,13 +438,15 @@ def _request(cls: type[_R], args: argparse.Namespace, path: Any = None, **given:
 
     specs: dict[str, type] = {"input": InputSpec, "reference": ReferenceSpec, "attitude": AttitudeSpec}
 
-    def fields(kind: type, **fixed: Any) -> dict[str, Any]:
+    def flags(kind: Any, **fixed: Any) -> dict[str, Any]:
+        """``kind``'s fields from the flags of the same destination, then ``fixed``."""
         names = [f.name for f in dataclasses.fields(kind) if f.name not in fixed]
         return {**{name: getattr(args, name) for name in names if hasattr(args, name)}, **fixed}
 
-    values = {name: kind(**fields(kind, **({"path": path} if kind is InputSpec else {})))
-              for name, kind in specs.items() if name in {f.name for f in dataclasses.fields(cls)}}  # type: ignore[arg-type]
-    return cls(**{**fields(cls, **values, **given), **values, **given})
+    own = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    parts = {name: kind(**flags(kind, **({"path": path} if kind is InputSpec else {})))
+             for name, kind in specs.items() if name in own}
+    return cls(**flags(cls, **parts, **given))
 
 
 def _regressor_flag(text: str | None) -> tuple[str, ...] | None:

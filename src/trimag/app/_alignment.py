@@ -9,7 +9,7 @@ import numpy as np
 from ..reference import igrf, parse_igrf_spec
 
 
-def _dip_check(dip_deg: float, igrf_spec: str) -> str:
+def dip_check(dip_deg: float, igrf_spec: str) -> str:
     """The fitted dip against IGRF's at the site, as a line; a warning when the signs differ (an accelerometer
     that reads gravity instead of specific force, or a flipped axis)."""
     expected = igrf(*parse_igrf_spec(igrf_spec)).inclination_deg

@@ -16,7 +16,7 @@ from ..reference import igrf, parse_igrf_spec
 from ..units import normalise_unit
 
 
-def _check_unit(
+def check_unit(
     samples: Samples, units: str | None, reference: str | float | None, igrf_spec: str | None
 ) -> tuple[str | None, list[str]]:
     """The data's unit, checked against the column headers, Earth-field ranges and the reference (issue 22).
@@ -69,7 +69,7 @@ def _check_unit(
     return units, messages
 
 
-def _acceptance(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
+def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
     """The acceptance policy's verdict (:func:`trimag.policy.check_policy`) with the site's inclination and F."""
     from ..policy import check_policy
 
@@ -82,7 +82,7 @@ def _acceptance(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec:
     return check_policy(cal, limits, inclination_deg=inclination, reference_F=F)
 
 
-def _worse_than_raw(cal: Calibration) -> bool:
+def worse_than_raw(cal: Calibration) -> bool:
     before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
     return before is not None and after is not None and float(after) > float(before)
 
@@ -118,7 +118,7 @@ def _attitude_alternatives(
     return out
 
 
-def _refuse_impossible_vector_fit(
+def refuse_impossible_vector_fit(
     cal: Calibration, samples: Samples, ref: Any, unit: str, model: str, method: str | None,
     options: dict[str, Any] | None, attitude_columns: str | None, quaternion_columns: str | None,
     quaternion_order: str, quaternion_frame: str,
@@ -131,7 +131,7 @@ def _refuse_impossible_vector_fit(
     from ..errors import IdentifiabilityError
 
     det = float(np.linalg.det(np.asarray(cal.matrix)))
-    if not (_worse_than_raw(cal) or det <= 0):
+    if not (worse_than_raw(cal) or det <= 0):
         return
     before, after = float(cal.stats["rms_before"]), float(cal.stats["rms_after"])
     what = f"RMS {after:.4g} {unit} after against {before:.4g} before" + ("; det(K) < 0, a reflection" if det <= 0
@@ -161,7 +161,7 @@ def _refuse_impossible_vector_fit(
     )
 
 
-def _refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
+def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
     from ..errors import IdentifiabilityError
 
@@ -185,7 +185,7 @@ def _refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
         )
 
 
-def _refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[str, Any]) -> None:
+def refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a fit of an autopilot log that the rotation recorded cannot identify.
 
     A vehicle that turns about its vertical axis with little tilt (a rover, a boat, a level flight) leaves the

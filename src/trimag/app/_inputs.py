@@ -99,7 +99,7 @@ def vector_reference_from_options(
     return background_from_run(background_run, units=units, **read_kwargs)
 
 
-def _regressor_names(names: Any) -> tuple[str, ...] | None:
+def parse_regressor_names(names: Any) -> tuple[str, ...] | None:
     """``FitRequest.regressors`` (a tuple, or a comma-separated string) as a tuple of names; None when none."""
     if names is None:
         return None
@@ -140,13 +140,13 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     return column_names(items, names)
 
 
-def _drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
+def drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
     """Drop (and count) the rows whose per-sample background cells are missing or non-finite."""
     if background_columns is None:
         return samples, 0
     names = ",".join(_split_names(background_columns, samples, "background_columns"))
     try:
-        return _drop_rows_without_attitude(samples, names, None)
+        return drop_rows_without_attitude(samples, names, None)
     except TrimagInputError:
         raise TrimagInputError(f"none of the rows has a finite background in columns {names}") from None
 
@@ -174,7 +174,7 @@ def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.
     return values
 
 
-def _drop_rows_without_attitude(
+def drop_rows_without_attitude(
     samples: Samples, attitude_columns: str | None, quaternion_columns: str | None
 ) -> tuple[Samples, int]:
     """Drop (and count) the rows whose attitude cells are missing or non-finite."""
@@ -198,7 +198,7 @@ def _drop_rows_without_attitude(
     return kept, n_bad
 
 
-def _truthy(value: Any) -> bool:
+def truthy(value: Any) -> bool:
     if isinstance(value, str):
         return value.strip().lower() in ("1", "true", "yes", "on")
     return bool(value)

@@ -13,7 +13,7 @@ from ..io import Samples
 from ..requests import FitRequest
 
 
-def _write_fit_outputs(
+def write_fit_outputs(
     cal: Calibration, samples: Samples, req: FitRequest, regressor_values: dict[str, NDArray[np.float64]] | None = None
 ) -> tuple[Calibration, dict[str, str]]:
     """Write the report and the calibration when asked: together or not at all (the report first, it can fail)."""

@@ -14,10 +14,10 @@ from ..io import Samples
 from ..reference import igrf, parse_igrf_spec
 from ..requests import FitRequest
 from ..units import normalise_unit
-from ._inputs import _drop_rows_without_attitude, regressor_columns, scalar_reference_from_options
+from ._inputs import drop_rows_without_attitude, regressor_columns, scalar_reference_from_options
 
 
-def _prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
+def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
     """The data's unit against the prior calibration's: a clash is refused, an unstated unit is the prior's."""
     given = req.input.units
     if given is not None:
@@ -42,7 +42,7 @@ def _inclination(igrf_spec: str | None) -> float | None:
     return float(np.degrees(np.arctan2(down, np.hypot(north, east))))
 
 
-def _refit_prior(
+def refit_prior(
     req: FitRequest, samples: Samples, unit: str, prior: Calibration, options: dict[str, Any]
 ) -> tuple[Samples, Calibration, dict[str, NDArray[np.float64]] | None, list[str]]:
     """Quick recalibration (:func:`trimag.prior.refit_offset`): ``(samples, calibration, regressor values,
@@ -58,7 +58,7 @@ def _refit_prior(
                                "a background vector: give `reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
     attitude = None
     if att.attitude_columns is not None or att.quaternion_columns is not None:
-        samples, n_no_attitude = _drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+        samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
         if n_no_attitude:
             messages.append(f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric")
         attitude = _attitude.attitude_from_table(

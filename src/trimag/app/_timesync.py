@@ -11,12 +11,12 @@ import numpy as np
 from ..errors import TrimagInputError
 from ..io import Samples
 from ..requests import EvaluateRequest, FitRequest
-from ._inputs import _truthy, vector_reference_from_options
+from ._inputs import truthy, vector_reference_from_options
 
 _Q = TypeVar("_Q", FitRequest, EvaluateRequest)
 
 
-def _attach_attitude_file(
+def attach_attitude_file(
     req: _Q, samples: Samples, unit: str, options: dict[str, Any], estimator: Any
 ) -> tuple[Samples, _Q, dict[str, Any], list[str]]:
     """Attitudes from ``attitude_file`` interpolated (slerp) to the samples' time stamps, after the lag when
@@ -50,7 +50,7 @@ def _attach_attitude_file(
     messages = [f"attitudes from {att.attitude_file}: {len(stream.times)} rows over {t0:.6g}..{t1:.6g} s "
                 f"(every {stream.median_interval:.4g} s), interpolated (slerp) to the magnetometer's time stamps"]
     lag = float(options.get("lag_s", 0.0))  # a known lag (evaluate: the calibration's)
-    if _truthy(options.get("estimate_lag", False)):
+    if truthy(options.get("estimate_lag", False)):
         if estimator.reference_kind != "vector" or req.reference.background_run is not None:
             raise TrimagInputError("`option estimate_lag=true` maximises the quality of the vector fit: it needs "
                                    "`model=interference12` with `background_ned=N,E,D` or `igrf_spec=...`")

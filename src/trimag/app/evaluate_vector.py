@@ -13,12 +13,12 @@ from ..calibration import Calibration
 from ..io import Samples, read_samples
 from ..requests import AttitudeSpec, EvaluateRequest, as_request
 from ._inputs import (
-    _drop_rows_without_attitude,
-    _drop_rows_without_background,
+    drop_rows_without_attitude,
+    drop_rows_without_background,
     regressor_columns,
     vector_reference_from_options,
 )
-from ._timesync import _attach_attitude_file
+from ._timesync import attach_attitude_file
 
 __all__ = ["evaluate_vector_file"]
 
@@ -41,8 +41,8 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     cal = Calibration.from_file(req.calibration)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where)
     samples, att, lag = _attitudes(req, samples, cal)
-    samples, n_no_attitude = _drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
-    samples, n_no_background = _drop_rows_without_background(samples, given.background_columns)
+    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns)
     rot = _attitude.attitude_from_table(
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
         scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
@@ -76,7 +76,7 @@ def _attitudes(req: EvaluateRequest, samples: Samples, cal: Calibration) -> tupl
     if req.attitude.attitude_file is None:
         return samples, req.attitude, None
     lag = float((cal.diagnostics.get("time_sync") or {}).get("lag_s", 0.0))
-    samples, attached, _, _ = _attach_attitude_file(req, samples, cal.units, {"lag_s": lag}, None)
+    samples, attached, _, _ = attach_attitude_file(req, samples, cal.units, {"lag_s": lag}, None)
     return samples, AttitudeSpec(quaternion_columns=attached.attitude.quaternion_columns), lag
 
 

@@ -19,27 +19,27 @@ from ..io import Samples, read_samples
 from ..reference import ScalarReference, igrf, parse_igrf_spec
 from ..requests import FitRequest
 from ..units import normalise_unit
-from ._alignment import _dip_check, alignment_lines
+from ._alignment import alignment_lines, dip_check
 from ._checks import (
-    _acceptance,
-    _check_unit,
-    _refuse_impossible_vector_fit,
-    _refuse_static_log,
-    _refuse_unidentified_log,
-    _worse_than_raw,
+    check_unit,
+    policy_verdict,
+    refuse_impossible_vector_fit,
+    refuse_static_log,
+    refuse_unidentified_log,
+    worse_than_raw,
 )
 from ._inputs import (
-    _drop_rows_without_attitude,
-    _drop_rows_without_background,
-    _regressor_names,
     accel_values,
+    drop_rows_without_attitude,
+    drop_rows_without_background,
+    parse_regressor_names,
     regressor_columns,
     scalar_reference_from_options,
     vector_reference_from_options,
 )
-from ._outputs import _write_fit_outputs
-from ._recalibrate import _prior_units, _refit_prior
-from ._timesync import _attach_attitude_file
+from ._outputs import write_fit_outputs
+from ._recalibrate import prior_units, refit_prior
+from ._timesync import attach_attitude_file
 
 __all__ = ["FitResult", "fit_file", "fit_summary"]
 
@@ -104,7 +104,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     from ..policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
-    regressor_names = _regressor_names(req.regressors)
+    regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
         from ..regressors import MODELS as REGRESSOR_MODELS
 
@@ -124,14 +124,14 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
                                    "prior's regressor terms and refits only the offset; drop `regressors`")
         prior = Calibration.from_file(req.prior)
-        req, prior_messages = _prior_units(req, prior)
+        req, prior_messages = prior_units(req, prior)
         messages += prior_messages
-    units, unit_messages = _check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
+    units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
     messages += unit_messages + _reading_messages(samples)
     sync = None
     if req.attitude.attitude_file is not None:
-        samples, req, sync, sync_messages = _attach_attitude_file(req, samples, unit, sync_options, estimator)
+        samples, req, sync, sync_messages = attach_attitude_file(req, samples, unit, sync_options, estimator)
         messages += sync_messages
     if req.accel_columns is not None:
         from ..alignment import check_tilt_variation
@@ -139,7 +139,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
         check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
     if prior is not None:
-        samples, cal, regressor_values, prior_messages = _refit_prior(req, samples, unit, prior, prior_options)
+        samples, cal, regressor_values, prior_messages = refit_prior(req, samples, unit, prior, prior_options)
         ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
         messages += prior_messages
         warn_texts: list[str] = []
@@ -149,7 +149,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         messages += fit_messages
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
                                             prior is not None)
-    cal, written = _write_fit_outputs(cal, samples, req, regressor_values)
+    cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
                      written)
@@ -194,7 +194,7 @@ def _finish(
         cal = cal.with_diagnostics(warnings=warn_texts)
     igrf_spec = req.reference.igrf_spec
     if limits is not None:
-        cal = cal.with_diagnostics(acceptance=_acceptance(cal, limits, ref, igrf_spec))
+        cal = cal.with_diagnostics(acceptance=policy_verdict(cal, limits, ref, igrf_spec))
     summary = fit_summary(cal, samples)
     summary["warnings"] = warn_texts
     if limits is not None:
@@ -207,7 +207,7 @@ def _finish(
         summary["alignment"] = cal.diagnostics["alignment"]
         messages += alignment_messages
         if igrf_spec is not None:
-            messages.append(_dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
+            messages.append(dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
     if (not quick and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
             and req.model == "ellipsoid"):
         messages.append(_heading_message(cal, igrf_spec, summary))
@@ -235,13 +235,13 @@ def _fit_model(
         estimator.fit(samples.field, ref, units=unit, attitude=attitude)
     cal = estimator.calibration_
     if samples.log_info is not None and src.columns is None:
-        _refuse_unidentified_log(cal, samples, samples.log_info)
+        refuse_unidentified_log(cal, samples, samples.log_info)
     if estimator.reference_kind == "vector":
         att = req.attitude
-        _refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
+        refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
                                       att.attitude_columns, att.quaternion_columns, att.quaternion_order,
                                       att.quaternion_frame)
-    elif _worse_than_raw(cal):
+    elif worse_than_raw(cal):
         messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
                         f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
                         "reference and the unit")
@@ -277,7 +277,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
     if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
-        _refuse_static_log(samples, log_info)
+        refuse_static_log(samples, log_info)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
 
@@ -321,12 +321,12 @@ def _fit_reference(
         return samples, ref, None, messages
     from .. import attitude as _attitude
 
-    samples, n_no_attitude = _drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
     if n_no_attitude:
         messages.append(
             f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
         )
-    samples, n_no_background = _drop_rows_without_background(samples, given.background_columns)
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = _attitude.attitude_from_table(
