@@ -505,15 +505,8 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
                                     units=src.units)
-        if r["n_uncorrected"]:
-            _err(f"{r['n_uncorrected']} of {r['n_rows']} rows could not be compensated (missing values or a "
-                 "segment of one row); their compensated cells are empty")
-        if args.json:
-            print(json.dumps(r))
-        else:
-            _say(f"compensated {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows (nT); appended "
-                 f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
-        return EXIT_OK
+        return _print_applied(r, args, "compensated", "nT", "could not be compensated (missing values or a segment of "
+                              "one row); their compensated cells are empty")
 
     update, close = _progress(args)
     try:
@@ -522,14 +515,20 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         close()
     if result["column_note"]:
         _say(result["column_note"], args)
-    if result["n_uncorrected"]:
-        _err(f"{result['n_uncorrected']} of {result['n_rows']} rows had missing or non-numeric x/y/z; "
-             "they are kept with empty corrected cells")
+    return _print_applied(result, args, "corrected", result["units"], "had missing or non-numeric x/y/z; they are "
+                          "kept with empty corrected cells")
+
+
+def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit: str, uncorrected: str) -> int:
+    """What ``trimag apply`` did: the rows left uncorrected (``uncorrected`` says why) on stderr, then the JSON
+    object or one line (``verb`` the rows, in ``unit``)."""
+    if r["n_uncorrected"]:
+        _err(f"{r['n_uncorrected']} of {r['n_rows']} rows {uncorrected}")
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(r))
     else:
-        _say(f"corrected {result['n_rows'] - result['n_uncorrected']} of {result['n_rows']} rows "
-             f"({result['units']}); appended {', '.join(result['output_columns'])}; wrote {result['out']}", args)
+        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
+             f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
     return EXIT_OK
 
 
