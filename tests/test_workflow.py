@@ -57,3 +57,32 @@ def test_export_and_simulate_take_one_request(tmp_path: Path, capsys) -> None:
     assert main(["export", str(tmp_path / "cal.json"), "--to", "ardupilot", "--instance", "2", "-o",
                  str(tmp_path / "a.parm"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(r))
+
+
+def test_vector_evaluation_takes_one_request_and_refuses_a_background_run(tmp_path: Path) -> None:
+    """evaluate_vector_file takes an EvaluateRequest (or its fields): the same errors either way; a background run
+    (a fitting input, no `trimag evaluate` flag) is refused in one line instead of being read without attitudes."""
+    import pytest
+
+    from trimag.errors import TrimagInputError
+    from trimag.requests import AttitudeSpec, EvaluateRequest, InputSpec, ReferenceSpec
+    from trimag.workflow import evaluate_vector_file
+
+    K = np.eye(3) + np.array([[0.05, 0.01, -0.02], [0.0, -0.03, 0.02], [0.01, 0.0, 0.04]])
+    params = {f"k{i + 1}{j + 1}": float(K[i, j]) for i in range(3) for j in range(3)}
+    params.update({"c1": 300.0, "c2": -150.0, "c3": 80.0})
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    simulate_to_file(model="interference12", params_path=tmp_path / "p.json", n=80, noise=1.0,
+                     out=tmp_path / "sim.csv", field=48000.0, seed=3)
+    fit_file(tmp_path / "sim.csv", model="interference12", units="nT", quaternion_columns="qw,qx,qy,qz",
+             background_ned="48000,0,0", out=tmp_path / "cal.json")
+    req = EvaluateRequest(tmp_path / "cal.json", InputSpec(tmp_path / "sim.csv"),
+                          reference=ReferenceSpec(background_ned="48000,0,0"),
+                          attitude=AttitudeSpec(quaternion_columns="qw,qx,qy,qz"))
+    typed = evaluate_vector_file(req)
+    flat = evaluate_vector_file(tmp_path / "cal.json", tmp_path / "sim.csv", background_ned="48000,0,0",
+                                quaternion_columns="qw,qx,qy,qz")
+    assert typed == flat and typed["n_used"] == 80 and typed["rms_after"] < 0.1 * typed["rms_before"]
+    with pytest.raises(TrimagInputError, match="`background_run` is for fitting"):
+        evaluate_vector_file(tmp_path / "cal.json", tmp_path / "sim.csv", background_run=str(tmp_path / "sim.csv"),
+                             quaternion_columns="qw,qx,qy,qz")

@@ -153,7 +153,8 @@ class EvaluateRequest:
     or ``declination``, degrees east); with attitude columns the vector errors against ``reference.background_ned``,
     ``reference.igrf_spec`` or ``reference.background_columns``; otherwise the magnitude errors against
     ``reference`` (``reference``, ``igrf_spec`` or ``reference_column``; the mean corrected magnitude when none),
-    streamed in ``chunk_rows`` rows."""
+    streamed in ``chunk_rows`` rows. The evaluations read with ``input.strict`` and ``input.sensor`` at their
+    defaults, and the vector evaluation takes the calibration's unit (``input.units`` is not used there)."""
 
     calibration: str | Path
     input: InputSpec

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from ..errors import TrimagInputError
 from ..io import Samples, column_values
 from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
+from ..requests import ReferenceSpec
 from ..units import convert
 
 
@@ -41,38 +42,35 @@ def _parse_vector(text: str, name: str) -> NDArray[np.float64]:
     return np.array(values)
 
 
-def scalar_reference_from_options(
-    samples: Samples,
-    *,
-    units: str,
-    reference: str | float | None = None,
-    igrf_spec: str | None = None,
-    reference_column: str | None = None,
-) -> ScalarReference:
-    """Build the magnitude reference from the command-line choices (at most one of them)."""
-    given = [x for x in (reference, igrf_spec, reference_column) if x is not None]
-    if len(given) > 1:
+def magnitude_reference(samples: Samples, given: ReferenceSpec, unit: str) -> ScalarReference:
+    """The field magnitude reference of ``samples`` in ``unit``: ``given.reference`` (a number, or ``"mean"``),
+    ``given.igrf_spec`` or ``given.reference_column`` (at most one of them; none: unknown)."""
+    reference, igrf_spec, reference_column = given.reference, given.igrf_spec, given.reference_column
+    named = [x for x in (reference, igrf_spec, reference_column) if x is not None]
+    if len(named) > 1:
         raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
     n = len(samples.field)
     if igrf_spec is not None:
         lat, lon, alt, date = parse_igrf_spec(igrf_spec)
-        return igrf_reference(lat, lon, alt, date, n=n, units=units)
+        return igrf_reference(lat, lon, alt, date, n=n, units=unit)
     if reference_column is not None:
         values = column_values(samples, reference_column)
-        ref = as_scalar_reference(values, n, units=units)
+        ref = as_scalar_reference(values, n, units=unit)
         return ScalarReference(ref.values, f"column {reference_column}", ref.unit)
-    return as_scalar_reference(reference, n, units=units)
+    return as_scalar_reference(reference, n, units=unit)
 
 
-def vector_reference_from_options(
-    *, units: str, background_ned: str | None = None, igrf_spec: str | None = None,
-    background_run: str | None = None, background_columns: str | None = None, samples: Samples | None = None,
-    **read_kwargs: Any,
+def background_field(
+    given: ReferenceSpec, unit: str, samples: Samples | None = None, **read_kwargs: Any
 ) -> tuple[NDArray[np.float64], str]:
-    """The background field (N, E, D) in the data's unit, shape (3,) or (N, 3) (``background_columns``: one
-    vector per row of ``samples``), and a description of its source."""
-    given = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
-    if len(given) != 1:
+    """The background field (N, E, D) in ``unit``, shape (3,) or (N, 3) (``background_columns``: one vector per row
+    of ``samples``), and a description of its source: exactly one of ``given.background_ned``, ``igrf_spec``,
+    ``background_run`` (read with ``read_kwargs``, :func:`trimag.io.background.background_from_run`) and
+    ``background_columns``."""
+    background_ned, igrf_spec = given.background_ned, given.igrf_spec
+    background_run, background_columns = given.background_run, given.background_columns
+    named = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
+    if len(named) != 1:
         raise TrimagInputError(
             "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
             "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE` or `background_columns=N,E,D`"
@@ -83,20 +81,20 @@ def vector_reference_from_options(
         names = _split_names(background_columns, samples, "background_columns")
         values = np.column_stack([column_values(samples, c) for c in names])
         F = np.linalg.norm(values, axis=1)
-        return values, (f"per sample from columns {', '.join(names)}, |H| {F.min():.6g} to {F.max():.6g} {units}, "
+        return values, (f"per sample from columns {', '.join(names)}, |H| {F.min():.6g} to {F.max():.6g} {unit}, "
                         f"mean NED {np.round(values.mean(axis=0), 3).tolist()}")
     if background_ned is not None:
         return _parse_vector(background_ned, "`background_ned`"), "given (NED)"
     if igrf_spec is not None:
         lat, lon, alt, date = parse_igrf_spec(igrf_spec)
         fld = igrf(lat, lon, alt, date)
-        vec = fld.ned_nT * convert(1.0, "nT", units)
+        vec = fld.ned_nT * convert(1.0, "nT", unit)
         return vec, f"igrf {igrf_spec} (IGRF-14, NED {np.round(fld.ned_nT, 1).tolist()} nT)"
 
     assert background_run is not None
     from ..io.background import background_from_run
 
-    return background_from_run(background_run, units=units, **read_kwargs)
+    return background_from_run(background_run, units=unit, **read_kwargs)
 
 
 def parse_regressor_names(names: Any) -> tuple[str, ...] | None:

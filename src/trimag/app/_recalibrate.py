@@ -14,7 +14,7 @@ from ..io import Samples
 from ..reference import igrf, parse_igrf_spec
 from ..requests import FitRequest
 from ..units import normalise_unit
-from ._inputs import drop_rows_without_attitude, regressor_columns, scalar_reference_from_options
+from ._inputs import drop_rows_without_attitude, magnitude_reference, regressor_columns
 
 
 def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
@@ -65,8 +65,7 @@ def refit_prior(
             samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
             scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
         )
-    ref = scalar_reference_from_options(samples, units=unit, reference=given.reference, igrf_spec=given.igrf_spec,
-                                        reference_column=given.reference_column)
+    ref = magnitude_reference(samples, given, unit)
     F: Any = ref.values
     if F is None:
         value = (prior.reference or {}).get("value")

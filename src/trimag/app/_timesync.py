@@ -10,8 +10,8 @@ import numpy as np
 
 from ..errors import TrimagInputError
 from ..io import Samples
-from ..requests import EvaluateRequest, FitRequest
-from ._inputs import truthy, vector_reference_from_options
+from ..requests import EvaluateRequest, FitRequest, ReferenceSpec
+from ._inputs import background_field, truthy
 
 _Q = TypeVar("_Q", FitRequest, EvaluateRequest)
 
@@ -54,8 +54,9 @@ def attach_attitude_file(
         if estimator.reference_kind != "vector" or req.reference.background_run is not None:
             raise TrimagInputError("`option estimate_lag=true` maximises the quality of the vector fit: it needs "
                                    "`model=interference12` with `background_ned=N,E,D` or `igrf_spec=...`")
-        background, _ = vector_reference_from_options(units=unit, background_ned=req.reference.background_ned,
-                                                      igrf_spec=req.reference.igrf_spec)
+        given = req.reference
+        background, _ = background_field(ReferenceSpec(background_ned=given.background_ned, igrf_spec=given.igrf_spec),
+                                         unit)
         ok = np.isfinite(t)
         result = estimate_lag(samples.field[ok], t[ok], stream, background,
                               max_lag=float(options.get("max_lag", 1.0)))

@@ -10,13 +10,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..errors import TrimagInputError
 from ..io import Samples, read_samples
 from ..requests import AttitudeSpec, EvaluateRequest, as_request
 from ._inputs import (
+    background_field,
     drop_rows_without_attitude,
     drop_rows_without_background,
     regressor_columns,
-    vector_reference_from_options,
 )
 from ._timesync import attach_attitude_file
 
@@ -38,6 +39,9 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
 
     req = as_request(EvaluateRequest, request, paths, arguments)
     src, given = req.input, req.reference
+    if given.background_run is not None:
+        raise TrimagInputError("`background_run` is for fitting; evaluate against `background_ned=N,E,D`, "
+                               "`igrf_spec=LAT,LON,ALT_M,DATE` or `background_columns=N,E,D`")
     cal = Calibration.from_file(req.calibration)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where)
     samples, att, lag = _attitudes(req, samples, cal)
@@ -47,9 +51,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
         scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
     )
-    background, source = vector_reference_from_options(units=cal.units, background_ned=given.background_ned,
-                                                       igrf_spec=given.igrf_spec,
-                                                       background_columns=given.background_columns, samples=samples)
+    background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)
     u = None
     if cal.regressors is not None:

@@ -17,7 +17,7 @@ from ..errors import TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
 from ..io import Samples, read_samples
 from ..reference import ScalarReference, igrf, parse_igrf_spec
-from ..requests import FitRequest
+from ..requests import FitRequest, as_request
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
@@ -30,12 +30,12 @@ from ._checks import (
 )
 from ._inputs import (
     accel_values,
+    background_field,
     drop_rows_without_attitude,
     drop_rows_without_background,
+    magnitude_reference,
     parse_regressor_names,
     regressor_columns,
-    scalar_reference_from_options,
-    vector_reference_from_options,
 )
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
@@ -98,9 +98,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     :mod:`trimag.policy`) the calibration is checked against its limits; the result is in
     ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
-    req = request if isinstance(request, FitRequest) else FitRequest.of(request, **arguments)
-    if arguments and isinstance(request, FitRequest):
-        raise TrimagInputError("give either a FitRequest or a path with keyword arguments, not both")
+    req = as_request(FitRequest, request, (), arguments)
     from ..policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
@@ -308,8 +306,7 @@ def _fit_reference(
     given, att, src = req.reference, req.attitude, req.input
     messages: list[str] = []
     if estimator.reference_kind != "vector":
-        ref = scalar_reference_from_options(samples, units=unit, reference=given.reference,
-                                            igrf_spec=given.igrf_spec, reference_column=given.reference_column)
+        ref = magnitude_reference(samples, given, unit)
         if ref.source.startswith("igrf"):
             assert ref.values is not None
             messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
@@ -333,10 +330,8 @@ def _fit_reference(
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
         scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
     )
-    background, source = vector_reference_from_options(
-        units=unit, background_ned=given.background_ned, igrf_spec=given.igrf_spec,
-        background_run=given.background_run, background_columns=given.background_columns, samples=samples,
-        fmt=src.fmt, columns=src.columns, var=src.var,
+    background, source = background_field(
+        given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
             "quaternion_columns": att.quaternion_columns, "quaternion_order": att.quaternion_order,
             "quaternion_frame": att.quaternion_frame} if given.background_run is not None else {}),
