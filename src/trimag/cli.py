@@ -432,8 +432,9 @@ def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None
 
 def _request(cls: type[_R], args: argparse.Namespace, path: Any = None, **given: Any) -> _R:
     """The typed request ``cls`` (:mod:`trimag.requests`) of a command from its parsed flags: each field (and each
-    field of its input, reference and attitude specs) takes the flag whose destination has its name, the field's
-    default when the command has no such flag; ``path`` is the input's path and ``given`` sets fields directly."""
+    field of its ``input``, ``reference`` and ``attitude`` specs, when it has them) takes the flag whose destination
+    has its name, the field's default when the command has no such flag; ``path`` is the input's path and
+    ``given`` sets fields directly."""
     from .requests import AttitudeSpec, InputSpec, ReferenceSpec
 
     specs: dict[str, type] = {"input": InputSpec, "reference": ReferenceSpec, "attitude": AttitudeSpec}
@@ -443,9 +444,9 @@ def _request(cls: type[_R], args: argparse.Namespace, path: Any = None, **given:
         names = [f.name for f in dataclasses.fields(kind) if f.name not in fixed]
         return {**{name: getattr(args, name) for name in names if hasattr(args, name)}, **fixed}
 
-    own = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    own = {f.name: f.type for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     parts = {name: kind(**flags(kind, **({"path": path} if kind is InputSpec else {})))
-             for name, kind in specs.items() if name in own}
+             for name, kind in specs.items() if own.get(name) in (kind, kind.__name__)}  # a spec, not a plain field
     return cls(**flags(cls, **parts, **given))
 
 
@@ -733,13 +734,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
 
     _check_writable(args.out, suffixes=(".json",))
     _check_writable(args.samples_out, suffixes=(".csv", ".txt"))
-    request = LiveRequest(
-        replay=args.replay, rate=args.rate, stdin=args.stdin, serial=args.serial, baud=args.baud,
-        mavlink=args.mavlink, fmt=args.fmt, columns=args.columns, sensor=args.sensor, units=args.units,
-        model=args.model, method=args.method, options=parse_options(args.option), reference=args.reference,
-        port=args.port, out=args.out, samples_out=args.samples_out, open_browser=args.open_browser,
-        exit_at_end=args.exit_at_end, interval=args.interval,
-    )
+    request = _request(LiveRequest, args, options=parse_options(args.option))
     def say(msg: str) -> None:  # flushed: the page's address must reach a pipe (a script, tee) at once
         _say(msg, args)
         sys.stdout.flush()

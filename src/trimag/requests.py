@@ -120,8 +120,9 @@ def _from_flat(cls: type[_R], what: str, path: str | Path, fixed: dict[str, Any]
     """A request ``cls`` from flat keyword ``arguments``: each goes to the spec that has a field of its name
     (:data:`_SPECS`), else to the request itself; ``path`` is the input's path and ``fixed`` the request's own
     positional fields. An unknown name is refused, naming the known ones (``what`` names the command)."""
-    own = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
-    specs = {name: spec for name, spec in _SPECS.items() if name in own}
+    types = {f.name: f.type for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    own = list(types)
+    specs = {name: spec for name, spec in _SPECS.items() if types.get(name) in (spec, spec.__name__)}
     owner: dict[str, str] = {f.name: name for name, spec in specs.items() for f in dataclasses.fields(spec)}
     owner.update({name: "" for name in own if name not in specs and name not in fixed})
     groups: dict[str, dict[str, Any]] = {name: {} for name in ["", *specs]}
