@@ -11,11 +11,16 @@ import pandas as pd
 from trimag.workflow import fit_file, simulate_to_file
 
 
-def test_interference12_rows_without_attitude_are_counted(tmp_path: Path) -> None:
+def _write_interference12_params(path: Path) -> None:
+    """Soft iron K (near identity) and hard iron (300, -150, 80) nT of an interference12 sensor, as JSON."""
     K = np.eye(3) + np.array([[0.05, 0.01, -0.02], [0.0, -0.03, 0.02], [0.01, 0.0, 0.04]])
     params = {f"k{i + 1}{j + 1}": float(K[i, j]) for i in range(3) for j in range(3)}
     params.update({"c1": 300.0, "c2": -150.0, "c3": 80.0})
-    (tmp_path / "p.json").write_text(json.dumps(params))
+    path.write_text(json.dumps(params))
+
+
+def test_interference12_rows_without_attitude_are_counted(tmp_path: Path) -> None:
+    _write_interference12_params(tmp_path / "p.json")
     simulate_to_file(model="interference12", params_path=tmp_path / "p.json", n=60, noise=0.0,
                      out=tmp_path / "sim.csv", field=48000.0, seed=2)
     df = pd.read_csv(tmp_path / "sim.csv")
@@ -68,10 +73,7 @@ def test_vector_evaluation_takes_one_request_and_refuses_a_background_run(tmp_pa
     from trimag.requests import AttitudeSpec, EvaluateRequest, InputSpec, ReferenceSpec
     from trimag.workflow import evaluate_vector_file
 
-    K = np.eye(3) + np.array([[0.05, 0.01, -0.02], [0.0, -0.03, 0.02], [0.01, 0.0, 0.04]])
-    params = {f"k{i + 1}{j + 1}": float(K[i, j]) for i in range(3) for j in range(3)}
-    params.update({"c1": 300.0, "c2": -150.0, "c3": 80.0})
-    (tmp_path / "p.json").write_text(json.dumps(params))
+    _write_interference12_params(tmp_path / "p.json")
     simulate_to_file(model="interference12", params_path=tmp_path / "p.json", n=80, noise=1.0,
                      out=tmp_path / "sim.csv", field=48000.0, seed=3)
     fit_file(tmp_path / "sim.csv", model="interference12", units="nT", quaternion_columns="qw,qx,qy,qz",

@@ -486,6 +486,15 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _with_progress(args: argparse.Namespace, work: Callable[..., dict[str, Any]], request: Any) -> dict[str, Any]:
+    """``work(request, progress=...)`` with the progress bar of :func:`_progress`, closed however it ends."""
+    update, close = _progress(args)
+    try:
+        return work(request, progress=update)
+    finally:
+        close()
+
+
 def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable[[], None]]:
     """A rich progress bar on stderr (rows done) that appears only once work has taken more than a second."""
     from .parallel import ProgressBar
@@ -509,11 +518,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         return _print_applied(r, args, "compensated", "nT", "could not be compensated (missing values or a segment of "
                               "one row); their compensated cells are empty")
 
-    update, close = _progress(args)
-    try:
-        result = apply_to_file(req, progress=update)
-    finally:
-        close()
+    result = _with_progress(args, apply_to_file, req)
     if result["column_note"]:
         _say(result["column_note"], args)
     return _print_applied(result, args, "corrected", result["units"], "had missing or non-numeric x/y/z; they are "
@@ -572,11 +577,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .workflow import evaluate_file
 
-    update, close = _progress(args)
-    try:
-        r = evaluate_file(req, progress=update)
-    finally:
-        close()
+    r = _with_progress(args, evaluate_file, req)
     if r["n_dropped"]:
         what = "x/y/z or regressor values" if r.get("regressors") else "x/y/z"
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
