@@ -184,3 +184,19 @@ def test_experiments_use_only_the_public_api():
 def test_the_public_api_check_sees_the_experiments_imports():
     found = {(m, a) for _, m, a in _experiment_imports()}
     assert ("trimag.estimators.gauss_newton", "GaussNewton") in found
+
+
+def test_only_the_workflow_facade_imports_the_app_layer():
+    """The application layer (``trimag.app``, one module per command) sits on top: the library never imports it,
+    and the CLI and batch runs reach it through ``trimag.workflow`` (its stable names)."""
+    outside = {
+        name: sorted(m for m in GRAPH[name] if m == "trimag.app" or m.startswith("trimag.app."))
+        for name in GRAPH if not name.startswith("trimag.app") and name != "trimag.workflow"
+    }
+    assert {name: found for name, found in outside.items() if found} == {}
+
+
+@pytest.mark.parametrize("name", sorted(m for m in MODULES if m.startswith("trimag.app")))
+def test_the_app_layer_does_not_import_its_callers(name):
+    callers = {"trimag.cli", "trimag.batch", "trimag.workflow", "trimag.live"}
+    assert GRAPH[name] & callers == set(), f"{name} imports {sorted(GRAPH[name] & callers)}"

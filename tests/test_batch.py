@@ -145,3 +145,19 @@ def test_fit_batch_on_process_cluster(fleet: Path, tmp_path: Path) -> None:
     assert list(res.table["error_type"]) == ["", "identifiability"]
     assert res.table["rms_after"].iloc[0] < 0.1 * res.table["rms_before"].iloc[0]
     assert (tmp_path / "p" / "sensor0.json").exists()
+
+
+def test_fit_batch_takes_one_request_for_every_file(fleet: Path, tmp_path: Path) -> None:
+    """``trimag batch`` hands fit_batch one FitRequest (its path and output replaced per file): the same table as
+    the flat arguments; a request with fit arguments is refused before any work."""
+    from trimag.requests import FitRequest
+
+    flat = fit_batch(str(fleet / "*.csv"), tmp_path / "flat", method="ml", progress=False)
+    typed = fit_batch(str(fleet / "*.csv"), tmp_path / "typed", request=FitRequest.of("", method="ml"),
+                      progress=False)
+    cols = ["file", "n", "n_used", "rms_before", "rms_after", "converged", "error", "error_type"]
+    pd.testing.assert_frame_equal(flat.table[cols], typed.table[cols])
+    assert typed.n_failed == 2
+    with pytest.raises(TrimagInputError, match="not both"):
+        fit_batch(str(fleet / "*.csv"), tmp_path / "both", request=FitRequest.of("", method="ml"), units="nT")
+    assert not (tmp_path / "both").exists()

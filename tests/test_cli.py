@@ -198,3 +198,29 @@ def test_fit_and_apply_geosoft_xyz(tmp_path: Path) -> None:
     assert len(df) == 400 and (df["FLUX_Y"] == "*").sum() == 2 and (df["FLUX_Y_cal"] == "").sum() == 2
     bad = run_trimag("apply", cal, path, "-o", tmp_path / "survey_cal.xyz", "--columns", "FLUX_X,FLUX_Y,FLUX_Z")
     _one_line_error(bad, 2, "cannot write .xyz files")
+
+
+def test_each_command_builds_its_request_from_its_flags() -> None:
+    """cli._request fills each request field (and each field of its input/reference/attitude specs) from the flag
+    of the same destination: nothing a user gives is dropped, and a plain field named like a spec (live's
+    `reference`, a number) stays a plain field."""
+    from trimag.cli import _request, build_parser
+    from trimag.requests import ApplyRequest, EvaluateRequest, ExportRequest, LiveRequest, SimulateRequest
+
+    parse = build_parser().parse_args
+    live = _request(LiveRequest, parse(["live", "--replay", "x.csv", "--reference", "48000", "--port", "0"]))
+    assert live.reference == 48000.0 and live.replay == "x.csv" and live.port == 0
+    a = parse(["evaluate", "c.json", "d.csv", "--igrf", "1,2,3,2020-01-01", "--quaternion-columns", "a,b,c,d",
+               "--time-column", "t", "--rows", "3:9", "--chunk-rows", "7", "--declination", "2"])
+    ev = _request(EvaluateRequest, a, a.data)
+    assert (ev.calibration, ev.input.path, ev.input.rows, ev.chunk_rows) == ("c.json", "d.csv", "3:9", 7)
+    assert ev.reference.igrf_spec == "1,2,3,2020-01-01" and ev.declination == "2"
+    assert (ev.attitude.quaternion_columns, ev.attitude.time_column) == ("a,b,c,d", "t")
+    a = parse(["apply", "c.json", "d.csv", "-o", "o.csv", "--units", "uT", "--chunk-rows", "5", "--scalar-column", "s"])
+    ap = _request(ApplyRequest, a, a.data)
+    assert (ap.out, ap.input.units, ap.chunk_rows, ap.scalar_column) == ("o.csv", "uT", 5, "s")
+    a = parse(["export", "c.json", "--to", "px4", "--instance", "2", "-o", "p.params"])
+    assert _request(ExportRequest, a) == ExportRequest("c.json", "px4", "p.params", instance=2)
+    a = parse(["simulate", "--model", "ellipsoid", "--params", "p.json", "--n", "9", "-o", "s.csv", "--seed", "4"])
+    assert _request(SimulateRequest, a, params_path=a.params) == SimulateRequest("ellipsoid", "p.json", 9, "s.csv",
+                                                                                  seed=4)

@@ -378,3 +378,31 @@ def test_apply_on_text_the_reader_cannot_parse_exits_2(tmp_path: Path, cal: tupl
     r = run_trimag("apply", cal[1], src, "-o", tmp_path / "out.csv")
     assert r.returncode == 2 and "cannot parse as delimited text" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "out.csv").exists()
+
+
+def test_evaluate_and_apply_take_one_request(tmp_path: Path, cal: tuple[Calibration, Path]) -> None:
+    """The app layer's entry points take one typed request; the flat arguments build the same request, and a
+    request given with arguments, or an argument no request has, is refused naming the known ones."""
+    from trimag.errors import TrimagInputError
+    from trimag.requests import ApplyRequest, EvaluateRequest, InputSpec, ReferenceSpec
+
+    _, cal_path = cal
+    rows, _ = _rows()
+    src = tmp_path / "log.csv"
+    _write_csv(src, rows)
+    req = EvaluateRequest(cal_path, InputSpec(src, rows="15:95", where="label!=p33"),
+                          reference=ReferenceSpec(reference=48000.0), chunk_rows=10)
+    assert EvaluateRequest.of(cal_path, src, rows="15:95", where="label!=p33", reference=48000.0,
+                              chunk_rows=10) == req
+    r = evaluate_file(req)
+    assert r == evaluate_file(cal_path, src, rows="15:95", where="label!=p33", reference=48000.0, chunk_rows=10)
+    assert r["n_samples"] == 79 and r["reference"]["source"] == "given"
+    with pytest.raises(TrimagInputError, match="not both"):
+        evaluate_file(req, chunk_rows=5)
+    with pytest.raises(TrimagInputError, match=r"unknown evaluate argument 'chunk'; known: .*chunk_rows"):
+        evaluate_file(cal_path, src, chunk=5)
+    res = apply_to_file(ApplyRequest(cal_path, InputSpec(src), tmp_path / "o.csv", chunk_rows=11))
+    assert res["n_rows"] == N and res["n_uncorrected"] == len(BAD)
+    with pytest.raises(TrimagInputError, match="unknown apply argument 'bogus'; known: chunk_rows, columns"):
+        apply_to_file(cal_path, src, tmp_path / "o2.csv", chunk_rows=11, bogus=1)
+    assert not (tmp_path / "o2.csv").exists()

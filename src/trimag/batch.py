@@ -1,9 +1,9 @@
 """Batch calibration: fit every log matched by a glob (a fleet of sensors, or many runs of one).
 
-Each file is fitted independently with :func:`trimag.workflow.fit_file` (same reading rules, references and
-options as ``trimag fit``), its :class:`~trimag.calibration.Calibration` written to ``OUT/<name>.json``, and one
-row per file collected into a summary table written as ``OUT/summary.csv`` and, with pyarrow (the ``parquet``
-extra), ``OUT/summary.parquet``.
+Each file is fitted independently with :func:`trimag.workflow.fit_file` (one :class:`~trimag.requests.FitRequest`
+per file; same reading rules, references and options as ``trimag fit``), its
+:class:`~trimag.calibration.Calibration` written to ``OUT/<name>.json``, and one row per file collected into a
+summary table written as ``OUT/summary.csv`` and, with pyarrow (the ``parquet`` extra), ``OUT/summary.parquet``.
 A file that cannot be read or fitted gets a row with its error; the others go on.
 
 The work runs through :func:`trimag.parallel.map_trials`: in this process (``workers=1``), on a local pool of
@@ -13,6 +13,7 @@ worker processes (``workers > 1``, nothing to start, no Dask needed), or on a ``
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import os
 import time
@@ -26,6 +27,7 @@ import pandas as pd
 
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
 from .io.atomic import atomic_path, atomic_write_text
+from .requests import FitRequest
 
 __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs", "fit_batch", "fit_one"]
 
@@ -137,15 +139,18 @@ def _error_type(exc: BaseException) -> str:
     return "internal"
 
 
-def fit_one(job: tuple[str, str], **fit_options: Any) -> dict[str, Any]:
+def fit_one(job: tuple[str, str], request: FitRequest | None = None, **fit_options: Any) -> dict[str, Any]:
     """Fit one file and write its calibration; never raises (a failure becomes the row's ``error``).
 
     Parameters
     ----------
     job : (str, str)
         Input path and output calibration path.
+    request : FitRequest, optional
+        The fit asked for every file (its input's path and its ``out`` are replaced by the job's).
     **fit_options
-        Keyword arguments of :func:`trimag.workflow.fit_file` (model, method, options, units, reference, ...).
+        Without ``request``: keyword arguments of :func:`trimag.workflow.fit_file` (model, method, options, units,
+        reference, ...).
 
     Returns
     -------
@@ -159,7 +164,11 @@ def fit_one(job: tuple[str, str], **fit_options: Any) -> dict[str, Any]:
     try:
         from .workflow import fit_file
 
-        result = fit_file(path, out=out, **fit_options)
+        if request is not None:
+            one = dataclasses.replace(request, input=dataclasses.replace(request.input, path=path), out=out)
+            result = fit_file(one, **fit_options)
+        else:
+            result = fit_file(path, out=out, **fit_options)
         s = result.summary
         row.update(
             n=s.get("n_samples"), n_used=s.get("n_used"), rms_before=s.get("rms_before"),
@@ -210,6 +219,7 @@ def fit_batch(
     progress: bool | str = True,
     chunksize: int | None = None,
     backend: str | None = None,
+    request: FitRequest | None = None,
     **fit_options: Any,
 ) -> BatchResult:
     """Fit every file matched by ``patterns``; write one calibration per file and the summary table.
@@ -233,9 +243,12 @@ def fit_batch(
         Files per task (default: about 8 tasks per worker).
     backend : {"processes", "threads"}, optional
         Local pool for ``workers > 1`` (default: processes; see :func:`trimag.parallel.map_trials`).
+    request : FitRequest, optional
+        The fit asked for every file (what ``trimag batch`` builds from its flags): its input's path and ``out`` are
+        replaced per file, and ``model``, ``method``, ``options`` and ``fit_options`` are not used.
     **fit_options
-        Further :func:`trimag.workflow.fit_file` arguments, the same for every file: ``fmt``, ``columns``,
-        ``units``, ``strict``, ``reference``, ``igrf_spec``, ``reference_column``, ...
+        Without ``request``: further :func:`trimag.workflow.fit_file` arguments for every file (``fmt``, ``units``,
+        ``reference``, ``igrf_spec``, ...).
 
     Returns
     -------
@@ -245,17 +258,19 @@ def fit_batch(
     Raises
     ------
     TrimagInputError
-        A pattern matches no file, or an unknown model/method (checked once, before any work).
+        A pattern matches no file, an unknown model/method/argument, or both ``request`` and fit arguments
+        (checked once, before any work).
     """
     from .estimators import make_estimator
     from .parallel import map_trials
 
-    make_estimator(model, method, options)  # unknown model, method or option: fail once, up front
+    request = _batch_request(request, model=model, method=method, options=options, **fit_options)
+    make_estimator(request.model, request.method, dict(request.options))  # unknown model, method or option: fail once
     files = expand_inputs(patterns)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(str(f), str(out / f"{name}.json")) for f, name in zip(files, calibration_names(files), strict=True)]
-    task = partial(fit_one, model=model, method=method, options=options, **fit_options)
+    task = partial(fit_one, request=request)
     t0 = time.perf_counter()
     rows = map_trials(task, jobs, workers=workers, scheduler=scheduler,
                       progress="batch fits" if progress is True else progress, chunksize=chunksize,
@@ -269,3 +284,14 @@ def fit_batch(
     if parquet is not None:
         written["summary_parquet"] = str(parquet)
     return BatchResult(table, written, seconds)
+
+
+def _batch_request(request: FitRequest | None, **arguments: Any) -> FitRequest:
+    """The fit asked for every file: ``request``, or one from the flat fit ``arguments`` (its path is replaced per
+    file); a request with arguments other than :func:`fit_batch`'s defaults is refused."""
+    if request is None:
+        return FitRequest.of("", **arguments)
+    defaults = {"model": "ellipsoid", "method": None, "options": None}
+    if any(arguments.get(k, v) != v for k, v in defaults.items()) or set(arguments) - set(defaults):
+        raise TrimagInputError("give either a FitRequest or fit arguments, not both")
+    return request

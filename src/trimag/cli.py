@@ -7,19 +7,22 @@ Exit codes (docs/cli.md): 0 success; 2 bad input or usage; 3 the data cannot ide
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import re
 import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
 
 if TYPE_CHECKING:
-    from .requests import FitRequest
+    from .requests import EvaluateRequest
+
+_R = TypeVar("_R")
 
 __all__ = ["build_parser", "main"]
 
@@ -141,20 +144,32 @@ def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) 
                        help="attitude columns (degrees), only to report the manoeuvre content")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``trimag`` command."""
-    parser = _Parser(prog="trimag", description="Calibrate tri-axial magnetometers.")
-    parser.add_argument("--version", action="version", version=f"trimag {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
+    p.add_argument("--model", default="ellipsoid", help=model_help)
+    p.add_argument("--method", help="identification method (default: the model's default)")
+    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
 
+
+def _add_output_options(
+    p: argparse.ArgumentParser, *, json_help: str | None = "print one JSON object on stdout",
+    quiet_help: str | None = None,
+) -> None:
+    """``--json`` (unless ``json_help`` is None) and ``-q/--quiet``, the last options of every subcommand."""
+    if json_help is not None:
+        p.add_argument("--json", action="store_true", help=json_help)
+    p.add_argument("-q", "--quiet", action="store_true", help=quiet_help)
+
+
+def _add_chunk_rows(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+
+
+def _add_fit(sub: Any) -> None:
     p = sub.add_parser("fit", help="fit a calibration to a log", description="Fit a calibration to a log.")
     p.add_argument("data", metavar="DATA")
     _add_data_options(p)
-    p.add_argument("--model", default="ellipsoid",
-                   help="error model: ellipsoid, ortho-gain, ortho-gain-bias, scalar9, interference12, zhang-cheng, "
-                        "tolles-lawson")
-    p.add_argument("--method", help="identification method (default: the model's default)")
-    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    _add_model_options(p, "error model: ellipsoid, ortho-gain, ortho-gain-bias, scalar9, interference12, zhang-cheng, "
+                          "tolles-lawson")
     _add_reference_options(p)
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
@@ -174,20 +189,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true", help="print only errors (and --json output)")
+    _add_output_options(p, quiet_help="print only errors (and --json output)")
 
+
+def _add_apply(sub: Any) -> None:
     p = sub.add_parser("apply", help="correct a log with a calibration",
                        description="Correct every row of a log; all input columns are kept and x/y/z_cal appended.")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("data", metavar="DATA")
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="output file (.csv, .parquet or .npz)")
     _add_data_options(p, selection=False)
-    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+    _add_chunk_rows(p)
     p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p)
 
+
+def _add_export(sub: Any) -> None:
     p = sub.add_parser("export", help="write a calibration as firmware parameters",
                        description="Write a calibration in a firmware's or tool's own convention "
                                    "(docs/autopilot.md).")
@@ -197,9 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instance", type=int, default=1,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
     p.add_argument("-o", "--out", required=True, metavar="FILE")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p)
 
+
+def _add_evaluate(sub: Any) -> None:
     p = sub.add_parser("evaluate", help="statistics of a calibration on a log",
                        description="RMS and amplitude of |B| - F before and after a calibration.")
     p.add_argument("calibration", metavar="CAL.json")
@@ -215,10 +233,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--heading-column", metavar="H", help="reference heading, degrees clockwise from true north")
     g.add_argument("--declination", metavar="DEG",
                    help="magnetic declination, degrees east (instead of --igrf; default 0: magnetic heading)")
-    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_chunk_rows(p)
+    _add_output_options(p)
 
+
+def _add_simulate(sub: Any) -> None:
     p = sub.add_parser("simulate", help="simulate a sensor with known errors",
                        description="Write a simulated log (x,y,z,qw,qx,qy,qz) for a model with given parameters.")
     p.add_argument("--model", required=True)
@@ -231,23 +250,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--out", required=True, metavar="OUT.csv")
     p.add_argument("--truth", metavar="TRUTH.json", help="write the true parameters here")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p, json_help=None)
 
+
+def _add_demo(sub: Any) -> None:
     p = sub.add_parser("demo", help="calibrate the bundled real log and write a report",
                        description="Fit the bundled QMC5883L log and write calibration JSON + report PNG.")
     p.add_argument("--out", default=".", metavar="DIR", help="output folder (default: current)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p)
 
+
+def _add_batch(sub: Any) -> None:
     p = sub.add_parser("batch", help="fit many logs (one calibration each), on local processes or Dask",
                        description="Fit every file matched; write OUT/<name>.json per file and "
                                    "OUT/summary.csv (+ OUT/summary.parquet with the parquet extra). A bad file is "
                                    "reported, not fatal.")
     p.add_argument("inputs", nargs="+", metavar="GLOB", help="glob pattern(s) ('logs/**/*.csv') or files")
     _add_data_options(p, selection=False)
-    p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`)")
-    p.add_argument("--method", help="identification method (default: the model's default)")
-    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    _add_model_options(p, "error model (as for `trimag fit`)")
     _add_reference_options(p)
     p.add_argument("--regressors", metavar="COL[,COL...]",
                    help="offset terms linear in these columns of every file (as for `trimag fit`)")
@@ -255,9 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="dask.distributed scheduler, e.g. tcp://host:8786 (needs the batch extra)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p)
 
+
+def _add_live(sub: Any) -> None:
     p = sub.add_parser("live", help="fit while recording: a local page shows the coverage and when to stop",
                        description="Fit while recording: a local web page (127.0.0.1 only) shows the clouds, the "
                                    "coverage of the sphere of directions, the RMS, the next orientations and when the "
@@ -280,9 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--sensor", metavar="N|NAME", help="replay of an autopilot log: which magnetometer")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (default: the source's own, or unknown)")
     g.add_argument("--reference", type=float, metavar="F", help="field magnitude in the data's unit, when known")
-    p.add_argument("--model", default="ellipsoid", help="error model (as for `trimag fit`; default ellipsoid)")
-    p.add_argument("--method", help="identification method (default: the model's default)")
-    p.add_argument("--option", action="append", metavar="KEY=VALUE", help="method option (repeatable)")
+    _add_model_options(p, "error model (as for `trimag fit`; default ellipsoid)")
     p.add_argument("--port", type=int, default=8765, help="local port of the page (default 8765; 0: a free one)")
     p.add_argument("-o", "--out", default="trimag-live-calibration.json", metavar="CAL.json",
                    help="calibration written on save (default trimag-live-calibration.json)")
@@ -291,9 +310,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-browser", dest="open_browser", action="store_false", help="do not open a browser")
     p.add_argument("--exit-at-end", action="store_true", help="save and exit when the source ends")
     p.add_argument("--interval", type=float, default=0.25, metavar="S", help="seconds between refits (default 0.25)")
-    p.add_argument("--json", action="store_true", help="print the final state as one JSON object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p, json_help="print the final state as one JSON object on stdout")
 
+
+def _add_reproduce(sub: Any) -> None:
     # the benchmarks are not subcommands: they live in the repository's benchmarks/ folder (not installed)
     p = sub.add_parser("reproduce", help="reproduce a paper's figures and tables",
                        description="Reproduce a paper's figures and tables.")
@@ -303,8 +323,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, help="Monte Carlo trials")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=1, help="parallel workers")
-    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _add_output_options(p, json_help="print one JSON summary object on stdout")
+
+
+#: The subcommands, in the order ``trimag --help`` lists them: each adds its parser (and its flags).
+_SUBCOMMANDS: tuple[Callable[[Any], None], ...] = (
+    _add_fit, _add_apply, _add_export, _add_evaluate, _add_simulate, _add_demo, _add_batch, _add_live, _add_reproduce,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``trimag`` command."""
+    parser = _Parser(prog="trimag", description="Calibrate tri-axial magnetometers.")
+    parser.add_argument("--version", action="version", version=f"trimag {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for add in _SUBCOMMANDS:
+        add(sub)
     return parser
 
 
@@ -396,25 +430,24 @@ def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None
         raise TrimagInputError(f"cannot write {path}: no write permission in {probe}")
 
 
-def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitRequest:
-    """The typed request of ``trimag fit`` (vector or scalar model) from its parsed flags."""
-    from .requests import AttitudeSpec, FitRequest, InputSpec, ReferenceSpec
+def _request(cls: type[_R], args: argparse.Namespace, path: Any = None, **given: Any) -> _R:
+    """The typed request ``cls`` (:mod:`trimag.requests`) of a command from its parsed flags: each field (and each
+    field of its ``input``, ``reference`` and ``attitude`` specs, when it has them) takes the flag whose destination
+    has its name, the field's default when the command has no such flag; ``path`` is the input's path and
+    ``given`` sets fields directly."""
+    from .requests import AttitudeSpec, InputSpec, ReferenceSpec
 
-    return FitRequest(
-        input=InputSpec(args.data, fmt=args.fmt, columns=args.columns, var=args.var, units=args.units,
-                        rows=args.rows, where=args.where, strict=args.strict, sensor=args.sensor),
-        model=args.model, method=args.method, options=options,
-        reference=ReferenceSpec(reference=args.reference, igrf_spec=args.igrf_spec,
-                                reference_column=args.reference_column, background_ned=args.background_ned,
-                                background_run=args.background_run, background_columns=args.background_columns),
-        attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
-                              quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
-                              attitude_file=args.attitude_file, attitude_time_column=args.attitude_time_column,
-                              time_column=args.time_column),
-        out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
-        prior=args.prior,
-        accel_columns=args.accel_columns,
-    )
+    specs: dict[str, type] = {"input": InputSpec, "reference": ReferenceSpec, "attitude": AttitudeSpec}
+
+    def flags(kind: Any, **fixed: Any) -> dict[str, Any]:
+        """``kind``'s fields from the flags of the same destination, then ``fixed``."""
+        names = [f.name for f in dataclasses.fields(kind) if f.name not in fixed]
+        return {**{name: getattr(args, name) for name in names if hasattr(args, name)}, **fixed}
+
+    own = {f.name: f.type for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    parts = {name: kind(**flags(kind, **({"path": path} if kind is InputSpec else {})))
+             for name, kind in specs.items() if own.get(name) in (kind, kind.__name__)}  # a spec, not a plain field
+    return cls(**flags(cls, **parts, **given))
 
 
 def _regressor_flag(text: str | None) -> tuple[str, ...] | None:
@@ -436,7 +469,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                                    "scalar (drop --accel-columns)")
         return _cmd_fit_tolles_lawson(args)
 
-    result = fit_file(_fit_request(args, parse_options(args.option)))
+    from .requests import FitRequest
+
+    result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
+                               regressors=_regressor_flag(args.regressors)))
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:
@@ -450,6 +486,15 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _with_progress(args: argparse.Namespace, work: Callable[..., dict[str, Any]], request: Any) -> dict[str, Any]:
+    """``work(request, progress=...)`` with the progress bar of :func:`_progress`, closed however it ends."""
+    update, close = _progress(args)
+    try:
+        return work(request, progress=update)
+    finally:
+        close()
+
+
 def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable[[], None]]:
     """A rich progress bar on stderr (rows done) that appears only once work has taken more than a second."""
     from .parallel import ProgressBar
@@ -460,39 +505,36 @@ def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable
 
 def _cmd_apply(args: argparse.Namespace) -> int:
     from .aircraft import apply_compensation_file, is_compensation_file
+    from .requests import ApplyRequest
     from .workflow import apply_to_file
 
     _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
-    if is_compensation_file(args.calibration):
-        r = apply_compensation_file(args.calibration, args.data, args.out, fmt=args.fmt, var=args.var,
-                                    columns=_split_list(args.columns), scalar_column=args.scalar_column,
-                                    units=args.units)
-        if r["n_uncorrected"]:
-            _err(f"{r['n_uncorrected']} of {r['n_rows']} rows could not be compensated (missing values or a "
-                 "segment of one row); their compensated cells are empty")
-        if args.json:
-            print(json.dumps(r))
-        else:
-            _say(f"compensated {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows (nT); appended "
-                 f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
-        return EXIT_OK
+    req = _request(ApplyRequest, args, args.data)
+    src = req.input
+    if is_compensation_file(req.calibration):
+        r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
+                                    columns=_split_list(src.columns), scalar_column=req.scalar_column,
+                                    units=src.units)
+        return _print_applied(r, args, "compensated", "nT", "could not be compensated (missing values or a segment of "
+                              "one row); their compensated cells are empty")
 
-    update, close = _progress(args)
-    try:
-        result = apply_to_file(args.calibration, args.data, args.out, fmt=args.fmt, columns=args.columns,
-                               var=args.var, units=args.units, chunk_rows=args.chunk_rows, progress=update)
-    finally:
-        close()
+    result = _with_progress(args, apply_to_file, req)
     if result["column_note"]:
         _say(result["column_note"], args)
-    if result["n_uncorrected"]:
-        _err(f"{result['n_uncorrected']} of {result['n_rows']} rows had missing or non-numeric x/y/z; "
-             "they are kept with empty corrected cells")
+    return _print_applied(result, args, "corrected", result["units"], "had missing or non-numeric x/y/z; they are "
+                          "kept with empty corrected cells")
+
+
+def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit: str, uncorrected: str) -> int:
+    """What ``trimag apply`` did: the rows left uncorrected (``uncorrected`` says why) on stderr, then the JSON
+    object or one line (``verb`` the rows, in ``unit``)."""
+    if r["n_uncorrected"]:
+        _err(f"{r['n_uncorrected']} of {r['n_rows']} rows {uncorrected}")
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(r))
     else:
-        _say(f"corrected {result['n_rows'] - result['n_uncorrected']} of {result['n_rows']} rows "
-             f"({result['units']}); appended {', '.join(result['output_columns'])}; wrote {result['out']}", args)
+        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
+             f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
     return EXIT_OK
 
 
@@ -510,37 +552,14 @@ def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from .aircraft import evaluate_compensation_file, is_compensation_file
-    from .workflow import evaluate_file
+    from .requests import EvaluateRequest
 
-    if args.accel_columns or args.heading_column or args.declination is not None:
-        return _cmd_evaluate_heading(args)
-    if args.attitude_columns or args.quaternion_columns:
-        from .workflow import evaluate_vector_file
-
-        v = evaluate_vector_file(
-            args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var, rows=args.rows,
-            where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
-            quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
-            background_ned=args.background_ned, igrf_spec=args.igrf_spec, background_columns=args.background_columns,
-            attitude_file=args.attitude_file, time_column=args.time_column,
-            attitude_time_column=args.attitude_time_column,
-        )
-        if args.json:
-            print(json.dumps(v, allow_nan=False))
-            return EXIT_OK
-        mean = "mean " if v["background"]["per_sample"] else ""
-        _say(f"{v['n_used']} samples; background NED {mean}{np.round(v['background']['ned'], 3).tolist()} {v['units']} "
-             f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
-        _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
-        for k, axis in enumerate("xyz"):
-            _say(f"{'RMS error ' + axis:22}{v['before']['rms_axis'][k]:14.6g}{v['after']['rms_axis'][k]:14.6g}", args)
-        for label, key in (("RMS vector error", "rms_vector"), ("angular error RMS", "angular_error_rms_deg"),
-                           ("angular error max", "angular_error_max_deg")):
-            _say(f"{label:22}{v['before'][key]:14.6g}{v['after'][key]:14.6g}", args)
-        return EXIT_OK
+    req = _request(EvaluateRequest, args, args.data)
+    if req.accel_columns or req.heading_column or req.declination is not None:
+        return _cmd_evaluate_heading(req, args)
+    if req.attitude.attitude_columns or req.attitude.quaternion_columns:
+        return _cmd_evaluate_vector(req, args)
     if is_compensation_file(args.calibration):
         r = evaluate_compensation_file(
             args.calibration, args.data, fmt=args.fmt, var=args.var, columns=_split_list(args.columns),
@@ -552,15 +571,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         else:
             _print_tl_evaluation(r, args)
         return EXIT_OK
+    return _cmd_evaluate_scalar(req, args)
 
-    update, close = _progress(args)
-    try:
-        r = evaluate_file(args.calibration, args.data, fmt=args.fmt, columns=args.columns, var=args.var,
-                          units=args.units, rows=args.rows, where=args.where, reference=args.reference,
-                          igrf_spec=args.igrf_spec, reference_column=args.reference_column,
-                          chunk_rows=args.chunk_rows, progress=update)
-    finally:
-        close()
+
+def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
+    from .workflow import evaluate_file
+
+    r = _with_progress(args, evaluate_file, req)
     if r["n_dropped"]:
         what = "x/y/z or regressor values" if r.get("regressors") else "x/y/z"
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
@@ -579,17 +596,34 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_evaluate_heading(args: argparse.Namespace) -> int:
+def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .workflow import evaluate_vector_file
+
+    v = evaluate_vector_file(req)
+    if args.json:
+        print(json.dumps(v, allow_nan=False))
+        return EXIT_OK
+    mean = "mean " if v["background"]["per_sample"] else ""
+    _say(f"{v['n_used']} samples; background NED {mean}{np.round(v['background']['ned'], 3).tolist()} {v['units']} "
+         f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
+    _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
+    for k, axis in enumerate("xyz"):
+        _say(f"{'RMS error ' + axis:22}{v['before']['rms_axis'][k]:14.6g}{v['after']['rms_axis'][k]:14.6g}", args)
+    for label, key in (("RMS vector error", "rms_vector"), ("angular error RMS", "angular_error_rms_deg"),
+                       ("angular error max", "angular_error_max_deg")):
+        _say(f"{label:22}{v['before'][key]:14.6g}{v['after'][key]:14.6g}", args)
+    return EXIT_OK
+
+
+def _cmd_evaluate_heading(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .workflow import evaluate_heading_file
 
-    if not args.accel_columns:
+    if not req.accel_columns:
         raise TrimagInputError("--heading-column and --declination need --accel-columns AX,AY,AZ (the heading is "
                                "tilt-compensated with the accelerometer)")
-    h = evaluate_heading_file(
-        args.calibration, args.data, accel_columns=args.accel_columns, heading_column=args.heading_column,
-        attitude_columns=args.attitude_columns, igrf_spec=args.igrf_spec, declination=args.declination,
-        fmt=args.fmt, columns=args.columns, var=args.var, units=args.units, rows=args.rows, where=args.where,
-    )
+    h = evaluate_heading_file(req)
     if h["alignment"] == "none":
         _err("warning: the calibration has no alignment (fit with --accel-columns): the magnetometer's axes are "
              "taken as the accelerometer's")
@@ -608,31 +642,27 @@ def _cmd_evaluate_heading(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from .calibration import Calibration
-    from .io.export import export_calibration, write_export
+    from .requests import ExportRequest
+    from .workflow import export_to_file
 
     _check_writable(args.out)
-    cal = Calibration.from_file(args.calibration)
-    exp = export_calibration(cal, args.target, instance=args.instance - 1)
-    path = write_export(exp, args.out)
-    for note in exp.notes:
+    r = export_to_file(_request(ExportRequest, args))
+    for note in r["notes"]:
         _say(f"note: {note}", args)
-    for v in exp.violations:
+    for v in r["violations"]:
         _err(f"warning: outside the firmware's limits: {v}")
     if args.json:
-        print(json.dumps({"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
-                          "violations": exp.violations}))
+        print(json.dumps(r))
     else:
-        _say(f"wrote {args.target} parameters: {path}", args)
+        _say(f"wrote {args.target} parameters: {r['out']}", args)
     return EXIT_OK
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    from .requests import SimulateRequest
     from .workflow import simulate_to_file
 
-    r = simulate_to_file(model=args.model, params_path=args.params, n=args.n, noise=args.noise, out=args.out,
-                         attitudes=args.attitudes, seed=args.seed, field=args.field, units=args.units,
-                         truth=args.truth)
+    r = simulate_to_file(_request(SimulateRequest, args, params_path=args.params))
     for what, path in r["outputs"].items():
         _say(f"wrote {what}: {path}", args)
     return EXIT_OK
@@ -649,15 +679,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_batch(args: argparse.Namespace) -> int:
     from .batch import fit_batch
+    from .requests import FitRequest
     from .workflow import parse_options
 
-    result = fit_batch(
-        args.inputs, args.out, model=args.model, method=args.method, options=parse_options(args.option),
-        workers=args.workers, scheduler=args.scheduler, progress=not args.quiet, fmt=args.fmt,
-        columns=args.columns, var=args.var, units=args.units, strict=args.strict, reference=args.reference,
-        igrf_spec=args.igrf_spec, reference_column=args.reference_column,
-        regressors=_regressor_flag(args.regressors),
-    )
+    # every file's request: the flags given, without an output (one calibration per file) and, as before,
+    # without --sensor (batch reads each file's default magnetometer)
+    request = _request(FitRequest, args, "", options=parse_options(args.option),
+                       regressors=_regressor_flag(args.regressors), out=None)
+    request = dataclasses.replace(request, input=dataclasses.replace(request.input, sensor=None))
+    result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
+                       progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
         if error:
             _err(f"{file}: {error}")
@@ -704,13 +735,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
 
     _check_writable(args.out, suffixes=(".json",))
     _check_writable(args.samples_out, suffixes=(".csv", ".txt"))
-    request = LiveRequest(
-        replay=args.replay, rate=args.rate, stdin=args.stdin, serial=args.serial, baud=args.baud,
-        mavlink=args.mavlink, fmt=args.fmt, columns=args.columns, sensor=args.sensor, units=args.units,
-        model=args.model, method=args.method, options=parse_options(args.option), reference=args.reference,
-        port=args.port, out=args.out, samples_out=args.samples_out, open_browser=args.open_browser,
-        exit_at_end=args.exit_at_end, interval=args.interval,
-    )
+    request = _request(LiveRequest, args, options=parse_options(args.option))
     def say(msg: str) -> None:  # flushed: the page's address must reach a pipe (a script, tee) at once
         _say(msg, args)
         sys.stdout.flush()

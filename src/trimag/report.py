@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .calibration import Calibration
 from .io.atomic import atomic_path
@@ -136,14 +136,23 @@ def fit_report(
         F: Any = float(ref_value) if ref_value is not None else float(n_after.mean())
     else:
         F = reference
-    unit = cal.units
-    idx = np.arange(len(B))
-    step = max(1, len(B) // _MAX_POINTS)
-    sub = idx[::step]
+    sub = np.arange(len(B))[:: max(1, len(B) // _MAX_POINTS)]
 
     fig = _figure((15, 9))
     axes = fig.subplots(2, 3)
-    ax = axes[0, 0]
+    _magnitude_panel(axes[0, 0], n_before, n_after, F, sub, cal.units)
+    _error_panel(axes[0, 1], n_before - F, n_after - F, cal)
+    _coverage_panel(fig, axes[0, 2], corrected / np.maximum(n_after[:, None], 1e-300), cal)
+    _cloud_panels(axes[1], B, corrected, sub, cal.units)
+    head = title or f"trimag fit: model {cal.model}, method {cal.method}"
+    sub_title = "; ".join([f"N = {cal.stats.get('n_used', len(B))}", *notes])
+    fig.suptitle(f"{head}\n{sub_title}", fontsize=11)
+    return fig
+
+
+def _magnitude_panel(ax: Any, n_before: NDArray[np.float64], n_after: NDArray[np.float64], F: Any,
+                     sub: NDArray[np.intp], unit: str) -> None:
+    """|B| per sample (the samples ``sub``) before and after, and the reference ``F`` (a number or (N,))."""
     ax.plot(sub, n_before[sub], ".", ms=2, color="tab:red", label="before")
     ax.plot(sub, n_after[sub], ".", ms=2, color="tab:blue", label="after")
     if np.ndim(F) == 0:
@@ -153,23 +162,25 @@ def fit_report(
     ax.set(xlabel="sample", ylabel=f"|B| [{unit}]", title="field magnitude per sample")
     ax.legend(loc="best", fontsize=8)
 
-    ax = axes[0, 1]
-    err_b, err_a = n_before - F, n_after - F
+
+def _error_panel(ax: Any, err_b: NDArray[np.float64], err_a: NDArray[np.float64], cal: Calibration) -> None:
+    """Histograms of |B| - F before and after (0.5-99.5 percentile range), with the calibration's RMS."""
     lo = float(min(np.percentile(err_b, 0.5), np.percentile(err_a, 0.5)))
     hi = float(max(np.percentile(err_b, 99.5), np.percentile(err_a, 99.5)))
     bins = np.linspace(lo, hi, 80) if hi > lo else 40
     rms_b, rms_a = cal.stats.get("rms_before", np.nan), cal.stats.get("rms_after", np.nan)
     ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {rms_b:.3g}")
     ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {rms_a:.3g}")
-    ax.set(xlabel=f"|B| - F [{unit}]", ylabel="samples", title="magnitude error")
+    ax.set(xlabel=f"|B| - F [{cal.units}]", ylabel="samples", title="magnitude error")
     ax.legend(fontsize=8)
 
-    ax = axes[0, 2]
-    u = corrected / np.maximum(n_after[:, None], 1e-300)
-    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
-    sin_el = np.clip(u[:, 2], -1, 1)
+
+def _coverage_panel(fig: Figure, ax: Any, u: NDArray[np.float64], cal: Calibration) -> None:
+    """Where the corrected field's directions ``u`` ((N, 3), unit vectors) fall: azimuth against sin(elevation)."""
     from matplotlib.colors import LogNorm
 
+    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    sin_el = np.clip(u[:, 2], -1, 1)
     h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1, norm=LogNorm())
     fig.colorbar(h[3], ax=ax, label="samples per cell (log scale; grey = none)")
     cov = (cal.diagnostics or {}).get("coverage", {})
@@ -181,16 +192,15 @@ def fit_report(
     )
     ax.set_facecolor("#eeeeee")
 
+
+def _cloud_panels(axes: Any, B: NDArray[np.float64], corrected: NDArray[np.float64], sub: NDArray[np.intp],
+                  unit: str) -> None:
+    """The point clouds before and after in the x-y, y-z and x-z planes (three axes)."""
     for k, (i, j, name) in enumerate(((0, 1, "x-y"), (1, 2, "y-z"), (0, 2, "x-z"))):
-        ax = axes[1, k]
+        ax = axes[k]
         ax.plot(B[sub, i], B[sub, j], ".", ms=1.5, color="tab:red", alpha=0.5, label="before")
         ax.plot(corrected[sub, i], corrected[sub, j], ".", ms=1.5, color="tab:blue", alpha=0.5, label="after")
         ax.set_aspect("equal", adjustable="datalim")
         ax.set(xlabel=f"{name[0]} [{unit}]", ylabel=f"{name[2]} [{unit}]", title=f"point cloud, {name} plane")
         if k == 0:
             ax.legend(fontsize=8, markerscale=6)
-
-    head = title or f"trimag fit: model {cal.model}, method {cal.method}"
-    sub_title = "; ".join([f"N = {cal.stats.get('n_used', len(B))}", *notes])
-    fig.suptitle(f"{head}\n{sub_title}", fontsize=11)
-    return fig

@@ -1,8 +1,12 @@
-"""Typed requests of the application layer (what ``trimag fit`` asks for), built by the CLI and by batch runs.
+"""Typed requests of the application layer (what each ``trimag`` command asks for), built by the CLI and by batch
+runs.
 
-The command line parses its flags into a :class:`FitRequest`; :func:`trimag.workflow.fit_file` takes one. Each
-field is named after the Python argument it becomes (``InputSpec.columns``, ``ReferenceSpec.igrf``); the CLI's
-help names the flag of each.
+The command line parses its flags into one request per command (:class:`FitRequest`, :class:`EvaluateRequest`,
+:class:`ApplyRequest`, :class:`ExportRequest`, :class:`SimulateRequest`, :class:`LiveRequest`); each entry point of
+:mod:`trimag.app` takes one. The shared parts are :class:`InputSpec` (which samples), :class:`ReferenceSpec` (the
+field reference) and :class:`AttitudeSpec` (the attitudes). Each field is named after the Python argument it
+becomes (``InputSpec.columns``, ``ReferenceSpec.igrf_spec``) and after the CLI flag's destination; the CLI's help
+names the flag of each.
 """
 
 from __future__ import annotations
@@ -11,11 +15,17 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+from ._core.chunks import DEFAULT_CHUNK_ROWS
 from .errors import TrimagInputError
 
-__all__ = ["AttitudeSpec", "FitRequest", "InputSpec", "LiveRequest", "ReferenceSpec"]
+__all__ = [
+    "ApplyRequest", "AttitudeSpec", "EvaluateRequest", "ExportRequest", "FitRequest", "InputSpec", "LiveRequest",
+    "ReferenceSpec", "SimulateRequest",
+]
+
+_R = TypeVar("_R")
 
 
 @dataclass(frozen=True)
@@ -97,22 +107,120 @@ class FitRequest:
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
         """A request from flat keyword arguments (the fields of the specs and of the request itself), e.g.
         ``FitRequest.of("log.csv", units="uT", igrf_spec="52.5,13.3,40,2021-01-01", out="cal.json")``."""
-        groups: dict[type, dict[str, Any]] = {InputSpec: {}, ReferenceSpec: {}, AttitudeSpec: {}, cls: {}}
-        specs = (InputSpec, ReferenceSpec, AttitudeSpec)
-        owner: dict[str, type] = {f.name: spec for spec in specs for f in dataclasses.fields(spec)}
-        owner.update({f.name: cls for f in dataclasses.fields(cls) if f.name not in ("input", "reference", "attitude")})
-        for name, value in arguments.items():
-            if name not in owner or name == "path":
-                raise TrimagInputError(f"unknown fit argument {name!r}; known: {', '.join(sorted(owner))}")
-            groups[owner[name]][name] = value
-        if groups[cls].get("options") is None:
-            groups[cls].pop("options", None)
-        return cls(
-            input=InputSpec(path, **groups[InputSpec]),
-            reference=ReferenceSpec(**groups[ReferenceSpec]),
-            attitude=AttitudeSpec(**groups[AttitudeSpec]),
-            **groups[cls],
-        )
+        if arguments.get("options", {}) is None:
+            arguments = {k: v for k, v in arguments.items() if k != "options"}
+        return _from_flat(cls, "fit", path, {}, arguments)
+
+
+#: The parts of a request that group several arguments, by the request's field name.
+_SPECS: dict[str, type] = {"input": InputSpec, "reference": ReferenceSpec, "attitude": AttitudeSpec}
+
+
+def _from_flat(cls: type[_R], what: str, path: str | Path, fixed: dict[str, Any], arguments: Mapping[str, Any]) -> _R:
+    """A request ``cls`` from flat keyword ``arguments``: each goes to the spec that has a field of its name
+    (:data:`_SPECS`), else to the request itself; ``path`` is the input's path and ``fixed`` the request's own
+    positional fields. An unknown name is refused, naming the known ones (``what`` names the command)."""
+    types = {f.name: f.type for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    own = list(types)
+    specs = {name: spec for name, spec in _SPECS.items() if types.get(name) in (spec, spec.__name__)}
+    owner: dict[str, str] = {f.name: name for name, spec in specs.items() for f in dataclasses.fields(spec)}
+    owner.update({name: "" for name in own if name not in specs and name not in fixed})
+    groups: dict[str, dict[str, Any]] = {name: {} for name in ["", *specs]}
+    for name, value in arguments.items():
+        if name not in owner or name == "path":
+            raise TrimagInputError(f"unknown {what} argument {name!r}; known: {', '.join(sorted(owner))}")
+        groups[owner[name]][name] = value
+    parts = {name: spec(**({"path": path} if spec is InputSpec else {}), **groups[name])
+             for name, spec in specs.items()}
+    return cls(**fixed, **parts, **groups[""])
+
+
+def as_request(cls: type[_R], request: Any, positional: tuple[Any, ...], arguments: dict[str, Any]) -> _R:
+    """``request`` when it is a ``cls`` (and nothing else is given), else ``cls.of(request, *positional,
+    **arguments)``: the entry points of :mod:`trimag.app` take a request or its flat arguments."""
+    if isinstance(request, cls):
+        if positional or arguments:
+            raise TrimagInputError(f"give either a {cls.__name__} or its arguments, not both")
+        return request
+    return cls.of(request, *positional, **arguments)  # type: ignore[attr-defined]
+
+
+@dataclass(frozen=True)
+class EvaluateRequest:
+    """One evaluation (``trimag evaluate``) of the ``calibration`` (JSON) on the samples of ``input``.
+
+    Which evaluation runs follows what is given: with ``accel_columns`` the tilt-compensated heading against
+    ``heading_column`` or the yaw of ``attitude.attitude_columns`` (with the declination from ``reference.igrf_spec``
+    or ``declination``, degrees east); with attitude columns the vector errors against ``reference.background_ned``,
+    ``reference.igrf_spec`` or ``reference.background_columns``; otherwise the magnitude errors against
+    ``reference`` (``reference``, ``igrf_spec`` or ``reference_column``; the mean corrected magnitude when none),
+    streamed in ``chunk_rows`` rows. The evaluations read with ``input.strict`` and ``input.sensor`` at their
+    defaults, and the vector evaluation takes the calibration's unit (``input.units`` is not used there)."""
+
+    calibration: str | Path
+    input: InputSpec
+    reference: ReferenceSpec = field(default_factory=ReferenceSpec)
+    attitude: AttitudeSpec = field(default_factory=AttitudeSpec)
+    accel_columns: str | None = None
+    heading_column: str | None = None
+    declination: float | str | None = None
+    chunk_rows: int = DEFAULT_CHUNK_ROWS
+
+    @classmethod
+    def of(cls, calibration: str | Path, data: str | Path, **arguments: Any) -> EvaluateRequest:
+        """A request from flat keyword arguments (the fields of the specs and of the request itself), e.g.
+        ``EvaluateRequest.of("cal.json", "log.csv", reference=48000.0)``."""
+        return _from_flat(cls, "evaluate", data, {"calibration": calibration}, arguments)
+
+
+@dataclass(frozen=True)
+class ApplyRequest:
+    """One correction (``trimag apply``): every row of ``input`` corrected by ``calibration`` (JSON) and written to
+    ``out`` (``.csv``, ``.txt``, ``.parquet`` or ``.npz``), streamed in ``chunk_rows`` rows. ``input.units``, when
+    given, must match the calibration's; ``input.rows``, ``where``, ``strict`` are not used (every row is kept).
+    ``scalar_column`` is for Tolles-Lawson compensation files only."""
+
+    calibration: str | Path
+    input: InputSpec
+    out: str | Path
+    chunk_rows: int = DEFAULT_CHUNK_ROWS
+    scalar_column: str | None = None
+
+    @classmethod
+    def of(cls, calibration: str | Path, data: str | Path, out: str | Path, **arguments: Any) -> ApplyRequest:
+        """A request from flat keyword arguments, e.g. ``ApplyRequest.of("cal.json", "log.csv", "out.csv")``."""
+        return _from_flat(cls, "apply", data, {"calibration": calibration, "out": out}, arguments)
+
+
+@dataclass(frozen=True)
+class ExportRequest:
+    """One export (``trimag export``): the ``calibration`` (JSON) in ``target``'s convention (``"ardupilot"``,
+    ``"px4"``, ``"c-header"``, ``"json"``, ``"ros-yaml"``, ``"matlab"``) for magnetometer ``instance`` (1-based),
+    written to ``out``."""
+
+    calibration: str | Path
+    target: str
+    out: str | Path
+    instance: int = 1
+
+
+@dataclass(frozen=True)
+class SimulateRequest:
+    """One simulated log (``trimag simulate``): ``n`` samples of a ``model`` sensor with the parameters in
+    ``params_path`` (JSON ``{name: value}``), per-axis noise ``noise`` (standard deviation, field units), field
+    magnitude ``field`` along north, ``attitudes`` (``"random"`` or ``"axes"``) drawn with ``seed``; written to
+    ``out`` (CSV) and, with ``truth``, the true parameters (JSON, recording ``units``)."""
+
+    model: str
+    params_path: str | Path
+    n: int
+    out: str | Path
+    noise: float = 0.0
+    attitudes: str = "random"
+    seed: int = 0
+    field: float = 1.0
+    units: str | None = None
+    truth: str | Path | None = None
 
 
 #: The sources of ``trimag live`` (the :class:`LiveRequest` field that names each).

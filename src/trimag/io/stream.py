@@ -205,105 +205,123 @@ def open_chunks(
         raise TrimagInputError(f"`chunk_rows` must be a positive number of rows; got {chunk_rows}")
     kind = detect_format(p, fmt)
     if kind in ("csv", "txt"):
-        layout = detect_csv_layout(p, fmt=kind)
-        kwargs: dict[str, Any] = {
-            "skiprows": layout.skip,
-            "header": 0 if layout.has_header else None,
-            "dtype": str,
-            "keep_default_na": False,
-            "sep": r"\s+" if layout.delimiter is None else layout.delimiter,
-        }
-        try:
-            head = pd.read_csv(p, nrows=2000, **kwargs)
-        except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
-            raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
-        if not layout.has_header:
-            head.columns = [f"col{i}" for i in range(head.shape[1])]
-        head.columns = [str(c).strip() for c in head.columns]
-        if len(head) == 0:
-            raise TrimagInputError(f"{p}: the file has a header but no data rows")
-        cols, note = resolve_columns(head, columns, str(path))
-        names = list(head.columns)
-        source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names,
-                             raw_path=p, skip=layout.skip, n_fields=len(names))
-
-        def gen_pandas(skip_rows: int = 0) -> Iterator[Chunk]:
-            start = 0
-            for df in pd.read_csv(p, chunksize=chunk_rows, **kwargs):
-                if skip_rows >= len(df):  # rows already delivered by the Arrow reader
-                    skip_rows -= len(df)
-                    start += len(df)
-                    continue
-                if skip_rows:
-                    df = df.iloc[skip_rows:].reset_index(drop=True)
-                    start += skip_rows
-                    skip_rows = 0
-                df.columns = names
-                xyz = np.column_stack([_numeric(df[c]) for c in cols])
-                yield Chunk(df, xyz, start)
-                start += len(df)
-
-        def gen_arrow() -> Iterator[Chunk]:
-            import pyarrow as pa
-            import pyarrow.csv as pacsv
-
-            assert layout.delimiter is not None
-            block = read_block_bytes(int(chunk_rows * _bytes_per_row(p, layout.skip)))
-            start = 0
-            try:
-                reader = pacsv.open_csv(
-                    p,
-                    read_options=pacsv.ReadOptions(
-                        skip_rows=layout.skip + int(layout.has_header), column_names=names, block_size=block
-                    ),
-                    parse_options=pacsv.ParseOptions(delimiter=layout.delimiter),
-                    convert_options=pacsv.ConvertOptions(
-                        column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
-                        quoted_strings_can_be_null=False,
-                    ),
-                )
-                for table in _rechunk(reader, chunk_rows):
-                    yield Chunk(None, _xyz(table, cols), start, arrow=table)
-                    start += table.num_rows
-                return
-            except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
-                pass  # e.g. a row with a different number of fields: pandas reads the rest as before
-            yield from gen_pandas(skip_rows=start)
-
-        # pyarrow (the `parquet` extra) reads delimited text faster; pandas gives the same rows and cells
-        return source, (gen_arrow() if layout.delimiter is not None and available("pyarrow") else gen_pandas())
+        return _open_text(p, str(path), kind, columns, chunk_rows)
     if kind == "parquet":
-        pq = require("pyarrow.parquet", "reading Parquet files")
-
-        try:
-            # pre_buffer=False: reads column chunks page by page; with pre-buffering the memory pool peaked at
-            # 252 MB (vs 53 MB) on a file with 1e6-row row groups (docs/performance.md)
-            pf = pq.ParquetFile(p, pre_buffer=False)
-        except Exception as exc:
-            raise TrimagInputError(f"{p}: not a readable Parquet file ({exc})") from None
-        names = list(pf.schema_arrow.names)
-        first = next(pf.iter_batches(batch_size=2000), None) if pf.num_row_groups else None
-        head = first.to_pandas() if first is not None else pd.DataFrame(columns=names)
-        if len(head) == 0:
-            raise TrimagInputError(f"{p}: the file has no data rows")
-        cols, note = resolve_columns(head, columns, str(path))
-        source = ChunkSource(kind, cols, note, all_columns=names)
-
-        def gen_parquet() -> Iterator[Chunk]:
-            start = 0
-            for table in _rechunk(pf.iter_batches(batch_size=chunk_rows), chunk_rows):
-                yield Chunk(None, _xyz(table, cols), start, arrow=table)
-                start += table.num_rows
-
-        return source, gen_parquet()
+        return _open_parquet(p, str(path), columns, chunk_rows)
     df = read_table(p, fmt=kind, var=var)
     cols, note = resolve_columns(df, columns, str(path))
     source = ChunkSource(kind, cols, note, all_columns=list(df.columns))
+    return source, iter([Chunk(df, np.column_stack([_numeric(df[c]) for c in cols]), 0)])
 
-    def gen_whole() -> Iterator[Chunk]:
-        yield Chunk(df, np.column_stack([_numeric(df[c]) for c in cols]), 0)
 
-    return source, gen_whole()
+def _open_text(
+    p: Path, name: str, kind: str, columns: str | None, chunk_rows: int
+) -> tuple[ChunkSource, Iterator[Chunk]]:
+    """:func:`open_chunks` of delimited text ``p`` (``name``: the path as given, for messages)."""
+    layout = detect_csv_layout(p, fmt=kind)
+    kwargs: dict[str, Any] = {
+        "skiprows": layout.skip,
+        "header": 0 if layout.has_header else None,
+        "dtype": str,
+        "keep_default_na": False,
+        "sep": r"\s+" if layout.delimiter is None else layout.delimiter,
+    }
+    try:
+        head = pd.read_csv(p, nrows=2000, **kwargs)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
+        raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
+    if not layout.has_header:
+        head.columns = [f"col{i}" for i in range(head.shape[1])]
+    head.columns = [str(c).strip() for c in head.columns]
+    if len(head) == 0:
+        raise TrimagInputError(f"{p}: the file has a header but no data rows")
+    cols, note = resolve_columns(head, columns, name)
+    names = list(head.columns)
+    source = ChunkSource(kind, cols, note, layout.preamble, layout.has_header, layout.delimiter, names,
+                         raw_path=p, skip=layout.skip, n_fields=len(names))
+    # pyarrow (the `parquet` extra) reads delimited text faster; pandas gives the same rows and cells
+    if layout.delimiter is not None and available("pyarrow"):
+        return source, _text_chunks_arrow(p, source, kwargs, chunk_rows)
+    return source, _text_chunks_pandas(p, source, kwargs, chunk_rows)
+
+
+def _text_chunks_pandas(
+    p: Path, source: ChunkSource, kwargs: dict[str, Any], chunk_rows: int, skip_rows: int = 0
+) -> Iterator[Chunk]:
+    """The chunks of delimited text read by pandas (``kwargs`` of :func:`pandas.read_csv`), after the first
+    ``skip_rows`` data rows (already delivered by the Arrow reader)."""
+    start = 0
+    for df in pd.read_csv(p, chunksize=chunk_rows, **kwargs):
+        if skip_rows >= len(df):  # rows already delivered by the Arrow reader
+            skip_rows -= len(df)
+            start += len(df)
+            continue
+        if skip_rows:
+            df = df.iloc[skip_rows:].reset_index(drop=True)
+            start += skip_rows
+            skip_rows = 0
+        df.columns = source.all_columns
+        xyz = np.column_stack([_numeric(df[c]) for c in source.columns])
+        yield Chunk(df, xyz, start)
+        start += len(df)
+
+
+def _text_chunks_arrow(p: Path, source: ChunkSource, kwargs: dict[str, Any], chunk_rows: int) -> Iterator[Chunk]:
+    """The chunks of delimited text read by pyarrow's streaming reader, every cell a string; from a row it refuses
+    (e.g. one with a different number of fields) on, pandas reads the rest as before."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    assert source.delimiter is not None
+    names = source.all_columns
+    block = read_block_bytes(int(chunk_rows * _bytes_per_row(p, source.skip)))
+    start = 0
+    try:
+        reader = pacsv.open_csv(
+            p,
+            read_options=pacsv.ReadOptions(
+                skip_rows=source.skip + int(source.has_header), column_names=names, block_size=block
+            ),
+            parse_options=pacsv.ParseOptions(delimiter=source.delimiter),
+            convert_options=pacsv.ConvertOptions(
+                column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
+                quoted_strings_can_be_null=False,
+            ),
+        )
+        for table in _rechunk(reader, chunk_rows):
+            yield Chunk(None, _xyz(table, source.columns), start, arrow=table)
+            start += table.num_rows
+        return
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+        pass  # e.g. a row with a different number of fields: pandas reads the rest as before
+    yield from _text_chunks_pandas(p, source, kwargs, chunk_rows, skip_rows=start)
+
+
+def _open_parquet(p: Path, name: str, columns: str | None, chunk_rows: int) -> tuple[ChunkSource, Iterator[Chunk]]:
+    """:func:`open_chunks` of a Parquet file ``p``, read one batch of ``chunk_rows`` rows at a time."""
+    pq = require("pyarrow.parquet", "reading Parquet files")
+
+    try:
+        # pre_buffer=False: reads column chunks page by page; with pre-buffering the memory pool peaked at
+        # 252 MB (vs 53 MB) on a file with 1e6-row row groups (docs/performance.md)
+        pf = pq.ParquetFile(p, pre_buffer=False)
+    except Exception as exc:
+        raise TrimagInputError(f"{p}: not a readable Parquet file ({exc})") from None
+    names = list(pf.schema_arrow.names)
+    first = next(pf.iter_batches(batch_size=2000), None) if pf.num_row_groups else None
+    head = first.to_pandas() if first is not None else pd.DataFrame(columns=names)
+    if len(head) == 0:
+        raise TrimagInputError(f"{p}: the file has no data rows")
+    cols, note = resolve_columns(head, columns, name)
+    source = ChunkSource("parquet", cols, note, all_columns=names)
+
+    def gen_parquet() -> Iterator[Chunk]:
+        start = 0
+        for table in _rechunk(pf.iter_batches(batch_size=chunk_rows), chunk_rows):
+            yield Chunk(None, _xyz(table, cols), start, arrow=table)
+            start += table.num_rows
+
+    return source, gen_parquet()
 
 
 def iter_chunks(path: str | Path, **kwargs: Any) -> Iterator[Chunk]:
@@ -363,8 +381,6 @@ def apply_file(
         ``n_rows``, ``n_uncorrected``, ``columns`` (x, y, z used), ``output_columns`` (appended names), ``out``.
     """
     out = Path(out_path)
-    def _regressors(chunk: Chunk) -> NDArray[np.float64] | None:
-        return chunk_columns(chunk, regressor_columns, in_path) if regressor_columns else None
     out_kind = guess_format(out) if out.suffix else "csv"
     if out_kind not in ("csv", "txt", "parquet", "npz"):
         raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
@@ -372,98 +388,134 @@ def apply_file(
         require("pyarrow.parquet", "writing Parquet files")
     source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
     new_cols = [f"{c}{suffix}" for c in source.columns]
-    n_rows = 0
-    n_bad = 0
+    tally = _Tally(progress)
+    corrected = _corrected_chunks(calibrate, chunks, regressor_columns, in_path)
     with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error
         raw_copy = (out_kind in ("csv", "txt") and source.raw_path is not None and source.delimiter is not None
                     and (out_kind == "txt" or source.delimiter == ","))
         if raw_copy:  # delimited text in, same delimiter out: every input byte copied, corrected cells appended
-            assert source.raw_path is not None and source.delimiter is not None
-            sep_b = source.delimiter.encode()
-            with tmp.open("wb") as fb, source.raw_path.open("rb") as fin:
-                lines_in = _RawLines(fin, source, sep_b)
-                for body, ending in lines_in.head():  # preamble and header, unchanged
-                    if ending is not None:  # the header: the corrected columns' names appended
-                        fb.write(body + sep_b + sep_b.join(n.encode() for n in new_cols) + ending)
-                    else:
-                        fb.write(body)
-                for chunk in chunks:
-                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
-                    cells = _corrected_cells(corrected, source.delimiter, arrow=chunk.has_arrow)
-                    block = lines_in.take(cells)
-                    if block is None:
-                        raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
-                    fb.writelines(block)
-                    n_rows += len(chunk)
-                    n_bad += bad
-                    if progress:
-                        progress(n_rows)
-                if not lines_in.at_end():  # never an output whose cells are not those of its rows
-                    raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+            _write_raw_copy(tmp, source, corrected, new_cols, tally, in_path)
         elif out_kind in ("csv", "txt"):
             sep = "," if out_kind == "csv" or source.delimiter is None else source.delimiter
-            with tmp.open("w", encoding="utf-8", newline="") as fh:
-                for line in source.preamble:
-                    fh.write(line + "\n")
-                first = True
-                for chunk in chunks:
-                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
-                    if first and source.has_header:
-                        header = chunk.arrow.column_names if chunk.has_arrow else [str(c) for c in chunk.table.columns]
-                        csv.writer(fh, delimiter=sep, lineterminator="\n").writerow(header + new_cols)
-                    first = False
-                    if chunk.has_arrow:
-                        _write_csv_rows(fh, _with_corrected(chunk.arrow, corrected, new_cols), sep)
-                    else:  # NPZ/MAT tables and pandas-read text: written by pandas
-                        df = chunk.table.copy()
-                        for j, name in enumerate(new_cols):
-                            df[name] = corrected[:, j]
-                        df.to_csv(fh, index=False, header=False, sep=sep, lineterminator="\n")
-                    n_rows += len(chunk)
-                    n_bad += bad
-                    if progress:
-                        progress(n_rows)
+            _write_text(tmp, source, corrected, new_cols, tally, sep)
         elif out_kind == "parquet":
-            import pyarrow.parquet as pq
-
-            writer = None
-            try:
-                for chunk in chunks:
-                    corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
-                    table = _with_corrected(chunk.arrow, corrected, new_cols)
-                    if writer is None:
-                        writer = pq.ParquetWriter(tmp, table.schema)
-                    elif not table.schema.equals(writer.schema):
-                        table = table.cast(writer.schema)
-                    writer.write_table(table)
-                    n_rows += table.num_rows
-                    n_bad += bad
-                    if progress:
-                        progress(n_rows)
-            finally:
-                if writer is not None:
-                    writer.close()
+            _write_parquet(tmp, corrected, new_cols, tally)
         else:  # npz: arrays in memory by nature
-            parts = []
-            for chunk in chunks:
-                corrected, bad = _correct(calibrate, chunk.xyz, _regressors(chunk))
-                parts.append((chunk.xyz, corrected))
-                n_rows += len(corrected)
-                n_bad += bad
-                if progress:
-                    progress(n_rows)
-            raw = np.vstack([r for r, _ in parts])
-            cor = np.vstack([c for _, c in parts])
-            with tmp.open("wb") as fb:
-                np.savez(fb, raw=raw, corrected=cor)
+            _write_npz(tmp, corrected, tally)
     return {
-        "n_rows": n_rows,
-        "n_uncorrected": n_bad,
+        "n_rows": tally.n_rows,
+        "n_uncorrected": tally.n_bad,
         "columns": list(source.columns),
         "column_note": source.column_note,
         "output_columns": new_cols,
         "out": str(out),
     }
+
+
+@dataclass
+class _Tally:
+    """Rows written and rows left uncorrected so far; ``progress`` is told the rows written after each chunk."""
+
+    progress: Callable[[int], None] | None
+    n_rows: int = 0
+    n_bad: int = 0
+
+    def add(self, rows: int, bad: int) -> None:
+        self.n_rows += rows
+        self.n_bad += bad
+        if self.progress:
+            self.progress(self.n_rows)
+
+
+def _corrected_chunks(
+    calibrate: Callable[..., NDArray[np.float64]], chunks: Iterable[Chunk], regressor_columns: Sequence[str],
+    in_path: str | Path,
+) -> Iterator[tuple[Chunk, NDArray[np.float64], int]]:
+    """Each chunk with its corrected x, y, z (n, 3) (NaN where not corrected) and the number of rows not corrected."""
+    for chunk in chunks:
+        u = chunk_columns(chunk, regressor_columns, in_path) if regressor_columns else None
+        corrected, bad = _correct(calibrate, chunk.xyz, u)
+        yield chunk, corrected, bad
+
+
+def _write_raw_copy(
+    tmp: Path, source: ChunkSource, corrected: Iterable[tuple[Chunk, NDArray[np.float64], int]], new_cols: list[str],
+    tally: _Tally, in_path: str | Path,
+) -> None:
+    """Delimited text in, the same delimiter out: every input byte copied, the corrected cells appended."""
+    assert source.raw_path is not None and source.delimiter is not None
+    sep_b = source.delimiter.encode()
+    with tmp.open("wb") as fb, source.raw_path.open("rb") as fin:
+        lines_in = _RawLines(fin, source, sep_b)
+        for body, ending in lines_in.head():  # preamble and header, unchanged
+            if ending is not None:  # the header: the corrected columns' names appended
+                fb.write(body + sep_b + sep_b.join(n.encode() for n in new_cols) + ending)
+            else:
+                fb.write(body)
+        for chunk, values, bad in corrected:
+            cells = _corrected_cells(values, source.delimiter, arrow=chunk.has_arrow)
+            block = lines_in.take(cells)
+            if block is None:
+                raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+            fb.writelines(block)
+            tally.add(len(chunk), bad)
+        if not lines_in.at_end():  # never an output whose cells are not those of its rows
+            raise TrimagInputError(f"{in_path}: the rows read do not match the file's lines")
+
+
+def _write_text(
+    tmp: Path, source: ChunkSource, corrected: Iterable[tuple[Chunk, NDArray[np.float64], int]], new_cols: list[str],
+    tally: _Tally, sep: str,
+) -> None:
+    """Delimited text out, written from the cells (another delimiter, or a table read whole)."""
+    with tmp.open("w", encoding="utf-8", newline="") as fh:
+        for line in source.preamble:
+            fh.write(line + "\n")
+        first = True
+        for chunk, values, bad in corrected:
+            if first and source.has_header:
+                header = chunk.arrow.column_names if chunk.has_arrow else [str(c) for c in chunk.table.columns]
+                csv.writer(fh, delimiter=sep, lineterminator="\n").writerow(header + new_cols)
+            first = False
+            if chunk.has_arrow:
+                _write_csv_rows(fh, _with_corrected(chunk.arrow, values, new_cols), sep)
+            else:  # NPZ/MAT tables and pandas-read text: written by pandas
+                df = chunk.table.copy()
+                for j, name in enumerate(new_cols):
+                    df[name] = values[:, j]
+                df.to_csv(fh, index=False, header=False, sep=sep, lineterminator="\n")
+            tally.add(len(chunk), bad)
+
+
+def _write_parquet(
+    tmp: Path, corrected: Iterable[tuple[Chunk, NDArray[np.float64], int]], new_cols: list[str], tally: _Tally
+) -> None:
+    import pyarrow.parquet as pq
+
+    writer = None
+    try:
+        for chunk, values, bad in corrected:
+            table = _with_corrected(chunk.arrow, values, new_cols)
+            if writer is None:
+                writer = pq.ParquetWriter(tmp, table.schema)
+            elif not table.schema.equals(writer.schema):
+                table = table.cast(writer.schema)
+            writer.write_table(table)
+            tally.add(table.num_rows, bad)
+    finally:
+        if writer is not None:
+            writer.close()
+
+
+def _write_npz(tmp: Path, corrected: Iterable[tuple[Chunk, NDArray[np.float64], int]], tally: _Tally) -> None:
+    parts = []
+    for chunk, values, bad in corrected:
+        parts.append((chunk.xyz, values))
+        tally.add(len(values), bad)
+    raw = np.vstack([r for r, _ in parts])
+    cor = np.vstack([c for _, c in parts])
+    with tmp.open("wb") as fb:
+        np.savez(fb, raw=raw, corrected=cor)
 
 
 class _RawLines:

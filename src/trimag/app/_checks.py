@@ -1,0 +1,220 @@
+"""Checks of a fit before and after it: the data's unit, the acceptance policy, and the refusals of what cannot be
+right (a static or unidentified autopilot log, an impossible attitude-based fit)."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import TrimagError, TrimagInputError
+from ..estimators import make_estimator
+from ..io import Samples
+from ..reference import igrf, parse_igrf_spec
+from ..units import normalise_unit
+
+
+def check_unit(
+    samples: Samples, units: str | None, reference: str | float | None, igrf_spec: str | None
+) -> tuple[str | None, list[str]]:
+    """The data's unit, checked against the column headers, Earth-field ranges and the reference (issue 22).
+
+    A unit in the headers that contradicts ``units`` is refused (exit 2); without ``units`` it is used. A median
+    magnitude that is not a plausible Earth field in the declared unit is a warning naming the likely unit, and
+    an error when a reference (a number or IGRF) makes the contradiction certain.
+    """
+    from ..units import EARTH_RAW_RANGE_NT, header_unit, nT_per_unit, plausible_units
+
+    messages: list[str] = []
+    in_header = header_unit(list(samples.columns))
+    if in_header is not None:
+        if units is not None and normalise_unit(units) != in_header:
+            raise TrimagInputError(
+                f"the column headers say {in_header} ({', '.join(samples.columns)}) but units={units!r}; "
+                "give the data's real unit"
+            )
+        if units is None:
+            units = in_header
+            messages.append(f"unit {in_header} (from the column headers)")
+    unit = normalise_unit(units)
+    if unit in ("unknown", "counts") or not len(samples.field):
+        return units, messages
+    median = float(np.median(np.linalg.norm(samples.field, axis=1)))
+    lo, hi = (v / nT_per_unit(unit) for v in EARTH_RAW_RANGE_NT)
+    if lo <= median <= hi:
+        return units, messages
+    likely = plausible_units(median)
+    guess = f"; the numbers look like {' or '.join(likely)}" if likely else ""
+    F_nT: float | None = None
+    if igrf_spec is not None:
+        F_nT = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT)
+    elif reference is not None and str(reference).strip().lower() != "mean":
+        try:
+            F_nT = float(reference) * nT_per_unit(unit)
+        except ValueError:
+            F_nT = None
+    if F_nT is not None:
+        ratio = median * nT_per_unit(unit) / F_nT
+        if not 0.2 <= ratio <= 5.0:
+            raise TrimagInputError(
+                f"the data's median |B| is {median:.6g} {unit}, {ratio:.3g}x the reference field "
+                f"({F_nT / nT_per_unit(unit):.6g} {unit}): the data are not in {unit}{guess}; give the right unit"
+            )
+    messages.append(
+        f"warning: the data's median |B| = {median:.6g} {unit} is not a plausible Earth field in {unit} "
+        f"({lo:.3g}-{hi:.3g}){guess}; check the unit"
+    )
+    return units, messages
+
+
+def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
+    """The acceptance policy's verdict (:func:`trimag.policy.check_policy`) with the site's inclination and F."""
+    from ..policy import check_policy
+
+    inclination = None
+    if igrf_spec is not None:
+        north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+        inclination = float(np.degrees(np.arctan2(down, np.hypot(north, east))))
+    values = getattr(ref, "values", None)
+    F = float(np.mean(values)) if values is not None else None
+    return check_policy(cal, limits, inclination_deg=inclination, reference_F=F)
+
+
+def worse_than_raw(cal: Calibration) -> bool:
+    before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
+    return before is not None and after is not None and float(after) > float(before)
+
+
+def _attitude_alternatives(
+    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None, quaternion_order: str,
+    quaternion_frame: str,
+) -> list[tuple[str, Any]]:
+    """The usual mistakes of an attitude convention, each as (what to give instead, attitudes)."""
+    from itertools import permutations
+
+    from .. import attitude as _attitude
+
+    out: list[tuple[str, Any]] = []
+
+    def build(label: str, **kwargs: Any) -> None:
+        try:
+            rot = _attitude.attitude_from_table(samples.table, **kwargs)
+        except TrimagInputError:
+            return
+        out.append((label, rot))
+        out.append((f"{label} with the rotation inverted (navigation -> body)", rot.inv()))
+
+    if attitude_columns is not None:
+        names = [c.strip() for c in attitude_columns.split(",")]
+        for perm in permutations(names):
+            build(f"attitude columns {','.join(perm)}", euler_columns=",".join(perm))
+    if quaternion_columns is not None:
+        for order in ("wxyz", "xyzw"):
+            for frame in ("ned", "enu"):
+                build(f"quaternion order {order}, frame {frame}", quaternion_columns=quaternion_columns,
+                      scalar_first=order == "wxyz", frame=frame)
+    return out
+
+
+def refuse_impossible_vector_fit(
+    cal: Calibration, samples: Samples, ref: Any, unit: str, model: str, method: str | None,
+    options: dict[str, Any] | None, attitude_columns: str | None, quaternion_columns: str | None,
+    quaternion_order: str, quaternion_frame: str,
+) -> None:
+    """Refuse an attitude-based fit that cannot be right: worse than the raw data, or a reflection (det < 0).
+
+    The usual convention mistakes (Euler column order, an inverted rotation, quaternion scalar first/last, ENU
+    for NED) are tried; a much better one is named (exit 2), else the fit is refused as unidentified (exit 3).
+    """
+    from ..errors import IdentifiabilityError
+
+    det = float(np.linalg.det(np.asarray(cal.matrix)))
+    if not (worse_than_raw(cal) or det <= 0):
+        return
+    before, after = float(cal.stats["rms_before"]), float(cal.stats["rms_after"])
+    what = f"RMS {after:.4g} {unit} after against {before:.4g} before" + ("; det(K) < 0, a reflection" if det <= 0
+                                                                         else "")
+    best: tuple[float, str] | None = None
+    for label, rot in _attitude_alternatives(samples, attitude_columns, quaternion_columns, quaternion_order,
+                                             quaternion_frame):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                alt = make_estimator(model, method, options).fit(samples.field, ref, units=unit, attitude=rot)
+        except TrimagError:
+            continue
+        alt_cal = alt.calibration_
+        alt_after = float(alt_cal.stats["rms_after"])
+        if np.linalg.det(np.asarray(alt_cal.matrix)) > 0 and (best is None or alt_after < best[0]):
+            best = (alt_after, label)
+    if best is not None and best[0] < 0.5 * min(before, after):
+        raise TrimagInputError(
+            f"the correction fitted with these attitudes cannot be right ({what}); with {best[1]} it reaches "
+            f"RMS {best[0]:.4g} {unit}: the attitudes are probably in that convention (docs/conventions-attitude.md)"
+        )
+    raise IdentifiabilityError(
+        f"the correction fitted with these attitudes cannot be right ({what}), and no usual convention mistake "
+        "explains it: check the attitudes (Z-Y-X yaw, pitch, roll in degrees, body -> NED), the background field "
+        "and the unit"
+    )
+
+
+def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
+    """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
+    from ..errors import IdentifiabilityError
+
+    B = samples.field
+    n = len(B)
+    name = log_info["sensor"]
+    if n < 30:
+        raise IdentifiabilityError(
+            f"{name} has only {n} samples in this log: too few to calibrate. Log the magnetometer faster or longer "
+            "and turn the vehicle through all headings and attitudes"
+        )
+    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    mean = u.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    cone = float(np.degrees(np.arccos(np.clip(u @ mean, -1.0, 1.0))).max())
+    if cone < 30.0:
+        raise IdentifiabilityError(
+            f"{name}: the field direction stayed within {cone:.0f} deg of its mean over {n} samples: the vehicle "
+            "barely turned. Record a calibration: rotate the vehicle through all headings, nose up and down and on "
+            "each side (on the ground or in flight), then fit that log"
+        )
+
+
+def refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[str, Any]) -> None:
+    """Refuse (exit 3) a fit of an autopilot log that the rotation recorded cannot identify.
+
+    A vehicle that turns about its vertical axis with little tilt (a rover, a boat, a level flight) leaves the
+    field directions in a narrow band: the full 3-D calibration is then not identified, and an autopilot would be
+    given parameters that are wrong in the unseen directions.
+    """
+    from ..errors import IdentifiabilityError
+
+    ident = cal.diagnostics.get("identifiability") or {}
+    inflation = ident.get("std_inflation_vs_full_sphere")
+    coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
+    converged = cal.stats.get("converged", True)
+    if converged and (inflation is None or inflation <= 100.0):
+        return
+    B = samples.field
+    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    axis = u.mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    angle = np.degrees(np.arccos(np.clip(u @ axis, -1.0, 1.0)))
+    detail = [f"the field directions cover {100 * coverage:.0f}% of the sphere" if coverage is not None else "",
+              f"they stay {angle.min():.0f}..{angle.max():.0f} deg from their mean direction "
+              f"{np.round(axis, 2).tolist()} (body frame)",
+              "the fit did not converge" if not converged else
+              f"its parameters would be {inflation:.3g}x less certain than from a full tumble"]
+    raise IdentifiabilityError(
+        f"{log_info['sensor']}: this log turned the vehicle mostly about one axis "
+        f"({'; '.join(d for d in detail if d)}): "
+        "a 3-D calibration cannot be identified from it. Record a calibration with the vehicle also pitched "
+        "nose up and down and rolled on each side; a vehicle that cannot tilt needs an earlier full calibration "
+        "whose offsets are refitted"
+    )
+

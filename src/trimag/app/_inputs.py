@@ -1,0 +1,203 @@
+"""What a request's text options become: method options, the field reference (magnitude or background vector),
+regressor and accelerometer columns, and the rows without an attitude or background dropped and counted."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from ..errors import TrimagInputError
+from ..io import Samples, column_values
+from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
+from ..requests import ReferenceSpec
+from ..units import convert
+
+
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """Parse ``KEY=VALUE`` method options; values are JSON when they parse as JSON, else strings."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise TrimagInputError(f"`option` takes KEY=VALUE (e.g. `option form=symmetric`); got {item!r}")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def _parse_vector(text: str, name: str) -> NDArray[np.float64]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise TrimagInputError(f"{name} takes three numbers N,E,D; got {text!r}") from None
+    if len(values) != 3:
+        raise TrimagInputError(f"{name} takes three numbers N,E,D; got {text!r}")
+    return np.array(values)
+
+
+def magnitude_reference(samples: Samples, given: ReferenceSpec, unit: str) -> ScalarReference:
+    """The field magnitude reference of ``samples`` in ``unit``: ``given.reference`` (a number, or ``"mean"``),
+    ``given.igrf_spec`` or ``given.reference_column`` (at most one of them; none: unknown)."""
+    reference, igrf_spec, reference_column = given.reference, given.igrf_spec, given.reference_column
+    named = [x for x in (reference, igrf_spec, reference_column) if x is not None]
+    if len(named) > 1:
+        raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
+    n = len(samples.field)
+    if igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(igrf_spec)
+        return igrf_reference(lat, lon, alt, date, n=n, units=unit)
+    if reference_column is not None:
+        values = column_values(samples, reference_column)
+        ref = as_scalar_reference(values, n, units=unit)
+        return ScalarReference(ref.values, f"column {reference_column}", ref.unit)
+    return as_scalar_reference(reference, n, units=unit)
+
+
+def background_field(
+    given: ReferenceSpec, unit: str, samples: Samples | None = None, **read_kwargs: Any
+) -> tuple[NDArray[np.float64], str]:
+    """The background field (N, E, D) in ``unit``, shape (3,) or (N, 3) (``background_columns``: one vector per row
+    of ``samples``), and a description of its source: exactly one of ``given.background_ned``, ``igrf_spec``,
+    ``background_run`` (read with ``read_kwargs``, :func:`trimag.io.background.background_from_run`) and
+    ``background_columns``."""
+    background_ned, igrf_spec = given.background_ned, given.igrf_spec
+    background_run, background_columns = given.background_run, given.background_columns
+    named = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
+    if len(named) != 1:
+        raise TrimagInputError(
+            "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE` or `background_columns=N,E,D`"
+        )
+    if background_columns is not None:
+        if samples is None:
+            raise TrimagInputError("`background_columns` needs the samples' table")
+        names = _split_names(background_columns, samples, "background_columns")
+        values = np.column_stack([column_values(samples, c) for c in names])
+        F = np.linalg.norm(values, axis=1)
+        return values, (f"per sample from columns {', '.join(names)}, |H| {F.min():.6g} to {F.max():.6g} {unit}, "
+                        f"mean NED {np.round(values.mean(axis=0), 3).tolist()}")
+    if background_ned is not None:
+        return _parse_vector(background_ned, "`background_ned`"), "given (NED)"
+    if igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(igrf_spec)
+        fld = igrf(lat, lon, alt, date)
+        vec = fld.ned_nT * convert(1.0, "nT", unit)
+        return vec, f"igrf {igrf_spec} (IGRF-14, NED {np.round(fld.ned_nT, 1).tolist()} nT)"
+
+    assert background_run is not None
+    from ..io.background import background_from_run
+
+    return background_from_run(background_run, units=unit, **read_kwargs)
+
+
+def parse_regressor_names(names: Any) -> tuple[str, ...] | None:
+    """``FitRequest.regressors`` (a tuple, or a comma-separated string) as a tuple of names; None when none."""
+    if names is None:
+        return None
+    items = names.split(",") if isinstance(names, str) else list(names)
+    out = tuple(str(n).strip() for n in items if str(n).strip())
+    if not out:
+        raise TrimagInputError("`regressors` names no column; give COL[,COL...]")
+    if len(set(out)) != len(out):
+        raise TrimagInputError(f"`regressors` names a column twice: {', '.join(out)}")
+    return out
+
+
+def regressor_columns(
+    samples: Samples, names: tuple[str, ...], path: Any, what: str = "a regressor of the calibration"
+) -> dict[str, NDArray[np.float64]]:
+    """The values (N,) of the regressor columns ``names`` in the kept rows of ``samples``; one line naming the
+    missing column and the file when one is not there."""
+    missing = [n for n in names if n not in samples.table.columns]
+    if missing:
+        raise TrimagInputError(
+            f"{path}: no column {missing[0]!r} ({what}); the columns are "
+            f"{', '.join(map(str, samples.table.columns))}"
+        )
+    return {n: column_values(samples, n) for n in names}
+
+
+def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
+    """Three column names (or 0-based indices) of ``samples.table`` from ``"A,B,C"``; ``arg`` names the option."""
+    items = [c.strip() for c in spec.split(",") if c.strip()]
+    if len(items) != 3:
+        raise TrimagInputError(f"`{arg}` needs exactly three columns (N, E, D); got {len(items)}")
+    from ..attitude import column_names
+
+    names = [str(c) for c in samples.table.columns]
+    for item in items:
+        if item not in names and item.isdigit() and int(item) >= len(names):
+            raise TrimagInputError(f"`{arg}`: index {item} is out of range; the file has {len(names)} columns")
+    return column_names(items, names)
+
+
+def drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose per-sample background cells are missing or non-finite."""
+    if background_columns is None:
+        return samples, 0
+    names = ",".join(_split_names(background_columns, samples, "background_columns"))
+    try:
+        return drop_rows_without_attitude(samples, names, None)
+    except TrimagInputError:
+        raise TrimagInputError(f"none of the rows has a finite background in columns {names}") from None
+
+
+def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.float64]:
+    """The accelerometer columns ``"AX,AY,AZ"`` of the kept rows of ``samples``, shape (N, 3); one line naming the
+    missing column, or the rows with a non-numeric value, when they are not there."""
+    from ..attitude import parse_columns
+
+    names = parse_columns(accel_columns, 3, option="`accel_columns`")
+    assert names is not None
+    missing = [n for n in names if n not in samples.table.columns]
+    if missing:
+        raise TrimagInputError(
+            f"{path}: no column {missing[0]!r} (named by `accel_columns`); the columns are "
+            f"{', '.join(map(str, samples.table.columns))}"
+        )
+    values = np.column_stack([pd.to_numeric(samples.table[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    bad = ~np.isfinite(values).all(axis=1)
+    if bad.any():
+        raise TrimagInputError(
+            f"{path}: {int(bad.sum())} rows have a missing or non-numeric accelerometer value in {accel_columns} "
+            f"(first at kept row {int(np.flatnonzero(bad)[0])}); drop them first (e.g. with `where`)"
+        )
+    return values
+
+
+def drop_rows_without_attitude(
+    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None
+) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose attitude cells are missing or non-finite."""
+    names = [c.strip() for c in (attitude_columns or quaternion_columns or "").split(",") if c.strip()]
+    present = [c for c in names if c in samples.table.columns]
+    if not present:
+        return samples, 0
+    values = np.column_stack([pd.to_numeric(samples.table[c], errors="coerce").to_numpy(dtype=float) for c in present])
+    ok = np.isfinite(values).all(axis=1)
+    n_bad = int((~ok).sum())
+    if n_bad == 0:
+        return samples, 0
+    if n_bad == len(ok):
+        raise TrimagInputError(f"none of the rows has a finite attitude in columns {', '.join(present)}")
+    kept = dataclasses.replace(
+        samples,
+        field=samples.field[ok],
+        table=samples.table[ok].reset_index(drop=True),
+        n_dropped=samples.n_dropped + n_bad,
+    )
+    return kept, n_bad
+
+
+def truthy(value: Any) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("1", "true", "yes", "on")
+    return bool(value)
+

@@ -1,0 +1,111 @@
+"""``trimag fit --prior``: the quick recalibration (keep an earlier calibration's matrix, refit its offset)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+from ..io import Samples
+from ..reference import igrf, parse_igrf_spec
+from ..requests import FitRequest
+from ..units import normalise_unit
+from ._inputs import drop_rows_without_attitude, magnitude_reference, regressor_columns
+
+
+def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
+    """The data's unit against the prior calibration's: a clash is refused, an unstated unit is the prior's."""
+    given = req.input.units
+    if given is not None:
+        unit = normalise_unit(given)
+        if "unknown" not in (unit, prior.units) and unit != prior.units:
+            raise TrimagInputError(
+                f"the prior calibration {req.prior} is for data in {prior.units}, but `units={given}`: a quick "
+                "recalibration keeps the prior's matrix, so the data must be in its unit"
+            )
+        return req, []
+    if prior.units == "unknown":
+        return req, []
+    return (dataclasses.replace(req, input=dataclasses.replace(req.input, units=prior.units)),
+            [f"unit {prior.units} (from the prior calibration)"])
+
+
+def _inclination(igrf_spec: str | None) -> float | None:
+    """The IGRF inclination (degrees, positive down) at a site ``LAT,LON,ALT_M,DATE``; None without a site."""
+    if igrf_spec is None:
+        return None
+    north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+    return float(np.degrees(np.arctan2(down, np.hypot(north, east))))
+
+
+def refit_prior(
+    req: FitRequest, samples: Samples, unit: str, prior: Calibration, options: dict[str, Any]
+) -> tuple[Samples, Calibration, dict[str, NDArray[np.float64]] | None, list[str]]:
+    """Quick recalibration (:func:`trimag.prior.refit_offset`): ``(samples, calibration, regressor values,
+    messages)``."""
+    from .. import attitude as _attitude
+    from ..prior import file_digest, refit_offset
+
+    given, att = req.reference, req.attitude
+    messages = [f"quick recalibration: the matrix{' and regressor terms' if prior.regressors else ''} of "
+                f"{req.prior} (model {prior.model}, method {prior.method}) kept; the offset refitted"]
+    if given.background_ned is not None or given.background_run is not None:
+        raise TrimagInputError("a quick recalibration (`prior`) uses the field magnitude (and the inclination), not "
+                               "a background vector: give `reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
+    attitude = None
+    if att.attitude_columns is not None or att.quaternion_columns is not None:
+        samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+        if n_no_attitude:
+            messages.append(f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric")
+        attitude = _attitude.attitude_from_table(
+            samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+            scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+        )
+    ref = magnitude_reference(samples, given, unit)
+    F: Any = ref.values
+    if F is None:
+        value = (prior.reference or {}).get("value")
+        if value is None:
+            raise TrimagInputError("a quick recalibration (`prior`) needs the field magnitude: give `reference=F`, "
+                                   "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME` (the prior states none)")
+        F = float(value)
+        messages.append(f"field magnitude F = {F:.6g} {unit} (the prior calibration's reference)")
+    elif ref.source.startswith("igrf"):
+        messages.append(f"reference from {ref.source}: F = {float(np.asarray(F).ravel()[0]):.6g} {unit}")
+    inclination = options.get("inclination_deg")
+    inclination = float(inclination) if inclination is not None else _inclination(given.igrf_spec)
+    if attitude is not None and inclination is None:
+        messages.append("warning: attitudes given without an inclination (`igrf_spec` or `option inclination_deg`): "
+                        "only the magnitude is used")
+    if attitude is None:
+        inclination = None
+    regressor_values = None
+    if prior.regressors is not None:
+        regressor_values = regressor_columns(samples, tuple(prior.regressors["names"]), req.input.path,
+                                             "a regressor of the prior calibration")
+    sigma = options.get("prior_offset_sigma")
+    cal = refit_offset(
+        prior, samples.field, F, regressors=regressor_values, attitude=attitude, inclination_deg=inclination,
+        prior_offset_sigma=None if sigma is None else float(sigma),
+        scale_sigma=float(options.get("scale_sigma", 0.005)),
+        inclination_sigma_deg=float(options.get("inclination_sigma_deg", 0.2)),
+        prior_source={"path": str(req.prior), "sha256": file_digest(str(req.prior))},
+    )
+    cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
+                                              "prior", "unit": unit})
+    d = cal.diagnostics["prior"]
+    for name, c in d["components"].items():
+        state = ("identified" if c["identified_by_data"] else
+                 "NOT identified by these data (value and sigma from the priors)")
+        messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit} (prior {c['prior_value']:.6g}): "
+                        f"{state}")
+    if d["unidentified"]:
+        messages.append(f"unidentified: {', '.join(d['unidentified'])}: a level turn cannot tell a vertical offset "
+                        "from the field's magnitude and inclination: tilt the vehicle (roll and pitch it while it "
+                        "turns) to fit it, or keep the prior's value")
+    return samples, cal, regressor_values, messages
+

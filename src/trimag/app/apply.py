@@ -1,0 +1,46 @@
+"""``trimag apply``: correct every row of a file with a calibration (streamed)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..io import apply_file
+from ..requests import ApplyRequest, as_request
+
+__all__ = ["apply_to_file"]
+
+
+def apply_to_file(
+    request: ApplyRequest | str | Path, *paths: str | Path, progress: Callable[[int], None] | None = None,
+    **arguments: Any,
+) -> dict[str, Any]:
+    """Correct a whole file with a calibration (streamed; see :func:`trimag.io.apply_file`).
+
+    ``request``: an :class:`~trimag.requests.ApplyRequest`, or the calibration's, the data's and the output's paths
+    with the request's fields as keyword arguments (:meth:`ApplyRequest.of <trimag.requests.ApplyRequest.of>`).
+    ``progress`` is called with the rows written so far. A calibration with regressor terms reads its regressors
+    from the columns of the same names; a missing column raises :class:`TrimagInputError`, and a row whose
+    regressor value is missing is left uncorrected.
+    """
+    req = as_request(ApplyRequest, request, paths, arguments)
+    src = req.input
+    cal = Calibration.from_file(req.calibration)
+    if src.units is not None:
+        cal.apply(np.zeros(3), units=src.units)  # raises UnitMismatchError on a unit clash
+    names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+
+    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+        return cal.apply(xyz, regressors=u[0] if u else None)
+
+    result = apply_file(
+        calibrate, src.path, req.out, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
+        progress=progress, regressor_columns=names,
+    )
+    result["units"] = cal.units
+    return result

@@ -1,0 +1,118 @@
+"""``trimag evaluate`` of a magnitude calibration: statistics of ``|B| - F`` before and after, streamed in one pass."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+from ..io import MagnitudeAccumulator, open_chunks
+from ..io.stream import Chunk, _parse_rows, chunk_columns
+from ..io.tables import where_mask
+from ..reference import as_scalar_reference, igrf, parse_igrf_spec
+from ..requests import EvaluateRequest, as_request
+from ..units import convert, normalise_unit
+
+__all__ = ["evaluate_file"]
+
+
+def evaluate_file(
+    request: EvaluateRequest | str | Path, *paths: str | Path, progress: Callable[[int], None] | None = None,
+    **arguments: Any,
+) -> dict[str, Any]:
+    """Statistics of ``|B| - F`` before and after applying a calibration to a file (streamed, one pass).
+
+    ``request``: an :class:`~trimag.requests.EvaluateRequest`, or the calibration's and the data's paths with the
+    request's fields as keyword arguments (:meth:`EvaluateRequest.of <trimag.requests.EvaluateRequest.of>`).
+    Without a reference, ``F`` is the mean corrected magnitude (as in ``trimag fit``). ``progress`` is called with
+    the rows read so far.
+    """
+    req = as_request(EvaluateRequest, request, paths, arguments)
+    src, given = req.input, req.reference
+    cal = Calibration.from_file(req.calibration)
+    unit = cal.units if src.units is None else normalise_unit(src.units)
+    if src.units is not None:
+        cal.apply(np.zeros(3), units=unit)
+    F, source = _reference_value(req, unit)
+    columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows)
+    rows = _parse_rows(src.rows)
+    regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+    before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
+    n_rows = n_bad = 0
+    for chunk in chunks:
+        xyz, u, ref_values, n_chunk = _chunk_rows(chunk, req, rows, regressor_names, F)
+        n_rows += n_chunk
+        n_bad += n_chunk - len(xyz)
+        before.add(np.linalg.norm(xyz, axis=1), ref_values)
+        after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
+        if progress:
+            progress(chunk.start + len(chunk.xyz))
+    if after.n == 0:
+        raise TrimagInputError(f"{src.path}: no rows with finite x, y, z values to evaluate")
+    stats_after = after.result()
+    F_used = F if F is not None else (None if given.reference_column else stats_after["mean_norm"])
+    stats_before = before.result(F_used)
+    selection = (f"rows {src.rows}" if src.rows else "", f"where {src.where}" if src.where else "")
+    return {
+        "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
+        "units": cal.units, "columns": list(columns.columns), "n_samples": n_rows, "n_used": after.n,
+        "n_dropped": n_bad, "selection": "; ".join(x for x in selection if x), "regressors": list(regressor_names),
+        "reference": {"value": F_used, "source": source, "unit": cal.units},
+        "rms_before": stats_before["rms"], "rms_after": stats_after["rms"],
+        "max_abs_before": stats_before["max_abs"], "max_abs_after": stats_after["max_abs"],
+        "p2p_before": stats_before["peak_to_peak"], "p2p_after": stats_after["peak_to_peak"],
+        "mean_norm_before": stats_before["mean_norm"], "mean_norm_after": stats_after["mean_norm"],
+        "std_norm_before": stats_before["std_norm"], "std_norm_after": stats_after["std_norm"],
+    }
+
+
+def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str]:
+    """The one field magnitude ``F`` in ``unit`` (None: per sample from a column, or the mean) and its source."""
+    given = req.reference
+    named = [x for x in (given.reference, given.igrf_spec, given.reference_column) if x is not None]
+    if len(named) > 1:
+        raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
+    if given.igrf_spec is not None:
+        lat, lon, alt, date = parse_igrf_spec(given.igrf_spec)
+        return convert(igrf(lat, lon, alt, date).total_nT, "nT", unit), f"igrf {given.igrf_spec}"
+    if given.reference is not None and str(given.reference).strip().lower() != "mean":
+        return float(as_scalar_reference(given.reference, 1, units=unit).values[0]), "given"  # type: ignore[index]
+    if given.reference_column is not None:
+        return None, f"column {given.reference_column}"
+    return None, "mean"
+
+
+def _chunk_rows(
+    chunk: Chunk, req: EvaluateRequest, rows: tuple[int, int | None], regressor_names: tuple[str, ...],
+    F: float | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, Any, int]:
+    """The selected rows of one chunk with finite x, y, z (and regressors): ``(xyz (n, 3), regressors (n, m) or
+    None, reference (float, (n,) or None), number of selected rows before the finite check)``; ``rows``: the
+    selected data rows START, STOP (None: to the end)."""
+    src, column = req.input, req.reference.reference_column
+    start, stop = rows
+    idx = chunk.start + np.arange(len(chunk.xyz))
+    mask = idx >= start
+    if stop is not None:
+        mask &= idx < stop
+    if src.where:
+        mask &= where_mask(chunk.table, src.where)
+    xyz = chunk.xyz[mask]
+    ok = np.isfinite(xyz).all(axis=1)
+    u = chunk_columns(chunk, regressor_names, src.path)[mask] if regressor_names else None
+    if u is not None:
+        ok &= np.isfinite(u).all(axis=1)
+        u = u[ok]
+    ref_values: Any = F
+    if column is not None:
+        if column not in chunk.table.columns:
+            raise TrimagInputError(f"no column {column!r} in {src.path}")
+        col = chunk.table[column]
+        vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
+        ref_values = np.asarray(vals.astype(float))[mask][ok]
+    return xyz[ok], u, ref_values, len(xyz)

@@ -1,0 +1,355 @@
+"""``trimag fit``: read a log, take its reference (and attitudes), fit, check, write (:class:`FitRequest
+<trimag.requests.FitRequest>` in, :class:`FitResult` out)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError, TrimagWarning
+from ..estimators import make_estimator
+from ..io import Samples, read_samples
+from ..reference import ScalarReference, igrf, parse_igrf_spec
+from ..requests import FitRequest, as_request
+from ..units import normalise_unit
+from ._alignment import alignment_lines, dip_check
+from ._checks import (
+    check_unit,
+    policy_verdict,
+    refuse_impossible_vector_fit,
+    refuse_static_log,
+    refuse_unidentified_log,
+    worse_than_raw,
+)
+from ._inputs import (
+    accel_values,
+    background_field,
+    drop_rows_without_attitude,
+    drop_rows_without_background,
+    magnitude_reference,
+    parse_regressor_names,
+    regressor_columns,
+)
+from ._outputs import write_fit_outputs
+from ._recalibrate import prior_units, refit_prior
+from ._timesync import attach_attitude_file
+
+__all__ = ["FitResult", "fit_file", "fit_summary"]
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit_file` produced."""
+
+    calibration: Calibration
+    samples: Samples
+    summary: dict[str, Any]
+    messages: list[str] = field(default_factory=list)
+    written: dict[str, str] = field(default_factory=dict)
+
+
+def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, Any]:
+    """The JSON object ``trimag fit --json`` prints (see docs/cli.md for the keys)."""
+    d = cal.as_dict()
+    s = d["stats"]
+    out: dict[str, Any] = {
+        "model": cal.model,
+        "method": cal.method,
+        "units": cal.units,
+        "n_samples": samples.n_rows if samples is not None else s.get("n_samples"),
+        "n_used": s.get("n_used"),
+        "n_dropped": samples.n_dropped if samples is not None else 0,
+        "n_duplicates": samples.n_duplicates if samples is not None else None,
+        "reference": d["reference"],
+        "rms_before": s.get("rms_before"),
+        "rms_after": s.get("rms_after"),
+        "max_abs_before": s.get("max_abs_before"),
+        "max_abs_after": s.get("max_abs_after"),
+        "converged": s.get("converged"),
+        "iterations": s.get("iterations"),
+        "params": d["params"],
+        "matrix": d["matrix"],
+        "offset": d["offset"],
+        "uncertainty": d["uncertainty"],
+        "diagnostics": d["diagnostics"],
+    }
+    if cal.regressors is not None:
+        out["regressors"] = {**d["regressors"], "ranking": d["diagnostics"].get("regressors", {}).get("ranking")}
+        out["rms_after_without_regressors"] = s.get("rms_after_without_regressors")
+    if samples is not None:
+        out["columns"] = list(samples.columns)
+        out["selection"] = samples.selection
+        out["source"] = samples.source
+    return out
+
+
+def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
+    """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked.
+
+    ``request``: a :class:`~trimag.requests.FitRequest`, or a path with the request's fields as keyword arguments
+    (:meth:`FitRequest.of <trimag.requests.FitRequest.of>`). With a ``policy`` (a TOML file or ``"default"``,
+    :mod:`trimag.policy`) the calibration is checked against its limits; the result is in
+    ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
+    """
+    req = as_request(FitRequest, request, (), arguments)
+    from ..policy import read_policy
+
+    limits = read_policy(req.policy) if req.policy is not None else None
+    regressor_names = parse_regressor_names(req.regressors)
+    if regressor_names is not None:
+        from ..regressors import MODELS as REGRESSOR_MODELS
+
+        if req.model not in REGRESSOR_MODELS:
+            raise TrimagInputError(
+                f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
+            )
+    options, sync_options, prior_options = _split_options(req)
+    estimator = make_estimator(req.model, req.method, options)
+    src = req.input
+    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
+                           strict=src.strict, sensor=src.sensor)
+    req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
+    prior = None
+    if req.prior is not None:
+        if regressor_names is not None:
+            raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
+                                   "prior's regressor terms and refits only the offset; drop `regressors`")
+        prior = Calibration.from_file(req.prior)
+        req, prior_messages = prior_units(req, prior)
+        messages += prior_messages
+    units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
+    unit = normalise_unit(units)
+    messages += unit_messages + _reading_messages(samples)
+    sync = None
+    if req.attitude.attitude_file is not None:
+        samples, req, sync, sync_messages = attach_attitude_file(req, samples, unit, sync_options, estimator)
+        messages += sync_messages
+    if req.accel_columns is not None:
+        from ..alignment import check_tilt_variation
+
+        # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
+        check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
+    if prior is not None:
+        samples, cal, regressor_values, prior_messages = refit_prior(req, samples, unit, prior, prior_options)
+        ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
+        messages += prior_messages
+        warn_texts: list[str] = []
+    else:
+        samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
+                                                                                   regressor_names)
+        messages += fit_messages
+    cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
+                                            prior is not None)
+    cal, written = write_fit_outputs(cal, samples, req, regressor_values)
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
+                     written)
+
+
+def _split_options(req: FitRequest) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """The request's options split into the estimator's, the time synchronisation's (``estimate_lag``,
+    ``max_lag``) and the quick recalibration's; an option of a step the request does not take is refused."""
+    options = dict(req.options)
+    sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
+    prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
+                                                                 "inclination_sigma_deg") if k in options}
+    if prior_options and req.prior is None:
+        raise TrimagInputError(f"`option {next(iter(prior_options))}` belongs to a quick recalibration; give `prior`")
+    if sync_options and req.attitude.attitude_file is None:
+        raise TrimagInputError(f"`option {next(iter(sync_options))}` needs attitudes from a second file; give "
+                               "`attitude_file`")
+    return options, sync_options, prior_options
+
+
+def _finish(
+    req: FitRequest, cal: Calibration, samples: Samples, ref: Any,
+    regressor_values: dict[str, NDArray[np.float64]] | None, warn_texts: list[str], limits: dict[str, float] | None,
+    sync: dict[str, Any] | None, quick: bool,
+) -> tuple[Calibration, dict[str, Any], list[str]]:
+    """After the fit: the time synchronisation, the alignment (``accel_columns``), the counts, the warnings and the
+    acceptance (``limits``) recorded in the calibration; ``(calibration, summary, messages)``. ``quick``: a quick
+    recalibration (no predicted heading error)."""
+    messages: list[str] = []
+    if sync is not None:
+        cal = cal.with_diagnostics(time_sync=sync)
+    alignment_messages: list[str] = []
+    if req.accel_columns is not None:
+        from ..alignment import fit_alignment
+
+        accel = accel_values(samples, req.accel_columns, req.input.path)  # the rows the fit kept
+        alignment = fit_alignment(cal, samples.field, accel, regressors=regressor_values)
+        cal = cal.with_diagnostics(alignment={**alignment, "accel_columns": req.accel_columns})
+        alignment_messages = alignment_lines(alignment)
+    cal = cal.with_stats(n_samples=samples.n_rows, n_dropped=samples.n_dropped)
+    if warn_texts:
+        cal = cal.with_diagnostics(warnings=warn_texts)
+    igrf_spec = req.reference.igrf_spec
+    if limits is not None:
+        cal = cal.with_diagnostics(acceptance=policy_verdict(cal, limits, ref, igrf_spec))
+    summary = fit_summary(cal, samples)
+    summary["warnings"] = warn_texts
+    if limits is not None:
+        summary["acceptance"] = cal.diagnostics["acceptance"]
+    if sync is not None:
+        summary["time_sync"] = sync
+    if quick:
+        summary["prior"] = cal.diagnostics["prior"]
+    if req.accel_columns is not None:
+        summary["alignment"] = cal.diagnostics["alignment"]
+        messages += alignment_messages
+        if igrf_spec is not None:
+            messages.append(dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
+    if (not quick and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
+            and req.model == "ellipsoid"):
+        messages.append(_heading_message(cal, igrf_spec, summary))
+    return cal, summary, messages
+
+
+def _fit_model(
+    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None
+) -> tuple[Samples, Calibration, Any, dict[str, NDArray[np.float64]] | None, list[str], list[str]]:
+    """The estimator's fit (and the regressor terms' joint refit): ``(samples, calibration, reference, regressor
+    values, warnings, messages)``; refuses what cannot be right (an unidentified log, an impossible vector fit)."""
+    src = req.input
+    samples, ref, attitude, messages = _fit_reference(req, samples, estimator, unit)
+    regressor_values = None if regressor_names is None else regressor_columns(
+        samples, regressor_names, src.path, "named by `regressors`"
+    )
+    accel = None
+    if req.accel_columns is not None:
+        from ..alignment import check_tilt_variation
+
+        accel = accel_values(samples, req.accel_columns, src.path)
+        check_tilt_variation(accel)  # before the fit: a level log cannot give the alignment (exit 3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TrimagWarning)
+        estimator.fit(samples.field, ref, units=unit, attitude=attitude)
+    cal = estimator.calibration_
+    if samples.log_info is not None and src.columns is None:
+        refuse_unidentified_log(cal, samples, samples.log_info)
+    if estimator.reference_kind == "vector":
+        att = req.attitude
+        refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
+                                      att.attitude_columns, att.quaternion_columns, att.quaternion_order,
+                                      att.quaternion_frame)
+    elif worse_than_raw(cal):
+        messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
+                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
+                        "reference and the unit")
+    if regressor_values is not None:
+        from ..regressors import fit_regressors
+
+        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude)
+    warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    return samples, cal, ref, regressor_values, warn_texts, messages
+
+
+def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
+    """What a vehicle log states itself (unit, the IGRF site of its GPS fix, its attitude columns) filled into the
+    request, the log reader's messages, and the refusal of a log that cannot be fitted (static, too short)."""
+    log_info = samples.log_info
+    if log_info is None:
+        return req, []
+    messages = [m for m in log_info["messages"] if not m.startswith("warning:")]
+    messages += [m for m in log_info["messages"] if m.startswith("warning:")]
+    src, given, att = req.input, req.reference, req.attitude
+    if src.units is not None and normalise_unit(src.units) != log_info["unit"] and src.columns is None:
+        raise TrimagInputError(
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={src.units!r} (it is known)"
+        )
+    src = dataclasses.replace(src, units=src.units or log_info["unit"])
+    gps = log_info.get("gps")
+    if not given.given and gps and gps.get("date"):
+        igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
+        given = dataclasses.replace(given, igrf_spec=igrf_spec)
+        messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
+    if estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
+        if not log_info.get("has_attitude"):
+            raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
+        att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
+    if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
+        refuse_static_log(samples, log_info)
+    return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
+
+
+def _reading_messages(samples: Samples) -> list[str]:
+    """What reading the samples chose, selected, dropped and found repeated (never silently)."""
+    messages = []
+    if samples.column_note:
+        messages.append(samples.column_note)
+    if samples.format_note:
+        messages.append(samples.format_note)
+    if samples.selection:
+        messages.append(f"selected {samples.n_rows} of {samples.n_total_rows} rows ({samples.selection})")
+    if samples.n_dropped:
+        messages.append(
+            f"dropped {samples.n_dropped} of {samples.n_rows} rows with missing, non-numeric, NaN or inf "
+            f"x/y/z values (first at data row {samples.dropped_index[0]}; use `strict` to refuse them)"
+        )
+    if samples.n_duplicates:
+        messages.append(f"{samples.n_duplicates} rows repeat an earlier x/y/z exactly (kept)")
+    return messages
+
+
+def _fit_reference(
+    req: FitRequest, samples: Samples, estimator: Any, unit: str
+) -> tuple[Samples, Any, Any, list[str]]:
+    """The reference the estimator takes (a background vector and the attitudes for a vector model, a magnitude
+    otherwise): ``(samples without the rows that lack an attitude, reference, attitude or None, messages)``."""
+    given, att, src = req.reference, req.attitude, req.input
+    messages: list[str] = []
+    if estimator.reference_kind != "vector":
+        ref = magnitude_reference(samples, given, unit)
+        if ref.source.startswith("igrf"):
+            assert ref.values is not None
+            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
+        if estimator.requires_reference and not ref.known:
+            raise TrimagInputError(
+                f"method {estimator.name!r} needs a known field magnitude: give `reference=F`, "
+                "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
+            )
+        return samples, ref, None, messages
+    from .. import attitude as _attitude
+
+    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    if n_no_attitude:
+        messages.append(
+            f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
+        )
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns)
+    if n_no_background:
+        messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
+    attitude = _attitude.attitude_from_table(
+        samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+    )
+    background, source = background_field(
+        given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
+        **({"attitude": attitude, "attitude_columns": att.attitude_columns,
+            "quaternion_columns": att.quaternion_columns, "quaternion_order": att.quaternion_order,
+            "quaternion_frame": att.quaternion_frame} if given.background_run is not None else {}),
+    )
+    if background.ndim == 1:
+        messages.append(f"background field {np.round(background, 6).tolist()} {unit} ({source})")
+    else:
+        messages.append(f"background field {source}")
+    return samples, background, attitude, messages
+
+
+def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:
+    """The heading error the calibration predicts at the IGRF site's inclination (into ``summary``), as a line."""
+    from ..heading import predicted_heading_sigma
+
+    north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
+    heading = predicted_heading_sigma(cal, float(np.degrees(np.arctan2(down, np.hypot(north, east)))))
+    summary["predicted_heading_sigma_deg"] = {k: heading[k] for k in ("rms_deg", "max_deg", "inclination_deg")}
+    return (f"predicted heading error of a level sensor here (inclination {heading['inclination_deg']:.1f} deg): "
+            f"{heading['rms_deg']:.3g} deg RMS over headings, {heading['max_deg']:.3g} deg at worst (1 sigma)")
+
