@@ -161,3 +161,13 @@ def test_fit_batch_takes_one_request_for_every_file(fleet: Path, tmp_path: Path)
     with pytest.raises(TrimagInputError, match="not both"):
         fit_batch(str(fleet / "*.csv"), tmp_path / "both", request=FitRequest.of("", method="ml"), units="nT")
     assert not (tmp_path / "both").exists()
+
+
+def test_cli_batch_passes_sensor_to_every_file(fleet: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """``batch --sensor`` was accepted and dropped (every file read with its default magnetometer): it now reaches
+    each file's reader, which refuses it for a table (a table has one magnetometer)."""
+    code = main(["batch", str(fleet / "sensor0.csv"), "--out", str(tmp_path / "o"), "--sensor", "1"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "sensor0.csv" in err and "--sensor picks a magnetometer of an autopilot log" in err

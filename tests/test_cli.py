@@ -224,3 +224,75 @@ def test_each_command_builds_its_request_from_its_flags() -> None:
     a = parse(["simulate", "--model", "ellipsoid", "--params", "p.json", "--n", "9", "-o", "s.csv", "--seed", "4"])
     assert _request(SimulateRequest, a, params_path=a.params) == SimulateRequest("ellipsoid", "p.json", 9, "s.csv",
                                                                                   seed=4)
+
+
+# ------------------------------------------------ flags every reading command honours (found in the app-layer split)
+LOG = Path(__file__).parent / "data" / "logs" / "ardusub_small.BIN"
+CALIBRATIONS = Path(__file__).parent / "data" / "calibrations"
+
+
+def _calibration_in(unit: str, tmp_path: Path, model: str = "ellipsoid") -> Path:
+    """A reference calibration file relabelled to ``unit`` (the numbers do not matter to these tests)."""
+    d = json.loads((CALIBRATIONS / f"{model}.json").read_text())
+    d["units"] = d["input_unit"] = d["output_unit"] = unit
+    out = tmp_path / f"{model}-{unit}.json"
+    out.write_text(json.dumps(d))
+    return out
+
+
+def test_evaluate_reads_the_magnetometer_given_by_sensor(tmp_path: Path) -> None:
+    """``evaluate --sensor`` read the log's default magnetometer whatever was asked."""
+    from trimag.io import read_samples
+
+    cal = _calibration_in("mG", tmp_path)
+    for sensor in ("0", "1"):
+        r = run_trimag("evaluate", cal, LOG, "--sensor", sensor, "--json")
+        assert r.returncode == 0, r.stderr
+        expected = np.linalg.norm(read_samples(LOG, sensor=sensor).field, axis=1).mean()
+        assert json.loads(r.stdout)["mean_norm_before"] == pytest.approx(expected, rel=1e-12)
+
+
+def test_sensor_on_a_file_that_is_not_a_log_is_refused(tmp_path: Path) -> None:
+    """``--sensor`` on a table was silently ignored (the table has one magnetometer)."""
+    data = tmp_path / "d.csv"
+    B = simulate_ellipsoid(300, seed=1)
+    pd.DataFrame(B, columns=["x", "y", "z"]).to_csv(data, index=False)
+    for args in (("fit", data), ("evaluate", _calibration_in("nT", tmp_path), data),
+                 ("apply", _calibration_in("nT", tmp_path), data, "-o", tmp_path / "out.csv")):
+        r = run_trimag(*args, "--sensor", "1")
+        assert r.returncode == 2, (args[0], r.stderr)
+        assert r.stderr.count("\n") == 1 and "autopilot log" in r.stderr
+    assert not (tmp_path / "out.csv").exists()
+
+
+def test_strict_refuses_bad_rows_in_evaluate_and_apply(tmp_path: Path) -> None:
+    """``evaluate --strict`` and ``apply --strict`` dropped (or passed through) a row with a NaN field."""
+    data = tmp_path / "d.csv"
+    B = simulate_ellipsoid(300, seed=2)
+    B[17, 1] = np.nan
+    pd.DataFrame(B, columns=["x", "y", "z"]).to_csv(data, index=False)
+    cal = _calibration_in("nT", tmp_path)
+    ok = run_trimag("evaluate", cal, data, "--json")
+    assert ok.returncode == 0 and json.loads(ok.stdout)["n_dropped"] == 1
+    out = tmp_path / "out.csv"
+    for args in (("evaluate", cal, data), ("apply", cal, data, "-o", out)):
+        r = run_trimag(*args, "--strict")
+        assert r.returncode == 2, (args[0], r.stderr)
+        assert r.stderr.count("\n") == 1 and "data row 17" in r.stderr
+    assert not out.exists()
+
+
+def test_vector_evaluate_checks_the_unit_given(tmp_path: Path) -> None:
+    """The vector evaluation ignored ``--units``: a uT log evaluated with a nT calibration gave numbers."""
+    cal = CALIBRATIONS / "interference12.json"
+    data = tmp_path / "att.csv"
+    rng = np.random.default_rng(3)
+    table = pd.DataFrame(rng.normal(size=(50, 3)) * 30_000, columns=["x", "y", "z"])
+    table["yaw"], table["pitch"], table["roll"] = rng.uniform(0, 360, 50), rng.uniform(-30, 30, 50), 0.0
+    table.to_csv(data, index=False)
+    args = ("evaluate", cal, data, "--columns", "x,y,z", "--attitude-columns", "yaw,pitch,roll",
+            "--background-ned", "20000,0,45000")
+    assert run_trimag(*args).returncode == 0
+    r = run_trimag(*args, "--units", "uT")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "uT" in r.stderr

@@ -13,7 +13,7 @@ import scipy.io
 from trimag.errors import TrimagInputError
 from trimag.io import read_samples, read_table
 
-from _helpers import SHARED_DATA, requires_shared, simulate_ellipsoid
+from _helpers import SHARED_DATA, requires_shared, run_trimag, simulate_ellipsoid
 
 
 def _write(path: Path, text: str) -> Path:
@@ -326,3 +326,22 @@ def test_geosoft_xyz_ragged_row_is_refused_with_its_line(tmp_path: Path) -> None
     path.write_text("/ X Y Z\n1 2 3\n4 5\n", encoding="utf-8")
     with pytest.raises(TrimagInputError, match=r"line 3 has 2 fields where the data rows have 3"):
         read_samples(path)
+
+
+def test_geosoft_xyz_data_row_that_is_not_utf8_is_refused_with_its_line(tmp_path: Path) -> None:
+    """Found by test_fuzz_cli (``b'/\\n\\x80'``): a non-UTF-8 byte in a data row was an internal error (exit 1)."""
+    path = tmp_path / "latin1.txt"
+    path.write_bytes(b"/ X Y Z\n1 2 3\n4 5 \xb06\n")
+    with pytest.raises(TrimagInputError, match=r"line 3 is not UTF-8 text \(byte 0xb0\)"):
+        read_samples(path)
+    comment = tmp_path / "comment.xyz"  # a non-UTF-8 byte in a comment is kept, not refused
+    comment.write_bytes(b"/ survey at 45\xb0N\n/ X Y Z\n1 2 3\n4 5 6\n")
+    assert len(read_samples(comment).field) == 2
+
+
+def test_cli_non_utf8_geosoft_record_exits_2_with_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "fuzz.txt"
+    path.write_bytes(b"/\n\x80")
+    r = run_trimag("fit", str(path))
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "not UTF-8" in r.stderr

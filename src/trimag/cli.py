@@ -682,11 +682,9 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     from .requests import FitRequest
     from .workflow import parse_options
 
-    # every file's request: the flags given, without an output (one calibration per file) and, as before,
-    # without --sensor (batch reads each file's default magnetometer)
+    # every file's request: the flags given, without an output (one calibration per file)
     request = _request(FitRequest, args, "", options=parse_options(args.option),
                        regressors=_regressor_flag(args.regressors), out=None)
-    request = dataclasses.replace(request, input=dataclasses.replace(request.input, sensor=None))
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):

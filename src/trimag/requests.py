@@ -154,8 +154,8 @@ class EvaluateRequest:
     or ``declination``, degrees east); with attitude columns the vector errors against ``reference.background_ned``,
     ``reference.igrf_spec`` or ``reference.background_columns``; otherwise the magnitude errors against
     ``reference`` (``reference``, ``igrf_spec`` or ``reference_column``; the mean corrected magnitude when none),
-    streamed in ``chunk_rows`` rows. The evaluations read with ``input.strict`` and ``input.sensor`` at their
-    defaults, and the vector evaluation takes the calibration's unit (``input.units`` is not used there)."""
+    streamed in ``chunk_rows`` rows. ``input.units``, when given, must match the calibration's; ``input.sensor``
+    picks the magnetometer of an autopilot log; with ``input.strict`` a row with a bad field value is refused."""
 
     calibration: str | Path
     input: InputSpec
@@ -177,7 +177,9 @@ class EvaluateRequest:
 class ApplyRequest:
     """One correction (``trimag apply``): every row of ``input`` corrected by ``calibration`` (JSON) and written to
     ``out`` (``.csv``, ``.txt``, ``.parquet`` or ``.npz``), streamed in ``chunk_rows`` rows. ``input.units``, when
-    given, must match the calibration's; ``input.rows``, ``where``, ``strict`` are not used (every row is kept).
+    given, must match the calibration's; ``input.sensor`` picks the magnetometer of an autopilot log; with
+    ``input.strict`` a row that cannot be corrected is refused (nothing written); ``input.rows`` and ``where`` are
+    not used (every row is kept).
     ``scalar_column`` is for Tolles-Lawson compensation files only."""
 
     calibration: str | Path

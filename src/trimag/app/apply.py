@@ -40,7 +40,7 @@ def apply_to_file(
 
     result = apply_file(
         calibrate, src.path, req.out, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
-        progress=progress, regressor_columns=names,
+        progress=progress, regressor_columns=names, sensor=src.sensor, strict=src.strict,
     )
     result["units"] = cal.units
     return result

@@ -39,19 +39,27 @@ def evaluate_file(
     if src.units is not None:
         cal.apply(np.zeros(3), units=unit)
     F, source = _reference_value(req, unit)
-    columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows)
+    columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
+                                  sensor=src.sensor)
     rows = _parse_rows(src.rows)
     regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
+    first_bad: int | None = None
     for chunk in chunks:
-        xyz, u, ref_values, n_chunk = _chunk_rows(chunk, req, rows, regressor_names, F)
+        xyz, u, ref_values, n_chunk, first = _chunk_rows(chunk, req, rows, regressor_names, F)
         n_rows += n_chunk
         n_bad += n_chunk - len(xyz)
+        first_bad = first if first_bad is None else first_bad
         before.add(np.linalg.norm(xyz, axis=1), ref_values)
         after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
         if progress:
             progress(chunk.start + len(chunk.xyz))
+    if n_bad and src.strict:
+        raise TrimagInputError(
+            f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
+            f"{first_bad}); fix them, or drop `strict` to skip and count them"
+        )
     if after.n == 0:
         raise TrimagInputError(f"{src.path}: no rows with finite x, y, z values to evaluate")
     stats_after = after.result()
@@ -90,10 +98,10 @@ def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str
 def _chunk_rows(
     chunk: Chunk, req: EvaluateRequest, rows: tuple[int, int | None], regressor_names: tuple[str, ...],
     F: float | None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, Any, int]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, Any, int, int | None]:
     """The selected rows of one chunk with finite x, y, z (and regressors): ``(xyz (n, 3), regressors (n, m) or
-    None, reference (float, (n,) or None), number of selected rows before the finite check)``; ``rows``: the
-    selected data rows START, STOP (None: to the end)."""
+    None, reference (float, (n,) or None), number of selected rows before the finite check, the first selected
+    data row that is not finite or None)``; ``rows``: the selected data rows START, STOP (None: to the end)."""
     src, column = req.input, req.reference.reference_column
     start, stop = rows
     idx = chunk.start + np.arange(len(chunk.xyz))
@@ -115,4 +123,5 @@ def _chunk_rows(
         col = chunk.table[column]
         vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
         ref_values = np.asarray(vals.astype(float))[mask][ok]
-    return xyz[ok], u, ref_values, len(xyz)
+    first = int(idx[mask][np.flatnonzero(~ok)[0]]) if not ok.all() else None
+    return xyz[ok], u, ref_values, len(xyz), first

@@ -53,7 +53,8 @@ def evaluate_heading_file(
         raise TrimagInputError("a heading evaluation needs exactly one reference: `heading_column=H` (degrees "
                                "clockwise from true north) or `attitude_columns=yaw,pitch,roll`")
     decl, decl_source = _declination(req)
-    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where)
+    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
+                           strict=src.strict, sensor=src.sensor)
     reference, accel = _reference_and_accel(req, samples)
     u = None
     if cal.regressors is not None:

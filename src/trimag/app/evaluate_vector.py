@@ -13,6 +13,7 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, read_samples
 from ..requests import AttitudeSpec, EvaluateRequest, as_request
+from ..units import normalise_unit
 from ._inputs import (
     background_field,
     drop_rows_without_attitude,
@@ -43,7 +44,10 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         raise TrimagInputError("`background_run` is for fitting; evaluate against `background_ned=N,E,D`, "
                                "`igrf_spec=LAT,LON,ALT_M,DATE` or `background_columns=N,E,D`")
     cal = Calibration.from_file(req.calibration)
-    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where)
+    if src.units is not None:
+        cal.apply(np.zeros(3), units=normalise_unit(src.units))  # raises UnitMismatchError on a unit clash
+    samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
+                           strict=src.strict, sensor=src.sensor)
     samples, att, lag = _attitudes(req, samples, cal)
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
     samples, n_no_background = drop_rows_without_background(samples, given.background_columns)

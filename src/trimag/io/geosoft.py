@@ -54,6 +54,10 @@ class GeosoftTable:
     line_column: str | None
 
 
+#: Surrogate code points: what a byte that is not UTF-8 reads as with ``errors="surrogateescape"``.
+_SURROGATE = re.compile("[\udc80-\udcff]")
+
+
 def is_geosoft_xyz(path: str | Path) -> bool:
     """True for an ``.xyz`` file, or a text file whose first non-blank line is a ``/`` record."""
     p = Path(path)
@@ -105,6 +109,11 @@ def read_xyz(path: str | Path) -> GeosoftTable:
             current = m.group(2)
             n_line_records += 1
             continue
+        bad = _SURROGATE.search(s)
+        if bad:  # a byte that is not UTF-8 (kept as a surrogate so that comments may hold one)
+            raise TrimagInputError(
+                f"{p}: line {k + 1} is not UTF-8 text (byte 0x{ord(bad.group()) - 0xDC00:02x}); save the file as UTF-8"
+            )
         n = len(s.split())
         if not data:
             width = n

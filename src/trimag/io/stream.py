@@ -34,7 +34,7 @@ from .._core.extras import available, require
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .atomic import atomic_path
-from .tables import _numeric, detect_csv_layout, detect_format, guess_format, read_table, resolve_columns
+from .tables import _numeric, check_sensor, detect_csv_layout, detect_format, guess_format, read_table, resolve_columns
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -191,9 +191,10 @@ def open_chunks(
     columns: str | None = None,
     var: str | None = None,
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
+    sensor: str | int | None = None,
 ) -> tuple[ChunkSource, Iterator[Chunk]]:
     """Inspect ``path`` and return its description and an iterator over :class:`Chunk` s of ``chunk_rows`` rows
-    (the last one shorter)."""
+    (the last one shorter); ``sensor``: which magnetometer of an autopilot log (refused for other files)."""
     p = Path(path)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
@@ -204,11 +205,12 @@ def open_chunks(
     if chunk_rows < 1:
         raise TrimagInputError(f"`chunk_rows` must be a positive number of rows; got {chunk_rows}")
     kind = detect_format(p, fmt)
+    check_sensor(kind, sensor, path)
     if kind in ("csv", "txt"):
         return _open_text(p, str(path), kind, columns, chunk_rows)
     if kind == "parquet":
         return _open_parquet(p, str(path), columns, chunk_rows)
-    df = read_table(p, fmt=kind, var=var)
+    df = read_table(p, fmt=kind, var=var, sensor=sensor)
     cols, note = resolve_columns(df, columns, str(path))
     source = ChunkSource(kind, cols, note, all_columns=list(df.columns))
     return source, iter([Chunk(df, np.column_stack([_numeric(df[c]) for c in cols]), 0)])
@@ -364,6 +366,8 @@ def apply_file(
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
     progress: Callable[[int], None] | None = None,
     regressor_columns: Sequence[str] = (),
+    sensor: str | int | None = None,
+    strict: bool = False,
 ) -> dict[str, Any]:
     """Correct every row of ``in_path`` and write all input columns plus the corrected x, y, z to ``out_path``.
 
@@ -372,8 +376,9 @@ def apply_file(
 
     The output format follows ``out_path``'s extension (``.csv``, ``.txt``, ``.parquet``, ``.npz``); CSV/text and
     Parquet are streamed in ``chunk_rows`` blocks. Rows whose x/y/z are missing, non-numeric or non-finite are
-    kept, with empty corrected cells, and counted in ``n_uncorrected``. The file appears only when complete
-    (written to a temporary file, then renamed).
+    kept, with empty corrected cells, and counted in ``n_uncorrected`` (with ``strict``, the first such row is
+    refused and nothing is written). ``sensor``: which magnetometer of an autopilot log. The file appears only
+    when complete (written to a temporary file, then renamed).
 
     Returns
     -------
@@ -386,10 +391,10 @@ def apply_file(
         raise TrimagInputError(f"cannot write {out.suffix!r} files; use .csv, .parquet or .npz for -o")
     if out_kind == "parquet":
         require("pyarrow.parquet", "writing Parquet files")
-    source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
+    source, chunks = open_chunks(in_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows, sensor=sensor)
     new_cols = [f"{c}{suffix}" for c in source.columns]
     tally = _Tally(progress)
-    corrected = _corrected_chunks(calibrate, chunks, regressor_columns, in_path)
+    corrected = _corrected_chunks(calibrate, chunks, regressor_columns, in_path, strict=strict)
     with atomic_path(out) as tmp:  # renamed to `out` when complete, removed on error
         raw_copy = (out_kind in ("csv", "txt") and source.raw_path is not None and source.delimiter is not None
                     and (out_kind == "txt" or source.delimiter == ","))
@@ -429,12 +434,19 @@ class _Tally:
 
 def _corrected_chunks(
     calibrate: Callable[..., NDArray[np.float64]], chunks: Iterable[Chunk], regressor_columns: Sequence[str],
-    in_path: str | Path,
+    in_path: str | Path, *, strict: bool = False,
 ) -> Iterator[tuple[Chunk, NDArray[np.float64], int]]:
-    """Each chunk with its corrected x, y, z (n, 3) (NaN where not corrected) and the number of rows not corrected."""
+    """Each chunk with its corrected x, y, z (n, 3) (NaN where not corrected) and the number of rows not corrected;
+    ``strict``: the first row that cannot be corrected raises."""
     for chunk in chunks:
         u = chunk_columns(chunk, regressor_columns, in_path) if regressor_columns else None
         corrected, bad = _correct(calibrate, chunk.xyz, u)
+        if bad and strict:
+            first = chunk.start + int(np.flatnonzero(~np.isfinite(corrected).all(axis=1))[0])
+            raise TrimagInputError(
+                f"{in_path}: data row {first} has a missing, non-numeric, NaN or inf value in its field (or "
+                "regressor) columns; fix it, or drop `strict` to keep such rows uncorrected and count them"
+            )
         yield chunk, corrected, bad
 
 

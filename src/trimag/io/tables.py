@@ -454,6 +454,15 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
     return df
 
 
+def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
+    """Refuse a ``sensor`` for a file that is not an autopilot log (a table has one magnetometer: its columns)."""
+    if sensor is not None and kind not in LOG_KINDS:
+        raise TrimagInputError(
+            f"`sensor` picks a magnetometer of an autopilot log ({', '.join(LOG_KINDS)}); {path} is a {kind} file "
+            "with one: drop `sensor` (choose its field with `columns`)"
+        )
+
+
 def read_table(
     path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
 ) -> pd.DataFrame:
@@ -470,6 +479,7 @@ def read_table(
         raise TrimagInputError(f"{p}: is a folder; give a data file")
     if kind in LOG_KINDS:
         return _read_vehicle_log(p, kind, sensor)
+    check_sensor(kind, sensor, p)
     if kind in ("csv", "txt"):
         return _read_delimited(p, kind)[0]
     if kind == "xyz":
