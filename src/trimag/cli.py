@@ -413,7 +413,7 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
                               time_column=args.time_column),
         out=args.out, report=args.report, policy=args.policy, regressors=_regressor_flag(args.regressors),
         prior=args.prior,
-        accel_columns=args.accel_columns,
+        accel_columns=args.accel_columns, rate_hz=args.rate,
     )
 
 

@@ -89,6 +89,8 @@ class FitRequest:
     report: str | Path | None = None
     policy: str | None = None
     regressors: tuple[str, ...] | None = None
+    #: sample rate (Hz) of the eddy-current terms' derivative (``option eddy``) when there is no ``time_column``
+    rate_hz: float | None = None
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.prior`)
     prior: str | Path | None = None
     accel_columns: str | None = None

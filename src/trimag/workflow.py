@@ -202,6 +202,21 @@ def regressor_columns(
     return {n: column_values(samples, n) for n in names}
 
 
+def calibration_regressors(cal: Calibration, samples: Samples, path: Any) -> dict[str, NDArray[np.float64]] | None:
+    """The values (N,) of a calibration's regressors on the kept rows of ``samples``: logged channels from their
+    columns, eddy-current terms (:mod:`trimag.eddy`) from the samples' own derivative; None without terms."""
+    if cal.regressors is None:
+        return None
+    spec = cal.regressors.get("eddy")
+    derived = set(spec["names"]) if spec else set()
+    out = regressor_columns(samples, tuple(n for n in cal.regressors["names"] if n not in derived), path)
+    if spec:
+        from .eddy import values_from_table
+
+        out.update(values_from_table(spec, samples.table, samples.field, path))
+    return out
+
+
 def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     """Three column names (or 0-based indices) of ``samples.table`` from ``"A,B,C"``; ``arg`` names the option."""
     items = [c.strip() for c in spec.split(",") if c.strip()]
@@ -540,6 +555,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
     options = dict(req.options)
+    eddy_terms = _eddy_terms(req, options)
     sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
     prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
                                                                  "inclination_sigma_deg") if k in options}
@@ -580,7 +596,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         warn_texts: list[str] = []
     else:
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
-                                                                                   regressor_names)
+                                                                                   regressor_names, eddy_terms)
         messages += fit_messages
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
@@ -619,8 +635,42 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     return FitResult(cal, samples, summary, messages + [f"warning: {w}" for w in warn_texts], written)
 
 
+def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
+    """``option eddy=9|3`` (popped from ``options``): eddy-current terms of ``interference12`` (:mod:`trimag.eddy`)."""
+    if "eddy" not in options:
+        return None
+    from .eddy import parse_terms
+
+    terms = parse_terms(options.pop("eddy"))
+    if req.model != "interference12":
+        raise TrimagInputError(f"`option eddy` is for the model interference12; got {req.model!r}")
+    if req.prior is not None:
+        raise TrimagInputError("`option eddy` cannot be fitted in a quick recalibration (`prior`)")
+    return terms
+
+
+def _eddy_regressors(
+    req: FitRequest, samples: Samples, terms: int
+) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any], list[str]]:
+    """The derived regressors dB/dt of the eddy-current terms, their record and the messages."""
+    from .eddy import eddy_spec, eddy_values, table_times
+
+    column = req.attitude.time_column
+    t = None if column is None else table_times(samples.table, column, req.input.path)
+    values, rate, isolated = eddy_values(samples.field, time_s=t, rate_hz=req.rate_hz)
+    messages = [f"eddy-current terms ({terms}): dB/dt by central differences at {rate:g} Hz "
+                f"({'from ' + column if column else 'given rate'})"]
+    if column is None and samples.n_dropped:
+        messages.append(f"warning: {samples.n_dropped} rows were dropped; without a time column the derivative "
+                        "spans them: give `time_column`")
+    if isolated:
+        messages.append(f"{isolated} samples alone in their segment have no derivative (eddy term 0)")
+    return values, eddy_spec(terms, rate, column), messages
+
+
 def _fit_model(
-    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None
+    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None,
+    eddy_terms: int | None = None,
 ) -> tuple[Samples, Calibration, Any, dict[str, NDArray[np.float64]] | None, list[str], list[str]]:
     """The estimator's fit (and the regressor terms' joint refit): ``(samples, calibration, reference, regressor
     values, warnings, messages)``; refuses what cannot be right (an unidentified log, an impossible vector fit)."""
@@ -650,10 +700,17 @@ def _fit_model(
         messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
                         f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
                         "reference and the unit")
+    free, record = None, None
+    if eddy_terms is not None:
+        from .eddy import free_mask
+
+        values, spec, eddy_messages = _eddy_regressors(req, samples, eddy_terms)
+        regressor_values, free, record = {**(regressor_values or {}), **values}, free_mask(eddy_terms), {"eddy": spec}
+        messages += eddy_messages
     if regressor_values is not None:
         from .regressors import fit_regressors
 
-        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude)
+        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     return samples, cal, ref, regressor_values, warn_texts, messages
 
@@ -983,9 +1040,13 @@ def apply_to_file(
     if units is not None:
         cal.apply(np.zeros(3), units=units)  # raises UnitMismatchError on a unit clash
     names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
-
-    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
-        return cal.apply(xyz, regressors=u[0] if u else None)
+    spec = cal.regressors.get("eddy") if cal.regressors is not None else None
+    if spec:
+        calibrate, names = _eddy_calibrate(cal, spec, data_path, fmt=fmt, columns=columns, var=var,
+                                           chunk_rows=chunk_rows)
+    else:
+        def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+            return cal.apply(xyz, regressors=u[0] if u else None)
 
     result = apply_file(
         calibrate, data_path, out, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows, progress=progress,
@@ -993,6 +1054,49 @@ def apply_to_file(
     )
     result["units"] = cal.units
     return result
+
+
+def _eddy_calibrate(
+    cal: Calibration, spec: dict[str, Any], data_path: str | Path, *, fmt: str | None, columns: str | None,
+    var: str | None, chunk_rows: int,
+) -> tuple[Any, tuple[str, ...]]:
+    """The streamed correction of a calibration with eddy-current terms: ``(calibrate, columns it reads)``.
+
+    A first pass reads x, y, z (and the time column and the logged regressors) and takes the derivative over the
+    rows that will be corrected (finite in all of them), so segments continue across chunks; the second pass
+    (:func:`apply_file`) hands each chunk's corrected rows in order, and a cursor picks their derivatives.
+    Memory: 4-5 doubles per row.
+    """
+    from .eddy import EDDY_NAMES, values_for
+
+    assert cal.regressors is not None
+    logged = tuple(n for n in cal.regressors["names"] if n not in EDDY_NAMES)
+    tcol = spec.get("time_column")
+    read = logged + ((str(tcol),) if tcol else ())
+    _, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
+    xyz_parts, t_parts = [], []
+    for chunk in chunks:
+        u = chunk_columns(chunk, read, data_path) if read else np.empty((len(chunk), 0))
+        ok = np.isfinite(chunk.xyz).all(axis=1) & np.isfinite(u).all(axis=1)
+        xyz_parts.append(chunk.xyz[ok])
+        if tcol:
+            t_parts.append(u[ok, -1])
+    xyz_all = np.concatenate(xyz_parts) if xyz_parts else np.empty((0, 3))
+    derived = values_for(spec, xyz_all, time_s=np.concatenate(t_parts) if tcol else None)
+    dB = np.column_stack([derived[n] for n in EDDY_NAMES])
+    cursor = [0]
+
+    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+        start, stop = cursor[0], cursor[0] + len(xyz)
+        cursor[0] = stop
+        if not np.array_equal(xyz, xyz_all[start:stop]):
+            raise TrimagInputError(f"{data_path}: the file changed while it was being corrected")
+        values = dict(zip(EDDY_NAMES, dB[start:stop].T, strict=True))
+        if logged:
+            values.update(zip(logged, u[0][:, : len(logged)].T, strict=True))
+        return cal.apply(xyz, regressors=values)
+
+    return calibrate, read
 
 
 def evaluate_file(
@@ -1036,6 +1140,14 @@ def evaluate_file(
     src, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
     start, stop = _row_range(rows)
     regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+    spec = cal.regressors.get("eddy") if cal.regressors is not None else None
+    read_names = regressor_names
+    if spec:  # the derivative needs neighbouring rows: the selected rows are collected, then corrected at once
+        from .eddy import EDDY_NAMES
+
+        read_names = tuple(n for n in regressor_names if n not in EDDY_NAMES) + (
+            (str(spec["time_column"]),) if spec.get("time_column") else ())
+    kept: list[tuple[Any, ...]] = []
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
     for chunk in chunks:
@@ -1049,7 +1161,7 @@ def evaluate_file(
         xyz = chunk.xyz[mask]
         n_rows += len(xyz)
         ok = np.isfinite(xyz).all(axis=1)
-        u = chunk_columns(chunk, regressor_names, data_path)[mask] if regressor_names else None
+        u = chunk_columns(chunk, read_names, data_path)[mask] if read_names else None
         if u is not None:
             ok &= np.isfinite(u).all(axis=1)
             u = u[ok]
@@ -1063,9 +1175,14 @@ def evaluate_file(
             vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
             ref_values = np.asarray(vals.astype(float))[mask][ok]
         before.add(np.linalg.norm(xyz, axis=1), ref_values)
-        after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
+        if spec:
+            kept.append((xyz, u, ref_values))
+        else:
+            after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
         if progress:
             progress(chunk.start + len(chunk.xyz))
+    if spec and kept:
+        after.add(*_eddy_magnitudes(cal, spec, kept))
     if after.n == 0:
         raise TrimagInputError(f"{data_path}: no rows with finite x, y, z values to evaluate")
     stats_after = after.result()
@@ -1095,6 +1212,25 @@ def evaluate_file(
         "std_norm_before": stats_before["std_norm"],
         "std_norm_after": stats_after["std_norm"],
     }
+
+
+def _eddy_magnitudes(
+    cal: Calibration, spec: dict[str, Any], kept: list[tuple[Any, ...]]
+) -> tuple[NDArray[np.float64], Any]:
+    """Corrected magnitudes of the rows ``kept`` ((xyz, logged regressors and time, reference) per chunk) of a
+    calibration with eddy-current terms, and their references."""
+    from .eddy import EDDY_NAMES, values_for
+
+    assert cal.regressors is not None
+    xyz = np.concatenate([k[0] for k in kept])
+    U = None if kept[0][1] is None else np.concatenate([k[1] for k in kept])
+    logged = [n for n in cal.regressors["names"] if n not in EDDY_NAMES]
+    values = values_for(spec, xyz, time_s=None if not spec.get("time_column") or U is None else U[:, -1])
+    if logged and U is not None:
+        values.update(zip(logged, U[:, : len(logged)].T, strict=True))
+    refs = [k[2] for k in kept]
+    ref: Any = refs[0] if refs[0] is None or np.ndim(refs[0]) == 0 else np.concatenate(refs)
+    return np.linalg.norm(cal.apply(xyz, regressors=values), axis=1), ref
 
 
 def evaluate_vector_file(
@@ -1151,9 +1287,7 @@ def evaluate_vector_file(
                                                        igrf_spec=igrf_spec, background_columns=background_columns,
                                                        samples=samples)
     expected = _attitude.body_field(rot, background)
-    u = None
-    if cal.regressors is not None:
-        u = regressor_columns(samples, tuple(cal.regressors["names"]), data_path)
+    u = calibration_regressors(cal, samples, data_path)
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
 
     def errors(B: NDArray[np.float64]) -> dict[str, Any]:
@@ -1251,7 +1385,9 @@ def evaluate_heading_file(
     accel = np.column_stack([pd.to_numeric(samples.table[n], errors="coerce").to_numpy(dtype=float) for n in names])
     u = None
     if cal.regressors is not None:
-        u = np.column_stack(list(regressor_columns(samples, tuple(cal.regressors["names"]), data_path).values()))
+        values = calibration_regressors(cal, samples, data_path)
+        assert values is not None
+        u = np.column_stack([values[n] for n in cal.regressors["names"]])
     ok = np.isfinite(reference) & np.isfinite(accel).all(axis=1) & (np.linalg.norm(accel, axis=1) > 0)
     if u is not None:
         ok &= np.isfinite(u).all(axis=1)

@@ -1,0 +1,181 @@
+"""Eddy-current terms of the vector vehicle model ``interference12`` (docs/vehicle.md, "Eddy-current terms").
+
+    H_m = K H_b + c + E dH_m/dt                                           (E: 3x3, or its diagonal)
+
+A changing field induces eddy currents in the vehicle's conducting skin, whose field is proportional to the rate of
+change; a time lag ``tau`` between the magnetometer and the attitude source acts the same way to first order
+(``H(t - tau) ~ H(t) - tau dH/dt``, so ``E ~ -tau I``).
+
+``dH_m/dt`` is the measured vector's own time derivative (the only rate of change available when the data are
+compensated, so a calibration applies from the data file alone): per contiguous segment, the central difference
+``(H[i+1] - H[i-1]) / (t[i+1] - t[i-1])`` inside and the one-sided difference at each segment's ends (MagNav.jl's
+``fdm``, as the Tolles–Lawson model's eddy terms, but per second rather than per sample: ``E`` is in seconds).
+Segments are cut where a row is missing or the time step exceeds 1.5 sample periods; a sample alone in its
+segment has no derivative and gets 0. The times come from a time column, or from the row numbers and a given rate.
+The rate, the time column and the scheme are recorded in the calibration; data at another rate are refused.
+
+The terms reuse the regressor machinery (:mod:`trimag.regressors`): the three derivative components are derived
+regressors ``dBx/dt, dBy/dt, dBz/dt``, each with three coefficients (a column of ``E``); ``terms=3`` frees only
+``E``'s diagonal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import TrimagInputError
+
+__all__ = ["EDDY_NAMES", "check_rate", "eddy_spec", "eddy_values", "time_derivative"]
+
+#: Names of the derived regressors (the components of dH_m/dt, data unit per second).
+EDDY_NAMES = ("dBx/dt", "dBy/dt", "dBz/dt")
+#: Relative difference of the sample rate beyond which data are refused (as Tolles–Lawson's evaluate).
+RATE_TOLERANCE = 0.01
+#: A time step larger than this many sample periods starts a new segment.
+GAP_PERIODS = 1.5
+SCHEME = "central difference per segment (H[i+1] - H[i-1]) / (t[i+1] - t[i-1]), one-sided at the segment ends"
+
+
+def parse_terms(value: Any) -> int:
+    """``eddy=9`` (the full 3x3 E) or ``eddy=3`` (its diagonal) -> 9 or 3."""
+    text = str(value).strip().lower()
+    if text in ("9", "full", "true", "yes"):
+        return 9
+    if text in ("3", "diag", "diagonal"):
+        return 3
+    raise TrimagInputError(f"`eddy` takes 9 (the full 3x3 matrix E) or 3 (its diagonal); got {value!r}")
+
+
+def time_derivative(B: ArrayLike, t: ArrayLike, max_gap_s: float) -> tuple[NDArray[np.float64], int]:
+    """``dB/dt`` per sample: central difference inside each segment, one-sided at its ends (module docstring).
+
+    Parameters
+    ----------
+    B : array_like, shape (N, 3)
+        Measured vector, data unit; rows must be finite.
+    t : array_like, shape (N,)
+        Time of each row, s, increasing.
+    max_gap_s : float
+        A time step larger than this (or not positive) ends a segment.
+
+    Returns
+    -------
+    dB : ndarray, shape (N, 3)
+        Data unit per second; 0 for a sample alone in its segment.
+    n_isolated : int
+        Number of such samples.
+    """
+    X = np.asarray(B, dtype=np.float64)
+    T = np.asarray(t, dtype=np.float64)
+    n = len(X)
+    out = np.zeros_like(X)
+    if n < 2:
+        return out, n
+    dt = np.diff(T)
+    joined = (dt > 0) & (dt <= max_gap_s)  # (N-1,): rows i and i+1 are in the same segment
+    has_prev = np.concatenate([[False], joined])
+    has_next = np.concatenate([joined, [False]])
+    step = np.zeros_like(X[:-1])
+    step[joined] = (X[1:] - X[:-1])[joined] / dt[joined, None]
+    both = has_prev & has_next
+    idx = np.flatnonzero(both)
+    out[idx] = (X[idx + 1] - X[idx - 1]) / (T[idx + 1] - T[idx - 1])[:, None]
+    first = has_next & ~has_prev
+    out[first] = step[np.flatnonzero(first)]
+    last = has_prev & ~has_next
+    out[last] = step[np.flatnonzero(last) - 1]
+    return out, int(np.sum(~has_prev & ~has_next))
+
+
+def sample_times(
+    n: int, *, time_s: ArrayLike | None = None, rate_hz: float | None = None, rows: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], float]:
+    """Times (N,) s and the sample rate (Hz): from a time column (rate: its median step; ``rate_hz`` is then not
+    used) or from the row numbers ``rows`` (default 0..N-1) at ``rate_hz``."""
+    if time_s is not None:
+        t = np.asarray(time_s, dtype=np.float64)
+        if t.shape != (n,) or not np.isfinite(t).all():
+            raise TrimagInputError("the time column of the eddy-current terms must have a finite value in every row")
+        dt = np.diff(t)
+        if n < 2 or not np.any(dt > 0):
+            raise TrimagInputError("the time column of the eddy-current terms does not increase")
+        rate = 1.0 / float(np.median(dt[dt > 0]))
+        return t, rate
+    if rate_hz is None or not float(rate_hz) > 0:
+        raise TrimagInputError(
+            "the eddy-current terms need the sample rate: give a time column (`time_column`) or a rate (`rate_hz`)"
+        )
+    r = np.arange(n, dtype=np.float64) if rows is None else np.asarray(rows, dtype=np.float64)
+    return r / float(rate_hz), float(rate_hz)
+
+
+def eddy_values(
+    B: ArrayLike, *, time_s: ArrayLike | None = None, rate_hz: float | None = None, rows: ArrayLike | None = None
+) -> tuple[dict[str, NDArray[np.float64]], float, int]:
+    """The derived regressors ``{dBx/dt, dBy/dt, dBz/dt}`` (N,) each, the rate (Hz) and the isolated samples."""
+    X = np.asarray(B, dtype=np.float64)
+    t, rate = sample_times(len(X), time_s=time_s, rate_hz=rate_hz, rows=rows)
+    dB, isolated = time_derivative(X, t, GAP_PERIODS / rate)
+    return {name: dB[:, j] for j, name in enumerate(EDDY_NAMES)}, rate, isolated
+
+
+def eddy_spec(terms: int, rate_hz: float, time_column: str | None) -> dict[str, Any]:
+    """The ``regressors["eddy"]`` entry of a calibration: what :func:`eddy_values` needs to recompute the terms."""
+    return {"terms": int(terms), "names": list(EDDY_NAMES), "rate_hz": float(rate_hz), "time_column": time_column,
+            "scheme": SCHEME, "max_gap_periods": GAP_PERIODS, "unit": "s (data unit per data unit per second)",
+            "model": "H_m = K H_b + c + E dH_m/dt; column j of E is the coefficient of dB{x,y,z}/dt"}
+
+
+def free_mask(terms: int) -> dict[str, list[bool]]:
+    """Which coefficients of each derived regressor are fitted: all (9) or the diagonal of ``E`` (3)."""
+    return {name: [terms == 9 or a == j for a in range(3)] for j, name in enumerate(EDDY_NAMES)}
+
+
+def check_rate(spec: Mapping[str, Any], rate_hz: float) -> None:
+    """Refuse data sampled at another rate than the calibration's eddy terms were fitted at."""
+    fitted = float(spec["rate_hz"])
+    if abs(rate_hz - fitted) > RATE_TOLERANCE * fitted:
+        raise TrimagInputError(
+            f"the data are sampled at {rate_hz:g} Hz but the eddy-current terms were fitted at {fitted:g} Hz: the "
+            "finite-difference derivative depends on the rate; resample the data or refit"
+        )
+
+
+def values_for(
+    spec: Mapping[str, Any], B: ArrayLike, *, time_s: ArrayLike | None = None, rate_hz: float | None = None,
+    rows: ArrayLike | None = None,
+) -> dict[str, NDArray[np.float64]]:
+    """The derived regressors of a calibration's eddy terms (``spec``, :func:`eddy_spec`) on new data, checking the
+    rate: from ``time_s`` when given, else ``rate_hz`` (default: the calibration's)."""
+    values, rate, _ = eddy_values(B, time_s=time_s, rate_hz=rate_hz or float(spec["rate_hz"]), rows=rows)
+    check_rate(spec, rate)
+    return values
+
+
+def table_times(table: Any, column: str, path: Any) -> NDArray[np.float64]:
+    """The time column ``column`` (s) of a pandas table; one line naming the file and its columns when absent."""
+    import pandas as pd
+
+    if column not in table.columns:
+        raise TrimagInputError(
+            f"{path}: no time column {column!r} (the eddy-current terms' derivative needs it); the columns are "
+            f"{', '.join(map(str, table.columns))}"
+        )
+    return np.asarray(pd.to_numeric(table[column], errors="coerce"), dtype=np.float64)
+
+
+def values_from_table(
+    spec: Mapping[str, Any], table: Any, B: ArrayLike, path: Any, *, time_column: str | None = None,
+    rate_hz: float | None = None,
+) -> dict[str, NDArray[np.float64]]:
+    """The eddy regressors of a calibration on the rows of ``table`` (aligned with ``B``): the derivative from
+    ``time_column`` (default: the calibration's, which the data must then have) or from ``rate_hz`` (default: the
+    calibration's rate), the rate checked against the calibration's."""
+    column = time_column or spec.get("time_column")
+    if column is not None:
+        return values_for(spec, B, time_s=table_times(table, column, path))
+    return values_for(spec, B, rate_hz=rate_hz)
