@@ -118,6 +118,9 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
     g.add_argument("--background-columns", metavar="N,E,D",
                    help="per-sample background field (NED, the data's unit) from these columns, e.g. IGRF along a "
                         "survey line or a reference vector magnetometer")
+    g.add_argument("--igrf-columns", metavar="LAT,LON,ALT_M,YYYY-MM-DD",
+                   help="per-sample background: IGRF-14 at each row's position (latitude, longitude, altitude columns) "
+                        "on this date")
     if fit:
         g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
     g.add_argument("--attitude-file", metavar="FILE",
@@ -406,7 +409,8 @@ def _fit_request(args: argparse.Namespace, options: dict[str, Any]) -> FitReques
         model=args.model, method=args.method, options=options,
         reference=ReferenceSpec(reference=args.reference, igrf_spec=args.igrf_spec,
                                 reference_column=args.reference_column, background_ned=args.background_ned,
-                                background_run=args.background_run, background_columns=args.background_columns),
+                                background_run=args.background_run, background_columns=args.background_columns,
+                                igrf_columns=args.igrf_columns),
         attitude=AttitudeSpec(attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
                               quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
                               attitude_file=args.attitude_file, attitude_time_column=args.attitude_time_column,
@@ -525,7 +529,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             where=args.where, attitude_columns=args.attitude_columns, quaternion_columns=args.quaternion_columns,
             quaternion_order=args.quaternion_order, quaternion_frame=args.quaternion_frame,
             background_ned=args.background_ned, igrf_spec=args.igrf_spec, background_columns=args.background_columns,
-            attitude_file=args.attitude_file, time_column=args.time_column,
+            igrf_columns=args.igrf_columns, attitude_file=args.attitude_file, time_column=args.time_column,
             attitude_time_column=args.attitude_time_column,
         )
         if args.json:

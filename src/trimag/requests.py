@@ -45,6 +45,9 @@ class ReferenceSpec:
     background_ned: str | None = None
     background_run: str | None = None
     background_columns: str | None = None
+    #: a per-sample background from IGRF-14 at each row's position: ``"LAT,LON,ALT_M,YYYY-MM-DD"`` (three columns
+    #: and a date; :func:`trimag.io.background.igrf_along_track`)
+    igrf_columns: str | None = None
 
     @property
     def given(self) -> bool:

@@ -108,16 +108,25 @@ def scalar_reference_from_options(
 def vector_reference_from_options(
     *, units: str, background_ned: str | None = None, igrf_spec: str | None = None,
     background_run: str | None = None, background_columns: str | None = None, samples: Samples | None = None,
-    **read_kwargs: Any,
+    igrf_columns: str | None = None, **read_kwargs: Any,
 ) -> tuple[NDArray[np.float64], str]:
-    """The background field (N, E, D) in the data's unit, shape (3,) or (N, 3) (``background_columns``: one
-    vector per row of ``samples``), and a description of its source."""
-    given = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
+    """The background field (N, E, D) in the data's unit, shape (3,) or (N, 3) (``background_columns``,
+    ``igrf_columns``: one vector per row of ``samples``), and a description of its source."""
+    given = [x for x in (background_ned, igrf_spec, background_run, background_columns, igrf_columns) if x is not None]
     if len(given) != 1:
         raise TrimagInputError(
             "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
-            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE` or `background_columns=N,E,D`"
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE`, `background_columns=N,E,D` or "
+            "`igrf_columns=LAT,LON,ALT_M,DATE`"
         )
+    if igrf_columns is not None:
+        from .io.background import igrf_along_track, parse_igrf_columns
+
+        if samples is None:
+            raise TrimagInputError("`igrf_columns` needs the samples' table")
+        cols, date = parse_igrf_columns(igrf_columns)
+        track = [column_values(samples, c) for c in _split_names(",".join(cols), samples, "igrf_columns")]
+        return igrf_along_track(track[0], track[1], track[2], date, units=units)
     if background_columns is not None:
         if samples is None:
             raise TrimagInputError("`background_columns` needs the samples' table")
@@ -231,8 +240,14 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     return column_names(items, names)
 
 
-def _drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
-    """Drop (and count) the rows whose per-sample background cells are missing or non-finite."""
+def _drop_rows_without_background(
+    samples: Samples, background_columns: str | None, igrf_columns: str | None = None
+) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose per-sample background (or position) cells are missing or non-finite."""
+    if igrf_columns is not None:
+        from .io.background import parse_igrf_columns
+
+        background_columns = ",".join(parse_igrf_columns(igrf_columns)[0])
     if background_columns is None:
         return samples, 0
     names = ",".join(_split_names(background_columns, samples, "background_columns"))
@@ -959,7 +974,7 @@ def _fit_reference(
         messages.append(
             f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
         )
-    samples, n_no_background = _drop_rows_without_background(samples, given.background_columns)
+    samples, n_no_background = _drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = _attitude.attitude_from_table(
@@ -969,7 +984,7 @@ def _fit_reference(
     background, source = vector_reference_from_options(
         units=unit, background_ned=given.background_ned, igrf_spec=given.igrf_spec,
         background_run=given.background_run, background_columns=given.background_columns, samples=samples,
-        fmt=src.fmt, columns=src.columns, var=src.var,
+        igrf_columns=given.igrf_columns, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
             "quaternion_columns": att.quaternion_columns, "quaternion_order": att.quaternion_order,
             "quaternion_frame": att.quaternion_frame} if given.background_run is not None else {}),
@@ -1252,6 +1267,7 @@ def evaluate_vector_file(
     attitude_file: str | Path | None = None,
     time_column: str | None = None,
     attitude_time_column: str | None = None,
+    igrf_columns: str | None = None,
 ) -> dict[str, Any]:
     """Vector errors of an attitude-based calibration (``interference12``) on a log with attitudes.
 
@@ -1278,14 +1294,14 @@ def evaluate_vector_file(
         attitude_columns, quaternion_columns = None, req.attitude.quaternion_columns
         quaternion_order, quaternion_frame = "wxyz", "ned"
     samples, n_no_attitude = _drop_rows_without_attitude(samples, attitude_columns, quaternion_columns)
-    samples, n_no_background = _drop_rows_without_background(samples, background_columns)
+    samples, n_no_background = _drop_rows_without_background(samples, background_columns, igrf_columns)
     rot = _attitude.attitude_from_table(
         samples.table, euler_columns=attitude_columns, quaternion_columns=quaternion_columns,
         scalar_first=quaternion_order == "wxyz", frame=quaternion_frame,
     )
     background, source = vector_reference_from_options(units=cal.units, background_ned=background_ned,
                                                        igrf_spec=igrf_spec, background_columns=background_columns,
-                                                       samples=samples)
+                                                       samples=samples, igrf_columns=igrf_columns)
     expected = _attitude.body_field(rot, background)
     u = calibration_regressors(cal, samples, data_path)
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
