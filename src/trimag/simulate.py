@@ -187,6 +187,8 @@ class AircraftSimulation:
     body_nT: NDArray[np.float64] | None = None
     #: the vector magnetometer's interference (``K``, ``c``, ``E``) when simulated, else None
     interference: dict[str, NDArray[np.float64]] | None = None
+    #: the slow geology the scalar magnetometer sees (N,), nT (the simulated vector magnetometer does not see it)
+    geology_nT: NDArray[np.float64] | None = None
 
 
 def simulate_aircraft(
@@ -273,7 +275,8 @@ def simulate_aircraft(
         measured = _solve_eddy(body @ K.T + c, E, rate_hz)
         interference = {"K": K, "c": c, "E": E}
     vector = measured + (rng.normal(scale=vector_noise_nT, size=body.shape) if vector_noise_nT else 0.0)
-    return AircraftSimulation(time_s, vector, scalar, attitude, coef, groups, segments, rate_hz, body, interference)
+    return AircraftSimulation(time_s, vector, scalar, attitude, coef, groups, segments, rate_hz, body, interference,
+                              geology)
 
 
 def _solve_eddy(rhs: NDArray[np.float64], E: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:

@@ -726,6 +726,17 @@ def _fit_model(
         from .regressors import fit_regressors
 
         cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
+    if estimator.reference_kind == "vector" and req.reference.reference_column is not None:
+        from .joint import fit_joint_scalar  # a compensated scalar magnetometer alongside: joint fit (trimag.joint)
+
+        column = req.reference.reference_column
+        cal = fit_joint_scalar(cal, samples.field, column_values(samples, column), attitude=attitude,
+                               background=ref if cal.diagnostics.get("background_per_sample")
+                               else cal.diagnostics["background_ned"], regressors=regressor_values,
+                               scalar_source=f"column {column}")
+        messages.append(f"joint fit with the scalar magnetometer {column}: vector RMS per axis "
+                        f"{cal.diagnostics['joint_scalar']['vector_rms_axis_after']:.4g}, magnitude RMS "
+                        f"{cal.diagnostics['joint_scalar']['scalar_rms_after']:.4g} {unit}")
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     return samples, cal, ref, regressor_values, warn_texts, messages
 
