@@ -242,3 +242,15 @@ def test_rate_instead_of_a_time_column(tmp_path: Path) -> None:
     proc = run_trimag("evaluate", cal_path, data, *VECTOR_ARGS, "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["after"]["rms_vector"] < 1.5
+
+
+def test_batch_fits_the_terms_in_every_file(fitted_file, tmp_path: Path) -> None:
+    from trimag.batch import fit_batch
+
+    _, data, _ = fitted_file
+    result = fit_batch([str(data)], tmp_path / "out", model="interference12", options={"eddy": "3"},
+                       columns="x,y,z", units="nT", attitude_columns="yaw,pitch,roll",
+                       background_ned="18000,1000,46000", time_column="t", progress=False)
+    assert result.n_failed == 0, result.table["error"].tolist()
+    spec = json.loads((tmp_path / "out" / "box.json").read_text())["regressors"]["eddy"]
+    assert spec["terms"] == 3 and spec["time_column"] == "t"

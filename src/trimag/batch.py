@@ -250,7 +250,8 @@ def fit_batch(
     from .estimators import make_estimator
     from .parallel import map_trials
 
-    make_estimator(model, method, options)  # unknown model, method or option: fail once, up front
+    # unknown model, method or option: fail once, up front (``eddy`` is the workflow's, not the estimator's)
+    make_estimator(model, method, {k: v for k, v in (options or {}).items() if k != "eddy"})
     files = expand_inputs(patterns)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
