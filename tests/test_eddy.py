@@ -254,3 +254,17 @@ def test_batch_fits_the_terms_in_every_file(fitted_file, tmp_path: Path) -> None
     assert result.n_failed == 0, result.table["error"].tolist()
     spec = json.loads((tmp_path / "out" / "box.json").read_text())["regressors"]["eddy"]
     assert spec["terms"] == 3 and spec["time_column"] == "t"
+
+
+def test_quick_recalibration_keeps_and_recomputes_the_terms(fitted_file, tmp_path: Path) -> None:
+    """A prior with eddy terms: its derivative regressors come from the data, not from columns named dBx/dt."""
+    _, data, cal_path = fitted_file
+    out = tmp_path / "re.json"
+    proc = run_trimag("fit", data, "--prior", cal_path, "--columns", "x,y,z", "--attitude-columns",
+                      "yaw,pitch,roll", "--reference", str(float(np.linalg.norm(EARTH))), "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    d = json.loads(out.read_text())
+    prior = json.loads(cal_path.read_text())
+    assert d["regressors"]["eddy"] == prior["regressors"]["eddy"]
+    assert d["regressors"]["coefficients"] == prior["regressors"]["coefficients"]
+    assert d["stats"]["rms_after"] < 1.0

@@ -14,6 +14,10 @@ channel ``j`` over the fitted samples) is stored, and ``b0`` is the offset at th
   ``H_m = K H_b + c + sum_j k_j u_j``, solved jointly (per sensor axis, design ``[H_b, 1, u]``). With
   ``estimate_background=true`` the background is held at the value the fit without terms found.
 
+Derived regressors: the eddy-current terms of ``interference12`` (:mod:`trimag.eddy`) are the measured vector's time
+derivative, each component a regressor; ``free`` holds some coefficients at 0 (the diagonal of ``E``), each axis
+then solving its own design. A per-sample background (N, 3) of the base fit is taken from ``reference``.
+
 Uncertainty: ``sigma^2 (J^T J)^-1`` at the estimate (the Fisher information of the Gaussian model), ``sigma^2``
 from the residuals, times the residuals' integrated autocorrelation time (:func:`trimag.honesty.correlation_time`,
 magnitude residuals). The ranking (``diagnostics["regressors"]["ranking"]``) refits without each term and reports

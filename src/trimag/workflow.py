@@ -809,7 +809,9 @@ def _refit_prior(
     if attitude is None:
         inclination = None
     regressor_values = None
-    if prior.regressors is not None:
+    if prior.regressors is not None and prior.regressors.get("eddy"):  # derived from the data (trimag.eddy)
+        regressor_values = calibration_regressors(prior, samples, req.input.path)
+    elif prior.regressors is not None:
         regressor_values = regressor_columns(samples, tuple(prior.regressors["names"]), req.input.path,
                                              "a regressor of the prior calibration")
     sigma = options.get("prior_offset_sigma")
