@@ -179,3 +179,86 @@ def values_from_table(
     if column is not None:
         return values_for(spec, B, time_s=table_times(table, column, path))
     return values_for(spec, B, rate_hz=rate_hz)
+
+
+# ------------------------------------------------------------------ the application layer's uses (fit, apply, evaluate)
+def fit_values(
+    samples: Any, terms: int, time_column: str | None, rate_hz: float | None, path: Any
+) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any], list[str]]:
+    """The derived regressors of a fit on ``samples`` (:class:`trimag.io.Samples`, its kept rows), the calibration's
+    record of them (:func:`eddy_spec`) and the messages for the user."""
+    t = None if time_column is None else table_times(samples.table, time_column, path)
+    values, rate, isolated = eddy_values(samples.field, time_s=t, rate_hz=rate_hz)
+    messages = [f"eddy-current terms ({terms}): dB/dt by central differences at {rate:g} Hz "
+                f"({'from ' + time_column if time_column else 'given rate'})"]
+    if time_column is None and samples.n_dropped:
+        messages.append(f"warning: {samples.n_dropped} rows were dropped; without a time column the derivative "
+                        "spans them: give `time_column`")
+    if isolated:
+        messages.append(f"{isolated} samples alone in their segment have no derivative (eddy term 0)")
+    return values, eddy_spec(terms, rate, time_column), messages
+
+
+def streamed_calibrate(
+    cal: Any, spec: Mapping[str, Any], data_path: Any, *, fmt: str | None, columns: str | None, var: str | None,
+    chunk_rows: int,
+) -> tuple[Any, tuple[str, ...]]:
+    """The streamed correction (:func:`trimag.io.apply_file`) of a calibration with eddy-current terms:
+    ``(calibrate, the columns it reads)``.
+
+    A first pass reads x, y, z (and the time column and the logged regressors) and takes the derivative over the
+    rows that will be corrected (finite in all of them), so segments continue across chunks; the second pass
+    (``apply_file``) hands each chunk's corrected rows in order, and a cursor picks their derivatives.
+    Memory: 4-5 doubles per row.
+    """
+    from .io.stream import chunk_columns, open_chunks
+
+    logged = tuple(n for n in cal.regressors["names"] if n not in EDDY_NAMES)
+    tcol = spec.get("time_column")
+    read = logged + ((str(tcol),) if tcol else ())
+    _, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
+    xyz_parts, t_parts = [], []
+    for chunk in chunks:
+        u = chunk_columns(chunk, read, data_path) if read else np.empty((len(chunk), 0))
+        ok = np.isfinite(chunk.xyz).all(axis=1) & np.isfinite(u).all(axis=1)
+        xyz_parts.append(chunk.xyz[ok])
+        if tcol:
+            t_parts.append(u[ok, -1])
+    xyz_all = np.concatenate(xyz_parts) if xyz_parts else np.empty((0, 3))
+    derived = values_for(spec, xyz_all, time_s=np.concatenate(t_parts) if tcol else None)
+    dB = np.column_stack([derived[n] for n in EDDY_NAMES])
+    cursor = [0]
+
+    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+        start, stop = cursor[0], cursor[0] + len(xyz)
+        cursor[0] = stop
+        if not np.array_equal(xyz, xyz_all[start:stop]):
+            raise TrimagInputError(f"{data_path}: the file changed while it was being corrected")
+        values = dict(zip(EDDY_NAMES, dB[start:stop].T, strict=True))
+        if logged:
+            values.update(zip(logged, u[0][:, : len(logged)].T, strict=True))
+        return np.asarray(cal.apply(xyz, regressors=values), dtype=np.float64)
+
+    return calibrate, read
+
+
+def evaluate_columns(cal: Any, spec: Mapping[str, Any]) -> tuple[str, ...]:
+    """The columns a streamed evaluation reads for a calibration with eddy terms: its logged regressors, then its
+    time column (when it has one)."""
+    logged = tuple(n for n in cal.regressors["names"] if n not in EDDY_NAMES)
+    return logged + ((str(spec["time_column"]),) if spec.get("time_column") else ())
+
+
+def corrected_magnitudes(cal: Any, spec: Mapping[str, Any], kept: list[tuple[Any, ...]]) -> tuple[NDArray[np.float64],
+                                                                                                    Any]:
+    """Corrected magnitudes of the rows ``kept`` (per chunk: x, y, z; the :func:`evaluate_columns` values; the
+    reference) of a calibration with eddy-current terms, and their references."""
+    xyz = np.concatenate([k[0] for k in kept])
+    U = None if kept[0][1] is None else np.concatenate([k[1] for k in kept])
+    logged = [n for n in cal.regressors["names"] if n not in EDDY_NAMES]
+    values = values_for(spec, xyz, time_s=None if not spec.get("time_column") or U is None else U[:, -1])
+    if logged and U is not None:
+        values.update(zip(logged, U[:, : len(logged)].T, strict=True))
+    refs = [k[2] for k in kept]
+    ref: Any = refs[0] if refs[0] is None or np.ndim(refs[0]) == 0 else np.concatenate(refs)
+    return np.linalg.norm(cal.apply(xyz, regressors=values), axis=1), ref

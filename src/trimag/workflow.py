@@ -664,25 +664,6 @@ def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
     return terms
 
 
-def _eddy_regressors(
-    req: FitRequest, samples: Samples, terms: int
-) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any], list[str]]:
-    """The derived regressors dB/dt of the eddy-current terms, their record and the messages."""
-    from .eddy import eddy_spec, eddy_values, table_times
-
-    column = req.attitude.time_column
-    t = None if column is None else table_times(samples.table, column, req.input.path)
-    values, rate, isolated = eddy_values(samples.field, time_s=t, rate_hz=req.rate_hz)
-    messages = [f"eddy-current terms ({terms}): dB/dt by central differences at {rate:g} Hz "
-                f"({'from ' + column if column else 'given rate'})"]
-    if column is None and samples.n_dropped:
-        messages.append(f"warning: {samples.n_dropped} rows were dropped; without a time column the derivative "
-                        "spans them: give `time_column`")
-    if isolated:
-        messages.append(f"{isolated} samples alone in their segment have no derivative (eddy term 0)")
-    return values, eddy_spec(terms, rate, column), messages
-
-
 def _fit_model(
     req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None,
     eddy_terms: int | None = None,
@@ -717,9 +698,10 @@ def _fit_model(
                         "reference and the unit")
     free, record = None, None
     if eddy_terms is not None:
-        from .eddy import free_mask
+        from .eddy import fit_values, free_mask
 
-        values, spec, eddy_messages = _eddy_regressors(req, samples, eddy_terms)
+        values, spec, eddy_messages = fit_values(samples, eddy_terms, req.attitude.time_column, req.rate_hz,
+                                                 req.input.path)
         regressor_values, free, record = {**(regressor_values or {}), **values}, free_mask(eddy_terms), {"eddy": spec}
         messages += eddy_messages
     if regressor_values is not None:
@@ -1070,8 +1052,10 @@ def apply_to_file(
     names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
     if spec:
-        calibrate, names = _eddy_calibrate(cal, spec, data_path, fmt=fmt, columns=columns, var=var,
-                                           chunk_rows=chunk_rows)
+        from .eddy import streamed_calibrate
+
+        calibrate, names = streamed_calibrate(cal, spec, data_path, fmt=fmt, columns=columns, var=var,
+                                              chunk_rows=chunk_rows)
     else:
         def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
             return cal.apply(xyz, regressors=u[0] if u else None)
@@ -1082,49 +1066,6 @@ def apply_to_file(
     )
     result["units"] = cal.units
     return result
-
-
-def _eddy_calibrate(
-    cal: Calibration, spec: dict[str, Any], data_path: str | Path, *, fmt: str | None, columns: str | None,
-    var: str | None, chunk_rows: int,
-) -> tuple[Any, tuple[str, ...]]:
-    """The streamed correction of a calibration with eddy-current terms: ``(calibrate, columns it reads)``.
-
-    A first pass reads x, y, z (and the time column and the logged regressors) and takes the derivative over the
-    rows that will be corrected (finite in all of them), so segments continue across chunks; the second pass
-    (:func:`apply_file`) hands each chunk's corrected rows in order, and a cursor picks their derivatives.
-    Memory: 4-5 doubles per row.
-    """
-    from .eddy import EDDY_NAMES, values_for
-
-    assert cal.regressors is not None
-    logged = tuple(n for n in cal.regressors["names"] if n not in EDDY_NAMES)
-    tcol = spec.get("time_column")
-    read = logged + ((str(tcol),) if tcol else ())
-    _, chunks = open_chunks(data_path, fmt=fmt, columns=columns, var=var, chunk_rows=chunk_rows)
-    xyz_parts, t_parts = [], []
-    for chunk in chunks:
-        u = chunk_columns(chunk, read, data_path) if read else np.empty((len(chunk), 0))
-        ok = np.isfinite(chunk.xyz).all(axis=1) & np.isfinite(u).all(axis=1)
-        xyz_parts.append(chunk.xyz[ok])
-        if tcol:
-            t_parts.append(u[ok, -1])
-    xyz_all = np.concatenate(xyz_parts) if xyz_parts else np.empty((0, 3))
-    derived = values_for(spec, xyz_all, time_s=np.concatenate(t_parts) if tcol else None)
-    dB = np.column_stack([derived[n] for n in EDDY_NAMES])
-    cursor = [0]
-
-    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
-        start, stop = cursor[0], cursor[0] + len(xyz)
-        cursor[0] = stop
-        if not np.array_equal(xyz, xyz_all[start:stop]):
-            raise TrimagInputError(f"{data_path}: the file changed while it was being corrected")
-        values = dict(zip(EDDY_NAMES, dB[start:stop].T, strict=True))
-        if logged:
-            values.update(zip(logged, u[0][:, : len(logged)].T, strict=True))
-        return cal.apply(xyz, regressors=values)
-
-    return calibrate, read
 
 
 def evaluate_file(
@@ -1171,10 +1112,9 @@ def evaluate_file(
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
     read_names = regressor_names
     if spec:  # the derivative needs neighbouring rows: the selected rows are collected, then corrected at once
-        from .eddy import EDDY_NAMES
+        from .eddy import evaluate_columns
 
-        read_names = tuple(n for n in regressor_names if n not in EDDY_NAMES) + (
-            (str(spec["time_column"]),) if spec.get("time_column") else ())
+        read_names = evaluate_columns(cal, spec)
     kept: list[tuple[Any, ...]] = []
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
@@ -1210,7 +1150,9 @@ def evaluate_file(
         if progress:
             progress(chunk.start + len(chunk.xyz))
     if spec and kept:
-        after.add(*_eddy_magnitudes(cal, spec, kept))
+        from .eddy import corrected_magnitudes
+
+        after.add(*corrected_magnitudes(cal, spec, kept))
     if after.n == 0:
         raise TrimagInputError(f"{data_path}: no rows with finite x, y, z values to evaluate")
     stats_after = after.result()
@@ -1240,25 +1182,6 @@ def evaluate_file(
         "std_norm_before": stats_before["std_norm"],
         "std_norm_after": stats_after["std_norm"],
     }
-
-
-def _eddy_magnitudes(
-    cal: Calibration, spec: dict[str, Any], kept: list[tuple[Any, ...]]
-) -> tuple[NDArray[np.float64], Any]:
-    """Corrected magnitudes of the rows ``kept`` ((xyz, logged regressors and time, reference) per chunk) of a
-    calibration with eddy-current terms, and their references."""
-    from .eddy import EDDY_NAMES, values_for
-
-    assert cal.regressors is not None
-    xyz = np.concatenate([k[0] for k in kept])
-    U = None if kept[0][1] is None else np.concatenate([k[1] for k in kept])
-    logged = [n for n in cal.regressors["names"] if n not in EDDY_NAMES]
-    values = values_for(spec, xyz, time_s=None if not spec.get("time_column") or U is None else U[:, -1])
-    if logged and U is not None:
-        values.update(zip(logged, U[:, : len(logged)].T, strict=True))
-    refs = [k[2] for k in kept]
-    ref: Any = refs[0] if refs[0] is None or np.ndim(refs[0]) == 0 else np.concatenate(refs)
-    return np.linalg.norm(cal.apply(xyz, regressors=values), axis=1), ref
 
 
 def evaluate_vector_file(
