@@ -103,6 +103,19 @@ def test_eddy_coefficients_recovered_within_their_reported_uncertainty() -> None
     assert cal.stats["vector_rms_after"] < 1.0 < 50 < cal.stats["vector_rms_after_without_regressors"]
 
 
+def test_reported_sigmas_of_E_match_the_scatter_of_a_small_monte_carlo() -> None:
+    """10 boxes of 20 s per heading: the z-scores of the nine entries of E have a standard deviation near 1 (the
+    derivative of the noise makes neighbouring residuals slightly correlated; measured 1.00)."""
+    z = []
+    for seed in range(10):
+        cal, _ = _fit(_sim(seed=20 + seed, seconds=20.0))
+        std = cal.uncertainty["param_std"]
+        sd = np.array([[std[f"k_{n}_{a}"] for a in "xyz"] for n in EDDY_NAMES])
+        z.append(((np.asarray(cal.regressors["coefficients"]) - E_TRUE.T) / sd).ravel())
+    spread = float(np.std(z))
+    assert 0.75 < spread < 1.3, spread
+
+
 def test_held_out_box_gains_from_the_terms_only_when_the_aircraft_has_them() -> None:
     train, test = _sim(seed=3), _sim(seed=4)
     cal, _ = _fit(train)
