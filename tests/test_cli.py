@@ -296,3 +296,16 @@ def test_vector_evaluate_checks_the_unit_given(tmp_path: Path) -> None:
     r = run_trimag(*args, "--units", "uT")
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and "uT" in r.stderr
+
+
+def test_units_given_with_a_regressor_calibration_are_checked_not_refused(tmp_path: Path) -> None:
+    """``apply``/``evaluate --units`` checked the unit by applying the calibration to a zero vector, which a
+    calibration with regressor terms refuses (no regressor values): exit 2 for a correct unit."""
+    cal = CALIBRATIONS / "ellipsoid-regressors.json"
+    data = CALIBRATIONS / "ellipsoid-regressors.in.csv"
+    out = tmp_path / "out.csv"
+    r = run_trimag("apply", cal, data, "--units", "nT", "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert run_trimag("evaluate", cal, data, "--units", "nT").returncode == 0
+    wrong = run_trimag("evaluate", cal, data, "--units", "uT")
+    assert wrong.returncode == 2 and "for data in 'nT'" in wrong.stderr

@@ -265,7 +265,8 @@ def fit_batch(
     from .parallel import map_trials
 
     request = _batch_request(request, model=model, method=method, options=options, **fit_options)
-    make_estimator(request.model, request.method, dict(request.options))  # unknown model, method or option: fail once
+    # unknown model, method or option: fail once, up front (``eddy`` is the application's, not the estimator's)
+    make_estimator(request.model, request.method, {k: v for k, v in request.options.items() if k != "eddy"})
     files = expand_inputs(patterns)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -255,6 +255,16 @@ class Calibration:
         )
 
     # ------------------------------------------------------------------ algebra
+    def check_units(self, units: str) -> None:
+        """Raise :class:`UnitMismatchError` when data in ``units`` are not in this calibration's unit (an unknown
+        unit on either side passes)."""
+        given = normalise_unit(units)
+        if given != self.units and "unknown" not in (given, self.units):
+            raise UnitMismatchError(
+                f"this calibration is for data in {self.units!r}; got data in {given!r}. "
+                "Convert the data, or fit a calibration in that unit"
+            )
+
     def apply(
         self, B: ArrayLike, *, inverse: bool = False, units: str | None = None, regressors: Any = None
     ) -> NDArray[np.float64]:
@@ -280,12 +290,7 @@ class Calibration:
         ndarray, shape like ``B``
         """
         if units is not None:
-            given = normalise_unit(units)
-            if given != self.units and "unknown" not in (given, self.units):
-                raise UnitMismatchError(
-                    f"this calibration is for data in {self.units!r}; got data in {given!r}. "
-                    "Convert the data, or fit a calibration in that unit"
-                )
+            self.check_units(units)
         arr = np.asarray(B, dtype=np.float64)
         if arr.shape[-1:] != (3,) or arr.ndim > 2:
             raise TrimagInputError(f"`B` must have shape (3,) or (N, 3); got {arr.shape}")

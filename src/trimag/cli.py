@@ -121,6 +121,9 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
     g.add_argument("--background-columns", metavar="N,E,D",
                    help="per-sample background field (NED, the data's unit) from these columns, e.g. IGRF along a "
                         "survey line or a reference vector magnetometer")
+    g.add_argument("--igrf-columns", metavar="LAT,LON,ALT_M,YYYY-MM-DD",
+                   help="per-sample background: IGRF-14 at each row's position (latitude, longitude, altitude columns) "
+                        "on this date")
     if fit:
         g.add_argument("--background-run", metavar="FILE", help="iron-free run at the same attitudes")
     g.add_argument("--attitude-file", metavar="FILE",
@@ -472,7 +475,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from .requests import FitRequest
 
     result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
-                               regressors=_regressor_flag(args.regressors)))
+                               regressors=_regressor_flag(args.regressors), rate_hz=args.rate))
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:
@@ -684,7 +687,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     # every file's request: the flags given, without an output (one calibration per file)
     request = _request(FitRequest, args, "", options=parse_options(args.option),
-                       regressors=_regressor_flag(args.regressors), out=None)
+                       regressors=_regressor_flag(args.regressors), out=None, rate_hz=getattr(args, "rate", None))
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):

@@ -27,6 +27,7 @@ __all__ = [
     "ScalarReference",
     "as_scalar_reference",
     "igrf",
+    "igrf_ned",
     "igrf_reference",
     "parse_igrf_spec",
 ]
@@ -110,6 +111,43 @@ def igrf(
         altitude_m=float(altitude_m),
         date=when.date().isoformat(),
     )
+
+
+def igrf_ned(
+    latitude_deg: ArrayLike, longitude_deg: ArrayLike, altitude_m: ArrayLike, date: str | _dt.date | _dt.datetime
+) -> NDArray[np.float64]:
+    """IGRF-14 main field (N, E, D), nT, at many geodetic positions and one date, vectorised (one ``ppigrf`` call).
+
+    Parameters
+    ----------
+    latitude_deg, longitude_deg : array_like, shape (N,)
+        Geodetic latitude (-90..90) and longitude (degrees east).
+    altitude_m : array_like, shape (N,)
+        Height above the WGS84 ellipsoid, metres.
+    date : str or date
+        ``YYYY-MM-DD`` (IGRF-14: 1900-2029). One date for all positions: the secular variation is tens of nT per
+        year, below 0.1 nT over a day's flight.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        North, east, down components, nT.
+    """
+    import ppigrf
+
+    lat, lon, alt = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (latitude_deg, longitude_deg, altitude_m))
+    if not (lat.shape == lon.shape == alt.shape and lat.ndim == 1):
+        raise TrimagInputError(f"latitude, longitude and altitude need the same shape (N,); got {lat.shape}, "
+                               f"{lon.shape}, {alt.shape}")
+    if not (np.isfinite(lat).all() and np.isfinite(lon).all() and np.isfinite(alt).all()):
+        raise TrimagInputError("latitude, longitude and altitude must be finite in every row")
+    if np.any(np.abs(lat) > 90.0):
+        raise TrimagInputError(f"latitude must be within -90..90 degrees; got {float(lat[np.abs(lat) > 90][0])}")
+    when = _parse_date(date)
+    if not 1900 <= when.year < 2030:
+        raise TrimagInputError(f"IGRF-14 covers 1900-2029; got the date {when.date().isoformat()}")
+    be, bn, bu = ppigrf.igrf(lon, lat, alt / 1000.0, when)
+    return np.column_stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)]).astype(np.float64)
 
 
 def parse_igrf_spec(spec: str) -> tuple[float, float, float, str]:

@@ -14,6 +14,10 @@ channel ``j`` over the fitted samples) is stored, and ``b0`` is the offset at th
   ``H_m = K H_b + c + sum_j k_j u_j``, solved jointly (per sensor axis, design ``[H_b, 1, u]``). With
   ``estimate_background=true`` the background is held at the value the fit without terms found.
 
+Derived regressors: the eddy-current terms of ``interference12`` (:mod:`trimag.eddy`) are the measured vector's time
+derivative, each component a regressor; ``free`` holds some coefficients at 0 (the diagonal of ``E``), each axis
+then solving its own design. A per-sample background (N, 3) of the base fit is taken from ``reference``.
+
 Uncertainty: ``sigma^2 (J^T J)^-1`` at the estimate (the Fisher information of the Gaussian model), ``sigma^2``
 from the residuals, times the residuals' integrated autocorrelation time (:func:`trimag.honesty.correlation_time`,
 magnitude residuals). The ranking (``diagnostics["regressors"]["ranking"]``) refits without each term and reports
@@ -224,31 +228,43 @@ def _vector_solve(
 
 def _fit_vector(
     base: Calibration, B: NDArray[np.float64], U: NDArray[np.float64], H_b: NDArray[np.float64],
-    names: Sequence[str],
+    names: Sequence[str], free: NDArray[np.bool_] | None = None,
 ) -> dict[str, Any]:
-    """Joint linear fit of ``H_m = K H_b + c + sum_j k_j u_j`` (design ``[H_b, 1, u]``), and the fits without
-    each term."""
+    """Joint linear fit of ``H_m = K H_b + c + sum_j k_j u_j`` (design ``[H_b, 1, u]`` per sensor axis), and the
+    fits without each term.
+
+    ``free`` (m, 3) bool: which coefficients of each regressor are fitted (the others are held at 0; e.g. the
+    diagonal of the eddy-current matrix); None: all.
+    """
     n, m = U.shape
-    A = np.column_stack([H_b, np.ones(n), U])
+    F = np.ones((m, 3), dtype=bool) if free is None else np.asarray(free, dtype=bool)
     param_names = _vector_names(names)
-    X, resid, G = _vector_solve(A, B)
-    k = 4 + m
-    ss_axis = np.sum(resid**2, axis=0)
-    sigma2 = ss_axis / max(n - k, 1)
-    _covariance(A, 1.0, [*_vector_names(())[:3], "c", *names])  # refuses an unidentifiable design
+    _covariance(np.column_stack([H_b, np.ones(n), U]), 1.0, [*_vector_names(())[:3], "c", *names])  # identifiable?
+    X = np.zeros((4 + m, 3))
+    resid = np.empty((n, 3))
     cov = np.zeros((12 + 3 * m, 12 + 3 * m))
-    for a in range(3):  # the three axes are independent least-squares problems sharing the design
-        idx = [3 * a, 3 * a + 1, 3 * a + 2, 9 + a, *(12 + 3 * j + a for j in range(m))]
-        cov[np.ix_(idx, idx)] = sigma2[a] * G
-    ss_without = []
-    for j in range(m):
-        keep = [c for c in range(k) if c != 4 + j]
-        ss_without.append(float(np.sum(_vector_solve(A[:, keep], B)[1] ** 2)))
+    ss_without = np.zeros(m)
+    n_free = 12 + int(F.sum())
+    for a in range(3):  # the three axes are independent least-squares problems (their designs differ by `free`)
+        used = np.flatnonzero(F[:, a])
+        A = np.column_stack([H_b, np.ones(n), U[:, used]])
+        x_a, r_a, G = _vector_solve(A, B[:, a : a + 1])
+        X[[0, 1, 2, 3, *(4 + used)], a] = x_a[:, 0]
+        resid[:, a] = r_a[:, 0]
+        ss_a = float(r_a[:, 0] @ r_a[:, 0])
+        idx = np.array([3 * a, 3 * a + 1, 3 * a + 2, 9 + a, *(12 + 3 * int(j) + a for j in used)])
+        cov[np.ix_(idx, idx)] = ss_a / max(n - A.shape[1], 1) * G
+        for j in range(m):
+            if F[j, a]:
+                keep = [c for c in range(A.shape[1]) if c != 4 + int(np.flatnonzero(used == j)[0])]
+                ss_without[j] += float(np.sum(_vector_solve(A[:, keep], B[:, a : a + 1])[1] ** 2))
+            else:
+                ss_without[j] += ss_a
     K = X[:3].T
     return {
         "matrix": np.linalg.inv(K), "offset": X[3], "K": X[4:], "K_interference": K, "cov": cov,
-        "residuals": resid, "ss": float(np.sum(ss_axis)), "ss_without": ss_without, "n_params": 3 * k,
-        "iterations": 1, "converged": True, "param_names": param_names,
+        "residuals": resid, "ss": float(np.sum(resid**2)), "ss_without": ss_without.tolist(), "n_params": n_free,
+        "iterations": 1, "converged": True, "param_names": param_names, "free": F,
     }
 
 
@@ -278,13 +294,15 @@ def _ranking(
         coef = np.asarray(fit["K"][j], dtype=np.float64)
         C = cov[np.ix_(idx, idx)]
         std = np.sqrt(np.clip(np.diag(C), 0.0, None))
+        on = np.asarray(fit["free"][j], dtype=bool) if "free" in fit else np.ones(3, dtype=bool)
+        dfn = int(on.sum())  # the term's fitted coefficients (3, or fewer when some are held at 0)
         explained = max(fit["ss_without"][j] - ss, 0.0)
-        f_stat = (explained / 3.0) / (ss / max(n_resid - k, 1)) / tau if ss > 0 else float("inf")
+        f_stat = (explained / dfn) / (ss / max(n_resid - k, 1)) / tau if ss > 0 else float("inf")
         try:
-            wald = float(coef @ np.linalg.solve(C, coef))
+            wald = float(coef[on] @ np.linalg.solve(C[np.ix_(on, on)], coef[on]))
         except np.linalg.LinAlgError:
             wald = float("inf")
-        p_value = _f_survival(f_stat, 3, dof) if np.isfinite(f_stat) else 0.0
+        p_value = _f_survival(f_stat, dfn, dof) if np.isfinite(f_stat) else 0.0
         out.append({
             "name": name,
             "coefficient": coef.tolist(),
@@ -314,6 +332,9 @@ def fit_regressors(
     attitude: Any = None,
     max_iter: int = 100,
     alpha: float = SIGNIFICANCE_ALPHA,
+    free: Mapping[str, Sequence[bool]] | None = None,
+    record: Mapping[str, Any] | None = None,
+    background: ArrayLike | None = None,
 ) -> Calibration:
     """Refit ``base`` with regressor terms in its offset, jointly with its other parameters (module docstring).
 
@@ -328,12 +349,22 @@ def fit_regressors(
         The channels, aligned with ``B``, in their own units (A, %, degC, ...).
     reference : float, array_like (N,), ScalarReference or None
         The magnitude reference of ``base``'s fit (``ellipsoid``); None: held at the mean corrected magnitude.
+        ``interference12``: not used, except a per-sample background (N, 3) of ``base``'s fit, used as it.
     attitude : scipy.spatial.transform.Rotation, optional
         The N attitudes (``interference12``).
     max_iter : int
         Iteration limit of the joint nonlinear fit.
     alpha : float
         Significance level of the ranking.
+    free : mapping str -> 3 bool, optional
+        ``interference12`` only: which of a regressor's three coefficients are fitted (the others held at 0), e.g.
+        the diagonal of the eddy-current matrix (:mod:`trimag.eddy`); regressors not named: all three.
+    record : mapping, optional
+        Extra entries stored with the terms in the calibration (e.g. ``{"eddy": ...}``, :func:`trimag.eddy.eddy_spec`).
+    background : array_like, shape (3,) or (N, 3), optional
+        ``interference12``: the background field (NED) of ``base``'s fit; required when it was per sample
+        (``base.diagnostics["background_per_sample"]``: the diagnostics hold only its mean; default there:
+        ``reference``). Default: the diagnostics' ``background_ned``.
 
     Returns
     -------
@@ -355,6 +386,8 @@ def fit_regressors(
         raise TrimagInputError(
             f"regressor terms are fitted for the models {', '.join(MODELS)}; got model {base.model!r}"
         )
+    if free is not None and base.model != "interference12":
+        raise TrimagInputError("`free` (coefficients held at 0) is for the model interference12")
     if base.regressors is not None:
         raise TrimagInputError("`base` already has regressor terms; give the fit without them")
     X = np.asarray(B, dtype=np.float64)
@@ -377,15 +410,34 @@ def fit_regressors(
 
         if not isinstance(attitude, Rotation) or attitude.single or len(attitude) != len(X):
             raise TrimagInputError("interference12 regressor terms need the attitude of every sample (a Rotation)")
-        H_n = np.asarray(base.diagnostics["background_ned"], dtype=np.float64)
-        fit = _fit_vector(base, X, U, body_field(attitude, H_n), names)
-        magnitude_target = float(np.linalg.norm(H_n))
-    return _assemble(base, X, U, names, means, fit, magnitude_target, alpha)
+        if background is not None:
+            H_n = np.asarray(background, dtype=np.float64)
+            if H_n.shape not in ((3,), (len(X), 3)):
+                raise TrimagInputError(f"`background` must have shape (3,) or ({len(X)}, 3); got {H_n.shape}")
+        elif base.diagnostics.get("background_per_sample"):  # the diagnostics hold only its mean
+            H_n = np.asarray(reference, dtype=np.float64) if reference is not None else np.empty(0)
+            if H_n.shape != (len(X), 3):
+                raise TrimagInputError("the fit used a per-sample background: give it as `reference` (N, 3)")
+        else:
+            H_n = np.asarray(base.diagnostics["background_ned"], dtype=np.float64)
+        mask = None
+        if free is not None:
+            unknown = [k for k in free if k not in names]
+            if unknown:
+                raise TrimagInputError(f"`free` names {unknown[0]!r}, which is not a regressor")
+            mask = np.array([list(free.get(name, (True, True, True))) for name in names], dtype=bool)
+            if mask.shape != (len(names), 3) or not mask.any(axis=1).all():
+                raise TrimagInputError("`free` needs three booleans per regressor, at least one of them true")
+        fit = _fit_vector(base, X, U, body_field(attitude, H_n), names, mask)
+        F_n = np.linalg.norm(H_n, axis=-1)
+        magnitude_target = float(F_n) if F_n.ndim == 0 else F_n
+    return _assemble(base, X, U, names, means, fit, magnitude_target, alpha, record)
 
 
 def _assemble(
     base: Calibration, X: NDArray[np.float64], U: NDArray[np.float64], names: tuple[str, ...],
     means: NDArray[np.float64], fit: dict[str, Any], target: Any, alpha: float,
+    record: Mapping[str, Any] | None = None,
 ) -> Calibration:
     """The Calibration of a joint fit: parameters, uncertainty, statistics, ranking."""
     from .models import get_model
@@ -445,7 +497,8 @@ def _assemble(
         },
     }
     terms = {"names": list(names), "means": means.tolist(), "coefficients": np.asarray(K).tolist(),
-             "note": "offset(u) = offset + sum_j coefficients[j] * (u_j - means[j]); data unit per regressor unit"}
+             "note": "offset(u) = offset + sum_j coefficients[j] * (u_j - means[j]); data unit per regressor unit",
+             **dict(record or {})}
     cal = Calibration.from_matrix_offset(
         matrix, offset, units=base.units, model=base.model, method=base.method, params=params,
         reference=base.reference, stats=stats, uncertainty=uncertainty, diagnostics=diagnostics, regressors=terms,

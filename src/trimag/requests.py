@@ -55,6 +55,9 @@ class ReferenceSpec:
     background_ned: str | None = None
     background_run: str | None = None
     background_columns: str | None = None
+    #: a per-sample background from IGRF-14 at each row's position: ``"LAT,LON,ALT_M,YYYY-MM-DD"`` (three columns
+    #: and a date; :func:`trimag.io.background.igrf_along_track`)
+    igrf_columns: str | None = None
 
     @property
     def given(self) -> bool:
@@ -99,6 +102,8 @@ class FitRequest:
     report: str | Path | None = None
     policy: str | None = None
     regressors: tuple[str, ...] | None = None
+    #: sample rate (Hz) of the eddy-current terms' derivative (``option eddy``) when there is no ``time_column``
+    rate_hz: float | None = None
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.prior`)
     prior: str | Path | None = None
     accel_columns: str | None = None

@@ -183,6 +183,12 @@ class AircraftSimulation:
     terms: tuple[str, ...]
     segments: list[tuple[int, int]]
     rate_hz: float
+    #: noise-free body-frame Earth field (N, 3), nT
+    body_nT: NDArray[np.float64] | None = None
+    #: the vector magnetometer's interference (``K``, ``c``, ``E``) when simulated, else None
+    interference: dict[str, NDArray[np.float64]] | None = None
+    #: the slow geology the scalar magnetometer sees (N,), nT (the simulated vector magnetometer does not see it)
+    geology_nT: NDArray[np.float64] | None = None
 
 
 def simulate_aircraft(
@@ -197,6 +203,9 @@ def simulate_aircraft(
     amplitude_deg: tuple[float, float, float] = (5.0, 5.0, 10.0),
     turn_seconds: float = 20.0,
     seed: int = 0,
+    vector_K: ArrayLike | None = None,
+    vector_c: ArrayLike | None = None,
+    vector_E: ArrayLike | None = None,
 ) -> AircraftSimulation:
     """A calibration box: four headings (N, E, S, W) joined by smooth turns, flown with yaw, pitch, roll manoeuvres.
 
@@ -213,6 +222,11 @@ def simulate_aircraft(
         True TL coefficients; default: random, of realistic size (permanent and induced ~10 nT, eddy ~100 nT).
     amplitude_deg : (yaw, pitch, roll)
         Manoeuvre amplitudes, degrees.
+    vector_K, vector_c, vector_E : array_like, (3, 3), (3,), (3, 3), optional
+        The vector magnetometer's interference (``interference12`` with eddy-current terms, :mod:`trimag.eddy`): it
+        then reads ``H_m = K H_b + c + E dH_m/dt`` (nT, ``E`` in s), solved exactly for ``H_m`` with the same
+        finite differences (central, one-sided at the ends) as the fit, before the noise. Default: none (``H_m =
+        H_b``).
     """
     from .models.tolles_lawson import design, parse_terms, term_names
 
@@ -252,8 +266,34 @@ def simulate_aircraft(
     A = design(body, groups)
     geology = 3.0 * np.sin(2 * np.pi * time_s / 200.0) + 1.0 * np.sin(2 * np.pi * time_s / 47.0)
     scalar = np.linalg.norm(earth) + geology + A @ coef + rng.normal(scale=scalar_noise_nT, size=n)
-    vector = body + (rng.normal(scale=vector_noise_nT, size=body.shape) if vector_noise_nT else 0.0)
-    return AircraftSimulation(time_s, vector, scalar, attitude, coef, groups, segments, rate_hz)
+    interference = None
+    measured = body
+    if vector_K is not None or vector_c is not None or vector_E is not None:
+        K = np.eye(3) if vector_K is None else np.asarray(vector_K, dtype=np.float64)
+        c = np.zeros(3) if vector_c is None else np.asarray(vector_c, dtype=np.float64)
+        E = np.zeros((3, 3)) if vector_E is None else np.asarray(vector_E, dtype=np.float64)
+        measured = _solve_eddy(body @ K.T + c, E, rate_hz)
+        interference = {"K": K, "c": c, "E": E}
+    vector = measured + (rng.normal(scale=vector_noise_nT, size=body.shape) if vector_noise_nT else 0.0)
+    return AircraftSimulation(time_s, vector, scalar, attitude, coef, groups, segments, rate_hz, body, interference,
+                              geology)
+
+
+def _solve_eddy(rhs: NDArray[np.float64], E: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
+    """``H`` (N, 3) with ``H - E D(H) = rhs``, ``D`` the finite-difference time derivative of :mod:`trimag.eddy`
+    (central inside, one-sided at the ends, per second): one sparse (3N x 3N) solve."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    n = len(rhs)
+    main = np.zeros(n)
+    upper, lower = np.full(n - 1, 0.5), np.full(n - 1, -0.5)
+    upper[0], main[0] = 1.0, -1.0  # forward difference at the start
+    lower[-1], main[-1] = -1.0, 1.0  # backward difference at the end
+    D = sp.diags([lower, main, upper], [-1, 0, 1], format="csr") * rate_hz
+    system = sp.identity(3 * n, format="csr") - sp.kron(sp.csr_matrix(E), D, format="csr")
+    h = spsolve(system.tocsc(), rhs.T.ravel())  # component-major: [H_x; H_y; H_z]
+    return np.asarray(h, dtype=np.float64).reshape(3, n).T
 
 
 __all__ += ["AircraftSimulation", "simulate_aircraft"]

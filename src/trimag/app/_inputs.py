@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, column_values
 from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
@@ -63,18 +64,28 @@ def magnitude_reference(samples: Samples, given: ReferenceSpec, unit: str) -> Sc
 def background_field(
     given: ReferenceSpec, unit: str, samples: Samples | None = None, **read_kwargs: Any
 ) -> tuple[NDArray[np.float64], str]:
-    """The background field (N, E, D) in ``unit``, shape (3,) or (N, 3) (``background_columns``: one vector per row
-    of ``samples``), and a description of its source: exactly one of ``given.background_ned``, ``igrf_spec``,
-    ``background_run`` (read with ``read_kwargs``, :func:`trimag.io.background.background_from_run`) and
-    ``background_columns``."""
+    """The background field (N, E, D) in ``unit``, shape (3,) or (N, 3) (``background_columns``, ``igrf_columns``:
+    one vector per row of ``samples``), and a description of its source: exactly one of ``given.background_ned``,
+    ``igrf_spec``, ``background_run`` (read with ``read_kwargs``, :func:`trimag.io.background.background_from_run`),
+    ``background_columns`` and ``igrf_columns`` (IGRF-14 at each row's position)."""
     background_ned, igrf_spec = given.background_ned, given.igrf_spec
     background_run, background_columns = given.background_run, given.background_columns
-    named = [x for x in (background_ned, igrf_spec, background_run, background_columns) if x is not None]
+    named = [x for x in (background_ned, igrf_spec, background_run, background_columns, given.igrf_columns)
+             if x is not None]
     if len(named) != 1:
         raise TrimagInputError(
             "model interference12 needs exactly one background field: `background_ned=N,E,D`, "
-            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE` or `background_columns=N,E,D`"
+            "`igrf_spec=LAT,LON,ALT_M,DATE`, `background_run=FILE`, `background_columns=N,E,D` or "
+            "`igrf_columns=LAT,LON,ALT_M,DATE`"
         )
+    if given.igrf_columns is not None:
+        from ..io.background import igrf_along_track, parse_igrf_columns
+
+        if samples is None:
+            raise TrimagInputError("`igrf_columns` needs the samples' table")
+        cols, date = parse_igrf_columns(given.igrf_columns)
+        track = [column_values(samples, c) for c in _split_names(",".join(cols), samples, "igrf_columns")]
+        return igrf_along_track(track[0], track[1], track[2], date, units=unit)
     if background_columns is not None:
         if samples is None:
             raise TrimagInputError("`background_columns` needs the samples' table")
@@ -124,6 +135,21 @@ def regressor_columns(
     return {n: column_values(samples, n) for n in names}
 
 
+def calibration_regressors(cal: Calibration, samples: Samples, path: Any) -> dict[str, NDArray[np.float64]] | None:
+    """The values (N,) of a calibration's regressors on the kept rows of ``samples``: logged channels from their
+    columns, eddy-current terms (:mod:`trimag.eddy`) from the samples' own derivative; None without terms."""
+    if cal.regressors is None:
+        return None
+    spec = cal.regressors.get("eddy")
+    derived = set(spec["names"]) if spec else set()
+    out = regressor_columns(samples, tuple(n for n in cal.regressors["names"] if n not in derived), path)
+    if spec:
+        from ..eddy import values_from_table
+
+        out.update(values_from_table(spec, samples.table, samples.field, path))
+    return out
+
+
 def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     """Three column names (or 0-based indices) of ``samples.table`` from ``"A,B,C"``; ``arg`` names the option."""
     items = [c.strip() for c in spec.split(",") if c.strip()]
@@ -138,8 +164,14 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     return column_names(items, names)
 
 
-def drop_rows_without_background(samples: Samples, background_columns: str | None) -> tuple[Samples, int]:
-    """Drop (and count) the rows whose per-sample background cells are missing or non-finite."""
+def drop_rows_without_background(
+    samples: Samples, background_columns: str | None, igrf_columns: str | None = None
+) -> tuple[Samples, int]:
+    """Drop (and count) the rows whose per-sample background (or position) cells are missing or non-finite."""
+    if igrf_columns is not None:
+        from ..io.background import parse_igrf_columns
+
+        background_columns = ",".join(parse_igrf_columns(igrf_columns)[0])
     if background_columns is None:
         return samples, 0
     names = ",".join(_split_names(background_columns, samples, "background_columns"))

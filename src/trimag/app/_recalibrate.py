@@ -14,7 +14,7 @@ from ..io import Samples
 from ..reference import igrf, parse_igrf_spec
 from ..requests import FitRequest
 from ..units import normalise_unit
-from ._inputs import drop_rows_without_attitude, magnitude_reference, regressor_columns
+from ._inputs import calibration_regressors, drop_rows_without_attitude, magnitude_reference, regressor_columns
 
 
 def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
@@ -84,7 +84,9 @@ def refit_prior(
     if attitude is None:
         inclination = None
     regressor_values = None
-    if prior.regressors is not None:
+    if prior.regressors is not None and prior.regressors.get("eddy"):  # derived from the data (trimag.eddy)
+        regressor_values = calibration_regressors(prior, samples, req.input.path)
+    elif prior.regressors is not None:
         regressor_values = regressor_columns(samples, tuple(prior.regressors["names"]), req.input.path,
                                              "a regressor of the prior calibration")
     sigma = options.get("prior_offset_sigma")

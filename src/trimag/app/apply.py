@@ -32,11 +32,17 @@ def apply_to_file(
     src = req.input
     cal = Calibration.from_file(req.calibration)
     if src.units is not None:
-        cal.apply(np.zeros(3), units=src.units)  # raises UnitMismatchError on a unit clash
+        cal.check_units(src.units)
     names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+    spec = cal.regressors.get("eddy") if cal.regressors is not None else None
+    if spec:  # eddy-current terms: the derivative of the samples themselves, streamed (trimag.eddy)
+        from ..eddy import streamed_calibrate
 
-    def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
-        return cal.apply(xyz, regressors=u[0] if u else None)
+        calibrate, names = streamed_calibrate(cal, spec, src.path, fmt=src.fmt, columns=src.columns, var=src.var,
+                                              chunk_rows=req.chunk_rows, sensor=src.sensor)
+    else:
+        def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
+            return cal.apply(xyz, regressors=u[0] if u else None)
 
     result = apply_file(
         calibrate, src.path, req.out, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,

@@ -37,24 +37,38 @@ def evaluate_file(
     cal = Calibration.from_file(req.calibration)
     unit = cal.units if src.units is None else normalise_unit(src.units)
     if src.units is not None:
-        cal.apply(np.zeros(3), units=unit)
+        cal.check_units(unit)
     F, source = _reference_value(req, unit)
     columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
                                   sensor=src.sensor)
     rows = _parse_rows(src.rows)
     regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
+    spec = cal.regressors.get("eddy") if cal.regressors is not None else None
+    read_names = regressor_names
+    if spec:  # the derivative needs neighbouring rows: the selected rows are collected, then corrected at once
+        from ..eddy import evaluate_columns
+
+        read_names = evaluate_columns(cal, spec)
+    kept: list[tuple[Any, ...]] = []
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
     first_bad: int | None = None
     for chunk in chunks:
-        xyz, u, ref_values, n_chunk, first = _chunk_rows(chunk, req, rows, regressor_names, F)
+        xyz, u, ref_values, n_chunk, first = _chunk_rows(chunk, req, rows, read_names, F)
         n_rows += n_chunk
         n_bad += n_chunk - len(xyz)
         first_bad = first if first_bad is None else first_bad
         before.add(np.linalg.norm(xyz, axis=1), ref_values)
-        after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
+        if spec:
+            kept.append((xyz, u, ref_values))
+        else:
+            after.add(np.linalg.norm(cal.apply(xyz, regressors=u), axis=1), ref_values)
         if progress:
             progress(chunk.start + len(chunk.xyz))
+    if spec and kept:
+        from ..eddy import corrected_magnitudes
+
+        after.add(*corrected_magnitudes(cal, spec, kept))
     if n_bad and src.strict:
         raise TrimagInputError(
             f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "

@@ -15,8 +15,7 @@ from ..errors import TrimagInputError
 from ..io import Samples, read_samples
 from ..reference import igrf, parse_igrf_spec
 from ..requests import EvaluateRequest, as_request
-from ..units import normalise_unit
-from ._inputs import regressor_columns
+from ._inputs import calibration_regressors
 
 __all__ = ["evaluate_heading_file"]
 
@@ -48,7 +47,7 @@ def evaluate_heading_file(
     src, heading_column, attitude_columns = req.input, req.heading_column, req.attitude.attitude_columns
     cal = Calibration.from_file(req.calibration)
     if src.units is not None:
-        cal.apply(np.zeros(3), units=normalise_unit(src.units))
+        cal.check_units(src.units)
     if (heading_column is None) == (attitude_columns is None):
         raise TrimagInputError("a heading evaluation needs exactly one reference: `heading_column=H` (degrees "
                                "clockwise from true north) or `attitude_columns=yaw,pitch,roll`")
@@ -58,7 +57,9 @@ def evaluate_heading_file(
     reference, accel = _reference_and_accel(req, samples)
     u = None
     if cal.regressors is not None:
-        u = np.column_stack(list(regressor_columns(samples, tuple(cal.regressors["names"]), src.path).values()))
+        values = calibration_regressors(cal, samples, src.path)
+        assert values is not None
+        u = np.column_stack([values[n] for n in cal.regressors["names"]])
     ok = np.isfinite(reference) & np.isfinite(accel).all(axis=1) & (np.linalg.norm(accel, axis=1) > 0)
     if u is not None:
         ok &= np.isfinite(u).all(axis=1)

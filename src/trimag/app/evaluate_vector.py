@@ -13,12 +13,11 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, read_samples
 from ..requests import AttitudeSpec, EvaluateRequest, as_request
-from ..units import normalise_unit
 from ._inputs import (
     background_field,
+    calibration_regressors,
     drop_rows_without_attitude,
     drop_rows_without_background,
-    regressor_columns,
 )
 from ._timesync import attach_attitude_file
 
@@ -45,21 +44,19 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
                                "`igrf_spec=LAT,LON,ALT_M,DATE` or `background_columns=N,E,D`")
     cal = Calibration.from_file(req.calibration)
     if src.units is not None:
-        cal.apply(np.zeros(3), units=normalise_unit(src.units))  # raises UnitMismatchError on a unit clash
+        cal.check_units(src.units)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
     samples, att, lag = _attitudes(req, samples, cal)
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
-    samples, n_no_background = drop_rows_without_background(samples, given.background_columns)
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
     rot = _attitude.attitude_from_table(
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
         scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
     )
     background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)
-    u = None
-    if cal.regressors is not None:
-        u = regressor_columns(samples, tuple(cal.regressors["names"]), src.path)
+    u = calibration_regressors(cal, samples, src.path)
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
     before, after = _vector_errors(raw, expected), _vector_errors(corrected, expected)
     attitude_file = req.attitude.attitude_file

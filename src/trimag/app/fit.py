@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
-from ..io import Samples, read_samples
+from ..io import Samples, column_values, read_samples
 from ..reference import ScalarReference, igrf, parse_igrf_spec
 from ..requests import FitRequest, as_request
 from ..units import normalise_unit
@@ -111,6 +111,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
     options, sync_options, prior_options = _split_options(req)
+    eddy_terms = _eddy_terms(req, options)
     estimator = make_estimator(req.model, req.method, options)
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
@@ -143,7 +144,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         warn_texts: list[str] = []
     else:
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
-                                                                                   regressor_names)
+                                                                                   regressor_names, eddy_terms)
         messages += fit_messages
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
                                             prior is not None)
@@ -212,8 +213,23 @@ def _finish(
     return cal, summary, messages
 
 
+def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
+    """``option eddy=9|3`` (popped from ``options``): eddy-current terms of ``interference12`` (:mod:`trimag.eddy`)."""
+    if "eddy" not in options:
+        return None
+    from ..eddy import parse_terms
+
+    terms = parse_terms(options.pop("eddy"))
+    if req.model != "interference12":
+        raise TrimagInputError(f"`option eddy` is for the model interference12; got {req.model!r}")
+    if req.prior is not None:
+        raise TrimagInputError("`option eddy` cannot be fitted in a quick recalibration (`prior`)")
+    return terms
+
+
 def _fit_model(
-    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None
+    req: FitRequest, samples: Samples, estimator: Any, unit: str, regressor_names: tuple[str, ...] | None,
+    eddy_terms: int | None = None,
 ) -> tuple[Samples, Calibration, Any, dict[str, NDArray[np.float64]] | None, list[str], list[str]]:
     """The estimator's fit (and the regressor terms' joint refit): ``(samples, calibration, reference, regressor
     values, warnings, messages)``; refuses what cannot be right (an unidentified log, an impossible vector fit)."""
@@ -243,12 +259,42 @@ def _fit_model(
         messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
                         f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
                         "reference and the unit")
+    free, record = None, None
+    if eddy_terms is not None:
+        from ..eddy import fit_values, free_mask
+
+        values, spec, eddy_messages = fit_values(samples, eddy_terms, req.attitude.time_column, req.rate_hz,
+                                                 req.input.path)
+        regressor_values, free, record = {**(regressor_values or {}), **values}, free_mask(eddy_terms), {"eddy": spec}
+        messages += eddy_messages
     if regressor_values is not None:
         from ..regressors import fit_regressors
 
-        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude)
+        cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
+    if estimator.reference_kind == "vector" and req.reference.reference_column is not None:
+        cal, joint_message = _joint_scalar(req, cal, samples, ref, attitude, regressor_values, unit)
+        messages.append(joint_message)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     return samples, cal, ref, regressor_values, warn_texts, messages
+
+
+def _joint_scalar(
+    req: FitRequest, cal: Calibration, samples: Samples, ref: Any, attitude: Any,
+    regressor_values: dict[str, NDArray[np.float64]] | None, unit: str,
+) -> tuple[Calibration, str]:
+    """A compensated scalar magnetometer beside the vector one (``reference_column``): the joint fit
+    (:mod:`trimag.joint`) and its message."""
+    from ..joint import fit_joint_scalar
+
+    column = req.reference.reference_column
+    assert column is not None
+    cal = fit_joint_scalar(cal, samples.field, column_values(samples, column), attitude=attitude,
+                           background=ref if cal.diagnostics.get("background_per_sample")
+                           else cal.diagnostics["background_ned"], regressors=regressor_values,
+                           scalar_source=f"column {column}")
+    joint = cal.diagnostics["joint_scalar"]
+    return cal, (f"joint fit with the scalar magnetometer {column}: vector RMS per axis "
+                 f"{joint['vector_rms_axis_after']:.4g}, magnitude RMS {joint['scalar_rms_after']:.4g} {unit}")
 
 
 def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
@@ -323,7 +369,7 @@ def _fit_reference(
         messages.append(
             f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
         )
-    samples, n_no_background = drop_rows_without_background(samples, given.background_columns)
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = _attitude.attitude_from_table(

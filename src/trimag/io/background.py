@@ -1,4 +1,5 @@
-"""The background field of an iron-free run stored in a file (``--background-run FILE``; paper C)."""
+"""Background fields of the vector model: the mean of an iron-free run stored in a file (``--background-run FILE``;
+paper C), and IGRF along the track from position columns (``--igrf-columns LAT,LON,ALT_M,YYYY-MM-DD``)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from ..errors import TrimagInputError
 from ..units import normalise_unit
 from .tables import read_samples
 
-__all__ = ["background_from_run"]
+__all__ = ["background_from_run", "igrf_along_track", "parse_igrf_columns"]
 
 
 def background_from_run(
@@ -76,3 +77,30 @@ def background_from_run(
         f"rotated readings scatter {spread:.4g} {unit} RMS)"
     )
     return H_n, source
+
+
+def parse_igrf_columns(spec: str) -> tuple[list[str], str]:
+    """``"LAT,LON,ALT_M,YYYY-MM-DD"`` (``--igrf-columns``) -> the three position columns and the date."""
+    parts = [p.strip() for p in str(spec).split(",")]
+    if len(parts) != 4 or not all(parts):
+        raise TrimagInputError(
+            f"`igrf_columns` takes LAT,LON,ALT_M,YYYY-MM-DD: the latitude, longitude (degrees) and altitude (m above "
+            f"the WGS84 ellipsoid) columns and the date, e.g. lat,lon,alt,2020-06-29; got {spec!r}"
+        )
+    return parts[:3], parts[3]
+
+
+def igrf_along_track(
+    latitude_deg: NDArray[np.float64], longitude_deg: NDArray[np.float64], altitude_m: NDArray[np.float64], date: str,
+    *, units: str = "nT",
+) -> tuple[NDArray[np.float64], str]:
+    """IGRF-14 (N, E, D) at every sample's position (:func:`trimag.reference.igrf_ned`), in ``units``, shape (N, 3),
+    and a description of it for messages and the calibration file."""
+    from ..reference import igrf_ned
+    from ..units import convert
+
+    H = igrf_ned(latitude_deg, longitude_deg, altitude_m, date) * convert(1.0, "nT", units)
+    F = np.linalg.norm(H, axis=1)
+    unit = normalise_unit(units)
+    return H, (f"IGRF-14 along the track ({len(H)} positions, {date}): |H| {F.min():.6g} to {F.max():.6g} {unit}, "
+               f"mean NED {np.round(H.mean(axis=0), 3).tolist()}")
