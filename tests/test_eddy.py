@@ -236,6 +236,7 @@ def test_refusals(fitted_file) -> None:
     assert proc.returncode == 2 and "no column 't'" in proc.stderr
     proc = run_trimag("export", cal_path, "--to", "ardupilot", "-o", tmp / "x.param")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "dBx/dt" in proc.stderr
+    assert "without --option eddy" in proc.stderr  # the fix named, not "without --regressors"
     proc = run_trimag("fit", data, "--model", "interference12", *VECTOR_ARGS, "--option", "eddy=9")
     assert proc.returncode == 2 and "sample rate" in proc.stderr
     proc = run_trimag("fit", data, "--model", "interference12", *VECTOR_ARGS, "--option", "eddy=4", "--rate", "10")

@@ -198,9 +198,12 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
     if instance < 0 or instance > 7:
         raise TrimagInputError(f"instance must be 0..7; got {instance}")
     if cal.regressors is not None:
+        eddy = cal.regressors.get("eddy")
+        logged = len(cal.regressors["names"]) - (len(eddy["names"]) if eddy else 0)
+        fix = " and ".join(x for x in ("`regressors`" if logged else "", "`option eddy`" if eddy else "") if x)
         raise TrimagInputError(
             f"this calibration has regressor terms ({', '.join(cal.regressors['names'])}) that the {target} format "
-            "cannot hold (a constant offset only); export a fit without `regressors`"
+            f"cannot hold (a constant offset only); export a fit without {fix}"
         )
     if target == "ardupilot":
         if instance > 2:
