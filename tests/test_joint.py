@@ -109,3 +109,12 @@ def test_cli_reference_column_with_the_vector_model_fits_jointly(tmp_path: Path)
     assert proc.returncode == 0, proc.stderr
     out = pd.read_csv(tmp_path / "out.csv")[["x_cal", "y_cal", "z_cal"]].to_numpy()
     assert np.sqrt(np.mean((np.linalg.norm(out, axis=1) - np.linalg.norm(sim.body_nT, axis=1)) ** 2)) < 3.0
+
+
+def test_uncertainty_has_the_fields_of_every_estimator() -> None:
+    from trimag.calibration import UNCERTAINTY_FIELDS
+
+    sim, ins, _, S = _box(3, att_noise_deg=0.02, E=None, drift=False)
+    base = trimag.fit(sim.vector_nT, model="interference12", reference=EARTH, attitude=ins, units="nT")
+    joint = fit_joint_scalar(base, sim.vector_nT, S, attitude=ins, background=EARTH)
+    assert set(UNCERTAINTY_FIELDS) <= set(joint.uncertainty)

@@ -250,3 +250,11 @@ def test_cli_prior_on_a_real_autopilot_log(tmp_path) -> None:
     assert abs(comp["offset_y"]["value"] - (-0.06406)) < 0.01
     proc = run_trimag("fit", logs / "pyulog_sample_log_small.ulg", "--prior", tmp_path / "onboard.json")
     assert proc.returncode == 3 and "identify no component" in proc.stderr
+
+
+def test_uncertainty_has_the_fields_of_every_estimator(prior) -> None:
+    from trimag.calibration import UNCERTAINTY_FIELDS
+
+    raw, _ = _level(tilt=10.0)
+    cal = refit_offset(prior, raw, F)
+    assert set(UNCERTAINTY_FIELDS) <= set(cal.uncertainty)

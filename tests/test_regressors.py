@@ -325,3 +325,13 @@ def test_repr_rebuilds_the_regressor_terms(fitted) -> None:
     rebuilt = eval(repr(cal), {"Calibration": Calibration})  # the from_matrix_offset call it shows
     assert rebuilt.approx_equal(cal, atol=0)
     assert np.array_equal(rebuilt.apply(raw, regressors=channels), cal.apply(raw, regressors=channels))
+
+
+def test_uncertainty_has_the_fields_of_every_estimator(fitted) -> None:
+    """A fit with regressor terms wrote its own uncertainty record (no ``gauge`` key for the same schema, no
+    predicted RMS): it has the typed fields every estimator's has (``trimag.calibration.UNCERTAINTY_FIELDS``)."""
+    from trimag.calibration import UNCERTAINTY_FIELDS
+
+    cal = fitted[0]
+    assert set(UNCERTAINTY_FIELDS) <= set(cal.uncertainty)
+    assert list(cal.uncertainty["param_std"]) == cal.uncertainty["covariance_order"]

@@ -23,10 +23,10 @@ import datetime as _dt
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,7 +36,7 @@ from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit
 
-__all__ = ["FORMAT_VERSION", "Calibration", "jsonable"]
+__all__ = ["FORMAT_VERSION", "UNCERTAINTY_FIELDS", "Calibration", "Uncertainty", "jsonable", "make_uncertainty"]
 
 FORMAT_VERSION = "1.0.0"
 _FORMAT_MAJOR = 1
@@ -65,6 +65,72 @@ def file_major_version(data: Any, kind: str, current: str) -> int:
             "upgrade trimag (pip install -U trimag)"
         )
     return major
+
+
+#: The fields every ``Calibration.uncertainty`` has, whatever made it (an estimator, a regressor refit, a quick
+#: recalibration, a joint fit: :func:`make_uncertainty`); ``None`` where the method does not know the value.
+#: ``trimag.honesty`` then adds ``inflation``.
+UNCERTAINTY_FIELDS = (
+    "basis", "gauge", "param_std", "covariance", "covariance_order", "noise_std", "predicted_field_rms",
+    "predicted_magnitude_rms",
+)
+
+
+class Uncertainty(TypedDict):
+    """``Calibration.uncertainty`` as every estimator fills it (JSON: a plain object with these keys)."""
+
+    basis: str
+    gauge: str | None
+    param_std: dict[str, float]
+    covariance: list[list[float]] | None
+    covariance_order: list[str]
+    noise_std: float | None
+    predicted_field_rms: float | None
+    predicted_magnitude_rms: float | None
+
+
+def make_uncertainty(
+    names: Sequence[str], *, basis: str, covariance: NDArray[np.float64] | None = None,
+    param_std: Sequence[float] | None = None, gauge: str | None = None, noise_std: float | None = None,
+    predicted_field_rms: float | None = None, predicted_magnitude_rms: float | None = None, **extra: Any,
+) -> dict[str, Any]:
+    """The uncertainty entry of a fit, with the same fields for every estimator (:class:`Uncertainty`).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Parameter names, in the order of ``covariance`` (or ``param_std``).
+    basis : str
+        How the covariance was obtained (e.g. ``"s^2 (J^T J)^-1 at the solution"``).
+    covariance : ndarray, shape (p, p), optional
+        Parameter covariance (parameter units squared); its diagonal gives ``param_std``.
+    param_std : sequence of float, optional
+        Standard deviations when no full covariance is known.
+    gauge, noise_std, predicted_field_rms, predicted_magnitude_rms
+        As in :class:`Uncertainty` (noise per axis in the data unit; predicted RMS errors of the corrected field
+        and magnitude in the data unit).
+    **extra
+        Method-specific additions (e.g. ``param_std_deg``).
+    """
+    if covariance is not None:
+        cov = np.asarray(covariance, dtype=np.float64)
+        std = np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()
+    elif param_std is not None:
+        cov, std = None, [float(v) for v in param_std]
+    else:
+        raise TypeError("make_uncertainty needs `covariance` or `param_std`")
+    out: dict[str, Any] = {
+        "basis": basis,
+        "gauge": gauge,
+        "param_std": dict(zip(names, std, strict=True)),
+        "covariance": None if cov is None else cov.tolist(),
+        "covariance_order": list(names),
+        "noise_std": None if noise_std is None else float(noise_std),
+        "predicted_field_rms": predicted_field_rms,
+        "predicted_magnitude_rms": predicted_magnitude_rms,
+    }
+    out.update(extra)
+    return out
 
 
 def jsonable(obj: Any) -> Any:

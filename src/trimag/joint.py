@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._core.solve import gauss_newton_then_lm
-from .calibration import Calibration
+from .calibration import Calibration, make_uncertainty
 from .errors import TrimagInputError
 
 __all__ = ["fit_joint_scalar"]
@@ -206,11 +206,11 @@ def fit_joint_scalar(
                   "vector_rms_after_vector_only": base.stats.get("vector_rms_after"),
                   "converged": bool(base.stats.get("converged", True)) and converged,
                   "std_norm_after": float(np.std(corrected_mag)), "mean_norm_after": float(np.mean(corrected_mag))})
-    uncertainty = {
-        "basis": "joint vector + scalar rows: chi2_red (J^T J)^-1 of the weighted rows (trimag.joint); K by the "
-                 "delta method from M = K^-1",
-        "gauge": "K, c", "param_std": param_std, "noise_std": joint["sigma_vector"],
-    }
+    uncertainty = make_uncertainty(
+        list(param_std), param_std=list(param_std.values()), gauge="K, c", noise_std=1.0 / problem.wv * scale,
+        basis="joint vector + scalar rows: chi2_red (J^T J)^-1 of the weighted rows (trimag.joint); K by the "
+              "delta method from M = K^-1",
+    )
     diagnostics = {**dict(base.diagnostics), "joint_scalar": joint}
     return Calibration.from_matrix_offset(
         M, offset, units=base.units, model=base.model, method=base.method,

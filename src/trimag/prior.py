@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._core.solve import levenberg_marquardt
-from .calibration import Calibration
+from .calibration import Calibration, make_uncertainty
 from .errors import IdentifiabilityError, TrimagInputError
 from .honesty import correlation_time
 
@@ -389,17 +389,14 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
     }
     if prior.diagnostics.get("regressors") is not None:
         diagnostics["regressors"] = prior.diagnostics["regressors"]
-    uncertainty = {
-        "basis": "inverse of the augmented information: data (sigma from the residuals, times their autocorrelation "
-                 "time) plus the Gaussian priors of the offset and the field scale (trimag.prior)",
-        "param_std": {**dict(zip(names, std.tolist(), strict=True)),
-                      **({f"hard_iron_{a}": float(std[k]) for k, a in enumerate(axes)} if prior.model == "ellipsoid"
-                         else {})},
-        "covariance": cov.tolist(),
-        "covariance_order": names,
-        "noise_std": sigma,
-        "inflation": {"total": tau, "correlated_residuals": tau},
-    }
+    uncertainty = make_uncertainty(
+        names, covariance=cov, noise_std=sigma, gauge="the prior calibration's matrix, held fixed",
+        basis="inverse of the augmented information: data (sigma from the residuals, times their autocorrelation "
+              "time) plus the Gaussian priors of the offset and the field scale (trimag.prior)",
+        inflation={"total": tau, "correlated_residuals": tau},
+    )
+    if prior.model == "ellipsoid":  # the offset under the ellipsoid model's own names too
+        uncertainty["param_std"].update({f"hard_iron_{a}": float(std[k]) for k, a in enumerate(axes)})
     stats = {
         "n_samples": n, "n_used": n, "iterations": nfev, "converged": converged,
         "rms_before": float(np.sqrt(np.mean(err_before**2))), "rms_after": float(np.sqrt(np.mean(err_after**2))),

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._core.solve import gauss_newton_then_lm
-from .calibration import Calibration
+from .calibration import Calibration, make_uncertainty
 from .crlb import UPPER, UPPER_NAMES
 from .diagnostics import CONDITION_ERROR
 from .errors import IdentifiabilityError, TrimagInputError
@@ -457,18 +457,16 @@ def _assemble(
             cov = cov * tau
             fit = {**fit, "cov": cov}
     order = fit["param_names"]
-    uncertainty = {
-        "basis": "sigma^2 (J^T J)^-1 at the joint estimate (Gauss-Newton Fisher information; sigma from the "
-                 "residuals)" + (", per sensor axis" if base.model == "interference12" else ""),
-        "gauge": ("upper-triangular W, |corrected| = F (F held at the reference, or at the mean corrected "
-                  "magnitude of the fit without regressor terms)") if base.model == "ellipsoid" else "K, c",
-        "param_std": dict(zip(order, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True)),
-        "covariance": cov.tolist(),
-        "covariance_order": list(order),
-        "noise_std": float(np.sqrt(fit["ss"] / max(fit["residuals"].size - fit["n_params"], 1))),
-        "inflation": {"total": float(np.prod(list(factors.values()))) if factors else 1.0, **factors,
-                      "note": "covariance x total: correlated residuals (trimag.honesty.correlation_time)"},
-    }
+    uncertainty = make_uncertainty(
+        order, covariance=cov,
+        basis="sigma^2 (J^T J)^-1 at the joint estimate (Gauss-Newton Fisher information; sigma from the "
+              "residuals)" + (", per sensor axis" if base.model == "interference12" else ""),
+        gauge=("upper-triangular W, |corrected| = F (F held at the reference, or at the mean corrected "
+               "magnitude of the fit without regressor terms)") if base.model == "ellipsoid" else "K, c",
+        noise_std=float(np.sqrt(fit["ss"] / max(fit["residuals"].size - fit["n_params"], 1))),
+        inflation={"total": float(np.prod(list(factors.values()))) if factors else 1.0, **factors,
+                   "note": "covariance x total: correlated residuals (trimag.honesty.correlation_time)"},
+    )
     ranking = _ranking(names, fit, n, alpha, factors.get("correlated_residuals", 1.0))
     stats = dict(base.stats)
     stats.update({

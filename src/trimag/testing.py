@@ -185,9 +185,9 @@ def check_params_not_mutated(cls: type[Estimator]) -> None:
 
 def check_uncertainty_fields(cls: type[Estimator]) -> None:
     """A reported uncertainty has the same fields for every estimator
-    (:data:`trimag.estimators._finish.UNCERTAINTY_FIELDS`), its ``param_std`` names the model's parameters in
+    (:data:`trimag.calibration.UNCERTAINTY_FIELDS`), its ``param_std`` names the model's parameters in
     ``covariance_order``, and a covariance, when given, is square and matches that order."""
-    from .estimators._finish import UNCERTAINTY_FIELDS
+    from .calibration import UNCERTAINTY_FIELDS
 
     sim = simulated_problem(cls)
     noisy = sim.raw + np.random.default_rng(5).normal(scale=0.05, size=sim.raw.shape)

@@ -6,15 +6,14 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
-from typing import Any, TypedDict
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .._core.rowwise import column_means
 from .._core.sphere import fibonacci_sphere
-from ..calibration import Calibration
+from ..calibration import UNCERTAINTY_FIELDS, Calibration, Uncertainty, make_uncertainty
 from ..crlb import (
     UPPER,
     UPPER_NAMES,
@@ -57,71 +56,6 @@ __all__ = [
 ]
 
 _NAMES = UPPER_NAMES
-
-#: The fields every estimator's ``Calibration.uncertainty`` has (:func:`make_uncertainty`); ``None`` where the
-#: method does not know the value. ``trimag.honesty`` then adds ``inflation``.
-UNCERTAINTY_FIELDS = (
-    "basis", "gauge", "param_std", "covariance", "covariance_order", "noise_std", "predicted_field_rms",
-    "predicted_magnitude_rms",
-)
-
-
-class Uncertainty(TypedDict):
-    """``Calibration.uncertainty`` as every estimator fills it (JSON: a plain object with these keys)."""
-
-    basis: str
-    gauge: str | None
-    param_std: dict[str, float]
-    covariance: list[list[float]] | None
-    covariance_order: list[str]
-    noise_std: float | None
-    predicted_field_rms: float | None
-    predicted_magnitude_rms: float | None
-
-
-def make_uncertainty(
-    names: Sequence[str], *, basis: str, covariance: NDArray[np.float64] | None = None,
-    param_std: Sequence[float] | None = None, gauge: str | None = None, noise_std: float | None = None,
-    predicted_field_rms: float | None = None, predicted_magnitude_rms: float | None = None, **extra: Any,
-) -> dict[str, Any]:
-    """The uncertainty entry of a fit, with the same fields for every estimator (:class:`Uncertainty`).
-
-    Parameters
-    ----------
-    names : sequence of str
-        Parameter names, in the order of ``covariance`` (or ``param_std``).
-    basis : str
-        How the covariance was obtained (e.g. ``"s^2 (J^T J)^-1 at the solution"``).
-    covariance : ndarray, shape (p, p), optional
-        Parameter covariance (parameter units squared); its diagonal gives ``param_std``.
-    param_std : sequence of float, optional
-        Standard deviations when no full covariance is known.
-    gauge, noise_std, predicted_field_rms, predicted_magnitude_rms
-        As in :class:`Uncertainty` (noise per axis in the data unit; predicted RMS errors of the corrected field
-        and magnitude in the data unit).
-    **extra
-        Method-specific additions (e.g. ``param_std_deg``).
-    """
-    if covariance is not None:
-        cov = np.asarray(covariance, dtype=np.float64)
-        std = np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()
-    elif param_std is not None:
-        cov, std = None, [float(v) for v in param_std]
-    else:
-        raise TypeError("make_uncertainty needs `covariance` or `param_std`")
-    out: dict[str, Any] = {
-        "basis": basis,
-        "gauge": gauge,
-        "param_std": dict(zip(names, std, strict=True)),
-        "covariance": None if cov is None else cov.tolist(),
-        "covariance_order": list(names),
-        "noise_std": None if noise_std is None else float(noise_std),
-        "predicted_field_rms": predicted_field_rms,
-        "predicted_magnitude_rms": predicted_magnitude_rms,
-    }
-    out.update(extra)
-    return out
-
 
 #: Covered fraction of the sphere (cells of :func:`trimag.diagnostics.sphere_coverage`) below which a fit warns.
 COVERAGE_WARN = 0.25
