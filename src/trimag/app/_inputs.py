@@ -10,12 +10,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, column_values
 from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
-from ..requests import ReferenceSpec
+from ..requests import AttitudeSpec, ReferenceSpec
 from ..units import convert
 
 
@@ -202,6 +203,17 @@ def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.
             f"(first at kept row {int(np.flatnonzero(bad)[0])}); drop them first (e.g. with `where`)"
         )
     return values
+
+
+def attitudes_of(samples: Samples, att: AttitudeSpec) -> Rotation:
+    """The attitude of every kept row of ``samples`` from the columns ``att`` names (Euler angles or quaternions,
+    in its order and frame; docs/conventions-attitude.md)."""
+    from ..attitude import attitude_from_table
+
+    return attitude_from_table(
+        samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
+        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
+    )
 
 
 def drop_rows_without_attitude(

@@ -14,7 +14,13 @@ from ..io import Samples
 from ..reference import igrf, parse_igrf_spec
 from ..requests import FitRequest
 from ..units import normalise_unit
-from ._inputs import calibration_regressors, drop_rows_without_attitude, magnitude_reference, regressor_columns
+from ._inputs import (
+    attitudes_of,
+    calibration_regressors,
+    drop_rows_without_attitude,
+    magnitude_reference,
+    regressor_columns,
+)
 
 
 def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
@@ -47,7 +53,6 @@ def refit_prior(
 ) -> tuple[Samples, Calibration, dict[str, NDArray[np.float64]] | None, list[str]]:
     """Quick recalibration (:func:`trimag.prior.refit_offset`): ``(samples, calibration, regressor values,
     messages)``."""
-    from .. import attitude as _attitude
     from ..prior import file_digest, refit_offset
 
     given, att = req.reference, req.attitude
@@ -61,10 +66,7 @@ def refit_prior(
         samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
         if n_no_attitude:
             messages.append(f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric")
-        attitude = _attitude.attitude_from_table(
-            samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
-            scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
-        )
+        attitude = attitudes_of(samples, att)
     ref = magnitude_reference(samples, given, unit)
     F: Any = ref.values
     if F is None:

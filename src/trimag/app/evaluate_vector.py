@@ -14,6 +14,7 @@ from ..errors import TrimagInputError
 from ..io import Samples, read_samples
 from ..requests import AttitudeSpec, EvaluateRequest, as_request
 from ._inputs import (
+    attitudes_of,
     background_field,
     calibration_regressors,
     drop_rows_without_attitude,
@@ -50,10 +51,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     samples, att, lag = _attitudes(req, samples, cal)
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
     samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
-    rot = _attitude.attitude_from_table(
-        samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
-        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
-    )
+    rot = attitudes_of(samples, att)
     background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)
     u = calibration_regressors(cal, samples, src.path)

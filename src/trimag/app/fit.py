@@ -30,6 +30,7 @@ from ._checks import (
 )
 from ._inputs import (
     accel_values,
+    attitudes_of,
     background_field,
     drop_rows_without_attitude,
     drop_rows_without_background,
@@ -362,7 +363,6 @@ def _fit_reference(
                 "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
             )
         return samples, ref, None, messages
-    from .. import attitude as _attitude
 
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
     if n_no_attitude:
@@ -372,10 +372,7 @@ def _fit_reference(
     samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
-    attitude = _attitude.attitude_from_table(
-        samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
-        scalar_first=att.quaternion_order == "wxyz", frame=att.quaternion_frame,
-    )
+    attitude = attitudes_of(samples, att)
     background, source = background_field(
         given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
