@@ -132,19 +132,7 @@ def fit_joint_scalar(
         raise TrimagInputError("the joint scalar fit needs the attitude of every sample (a Rotation)")
     H_b = body_field(attitude, np.asarray(background, dtype=np.float64))
     terms = base.regressors
-    if terms is not None:
-        if regressors is None:
-            raise TrimagInputError(f"give the values of the regressors {', '.join(terms['names'])}")
-        names = list(terms["names"])
-        U = np.column_stack([np.asarray(regressors[k], dtype=np.float64) for k in names]) - np.asarray(terms["means"])
-        Kr0 = np.asarray(terms["coefficients"], dtype=np.float64)
-        eddy = terms.get("eddy") or {}
-        free = np.ones((len(names), 3), dtype=bool)
-        for j, name in enumerate(names):
-            if eddy and name in eddy.get("names", ()) and int(eddy.get("terms", 9)) == 3:
-                free[j] = [a == eddy["names"].index(name) for a in range(3)]
-    else:
-        names, U, Kr0, free = [], np.zeros((n, 0)), np.zeros((0, 3)), np.zeros((0, 3), dtype=bool)
+    names, U, Kr0, free = _regressor_terms(terms, regressors, n)
     # normalised units: fields over their RMS magnitude, regressors over their standard deviations
     scale = float(np.sqrt(np.mean(np.sum(X**2, axis=1)))) or 1.0
     u_scale = U.std(axis=0) if U.shape[1] else np.ones(0)
@@ -164,26 +152,11 @@ def fit_joint_scalar(
                                    lm_options={"xtol": 1e-12, "ftol": 1e-12, "gtol": 1e-12, "max_nfev": 20 * max_iter})
         p = np.asarray(res.x, dtype=np.float64)
         converged, nfev = converged and bool(res.success), nfev + int(res.nfev)
-    r, J = problem.residual(p), problem.jacobian(p)
-    chi2 = float(r @ r) / max(len(r) - len(p), 1)
-    d_col = np.sqrt(np.einsum("ij,ij->j", J, J))
-    d_col[d_col == 0] = 1.0
-    cov_n = chi2 * np.linalg.inv((J.T @ J) / np.outer(d_col, d_col)) / np.outer(d_col, d_col)
+    chi2, cov_n = _covariance(problem, p)
     M, c_n, Kn, d_n = problem.unpack(p)
     offset = c_n * scale
     Kr = Kn * (scale / u_scale)[:, None] if len(names) else Kn
-    # standard deviations: K = M^-1 (delta method), c and k in data units
-    K = np.linalg.inv(M)
-    G = -np.kron(K, K.T)
-    std_K = np.sqrt(np.clip(np.diag(G @ cov_n[:9, :9] @ G.T), 0, None))
-    std = np.sqrt(np.clip(np.diag(cov_n), 0, None))
-    param_std = {f"k{i + 1}{j + 1}": float(std_K[3 * i + j]) for i in range(3) for j in range(3)}
-    param_std.update({f"c{k + 1}": float(std[9 + k] * scale) for k in range(3)})
-    for q, (j, a) in enumerate(zip(*np.nonzero(free), strict=True)):
-        param_std[f"k_{names[j]}_{_AXES[a]}"] = float(std[12 + q] * scale / u_scale[j])
-    for name in names:
-        for axis in _AXES:
-            param_std.setdefault(f"k_{name}_{axis}", 0.0)
+    param_std = _param_std(M, cov_n, scale, u_scale, names, free)
     _, rms_v, rms_s = _rms_parts(problem, p, scale)
     joint = {
         "scalar": scalar_source, "scalar_offset_d": d_n * scale,
@@ -197,15 +170,7 @@ def fit_joint_scalar(
     new_terms = None
     if terms is not None:
         new_terms = {**dict(terms), "coefficients": Kr.tolist()}
-    corrected_mag = np.linalg.norm(problem.parts(p)[1], axis=1) * scale
-    err = corrected_mag - np.linalg.norm(H_b, axis=1)
-    stats = dict(base.stats)
-    stats.update({"rms_after": float(np.sqrt(np.mean(err**2))), "max_abs_after": float(np.max(np.abs(err))),
-                  "p2p_after": float(np.ptp(corrected_mag))})
-    stats.update({"vector_rms_after": float(rms_v * np.sqrt(3)),
-                  "vector_rms_after_vector_only": base.stats.get("vector_rms_after"),
-                  "converged": bool(base.stats.get("converged", True)) and converged,
-                  "std_norm_after": float(np.std(corrected_mag)), "mean_norm_after": float(np.mean(corrected_mag))})
+    stats = _stats(base, np.linalg.norm(problem.parts(p)[1], axis=1) * scale, H_b, rms_v, converged)
     uncertainty = make_uncertainty(
         list(param_std), param_std=list(param_std.values()), gauge="K, c", noise_std=1.0 / problem.wv * scale,
         basis="joint vector + scalar rows: chi2_red (J^T J)^-1 of the weighted rows (trimag.joint); K by the "
@@ -217,6 +182,69 @@ def fit_joint_scalar(
         params=get_model("interference12").from_matrix_offset(M, offset).as_dict(), reference=base.reference,
         stats=stats, uncertainty=uncertainty, diagnostics=diagnostics, regressors=new_terms,
     )
+
+
+def _regressor_terms(
+    terms: Mapping[str, Any] | None, regressors: Mapping[str, ArrayLike] | None, n: int
+) -> tuple[list[str], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """The base fit's regressor terms: ``(names, centred values (n, m), coefficients (m, 3), free (m, 3))``
+    (an ``eddy=3`` term is free on its own axis only); empty without terms."""
+    if terms is None:
+        return [], np.zeros((n, 0)), np.zeros((0, 3)), np.zeros((0, 3), dtype=bool)
+    if regressors is None:
+        raise TrimagInputError(f"give the values of the regressors {', '.join(terms['names'])}")
+    names = list(terms["names"])
+    U = np.column_stack([np.asarray(regressors[k], dtype=np.float64) for k in names]) - np.asarray(terms["means"])
+    eddy = terms.get("eddy") or {}
+    free = np.ones((len(names), 3), dtype=bool)
+    for j, name in enumerate(names):
+        if eddy and name in eddy.get("names", ()) and int(eddy.get("terms", 9)) == 3:
+            free[j] = [a == eddy["names"].index(name) for a in range(3)]
+    return names, U, np.asarray(terms["coefficients"], dtype=np.float64), free
+
+
+def _covariance(problem: _Joint, p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+    """``(reduced chi2, chi2 (J^T J)^-1)`` of the weighted rows at ``p`` (normalised units; Jacobi-scaled inverse)."""
+    r, J = problem.residual(p), problem.jacobian(p)
+    chi2 = float(r @ r) / max(len(r) - len(p), 1)
+    d_col = np.sqrt(np.einsum("ij,ij->j", J, J))
+    d_col[d_col == 0] = 1.0
+    return chi2, chi2 * np.linalg.inv((J.T @ J) / np.outer(d_col, d_col)) / np.outer(d_col, d_col)
+
+
+def _param_std(
+    M: NDArray[np.float64], cov_n: NDArray[np.float64], scale: float, u_scale: NDArray[np.float64],
+    names: list[str], free: NDArray[np.bool_],
+) -> dict[str, float]:
+    """Standard deviations: ``K = M^-1`` by the delta method, ``c`` and the regressor coefficients in data units
+    (0 for a coefficient held at zero)."""
+    K = np.linalg.inv(M)
+    G = -np.kron(K, K.T)
+    std_K = np.sqrt(np.clip(np.diag(G @ cov_n[:9, :9] @ G.T), 0, None))
+    std = np.sqrt(np.clip(np.diag(cov_n), 0, None))
+    param_std = {f"k{i + 1}{j + 1}": float(std_K[3 * i + j]) for i in range(3) for j in range(3)}
+    param_std.update({f"c{k + 1}": float(std[9 + k] * scale) for k in range(3)})
+    for q, (j, a) in enumerate(zip(*np.nonzero(free), strict=True)):
+        param_std[f"k_{names[j]}_{_AXES[a]}"] = float(std[12 + q] * scale / u_scale[j])
+    for name in names:
+        for axis in _AXES:
+            param_std.setdefault(f"k_{name}_{axis}", 0.0)
+    return param_std
+
+
+def _stats(
+    base: Calibration, corrected_mag: NDArray[np.float64], H_b: NDArray[np.float64], rms_v: float, converged: bool
+) -> dict[str, Any]:
+    """The base fit's statistics with the joint fit's: magnitude errors against ``|H_b|``, the vector RMS."""
+    err = corrected_mag - np.linalg.norm(H_b, axis=1)
+    stats = dict(base.stats)
+    stats.update({"rms_after": float(np.sqrt(np.mean(err**2))), "max_abs_after": float(np.max(np.abs(err))),
+                  "p2p_after": float(np.ptp(corrected_mag))})
+    stats.update({"vector_rms_after": float(rms_v * np.sqrt(3)),
+                  "vector_rms_after_vector_only": base.stats.get("vector_rms_after"),
+                  "converged": bool(base.stats.get("converged", True)) and converged,
+                  "std_norm_after": float(np.std(corrected_mag)), "mean_norm_after": float(np.mean(corrected_mag))})
+    return stats
 
 
 def _rms_parts(problem: _Joint, p: NDArray[np.float64], scale: float) -> tuple[float, float, float]:
