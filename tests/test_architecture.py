@@ -200,3 +200,32 @@ def test_only_the_workflow_facade_imports_the_app_layer():
 def test_the_app_layer_does_not_import_its_callers(name):
     callers = {"trimag.cli", "trimag.batch", "trimag.workflow", "trimag.live"}
     assert GRAPH[name] & callers == set(), f"{name} imports {sorted(GRAPH[name] & callers)}"
+
+
+def _block_loops(sources: dict[str, str] | None = None) -> list[str]:
+    """``module:line`` of every ``for ... in range(start, stop, step)`` with a positive step outside the core
+    (``sources``: module name -> source text; default the package's modules)."""
+    if sources is None:
+        sources = {name: path.read_text(encoding="utf-8") for name, path in MODULES.items()}
+    loops = []
+    for name, text in sources.items():
+        if name.startswith("trimag._core"):
+            continue
+        for node in ast.walk(ast.parse(text)):
+            it = node.iter if isinstance(node, ast.For) else None
+            if (isinstance(it, ast.Call) and isinstance(it.func, ast.Name) and it.func.id == "range"
+                    and len(it.args) == 3 and not isinstance(it.args[2], ast.UnaryOp)):
+                loops.append(f"{name}:{node.lineno}")
+    return loops
+
+
+def test_every_chunked_pass_goes_through_the_core():
+    """A pass over samples in chunks walks them with ``trimag._core.chunks.row_blocks`` (or the core's
+    ``transposed_blocks``), so the one chunk setting governs it: no hand-written block loop outside the core."""
+    assert _block_loops() == []
+
+
+def test_the_block_loop_check_sees_a_block_loop():
+    loop = "def f(n, chunk):\n    for start in range(0, n, chunk):\n        pass\n"
+    backwards = "for j in range(9, -1, -1):\n    pass\n"
+    assert _block_loops({"trimag.x": loop, "trimag.y": backwards, "trimag._core.z": loop}) == ["trimag.x:2"]

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from ._core.chunks import chunk_rows
+from ._core.chunks import row_blocks
 from .errors import TrimagInputError
 
 __all__ = [
@@ -230,10 +230,9 @@ def body_field(attitude: Rotation, field_nav: ArrayLike) -> NDArray[np.float64]:
         return np.atleast_2d(attitude.inv().apply(H_n))
     n = len(attitude)
     out = np.empty((n, 3))
-    chunk = chunk_rows()
-    for start in range(0, n, chunk):
-        h = H_n[start : start + chunk] if H_n.ndim == 2 else H_n
-        out[start : start + chunk] = attitude[start : start + chunk].inv().apply(h)
+    for rows in row_blocks(n):
+        h = H_n[rows] if H_n.ndim == 2 else H_n
+        out[rows] = attitude[rows].inv().apply(h)
     return out
 
 

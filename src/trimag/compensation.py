@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._core.chunks import chunk_rows
+from ._core.chunks import row_blocks
 from ._version import __version__
 from .calibration import file_major_version, jsonable
 from .errors import CalibrationFormatError, TrimagInputError
@@ -128,9 +128,8 @@ class ScalarCompensation:
                 continue
             # in blocks of rows, each with one neighbour on either side so that the finite differences at a
             # block's edges are those of the whole segment: memory does not grow with the segment's length
-            step = chunk_rows(len(self.coefficients) + 3)  # the design's columns and the field
-            for c0 in range(start, stop, step):
-                c1 = min(c0 + step, stop)
+            for rows in row_blocks(stop - start, len(self.coefficients) + 3):  # the design's columns, the field
+                c0, c1 = start + rows.start, start + rows.stop
                 a, b = max(c0 - 1, start), min(c1 + 1, stop)
                 A = self.terms.design(B[a:b], None if S is None else S[a:b])
                 out[c0:c1] = A[c0 - a : c0 - a + (c1 - c0)] @ self.coefficients

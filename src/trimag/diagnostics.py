@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._core.chunks import chunk_rows
+from ._core.chunks import chunk_rows, row_blocks
 from ._core.rowwise import row_dot, scratch
 from ._core.solve import levenberg_marquardt
 from ._core.sphere import fibonacci_sphere
@@ -98,8 +98,8 @@ def sphere_coverage(
     # chunks of the nearest-cell search: the (m, n_cells) products and their argmax temporaries stay in cache
     step = chunk_rows(4 * n_cells)
     with scratch(min(len(u), step), n_cells) as dots:  # a reused buffer (trimag._core.rowwise.scratch)
-        for start in range(0, len(u), step):
-            block = u[start : start + step]
+        for rows in row_blocks(len(u), rows=step):
+            block = u[rows]
             prod = dots[: len(block)]
             np.matmul(block, centres_t, out=prod)
             counts += np.bincount(prod.argmax(axis=1), minlength=n_cells) * stride

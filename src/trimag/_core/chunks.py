@@ -8,8 +8,9 @@ takes 65 536 rows (the size measured fastest for the component-major blocks of :
 residual with ~24 temporaries per row 8192 (:mod:`trimag.estimators.ml`), and a blocked QR panel stays within
 1/12 of it, 128 KiB (:mod:`trimag._core.qr`).
 
-Tests shrink every chunk at once with :func:`working_memory_limit` (the ``small_chunks`` fixture), so one
-test covers the multi-chunk path of every pass.
+Every pass walks its rows with :func:`row_blocks` (a slice per chunk). Tests shrink every chunk at once with
+:func:`working_memory_limit` (the ``small_chunks`` fixture), so one test covers the multi-chunk path of every
+pass.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "chunk_rows",
     "qr_panel_bytes",
     "read_block_bytes",
+    "row_blocks",
     "working_memory",
     "working_memory_limit",
 ]
@@ -57,6 +59,14 @@ def working_memory_limit(nbytes: int) -> Iterator[None]:
 def chunk_rows(doubles_per_row: float = 3.0) -> int:
     """Rows per chunk of a pass whose rows need ``doubles_per_row`` float64 values of temporaries (at least 1)."""
     return max(1, int(_WORKING_MEMORY.get() // (8.0 * doubles_per_row)))
+
+
+def row_blocks(n: int, doubles_per_row: float = 3.0, *, rows: int | None = None) -> Iterator[slice]:
+    """The one chunked pass over ``n`` samples: consecutive row slices of :func:`chunk_rows` (``doubles_per_row``)
+    rows each, or of ``rows`` rows (e.g. a QR panel's, :func:`~trimag._core.qr.panel_rows`); the last is shorter."""
+    step = max(1, int(rows)) if rows is not None else chunk_rows(doubles_per_row)
+    for start in range(0, n, step):
+        yield slice(start, min(start + step, n))
 
 
 def read_block_bytes(estimate: int) -> int:

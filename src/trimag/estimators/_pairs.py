@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import row_blocks
 from .._core.qr import BlockedQR
 from .._core.rowwise import column_means
 from ..errors import IdentifiabilityError, TrimagInputError
@@ -86,10 +86,9 @@ def pair_factor(
     """
     c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     qr = BlockedQR(9 if bias else 6)
-    chunk = chunk_rows()
-    for start in range(0, len(B1), chunk):
-        u1 = (B1[start : start + chunk] - c) / scale
-        u2 = (B2[start : start + chunk] - c) / scale
+    for rows in row_blocks(len(B1)):
+        u1 = (B1[rows] - c) / scale
+        u2 = (B2[rows] - c) / scale
         qr.add(pairwise_design(u1, u2, bias=bias))
     return qr.R
 
@@ -176,8 +175,7 @@ def pair_normalisation(
     centre = (column_means(B1) + column_means(B2)) / 2 if bias else np.zeros(3)
     total = 0.0
     for group in (B1, B2):
-        chunk = chunk_rows()
-        for start in range(0, len(group), chunk):
-            e = group[start : start + chunk] - centre
+        for rows in row_blocks(len(group)):
+            e = group[rows] - centre
             total += float(np.einsum("ij,ij->", e, e))
     return centre, float(np.sqrt(total / n)) or 1.0

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import row_blocks
 from .._core.normalise import normalisation_stats
 from .._core.qr import BlockedQR
 from .._core.rowwise import row_dot
@@ -39,9 +39,8 @@ def _linear_design(V: NDArray[np.float64]) -> _Design:
     norm = normalisation_stats(V)
     centre, scale = norm.centre, norm.scale
     system = BlockedQR(9)
-    chunk = chunk_rows()
-    for start in range(0, len(V), chunk):
-        P = quadric_terms((V[start : start + chunk] - centre) / scale)
+    for rows in row_blocks(len(V)):
+        P = quadric_terms((V[rows] - centre) / scale)
         system.add(np.column_stack([P[:, 0] - P[:, 2], P[:, 1] - P[:, 2], P[:, 3:]]), -P[:, 2])
     return _Design(system, centre, scale)
 
@@ -170,9 +169,8 @@ def identifiability_report(V: NDArray[np.float64], F2: float) -> Identifiability
         k0 = float(np.sqrt(np.einsum("ij,ij->", V, V) / len(V) / F2))
         at = ZhangCheng(kx=k0, ky=k0, kz=k0)
     physical = BlockedQR(9)  # the physical Jacobian block by block: its triangular factor has J's singular values
-    chunk = chunk_rows()
-    for start in range(0, len(V), chunk):
-        physical.add(physical_jacobian(V[start : start + chunk], at))
+    for rows in row_blocks(len(V)):
+        physical.add(physical_jacobian(V[rows], at))
     pcond, ps, pvt = design_condition(physical.R)
     prank = _rank(ps, CONDITION_ERROR)
     undetermined = _in_subspace(pvt, ps, PARAM_NAMES, threshold=CONDITION_ERROR, share=0.05)

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import row_blocks
 from ..calibration import Calibration
 from ..models.ellipsoid import magnitude_jacobian
 from ._common import iterative_start, unpack
@@ -77,10 +77,9 @@ class BFGS(Estimator):
         def fun(p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
             M, b = unpack(p)
             cost, grad = 0.0, np.zeros(9)
-            chunk = chunk_rows(24)
-            for s in range(0, n, chunk):  # the (N, 9) Jacobian is never formed: block by block
-                mag, J = magnitude_jacobian(u[s : s + chunk], M, b)
-                r = mag - t[s : s + chunk]
+            for rows in row_blocks(n, 24):  # the (N, 9) Jacobian is never formed: block by block
+                mag, J = magnitude_jacobian(u[rows], M, b)
+                r = mag - t[rows]
                 cost += float(r @ r)
                 grad += r @ J
             return 0.5 * cost / n, grad / n

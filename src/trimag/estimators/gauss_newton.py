@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import chunk_rows, row_blocks
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import column_means, scratch, transposed_blocks
@@ -202,9 +202,8 @@ def _blocks(
 ) -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]]:
     """Consecutive chunks of samples (:func:`~trimag._core.chunks.chunk_rows`) and their reference, both divided by
     ``scale``."""
-    step = chunk_rows()
-    for start in range(0, len(B), step):
-        yield B[start : start + step] / scale, F[start : start + step] / scale
+    for rows in row_blocks(len(B)):
+        yield B[rows] / scale, F[rows] / scale
 
 
 def half_sum_squares(B: NDArray[np.float64], F: NDArray[np.float64], scale: float, p: NDArray[np.float64]) -> float:

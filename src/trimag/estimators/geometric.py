@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import chunk_rows, row_blocks
 from .._core.qr import BlockedQR
 from .._core.quadric import quadratic_terms
 from .._core.rowwise import scratch, sum_squares, transposed_blocks
@@ -298,9 +298,8 @@ def _levenberg_marquardt(
     res.message = f"Gauss-Newton did not converge; Levenberg-Marquardt: {res.message}"
     J, r = res.pop("jac"), res.pop("fun")
     qr = BlockedQR(npar)
-    chunk = chunk_rows()
-    for start in range(0, n, chunk):
-        qr.add(J[start : start + chunk], -r[start : start + chunk])
+    for rows in row_blocks(n):
+        qr.add(J[rows], -r[rows])
     return res, qr, float(r @ r)
 
 

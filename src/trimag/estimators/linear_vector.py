@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import row_blocks
 from .._core.qr import BlockedQR, panel_rows
 from .._core.rowwise import count_duplicate_rows
 from .._core.solve import levenberg_marquardt
@@ -107,13 +107,11 @@ def solve_interference(
     # and column norms of A = [H_b, 1], R11 X = R12 is the least-squares solution, and R22's column norms are
     # the per-axis residual norms; no (N, 4) design is formed
     qr = BlockedQR(7)
-    chunk = chunk_rows()
-    for start in range(0, len(H_b), chunk):
-        m = min(chunk, len(H_b) - start)
-        block = np.empty((m, 7))
-        block[:, :3] = H_b[start : start + m]
+    for rows in row_blocks(len(H_b)):
+        block = np.empty((rows.stop - rows.start, 7))
+        block[:, :3] = H_b[rows]
         block[:, 3] = 1.0
-        block[:, 4:] = H_m[start : start + m]
+        block[:, 4:] = H_m[rows]
         qr.add(block)
     R = qr.R
     R11, R12, R22 = R[:4, :4], R[:4, 4:], R[4:, 4:]
@@ -158,9 +156,8 @@ def _vector_sum_squares(
     """Per-axis sums of squares (3,) of ``B - H_b`` and of ``matrix (B - offset) - H_b`` (rows of ``B``, ``H_b``
     (N, 3)), block by block: the vector errors before and after compensation without (N, 3) temporaries."""
     before, after = np.zeros(3), np.zeros(3)
-    chunk = chunk_rows()
-    for start in range(0, len(B), chunk):
-        b, h = B[start : start + chunk], H_b[start : start + chunk]
+    for rows in row_blocks(len(B)):
+        b, h = B[rows], H_b[rows]
         e = b - h
         before += np.einsum("ij,ij->j", e, e)
         e = (b - offset) @ matrix.T - h
@@ -201,16 +198,14 @@ def _factor_background_design(
         ``R[:10, 10:] = Q_1^T B``.
     """
     n = len(B)
-    step = max(1, int(block or panel_rows(13)))
     R = np.zeros((0, 13))
-    for s in range(0, n, step):
-        m = min(step, n - s)
-        k = len(R)
+    for rows in row_blocks(n, rows=block or panel_rows(13)):
+        m, k = rows.stop - rows.start, len(R)
         stacked = np.empty((k + m, 13), order="F")  # LAPACK's layout
         stacked[:k] = R
-        stacked[k:, :9] = attitude[s : s + m].inv().as_matrix().reshape(m, 9)  # rows (b, j) of C^T
+        stacked[k:, :9] = attitude[rows].inv().as_matrix().reshape(m, 9)  # rows (b, j) of C^T
         stacked[k:, 9] = 1.0
-        stacked[k:, 10:] = B[s : s + m]
+        stacked[k:, 10:] = B[rows]
         R = np.asarray(np.linalg.qr(stacked, mode="r"), dtype=np.float64)
     return R
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import row_blocks
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ._common import iterative_start
@@ -75,12 +75,11 @@ def dual_lms(
     epochs = 0
     for ep in range(n_epochs):
         sq = 0.0
-        chunk = chunk_rows()
-        for start in range(0, n, chunk):  # Python floats for one chunk at a time (24 bytes each), not all N
+        for block in row_blocks(n):  # Python floats for one chunk at a time (24 bytes each), not all N
             if order is None:
-                rows, targets = u[start : start + chunk].tolist(), t[start : start + chunk].tolist()
+                rows, targets = u[block].tolist(), t[block].tolist()
             else:
-                sel = order[ep, start : start + chunk]
+                sel = order[ep, block]
                 rows, targets = u[sel].tolist(), t[sel].tolist()
             for (ux, uy, uz), target in zip(rows, targets, strict=True):
                 ex, ey, ez = ux - bx, uy - by, uz - bz

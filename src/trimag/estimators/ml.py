@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.chunks import chunk_rows
+from .._core.chunks import chunk_rows, row_blocks
 from .._core.rowwise import scratch, sum_squares
 from .._core.solve import GaussNewtonResult, contraction, gauss_newton, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
@@ -100,10 +100,8 @@ def geometric_residual(
     n = len(u)
     r = np.empty(n)
     Jt = np.empty((9, n))
-    chunk = chunk_rows(24)
-    for s in range(0, n, chunk):
-        e = min(s + chunk, n)
-        _residual_block(u[s:e], W, b, _take(target, slice(s, e)), r[s:e], Jt[:, s:e])
+    for rows in row_blocks(n, 24):
+        _residual_block(u[rows], W, b, _take(target, rows), r[rows], Jt[:, rows])
     return r, Jt.T
 
 
@@ -241,11 +239,10 @@ def _normal_equations(
     Jtr = np.zeros(9)
     ss = 0.0
     with scratch(10, min(len(u), chunk_rows(24))) as work:  # reused buffers (trimag._core.rowwise.scratch)
-        chunk = chunk_rows(24)
-        for start in range(0, len(u), chunk):
-            stop = min(start + chunk, len(u))
-            r, Jt = work[0, : stop - start], work[1:, : stop - start]
-            _residual_block(u[start:stop], W, b, _take(target, slice(start, stop)), r, Jt, norm)
+        for rows in row_blocks(len(u), 24):
+            m = rows.stop - rows.start
+            r, Jt = work[0, :m], work[1:, :m]
+            _residual_block(u[rows], W, b, _take(target, rows), r, Jt, norm)
             if JtJ is not None:
                 JtJ += Jt @ Jt.T
             Jtr += Jt @ r
