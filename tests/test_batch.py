@@ -171,3 +171,32 @@ def test_cli_batch_passes_sensor_to_every_file(fleet: Path, tmp_path: Path,
     assert code == 2
     err = capsys.readouterr().err
     assert "sensor0.csv" in err and "--sensor picks a magnetometer of an autopilot log" in err
+
+
+def test_cli_batch_fits_the_vector_model_with_attitudes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``batch`` had no attitude, background or time flags: an interference12 fleet (and its eddy terms, which
+    need the sample rate) could not be fitted in a batch at all."""
+    import pandas as pd
+    from scipy.spatial.transform import Rotation
+
+    K = np.array([[1.03, 0.02, -0.01], [0.01, 0.97, 0.02], [0.0, -0.02, 1.02]])
+    c = np.array([150.0, -80.0, 40.0])
+    H_n = np.array([18_000.0, 1_000.0, 45_000.0])
+    for seed in (1, 2):
+        att = Rotation.random(600, random_state=seed)
+        H_b = att.inv().apply(H_n)
+        H_m = H_b @ K.T + c + np.random.default_rng(seed).normal(scale=5.0, size=H_b.shape)
+        q = att.as_quat()  # x, y, z, w
+        pd.DataFrame({"t": np.arange(600) * 0.1, "x": H_m[:, 0], "y": H_m[:, 1], "z": H_m[:, 2],
+                      "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2]}).to_csv(
+            tmp_path / f"box{seed}.csv", index=False)
+    out = tmp_path / "out"
+    code = main(["batch", str(tmp_path / "box*.csv"), "--out", str(out), "--model", "interference12",
+                 "--columns", "x,y,z", "--quaternion-columns", "qw,qx,qy,qz", "--background-ned", "18000,1000,45000",
+                 "--units", "nT", "--time-column", "t", "--option", "eddy=3", "--json"])
+    assert code == 0, capsys.readouterr().err
+    for seed in (1, 2):
+        cal = Calibration.from_file(out / f"box{seed}.json")
+        assert cal.model == "interference12" and cal.regressors is not None
+        assert cal.regressors["eddy"]["rate_hz"] == pytest.approx(10.0)
+        np.testing.assert_allclose(cal.offset, c, atol=5.0)

@@ -138,13 +138,35 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
     g = p.add_argument_group("aircraft compensation (model tolles-lawson; docs/method-tolles-lawson.md)")
     g.add_argument("--scalar-column", metavar="S", help="scalar magnetometer column to compensate (nT)")
-    g.add_argument("--time-column", metavar="T",
-                   help="time column, seconds (gives the sample rate; with --attitude-file the magnetometer's time)")
-    g.add_argument("--rate", type=float, metavar="HZ", help="sample rate, Hz (when there is no time column)")
+    _add_time_options(g)
     g.add_argument("--segments", metavar="T0:T1[,T0:T1...]", help="time ranges (s) of calibration manoeuvres")
     if fit:
         g.add_argument("--tl-attitude-columns", metavar="YAW,PITCH,ROLL",
                        help="attitude columns (degrees), only to report the manoeuvre content")
+
+
+def _add_time_options(g: Any) -> None:
+    """``--time-column`` and ``--rate`` (Tolles-Lawson, eddy-current terms, attitudes from a second file)."""
+    g.add_argument("--time-column", metavar="T",
+                   help="time column, seconds (gives the sample rate; with --attitude-file the magnetometer's time)")
+    g.add_argument("--rate", type=float, metavar="HZ", help="sample rate, Hz (when there is no time column)")
+
+
+def _add_fit_steps(p: argparse.ArgumentParser) -> None:
+    """The options of ``fit`` (and ``batch``) that add steps to the fit: regressor terms, a quick recalibration,
+    the alignment to the accelerometer."""
+    p.add_argument("--regressors", metavar="COL[,COL...]",
+                   help="columns the offset depends on linearly (current, throttle, temperature, ...): "
+                        "b = b0 + sum k_j (u_j - mean_j), fitted jointly and ranked (models ellipsoid, interference12; "
+                        "docs/vehicle.md); apply and evaluate read the same columns")
+    p.add_argument("--prior", metavar="CAL.json",
+                   help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
+                        "only its offset, e.g. from a few headings at level (needs the field magnitude; "
+                        "docs/vehicle.md)")
+    p.add_argument("--accel-columns", metavar="AX,AY,AZ",
+                   help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
+                        "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
+                        "and the nearest autopilot board rotation (docs/vehicle.md)")
 
 
 def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
@@ -176,18 +198,7 @@ def _add_fit(sub: Any) -> None:
     _add_reference_options(p)
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
-    p.add_argument("--regressors", metavar="COL[,COL...]",
-                   help="columns the offset depends on linearly (current, throttle, temperature, ...): "
-                        "b = b0 + sum k_j (u_j - mean_j), fitted jointly and ranked (models ellipsoid, interference12; "
-                        "docs/vehicle.md); apply and evaluate read the same columns")
-    p.add_argument("--prior", metavar="CAL.json",
-                   help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
-                        "only its offset, e.g. from a few headings at level (needs the field magnitude; "
-                        "docs/vehicle.md)")
-    p.add_argument("--accel-columns", metavar="AX,AY,AZ",
-                   help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
-                        "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
-                        "and the nearest autopilot board rotation (docs/vehicle.md)")
+    _add_fit_steps(p)
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -272,8 +283,9 @@ def _add_batch(sub: Any) -> None:
     _add_data_options(p, selection=False)
     _add_model_options(p, "error model (as for `trimag fit`)")
     _add_reference_options(p)
-    p.add_argument("--regressors", metavar="COL[,COL...]",
-                   help="offset terms linear in these columns of every file (as for `trimag fit`)")
+    _add_attitude_options(p)
+    _add_time_options(p.add_argument_group("time (eddy-current terms, attitudes from a second file)"))
+    _add_fit_steps(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
     p.add_argument("--scheduler", metavar="ADDRESS",
