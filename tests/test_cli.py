@@ -309,3 +309,22 @@ def test_units_given_with_a_regressor_calibration_are_checked_not_refused(tmp_pa
     assert run_trimag("evaluate", cal, data, "--units", "nT").returncode == 0
     wrong = run_trimag("evaluate", cal, data, "--units", "uT")
     assert wrong.returncode == 2 and "for data in 'nT'" in wrong.stderr
+
+
+def test_evaluate_reference_column_with_a_missing_cell_drops_and_counts_the_row(tmp_path: Path) -> None:
+    """A blank cell in ``--reference-column`` was an internal error (exit 1), a ``nan`` cell printed RMS nan (and
+    ``--json`` exited 1): such a row is now dropped and counted like a bad field row, and ``--strict`` refuses it."""
+    B = simulate_ellipsoid(200, seed=4)
+    table = pd.DataFrame(B, columns=["x", "y", "z"])
+    table["F"] = "48000"
+    table.loc[5, "F"] = ""
+    table.loc[9, "F"] = "nan"
+    data = tmp_path / "d.csv"
+    table.to_csv(data, index=False)
+    cal = _calibration_in("nT", tmp_path)
+    r = run_trimag("evaluate", cal, data, "--reference-column", "F", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["n_dropped"] == 2 and out["n_used"] == 198 and np.isfinite(out["rms_after"])
+    strict = run_trimag("evaluate", cal, data, "--reference-column", "F", "--strict")
+    assert strict.returncode == 2 and "data row 5" in strict.stderr and strict.stderr.count("\n") == 1

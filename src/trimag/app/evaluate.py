@@ -71,7 +71,8 @@ def evaluate_file(
         after.add(*corrected_magnitudes(cal, spec, kept))
     if n_bad and src.strict:
         raise TrimagInputError(
-            f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
+            f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field (or regressor or reference) "
+            "values (first at data row "
             f"{first_bad}); fix them, or drop `strict` to skip and count them"
         )
     if after.n == 0:
@@ -129,13 +130,14 @@ def _chunk_rows(
     u = chunk_columns(chunk, regressor_names, src.path)[mask] if regressor_names else None
     if u is not None:
         ok &= np.isfinite(u).all(axis=1)
-        u = u[ok]
     ref_values: Any = F
-    if column is not None:
+    if column is not None:  # a missing, non-numeric or non-finite reference: the row is dropped (and counted)
         if column not in chunk.table.columns:
             raise TrimagInputError(f"no column {column!r} in {src.path}")
-        col = chunk.table[column]
-        vals = np.asarray(col if col.dtype.kind in "fiu" else col.astype(str).str.strip(), dtype=object)
-        ref_values = np.asarray(vals.astype(float))[mask][ok]
+        ref_values = chunk_columns(chunk, (column,), src.path)[mask, 0]
+        ok &= np.isfinite(ref_values)
+        ref_values = ref_values[ok]
+    if u is not None:
+        u = u[ok]
     first = int(idx[mask][np.flatnonzero(~ok)[0]]) if not ok.all() else None
     return xyz[ok], u, ref_values, len(xyz), first
