@@ -594,8 +594,9 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
 
     r = _with_progress(args, evaluate_file, req)
     if r["n_dropped"]:
+        column = req.reference.reference_column
         what = " or ".join(["x/y/z"] + (["regressor values"] if r.get("regressors") else [])
-                           + ([f"reference ({req.reference.reference_column})"] if req.reference.reference_column else []))
+                           + ([f"reference ({column})"] if column else []))
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
