@@ -328,3 +328,19 @@ def test_evaluate_reference_column_with_a_missing_cell_drops_and_counts_the_row(
     assert out["n_dropped"] == 2 and out["n_used"] == 198 and np.isfinite(out["rms_after"])
     strict = run_trimag("evaluate", cal, data, "--reference-column", "F", "--strict")
     assert strict.returncode == 2 and "data row 5" in strict.stderr and strict.stderr.count("\n") == 1
+
+
+def test_vector_evaluate_counts_each_dropped_row_once(tmp_path: Path) -> None:
+    """Rows without an attitude were counted twice in the vector evaluation's ``n_dropped`` (6 for 3 rows)."""
+    rng = np.random.default_rng(5)
+    table = pd.DataFrame(rng.normal(size=(60, 3)) * 30_000, columns=["x", "y", "z"])
+    table["yaw"], table["pitch"], table["roll"] = rng.uniform(0, 360, 60), rng.uniform(-30, 30, 60), 0.0
+    table["yaw"] = table["yaw"].astype(object)
+    table.loc[[3, 7, 11], "yaw"] = ""
+    data = tmp_path / "att.csv"
+    table.to_csv(data, index=False)
+    r = run_trimag("evaluate", CALIBRATIONS / "interference12.json", data, "--columns", "x,y,z",
+                   "--attitude-columns", "yaw,pitch,roll", "--background-ned", "20000,0,45000", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert (out["n_samples"], out["n_used"], out["n_dropped"]) == (60, 57, 3)

@@ -49,8 +49,8 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
     samples, att, lag = _attitudes(req, samples, cal)
-    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
-    samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
+    samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
     rot = attitudes_of(samples, att)
     background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)
@@ -61,7 +61,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
         "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
-        "n_used": len(raw), "n_dropped": samples.n_dropped + n_no_attitude + n_no_background,
+        "n_used": len(raw), "n_dropped": samples.n_dropped,  # the attitude and background drops included
         "background": {"ned": (background.mean(axis=0) if background.ndim == 2 else background).tolist(),
                        "source": source, "per_sample": background.ndim == 2},
         **({"attitude_file": str(attitude_file), "lag_s": lag} if attitude_file is not None else {}),
