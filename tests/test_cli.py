@@ -344,3 +344,20 @@ def test_vector_evaluate_counts_each_dropped_row_once(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert (out["n_samples"], out["n_used"], out["n_dropped"]) == (60, 57, 3)
+
+
+@pytest.mark.parametrize("flag", [("--igrf-columns", "lat,lon,alt,2021-01-01"), ("--background-ned", "20000,0,45000"),
+                                  ("--background-columns", "x,y,z")])
+def test_a_background_vector_for_a_magnitude_model_is_refused(tmp_path: Path, flag: tuple[str, str]) -> None:
+    """``--igrf-columns`` (and the other background vectors) were silently ignored by a magnitude fit or
+    evaluation: the reference used was the mean magnitude."""
+    B = simulate_ellipsoid(300, seed=6)
+    table = pd.DataFrame(B, columns=["x", "y", "z"])
+    table["lat"], table["lon"], table["alt"] = 52.5, 13.3, 40.0
+    data = tmp_path / "d.csv"
+    table.to_csv(data, index=False)
+    fit = run_trimag("fit", data, "--columns", "x,y,z", "--units", "nT", *flag)
+    ev = run_trimag("evaluate", _calibration_in("nT", tmp_path), data, "--columns", "x,y,z", *flag)
+    for r in (fit, ev):
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.count("\n") == 1 and flag[0] in r.stderr and "--igrf " in r.stderr

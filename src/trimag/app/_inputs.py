@@ -44,9 +44,22 @@ def _parse_vector(text: str, name: str) -> NDArray[np.float64]:
     return np.array(values)
 
 
+def refuse_background_vector(given: ReferenceSpec) -> None:
+    """A magnitude fit or evaluation has no use for a background vector: refuse one rather than ignore it."""
+    for name in ("background_ned", "background_columns", "igrf_columns", "background_run"):
+        if getattr(given, name) is not None:
+            raise TrimagInputError(
+                f"`{name}` is a background vector, for an attitude-based model (interference12, with "
+                "`attitude_columns` or `quaternion_columns`); a magnitude takes `reference=F`, "
+                "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
+            )
+
+
 def magnitude_reference(samples: Samples, given: ReferenceSpec, unit: str) -> ScalarReference:
     """The field magnitude reference of ``samples`` in ``unit``: ``given.reference`` (a number, or ``"mean"``),
-    ``given.igrf_spec`` or ``given.reference_column`` (at most one of them; none: unknown)."""
+    ``given.igrf_spec`` or ``given.reference_column`` (at most one of them; none: unknown). A background vector
+    (``background_ned`` ...) is refused."""
+    refuse_background_vector(given)
     reference, igrf_spec, reference_column = given.reference, given.igrf_spec, given.reference_column
     named = [x for x in (reference, igrf_spec, reference_column) if x is not None]
     if len(named) > 1:

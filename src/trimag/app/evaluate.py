@@ -17,6 +17,7 @@ from ..io.tables import where_mask
 from ..reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..requests import EvaluateRequest, as_request
 from ..units import convert, normalise_unit
+from ._inputs import refuse_background_vector
 
 __all__ = ["evaluate_file"]
 
@@ -97,6 +98,7 @@ def evaluate_file(
 def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str]:
     """The one field magnitude ``F`` in ``unit`` (None: per sample from a column, or the mean) and its source."""
     given = req.reference
+    refuse_background_vector(given)
     named = [x for x in (given.reference, given.igrf_spec, given.reference_column) if x is not None]
     if len(named) > 1:
         raise TrimagInputError("give only one of `reference`, `igrf_spec`, `reference_column`")
