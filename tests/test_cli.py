@@ -361,3 +361,20 @@ def test_a_background_vector_for_a_magnitude_model_is_refused(tmp_path: Path, fl
     for r in (fit, ev):
         assert r.returncode == 2, r.stderr
         assert r.stderr.count("\n") == 1 and flag[0] in r.stderr and "--igrf " in r.stderr
+
+
+def test_flags_a_tolles_lawson_file_does_not_use_are_refused(tmp_path: Path) -> None:
+    """``apply``/``evaluate`` of a Tolles-Lawson compensation accepted ``--strict``, ``--sensor``, ``--rows``,
+    ``--where``, ``--reference`` ... and ignored them (the same output with or without)."""
+    comp, data = CALIBRATIONS / "tolles-lawson.json", CALIBRATIONS / "tolles-lawson.in.csv"
+    out = tmp_path / "o.csv"
+    assert run_trimag("apply", comp, data, "-o", out).returncode == 0
+    out.unlink()
+    for args in (("apply", comp, data, "-o", out, "--strict"), ("apply", comp, data, "-o", out, "--sensor", "1"),
+                 ("evaluate", comp, data, "--rows", "0:300"), ("evaluate", comp, data, "--reference", "50500"),
+                 ("evaluate", comp, data, "--chunk-rows", "1000")):
+        r = run_trimag(*args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert r.stderr.count("\n") == 1 and "is not used with a Tolles-Lawson compensation file" in r.stderr
+        assert "`" not in r.stderr  # the flag is named as a flag
+    assert not out.exists()

@@ -527,6 +527,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     req = _request(ApplyRequest, args, args.data)
     src = req.input
     if is_compensation_file(req.calibration):
+        _refuse_unused(args, ("strict", "sensor"), "a Tolles-Lawson compensation file")
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
                                     units=src.units)
@@ -538,6 +539,15 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         _say(result["column_note"], args)
     return _print_applied(result, args, "corrected", result["units"], "had missing or non-numeric x/y/z; they are "
                           "kept with empty corrected cells")
+
+
+def _refuse_unused(args: argparse.Namespace, dests: tuple[str, ...], what: str) -> None:
+    """Refuse a flag the command accepts but does not use with ``what`` (never ignore it)."""
+    defaults = {"chunk_rows": 200_000}
+    for dest in dests:
+        value = getattr(args, dest, None)
+        if value not in (None, False, defaults.get(dest)):
+            raise TrimagInputError(f"`{dest}` is not used with {what}; drop it")
 
 
 def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit: str, uncorrected: str) -> int:
@@ -576,6 +586,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if req.attitude.attitude_columns or req.attitude.quaternion_columns:
         return _cmd_evaluate_vector(req, args)
     if is_compensation_file(args.calibration):
+        _refuse_unused(args, ("strict", "sensor", "rows", "where", "reference", "igrf_spec", "reference_column",
+                              "chunk_rows"), "a Tolles-Lawson compensation file (it evaluates whole segments)")
         r = evaluate_compensation_file(
             args.calibration, args.data, fmt=args.fmt, var=args.var, columns=_split_list(args.columns),
             scalar_column=args.scalar_column, units=args.units, time_column=args.time_column, rate_hz=args.rate,
