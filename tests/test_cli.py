@@ -378,3 +378,28 @@ def test_flags_a_tolles_lawson_file_does_not_use_are_refused(tmp_path: Path) -> 
         assert r.stderr.count("\n") == 1 and "is not used with a Tolles-Lawson compensation file" in r.stderr
         assert "`" not in r.stderr  # the flag is named as a flag
     assert not out.exists()
+
+
+def test_strict_covers_attitude_and_heading_cells(tmp_path: Path) -> None:
+    """``--strict`` refused bad field cells only: a blank yaw (vector fit and evaluation) or a blank reference
+    heading was still skipped and counted."""
+    rng = np.random.default_rng(8)
+    table = pd.DataFrame(rng.normal(size=(80, 3)) * 30_000, columns=["x", "y", "z"])
+    table["yaw"], table["pitch"], table["roll"] = rng.uniform(0, 360, 80), rng.uniform(-30, 30, 80), 0.0
+    table["ax"], table["ay"], table["az"] = 0.0, 0.0, -9.81
+    table["heading"] = table["yaw"]
+    table["yaw"], table["heading"] = table["yaw"].astype(object), table["heading"].astype(object)
+    table.loc[4, "yaw"] = ""
+    table.loc[6, "heading"] = ""
+    data = tmp_path / "att.csv"
+    table.to_csv(data, index=False)
+    vector = ("--columns", "x,y,z", "--attitude-columns", "yaw,pitch,roll", "--background-ned", "20000,0,45000")
+    cal = CALIBRATIONS / "interference12.json"
+    runs = [run_trimag("evaluate", cal, data, *vector, "--strict"),
+            run_trimag("fit", data, "--model", "interference12", *vector, "--units", "nT", "--strict"),
+            run_trimag("evaluate", _calibration_in("nT", tmp_path), data, "--columns", "x,y,z", "--accel-columns",
+                       "ax,ay,az", "--heading-column", "heading", "--strict")]
+    for r in runs:
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.count("\n") == 1 and "drop --strict" in r.stderr
+    assert run_trimag("evaluate", cal, data, *vector).returncode == 0  # without it: skipped and counted

@@ -179,9 +179,10 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
 
 
 def drop_rows_without_background(
-    samples: Samples, background_columns: str | None, igrf_columns: str | None = None
+    samples: Samples, background_columns: str | None, igrf_columns: str | None = None, *, strict: bool = False
 ) -> tuple[Samples, int]:
-    """Drop (and count) the rows whose per-sample background (or position) cells are missing or non-finite."""
+    """Drop (and count) the rows whose per-sample background (or position) cells are missing or non-finite
+    (``strict``: refuse them)."""
     if igrf_columns is not None:
         from ..io.background import parse_igrf_columns
 
@@ -190,8 +191,10 @@ def drop_rows_without_background(
         return samples, 0
     names = ",".join(_split_names(background_columns, samples, "background_columns"))
     try:
-        return drop_rows_without_attitude(samples, names, None)
-    except TrimagInputError:
+        return drop_rows_without_attitude(samples, names, None, strict=strict, what="background")
+    except TrimagInputError as exc:
+        if strict and "`strict`" in str(exc):
+            raise
         raise TrimagInputError(f"none of the rows has a finite background in columns {names}") from None
 
 
@@ -230,9 +233,10 @@ def attitudes_of(samples: Samples, att: AttitudeSpec) -> Rotation:
 
 
 def drop_rows_without_attitude(
-    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None
+    samples: Samples, attitude_columns: str | None, quaternion_columns: str | None, *, strict: bool = False,
+    what: str = "attitude",
 ) -> tuple[Samples, int]:
-    """Drop (and count) the rows whose attitude cells are missing or non-finite."""
+    """Drop (and count) the rows whose attitude cells are missing or non-finite (``strict``: refuse them)."""
     names = [c.strip() for c in (attitude_columns or quaternion_columns or "").split(",") if c.strip()]
     present = [c for c in names if c in samples.table.columns]
     if not present:
@@ -242,6 +246,11 @@ def drop_rows_without_attitude(
     n_bad = int((~ok).sum())
     if n_bad == 0:
         return samples, 0
+    if strict:
+        raise TrimagInputError(
+            f"{n_bad} row(s) have a missing or non-numeric {what} in columns {', '.join(present)} (first at kept row "
+            f"{int(np.flatnonzero(~ok)[0])}); fix them, or drop `strict` to skip and count them"
+        )
     if n_bad == len(ok):
         raise TrimagInputError(f"none of the rows has a finite attitude in columns {', '.join(present)}")
     kept = dataclasses.replace(

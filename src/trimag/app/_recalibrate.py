@@ -63,7 +63,8 @@ def refit_prior(
                                "a background vector: give `reference=F` or `igrf_spec=LAT,LON,ALT_M,DATE`")
     attitude = None
     if att.attitude_columns is not None or att.quaternion_columns is not None:
-        samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+        samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns,
+                                                            strict=req.input.strict)
         if n_no_attitude:
             messages.append(f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric")
         attitude = attitudes_of(samples, att)

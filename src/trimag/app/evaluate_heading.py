@@ -63,6 +63,12 @@ def evaluate_heading_file(
     ok = np.isfinite(reference) & np.isfinite(accel).all(axis=1) & (np.linalg.norm(accel, axis=1) > 0)
     if u is not None:
         ok &= np.isfinite(u).all(axis=1)
+    if src.strict and not ok.all():
+        raise TrimagInputError(
+            f"{src.path}: {int((~ok).sum())} row(s) have a missing or non-numeric reference heading, accelerometer or "
+            f"regressor value (first at kept row {int(np.flatnonzero(~ok)[0])}); fix them, or drop `strict` to skip "
+            "and count them"
+        )
     if not ok.any():
         raise TrimagInputError(f"{src.path}: no row has a finite reference heading and accelerometer")
     corrected = cal.apply(samples.field[ok], regressors=None if u is None else u[ok])

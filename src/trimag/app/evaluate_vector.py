@@ -49,8 +49,9 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
     samples, att, lag = _attitudes(req, samples, cal)
-    samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
-    samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
+    samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns, strict=src.strict)
+    samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns,
+                                              strict=src.strict)
     rot = attitudes_of(samples, att)
     background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)

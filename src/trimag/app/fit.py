@@ -364,12 +364,14 @@ def _fit_reference(
             )
         return samples, ref, None, messages
 
-    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns,
+                                                        strict=src.strict)
     if n_no_attitude:
         messages.append(
             f"dropped {n_no_attitude} rows whose attitude is missing or non-numeric (e.g. optical tracking lost)"
         )
-    samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns)
+    samples, n_no_background = drop_rows_without_background(samples, given.background_columns, given.igrf_columns,
+                                                            strict=src.strict)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = attitudes_of(samples, att)
