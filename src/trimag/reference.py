@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._core.chunks import row_blocks
 from .errors import TrimagInputError
 from .units import convert, normalise_unit
 from .validation import check_reference_values
@@ -113,10 +114,18 @@ def igrf(
     )
 
 
+#: Working memory per position of :func:`igrf_ned`'s blocks, in doubles (983 positions per ``ppigrf`` call at the
+#: default working memory; the measured optimum is near 1000).
+IGRF_DOUBLES_PER_POSITION = 200
+
+
 def igrf_ned(
     latitude_deg: ArrayLike, longitude_deg: ArrayLike, altitude_m: ArrayLike, date: str | _dt.date | _dt.datetime
 ) -> NDArray[np.float64]:
-    """IGRF-14 main field (N, E, D), nT, at many geodetic positions and one date, vectorised (one ``ppigrf`` call).
+    """IGRF-14 main field (N, E, D), nT, at many geodetic positions and one date, vectorised (``ppigrf`` on blocks
+    of positions, :func:`trimag._core.chunks.row_blocks`: its temporaries take about 10 KB per position, so one call
+    on every position of a long flight would take gigabytes; blocks of ~1000 positions are also the fastest,
+    0.43 s per 20 000 positions against 1.04 s in one call and 2.1 s in blocks of 150).
 
     Parameters
     ----------
@@ -146,8 +155,11 @@ def igrf_ned(
     when = _parse_date(date)
     if not 1900 <= when.year < 2030:
         raise TrimagInputError(f"IGRF-14 covers 1900-2029; got the date {when.date().isoformat()}")
-    be, bn, bu = ppigrf.igrf(lon, lat, alt / 1000.0, when)
-    return np.column_stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)]).astype(np.float64)
+    out = np.empty((len(lat), 3))
+    for rows in row_blocks(len(lat), IGRF_DOUBLES_PER_POSITION):
+        be, bn, bu = ppigrf.igrf(lon[rows], lat[rows], alt[rows] / 1000.0, when)
+        out[rows] = np.column_stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)])
+    return out
 
 
 def parse_igrf_spec(spec: str) -> tuple[float, float, float, str]:
