@@ -403,3 +403,14 @@ def test_strict_covers_attitude_and_heading_cells(tmp_path: Path) -> None:
         assert r.returncode == 2, r.stderr
         assert r.stderr.count("\n") == 1 and "drop --strict" in r.stderr
     assert run_trimag("evaluate", cal, data, *vector).returncode == 0  # without it: skipped and counted
+
+
+def test_messages_name_flags_and_the_numbers_the_user_gave(tmp_path: Path) -> None:
+    """Three messages named a Python argument or an internal value: ``export --instance 0`` said "got -1", an
+    unknown ``--sensor`` said "choose with sensor", a missing policy file said "use policy 'default'"."""
+    r = run_trimag("export", CALIBRATIONS / "ellipsoid.json", "--to", "json", "--instance", "0", "-o", tmp_path / "x")
+    assert r.returncode == 2 and "--instance must be 1..8" in r.stderr and "got 0" in r.stderr
+    r = run_trimag("fit", LOG, "--sensor", "7")
+    assert r.returncode == 2 and "choose with --sensor" in r.stderr
+    r = run_trimag("fit", CALIBRATIONS / "ellipsoid.in.csv", "--policy", tmp_path / "nope.toml")
+    assert r.returncode == 2 and "--policy default" in r.stderr

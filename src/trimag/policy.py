@@ -46,7 +46,7 @@ def read_policy(spec: str) -> dict[str, float]:
         return dict(DEFAULT_LIMITS)
     p = Path(spec)
     if not p.is_file():
-        raise TrimagInputError(f"policy file {spec!r} does not exist (or use policy 'default')")
+        raise TrimagInputError(f"policy file {spec!r} does not exist (or use `policy=default`)")
     try:
         data = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

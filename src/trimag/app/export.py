@@ -27,6 +27,9 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     req = request if request is not None else ExportRequest(**arguments)
     if request is not None and arguments:
         raise TrimagInputError("give either an ExportRequest or its arguments, not both")
+    if not 1 <= req.instance <= 8:  # the request's instance counts from 1, as the firmware's parameter names do
+        raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
+                               f"{req.instance}")
     cal = Calibration.from_file(req.calibration)
     exp = export_calibration(cal, req.target, instance=req.instance - 1)
     path = write_export(exp, req.out)

@@ -129,7 +129,7 @@ class VehicleLog:
             if text in (str(m.instance), m.name, str(m.device_id)):
                 return m
         names = ", ".join(f"{m.instance} ({m.name})" for m in self.magnetometers)
-        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with sensor)")
+        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with `sensor`)")
 
     def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
         """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
