@@ -414,3 +414,23 @@ def test_messages_name_flags_and_the_numbers_the_user_gave(tmp_path: Path) -> No
     assert r.returncode == 2 and "choose with --sensor" in r.stderr
     r = run_trimag("fit", CALIBRATIONS / "ellipsoid.in.csv", "--policy", tmp_path / "nope.toml")
     assert r.returncode == 2 and "--policy default" in r.stderr
+
+
+def test_simulate_refuses_a_bad_unit_before_writing_anything(tmp_path: Path) -> None:
+    """``simulate --units bogus`` exited 2 but left the simulated log on disk (it was written before the unit was
+    read)."""
+    params = tmp_path / "p.json"
+    params.write_text(json.dumps({"hard_iron_x": 10.0, "hard_iron_y": 0.0, "hard_iron_z": 0.0, "w11": 1.0, "w12": 0.0,
+                                  "w13": 0.0, "w21": 0.0, "w22": 1.0, "w23": 0.0, "w31": 0.0, "w32": 0.0, "w33": 1.0}))
+    out, truth = tmp_path / "s.csv", tmp_path / "t.json"
+    assert run_trimag("simulate", "--model", "ellipsoid", "--params", params, "--n", "50", "-o", out).returncode == 0
+    out.unlink()
+    r = run_trimag("simulate", "--model", "ellipsoid", "--params", params, "--n", "50", "-o", out, "--truth", truth,
+                   "--units", "bogus")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert not out.exists() and not truth.exists()
+    folder = tmp_path / "a-file"
+    folder.write_text("")
+    r = run_trimag("simulate", "--model", "ellipsoid", "--params", params, "--n", "50", "-o", out, "--truth",
+                   folder / "t.json")
+    assert r.returncode == 2 and not out.exists()

@@ -691,6 +691,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from .requests import SimulateRequest
     from .workflow import simulate_to_file
 
+    _check_writable(args.out)
+    _check_writable(args.truth)
     r = simulate_to_file(_request(SimulateRequest, args, params_path=args.params))
     for what, path in r["outputs"].items():
         _say(f"wrote {what}: {path}", args)

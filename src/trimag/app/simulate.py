@@ -44,6 +44,7 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
         raise TrimagInputError(f"`n` must be a positive number of samples; got {n}")
     if noise < 0 or not np.isfinite(noise):
         raise TrimagInputError(f"`noise` must be a non-negative standard deviation; got {noise}")
+    unit = normalise_unit(units)  # before anything is written
     truth_model = get_model(model).from_dict(params)
     sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes, seed=seed)
     q = sim.attitude.as_quat(scalar_first=True)
@@ -63,7 +64,7 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
             "seed": seed,
             "attitudes": attitudes,
             "field_nav": [field, 0.0, 0.0],
-            "units": normalise_unit(units),
+            "units": unit,
         }
         written["truth"] = str(atomic_write_text(req.truth, json.dumps(doc, indent=2) + "\n"))
     return {"n": len(sim.raw), "outputs": written}
