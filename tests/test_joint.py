@@ -90,6 +90,9 @@ def test_refusals() -> None:
     eddy = fit_regressors(base, sim.vector_nT, values, attitude=ins)
     with pytest.raises(TrimagInputError, match="give the values of the regressors"):
         fit_joint_scalar(eddy, sim.vector_nT, S, attitude=ins, background=EARTH)
+    # a scalar column in another unit (uT against nT) was fitted silently, mis-weighted
+    with pytest.raises(TrimagInputError, match="not in the vector data's unit"):
+        fit_joint_scalar(base, sim.vector_nT, S / 1000.0, attitude=ins, background=EARTH)
 
 
 def test_cli_reference_column_with_the_vector_model_fits_jointly(tmp_path: Path) -> None:

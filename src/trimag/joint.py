@@ -131,6 +131,12 @@ def fit_joint_scalar(
     if not isinstance(attitude, Rotation) or attitude.single or len(attitude) != n:
         raise TrimagInputError("the joint scalar fit needs the attitude of every sample (a Rotation)")
     H_b = body_field(attitude, np.asarray(background, dtype=np.float64))
+    expected = float(np.median(np.linalg.norm(H_b, axis=1)))
+    if not 0.5 < float(np.median(S)) / expected < 2.0:  # the magnitudes of one field agree to a few percent
+        raise TrimagInputError(
+            f"the scalar magnetometer (median {float(np.median(S)):.6g}) is not in the vector data's unit (background "
+            f"magnitude {expected:.6g} {base.units}): convert the column, or check that it is the compensated scalar"
+        )
     terms = base.regressors
     names, U, Kr0, free = _regressor_terms(terms, regressors, n)
     # normalised units: fields over their RMS magnitude, regressors over their standard deviations
