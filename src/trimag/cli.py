@@ -42,7 +42,7 @@ class _Parser(argparse.ArgumentParser):
 #: Python argument name -> the command line's flag (filled from the parser by :func:`main`): the library's messages
 #: name Python arguments in backticks (`` `columns` ``, `` `units=uT` ``, `` `option balance=never` ``) and the
 #: command line says them as flags (``--columns``, ``--units uT``, ``--option balance=never``).
-_FLAGS: dict[str, str] = {"options": "--option"}
+_FLAGS: dict[str, str] = {"options": "--option", "rate_hz": "--rate"}
 _ARGUMENT = re.compile(r"`([a-z_]+)(?:([= ])([^`]*))?`")
 
 
@@ -580,7 +580,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .aircraft import evaluate_compensation_file, is_compensation_file
     from .requests import EvaluateRequest
 
-    req = _request(EvaluateRequest, args, args.data)
+    req = _request(EvaluateRequest, args, args.data, rate_hz=args.rate)
     if req.accel_columns or req.heading_column or req.declination is not None:
         return _cmd_evaluate_heading(req, args)
     if req.attitude.attitude_columns or req.attitude.quaternion_columns:

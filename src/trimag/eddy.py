@@ -11,8 +11,11 @@ compensated, so a calibration applies from the data file alone): per contiguous 
 ``(H[i+1] - H[i-1]) / (t[i+1] - t[i-1])`` inside and the one-sided difference at each segment's ends (MagNav.jl's
 ``fdm``, as the Tolles–Lawson model's eddy terms, but per second rather than per sample: ``E`` is in seconds).
 Segments are cut where a row is missing or the time step exceeds 1.5 sample periods; a sample alone in its
-segment has no derivative and gets 0. The times come from a time column, or from the row numbers and a given rate.
-The rate, the time column and the scheme are recorded in the calibration; data at another rate are refused.
+segment has no derivative and gets 0. The times come from a time column, or from the rows' original (0-based) row
+numbers in the file and a given rate: a row not selected (``rows``, ``where``) or dropped (a missing value) is then a
+gap as a time column would show it. The rate, the time column and the scheme are recorded in the calibration; data at
+another rate are refused. On new data a given time column (``time_column``) replaces the recorded one's name, and a
+given rate (``rate_hz``, without a time column) is the data's rate, checked against the calibration's.
 
 The terms reuse the regressor machinery (:mod:`trimag.regressors`): the three derivative components are derived
 regressors ``dBx/dt, dBy/dt, dBz/dt``, each with three coefficients (a column of ``E``); ``terms=3`` frees only
@@ -37,6 +40,9 @@ EDDY_NAMES = ("dBx/dt", "dBy/dt", "dBz/dt")
 RATE_TOLERANCE = 0.01
 #: A time step larger than this many sample periods starts a new segment.
 GAP_PERIODS = 1.5
+#: The column holding each row's original row number, added to the chunks of a streamed evaluation without a time
+#: column (the derivative's gaps).
+ROW_COLUMN = "_trimag_row"
 SCHEME = "central difference per segment (H[i+1] - H[i-1]) / (t[i+1] - t[i-1]), one-sided at the segment ends"
 
 
@@ -156,6 +162,24 @@ def values_for(
     return values
 
 
+def time_source(spec: Mapping[str, Any], time_column: str | None, rate_hz: float | None) -> str | None:
+    """The time column of the derivative on new data: ``time_column`` when given, none when only ``rate_hz`` is
+    given (the rows' numbers at that rate), else the calibration's (``spec``)."""
+    if time_column:
+        return time_column
+    if rate_hz:
+        return None
+    column = spec.get("time_column")
+    return None if column is None else str(column)
+
+
+def row_numbers(table: Any) -> NDArray[np.float64] | None:
+    """The original 0-based row numbers of a table's rows (its integer index, :class:`trimag.io.Samples`), None when
+    its index is not one."""
+    index = np.asarray(table.index)
+    return index.astype(np.float64) if index.dtype.kind in "iu" else None
+
+
 def table_times(table: Any, column: str, path: Any) -> NDArray[np.float64]:
     """The time column ``column`` (s) of a pandas table; one line naming the file and its columns when absent."""
     import pandas as pd
@@ -174,11 +198,12 @@ def values_from_table(
 ) -> dict[str, NDArray[np.float64]]:
     """The eddy regressors of a calibration on the rows of ``table`` (aligned with ``B``): the derivative from
     ``time_column`` (default: the calibration's, which the data must then have) or from ``rate_hz`` (default: the
-    calibration's rate), the rate checked against the calibration's."""
-    column = time_column or spec.get("time_column")
+    calibration's rate) at the rows' original numbers (the table's index: a jump is a gap), the rate checked against
+    the calibration's (:func:`time_source`)."""
+    column = time_source(spec, time_column, rate_hz)
     if column is not None:
         return values_for(spec, B, time_s=table_times(table, column, path))
-    return values_for(spec, B, rate_hz=rate_hz)
+    return values_for(spec, B, rate_hz=rate_hz, rows=row_numbers(table))
 
 
 # ------------------------------------------------------------------ the application layer's uses (fit, apply, evaluate)
@@ -188,12 +213,14 @@ def fit_values(
     """The derived regressors of a fit on ``samples`` (:class:`trimag.io.Samples`, its kept rows), the calibration's
     record of them (:func:`eddy_spec`) and the messages for the user."""
     t = None if time_column is None else table_times(samples.table, time_column, path)
-    values, rate, isolated = eddy_values(samples.field, time_s=t, rate_hz=rate_hz)
+    rows = None if time_column is not None else row_numbers(samples.table)
+    values, rate, isolated = eddy_values(samples.field, time_s=t, rate_hz=rate_hz, rows=rows)
     messages = [f"eddy-current terms ({terms}): dB/dt by central differences at {rate:g} Hz "
                 f"({'from ' + time_column if time_column else 'given rate'})"]
-    if time_column is None and samples.n_dropped:
-        messages.append(f"warning: {samples.n_dropped} rows were dropped; without a time column the derivative "
-                        "spans them: give `time_column`")
+    n_gaps = 0 if rows is None else int(np.sum(np.diff(rows) > 1))
+    if n_gaps:
+        messages.append(f"{n_gaps} gaps in the row numbers (rows not selected or dropped) cut the derivative's "
+                        "segments")
     if isolated:
         messages.append(f"{isolated} samples alone in their segment have no derivative (eddy term 0)")
     return values, eddy_spec(terms, rate, time_column), messages
@@ -207,7 +234,8 @@ def streamed_calibrate(
     ``(calibrate, the columns it reads)``.
 
     A first pass reads x, y, z (and the time column and the logged regressors) and takes the derivative over the
-    rows that will be corrected (finite in all of them), so segments continue across chunks; the second pass
+    rows that will be corrected (finite in all of them; without a time column at their row numbers, so a row left
+    uncorrected is a gap), so segments continue across chunks; the second pass
     (``apply_file``) hands each chunk's corrected rows in order, and a cursor picks their derivatives.
     Memory: 4-5 doubles per row.
     """
@@ -222,10 +250,10 @@ def streamed_calibrate(
         u = chunk_columns(chunk, read, data_path) if read else np.empty((len(chunk), 0))
         ok = np.isfinite(chunk.xyz).all(axis=1) & np.isfinite(u).all(axis=1)
         xyz_parts.append(chunk.xyz[ok])
-        if tcol:
-            t_parts.append(u[ok, -1])
+        t_parts.append(u[ok, -1] if tcol else (chunk.start + np.flatnonzero(ok)).astype(np.float64))
     xyz_all = np.concatenate(xyz_parts) if xyz_parts else np.empty((0, 3))
-    derived = values_for(spec, xyz_all, time_s=np.concatenate(t_parts) if tcol else None)
+    t_all = np.concatenate(t_parts) if t_parts else np.empty(0)
+    derived = values_for(spec, xyz_all, time_s=t_all if tcol else None, rows=None if tcol else t_all)
     dB = np.column_stack([derived[n] for n in EDDY_NAMES])
     cursor = [0]
 
@@ -242,22 +270,42 @@ def streamed_calibrate(
     return calibrate, read
 
 
-def evaluate_columns(cal: Any, spec: Mapping[str, Any]) -> tuple[str, ...]:
-    """The columns a streamed evaluation reads for a calibration with eddy terms: its logged regressors, then its
-    time column (when it has one)."""
+def evaluate_columns(
+    cal: Any, spec: Mapping[str, Any], time_column: str | None = None, rate_hz: float | None = None
+) -> tuple[str, ...]:
+    """The columns a streamed evaluation reads for a calibration with eddy terms: its logged regressors, then the
+    time column (:func:`time_source`) or, without one, :data:`ROW_COLUMN` (:func:`with_row_numbers`)."""
     logged = tuple(n for n in cal.regressors["names"] if n not in EDDY_NAMES)
-    return logged + ((str(spec["time_column"]),) if spec.get("time_column") else ())
+    return (*logged, time_source(spec, time_column, rate_hz) or ROW_COLUMN)
 
 
-def corrected_magnitudes(cal: Any, spec: Mapping[str, Any], kept: list[tuple[Any, ...]]) -> tuple[NDArray[np.float64],
-                                                                                                    Any]:
-    """Corrected magnitudes of the rows ``kept`` (per chunk: x, y, z; the :func:`evaluate_columns` values; the
-    reference) of a calibration with eddy-current terms, and their references."""
+def with_row_numbers(chunk: Any) -> Any:
+    """``chunk`` (:class:`trimag.io.stream.Chunk`) with the column :data:`ROW_COLUMN`: each row's number in the file."""
+    from .io.stream import Chunk
+
+    rows = chunk.start + np.arange(len(chunk), dtype=np.float64)
+    if chunk.has_arrow:
+        import pyarrow as pa
+
+        return Chunk(None, chunk.xyz, chunk.start, arrow=chunk.arrow.append_column(ROW_COLUMN, pa.array(rows)))
+    return Chunk(chunk.table.assign(**{ROW_COLUMN: rows}), chunk.xyz, chunk.start)
+
+
+def corrected_magnitudes(
+    cal: Any, spec: Mapping[str, Any], kept: list[tuple[Any, ...]], time_column: str | None = None,
+    rate_hz: float | None = None,
+) -> tuple[NDArray[np.float64], Any]:
+    """Corrected magnitudes of the rows ``kept`` (per chunk: x, y, z; the :func:`evaluate_columns` values, the last
+    one the time or the row number; the reference) of a calibration with eddy-current terms, and their
+    references."""
     xyz = np.concatenate([k[0] for k in kept])
-    U = None if kept[0][1] is None else np.concatenate([k[1] for k in kept])
+    U = np.concatenate([k[1] for k in kept])
     logged = [n for n in cal.regressors["names"] if n not in EDDY_NAMES]
-    values = values_for(spec, xyz, time_s=None if not spec.get("time_column") or U is None else U[:, -1])
-    if logged and U is not None:
+    if time_source(spec, time_column, rate_hz) is not None:
+        values = values_for(spec, xyz, time_s=U[:, -1])
+    else:
+        values = values_for(spec, xyz, rate_hz=rate_hz, rows=U[:, -1])
+    if logged:
         values.update(zip(logged, U[:, : len(logged)].T, strict=True))
     refs = [k[2] for k in kept]
     ref: Any = refs[0] if refs[0] is None or np.ndim(refs[0]) == 0 else np.concatenate(refs)

@@ -170,6 +170,9 @@ class EvaluateRequest:
     heading_column: str | None = None
     declination: float | str | None = None
     chunk_rows: int = DEFAULT_CHUNK_ROWS
+    #: sample rate (Hz) of the data for a calibration's eddy-current terms when there is no ``attitude.time_column``
+    #: (checked against the calibration's)
+    rate_hz: float | None = None
 
     @classmethod
     def of(cls, calibration: str | Path, data: str | Path, **arguments: Any) -> EvaluateRequest:

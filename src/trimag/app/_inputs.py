@@ -149,9 +149,12 @@ def regressor_columns(
     return {n: column_values(samples, n) for n in names}
 
 
-def calibration_regressors(cal: Calibration, samples: Samples, path: Any) -> dict[str, NDArray[np.float64]] | None:
+def calibration_regressors(
+    cal: Calibration, samples: Samples, path: Any, *, time_column: str | None = None, rate_hz: float | None = None
+) -> dict[str, NDArray[np.float64]] | None:
     """The values (N,) of a calibration's regressors on the kept rows of ``samples``: logged channels from their
-    columns, eddy-current terms (:mod:`trimag.eddy`) from the samples' own derivative; None without terms."""
+    columns, eddy-current terms (:mod:`trimag.eddy`) from the samples' own derivative (from ``time_column`` or at
+    ``rate_hz`` when given, :func:`trimag.eddy.values_from_table`); None without terms."""
     if cal.regressors is None:
         return None
     spec = cal.regressors.get("eddy")
@@ -160,7 +163,8 @@ def calibration_regressors(cal: Calibration, samples: Samples, path: Any) -> dic
     if spec:
         from ..eddy import values_from_table
 
-        out.update(values_from_table(spec, samples.table, samples.field, path))
+        out.update(values_from_table(spec, samples.table, samples.field, path, time_column=time_column,
+                                     rate_hz=rate_hz))
     return out
 
 
@@ -256,7 +260,7 @@ def drop_rows_without_attitude(
     kept = dataclasses.replace(
         samples,
         field=samples.field[ok],
-        table=samples.table[ok].reset_index(drop=True),
+        table=samples.table[ok],  # the index keeps the original row numbers (trimag.eddy's gaps)
         n_dropped=samples.n_dropped + n_bad,
     )
     return kept, n_bad

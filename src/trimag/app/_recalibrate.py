@@ -88,7 +88,8 @@ def refit_prior(
         inclination = None
     regressor_values = None
     if prior.regressors is not None and prior.regressors.get("eddy"):  # derived from the data (trimag.eddy)
-        regressor_values = calibration_regressors(prior, samples, req.input.path)
+        regressor_values = calibration_regressors(prior, samples, req.input.path,
+                                                  time_column=req.attitude.time_column, rate_hz=req.rate_hz)
     elif prior.regressors is not None:
         regressor_values = regressor_columns(samples, tuple(prior.regressors["names"]), req.input.path,
                                              "a regressor of the prior calibration")

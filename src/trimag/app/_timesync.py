@@ -78,12 +78,13 @@ def attach_attitude_file(
     if n_out:
         messages.append(f"dropped {n_out} of {len(t)} magnetometer samples outside the attitude stream's span "
                         f"({t0:.6g}..{t1:.6g} s{f', lag {lag:+.4g} s' if lag else ''}) or without a time stamp")
-    table = samples.table[inside].reset_index(drop=True)
+    table = samples.table[inside]  # the index keeps the original row numbers
     names = ("_attitude_qw", "_attitude_qx", "_attitude_qy", "_attitude_qz")
     q = rot.as_quat(scalar_first=True)
     table = table.assign(**{name: q[:, k] for k, name in enumerate(names)})
     samples = dataclasses.replace(samples, field=samples.field[inside], table=table,
                                   n_dropped=samples.n_dropped + n_out)
-    req = dataclasses.replace(req, attitude=AttitudeSpec(quaternion_columns=",".join(names)))
+    req = dataclasses.replace(req, attitude=AttitudeSpec(quaternion_columns=",".join(names),
+                                                         time_column=att.time_column))  # the eddy terms' time
     return samples, req, sync, messages
 

@@ -47,14 +47,16 @@ def evaluate_file(
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
     read_names = regressor_names
     if spec:  # the derivative needs neighbouring rows: the selected rows are collected, then corrected at once
-        from ..eddy import evaluate_columns
+        from ..eddy import evaluate_columns, with_row_numbers
 
-        read_names = evaluate_columns(cal, spec)
+        read_names = evaluate_columns(cal, spec, req.attitude.time_column, req.rate_hz)
     kept: list[tuple[Any, ...]] = []
     before, after = MagnitudeAccumulator(), MagnitudeAccumulator()
     n_rows = n_bad = 0
     first_bad: int | None = None
     for chunk in chunks:
+        if spec:  # each row's number: the derivative's gaps without a time column
+            chunk = with_row_numbers(chunk)
         xyz, u, ref_values, n_chunk, first = _chunk_rows(chunk, req, rows, read_names, F)
         n_rows += n_chunk
         n_bad += n_chunk - len(xyz)
@@ -69,7 +71,7 @@ def evaluate_file(
     if spec and kept:
         from ..eddy import corrected_magnitudes
 
-        after.add(*corrected_magnitudes(cal, spec, kept))
+        after.add(*corrected_magnitudes(cal, spec, kept, req.attitude.time_column, req.rate_hz))
     if n_bad and src.strict:
         raise TrimagInputError(
             f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field (or regressor or reference) "

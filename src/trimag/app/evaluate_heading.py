@@ -57,7 +57,8 @@ def evaluate_heading_file(
     reference, accel = _reference_and_accel(req, samples)
     u = None
     if cal.regressors is not None:
-        values = calibration_regressors(cal, samples, src.path)
+        values = calibration_regressors(cal, samples, src.path, time_column=req.attitude.time_column,
+                                        rate_hz=req.rate_hz)
         assert values is not None
         u = np.column_stack([values[n] for n in cal.regressors["names"]])
     ok = np.isfinite(reference) & np.isfinite(accel).all(axis=1) & (np.linalg.norm(accel, axis=1) > 0)

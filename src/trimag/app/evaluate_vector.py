@@ -55,7 +55,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     rot = attitudes_of(samples, att)
     background, source = background_field(given, cal.units, samples)
     expected = _attitude.body_field(rot, background)
-    u = calibration_regressors(cal, samples, src.path)
+    u = calibration_regressors(cal, samples, src.path, time_column=req.attitude.time_column, rate_hz=req.rate_hz)
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
     before, after = _vector_errors(raw, expected), _vector_errors(corrected, expected)
     attitude_file = req.attitude.attitude_file

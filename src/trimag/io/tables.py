@@ -54,7 +54,8 @@ class Samples:
     field : ndarray, shape (N, 3)
         Finite field samples (rows with NaN/inf/non-numeric field cells removed).
     table : pandas.DataFrame
-        The kept rows with all the file's columns (same order as ``field``).
+        The kept rows with all the file's columns (same order as ``field``); its index holds their 0-based
+        data-row numbers in the file.
     columns : tuple of 3 str
         Names of the x, y, z columns used.
     column_note : str
@@ -698,6 +699,8 @@ def read_samples(
     """
     p = Path(path)
     df = read_table(p, fmt=fmt, var=var, sensor=sensor)
+    if not df.index.equals(pd.RangeIndex(len(df))):  # the index numbers the data rows (Samples.table)
+        df = df.set_axis(pd.RangeIndex(len(df)), axis=0)
     log_info = df.attrs.get("trimag_log")
     n_total = len(df)
     if n_total == 0:
@@ -727,7 +730,7 @@ def read_samples(
     n_dup = count_duplicate_rows(field_arr)
     return Samples(
         field=np.ascontiguousarray(field_arr),
-        table=pd.DataFrame(kept).reset_index(drop=True),
+        table=pd.DataFrame(kept),  # the index: the kept rows' 0-based data-row numbers
         columns=cols,
         column_note=note,
         n_rows=len(df),
