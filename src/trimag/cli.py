@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from ._core.chunks import DEFAULT_CHUNK_ROWS
 from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
 
@@ -186,7 +187,7 @@ def _add_output_options(
 
 
 def _add_chunk_rows(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--chunk-rows", type=int, default=200_000, help="rows per chunk (memory bound)")
+    p.add_argument("--chunk-rows", type=int, default=DEFAULT_CHUNK_ROWS, help="rows per chunk (memory bound)")
 
 
 def _add_fit(sub: Any) -> None:
@@ -543,7 +544,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
 
 def _refuse_unused(args: argparse.Namespace, dests: tuple[str, ...], what: str) -> None:
     """Refuse a flag the command accepts but does not use with ``what`` (never ignore it)."""
-    defaults = {"chunk_rows": 200_000}
+    defaults = {"chunk_rows": DEFAULT_CHUNK_ROWS}
     for dest in dests:
         value = getattr(args, dest, None)
         if value not in (None, False, defaults.get(dest)):
@@ -715,7 +716,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     # every file's request: the flags given, without an output (one calibration per file)
     request = _request(FitRequest, args, "", options=parse_options(args.option),
-                       regressors=_regressor_flag(args.regressors), out=None, rate_hz=getattr(args, "rate", None))
+                       regressors=_regressor_flag(args.regressors), out=None, rate_hz=args.rate)
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):

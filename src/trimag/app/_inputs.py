@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, column_values
+from ..io.tables import strict_refusal
 from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
 from ..requests import AttitudeSpec, ReferenceSpec
 from ..units import convert
@@ -251,10 +252,8 @@ def drop_rows_without_attitude(
     if n_bad == 0:
         return samples, 0
     if strict:
-        raise TrimagInputError(
-            f"{n_bad} row(s) have a missing or non-numeric {what} in columns {', '.join(present)} (first at kept row "
-            f"{int(np.flatnonzero(~ok)[0])}); fix them, or drop `strict` to skip and count them"
-        )
+        raise strict_refusal("", n_bad, f"a missing or non-numeric {what} in columns {', '.join(present)}",
+                             f"kept row {int(np.flatnonzero(~ok)[0])}")
     if n_bad == len(ok):
         raise TrimagInputError(f"none of the rows has a finite attitude in columns {', '.join(present)}")
     kept = dataclasses.replace(

@@ -13,7 +13,7 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
-from ..io.tables import where_mask
+from ..io.tables import strict_refusal, where_mask
 from ..reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..requests import EvaluateRequest, as_request
 from ..units import convert, normalise_unit
@@ -73,11 +73,8 @@ def evaluate_file(
 
         after.add(*corrected_magnitudes(cal, spec, kept, req.attitude.time_column, req.rate_hz))
     if n_bad and src.strict:
-        raise TrimagInputError(
-            f"{src.path}: {n_bad} row(s) have missing, non-numeric, NaN or inf field (or regressor or reference) "
-            "values (first at data row "
-            f"{first_bad}); fix them, or drop `strict` to skip and count them"
-        )
+        raise strict_refusal(f"{src.path}: ", n_bad, "missing, non-numeric, NaN or inf field (or regressor or "
+                             "reference) values", f"data row {first_bad}")
     if after.n == 0:
         raise TrimagInputError(f"{src.path}: no rows with finite x, y, z values to evaluate")
     stats_after = after.result()

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, read_samples
+from ..io.tables import strict_refusal
 from ..reference import igrf, parse_igrf_spec
 from ..requests import EvaluateRequest, as_request
 from ._inputs import calibration_regressors
@@ -65,11 +66,8 @@ def evaluate_heading_file(
     if u is not None:
         ok &= np.isfinite(u).all(axis=1)
     if src.strict and not ok.all():
-        raise TrimagInputError(
-            f"{src.path}: {int((~ok).sum())} row(s) have a missing or non-numeric reference heading, accelerometer or "
-            f"regressor value (first at kept row {int(np.flatnonzero(~ok)[0])}); fix them, or drop `strict` to skip "
-            "and count them"
-        )
+        raise strict_refusal(f"{src.path}: ", int((~ok).sum()), "a missing or non-numeric reference heading, "
+                             "accelerometer or regressor value", f"kept row {int(np.flatnonzero(~ok)[0])}")
     if not ok.any():
         raise TrimagInputError(f"{src.path}: no row has a finite reference heading and accelerometer")
     corrected = cal.apply(samples.field[ok], regressors=None if u is None else u[ok])

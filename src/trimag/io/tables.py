@@ -455,6 +455,13 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
     return df
 
 
+def strict_refusal(where: str, n_bad: int, values: str, first: str) -> TrimagInputError:
+    """The one message of ``strict`` for rows that would be skipped: ``n_bad`` rows of ``where`` (a path and ": ",
+    or "") have ``values`` missing, the first at ``first`` ("data row 17", "kept row 3")."""
+    return TrimagInputError(f"{where}{n_bad} row(s) have {values} (first at {first}); fix them, or drop `strict` to "
+                            "skip and count them")
+
+
 def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
     """Refuse a ``sensor`` for a file that is not an autopilot log (a table has one magnetometer: its columns)."""
     if sensor is not None and kind not in LOG_KINDS:
@@ -717,10 +724,8 @@ def read_samples(
     positions = np.nonzero(~ok)[0]
     format_note = _xyz_note(df, cols, n_total) if "trimag_xyz" in df.attrs else ""
     if n_bad and strict:
-        raise TrimagInputError(
-            f"{p}: {n_bad} row(s) have missing, non-numeric, NaN or inf field values (first at data row "
-            f"{int(df.index[positions[0]])}); fix them, or drop `strict` to skip and count them"
-        )
+        raise strict_refusal(f"{p}: ", n_bad, "missing, non-numeric, NaN or inf field values",
+                             f"data row {int(df.index[positions[0]])}")
     if n_bad == len(df):
         raise TrimagInputError(
             f"{p}: none of the {len(df)} rows has three numeric, finite values in columns {', '.join(cols)}"
