@@ -20,7 +20,7 @@ upper-triangular ``W`` scaled to ``det W = 1``, and the offset.
 Per cell and estimator: RMS error / sqrt(CRLB) of each of the 9 parameters (max over parameters reported), the
 RMS error of the corrected field and of the corrected magnitude on 500 noise-free test directions spread over the
 whole sphere (divided by their CRLB prediction), the 1-sigma coverage of trimag's reported uncertainty, failures
-and time. The bound is :func:`trimag.crlb.crlb` for the cell's directions (trial 0), ``known_magnitude=False``.
+and time. The bound is :func:`trimag.quality.crlb.crlb` for the cell's directions (trial 0), ``known_magnitude=False``.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from trimag.crlb import UPPER, crlb
-from trimag.diagnostics import fibonacci_sphere
 from trimag.estimators import DEFAULT_METHOD, available_methods, get_estimator
 from trimag.io.atomic import atomic_write_text
 from trimag.models.ellipsoid import Ellipsoid, to_upper
+from trimag.quality.crlb import UPPER, crlb
+from trimag.quality.diagnostics import fibonacci_sphere
 from trimag.simulate import great_circle_directions, hemisphere_directions, uniform_directions
 
 __all__ = ["PEERS", "add_arguments", "main", "markdown_tables", "merge", "run", "summarise", "truth"]

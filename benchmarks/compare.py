@@ -24,7 +24,10 @@ import tempfile
 
 _BATCH = """
 import json, shutil, sys
-from trimag.batch import fit_batch
+try:
+    from trimag.app.batch import fit_batch
+except ImportError:  # a tree from before the job packages (issue 29)
+    from trimag.batch import fit_batch
 from trimag.parallel import shutdown_pools
 if __name__ == "__main__":
     out = {}

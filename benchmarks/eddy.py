@@ -21,9 +21,9 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 import trimag
-from trimag.attitude import body_field, from_quaternion
-from trimag.eddy import EDDY_NAMES, eddy_values, free_mask
-from trimag.regressors import fit_regressors
+from trimag.fields.attitude import body_field, from_quaternion
+from trimag.vehicle.eddy import EDDY_NAMES, eddy_values, free_mask
+from trimag.vehicle.regressors import fit_regressors
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 BROAD = ("01_undisturbed_slow_rotation_A.mat", "02_undisturbed_slow_rotation_B.mat",
@@ -125,8 +125,8 @@ def run_magnav() -> dict[str, Any]:
     """
     import scipy.io as sio
 
+    from trimag.aircraft.filtering import BandPass
     from trimag.estimators.tolles_lawson import fit_tolles_lawson
-    from trimag.filtering import BandPass
 
     d = sio.loadmat(str(SHARED / "magnav-tl" / "test_data_TL.mat"), squeeze_me=True,
                     struct_as_record=False)["TL_data"]

@@ -8,7 +8,7 @@ reference carry errors (white ``--attitude-noise-deg`` per axis plus a slow drif
 K, c, E on one box, scored on another box (other seed, other manoeuvres) against the true body field:
 
 * ``vector``: trimag's interference12 with eddy terms (``option eddy=9``), vector reference from the INS attitudes;
-* ``joint``: :func:`trimag.joint.fit_joint_scalar`, the vector rows stacked with magnitude rows
+* ``joint``: :func:`trimag.vehicle.joint.fit_joint_scalar`, the vector rows stacked with magnitude rows
   ``|K^-1 (H_m - c - E dH/dt)| - (S - d)`` against the Tolles–Lawson-compensated scalar ``S`` (its own TL fit on the
   same box, with a free offset ``d``), each kind of row weighted by the inverse of its residual RMS.
 
@@ -29,11 +29,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 import trimag
-from trimag.eddy import EDDY_NAMES, eddy_values, free_mask
 from trimag.estimators.tolles_lawson import fit_tolles_lawson
-from trimag.joint import fit_joint_scalar
-from trimag.regressors import fit_regressors
 from trimag.simulate import simulate_aircraft
+from trimag.vehicle.eddy import EDDY_NAMES, eddy_values, free_mask
+from trimag.vehicle.joint import fit_joint_scalar
+from trimag.vehicle.regressors import fit_regressors
 
 K_TRUE = np.eye(3) + np.array([[0.02, 0.01, -0.005], [0.0, -0.01, 0.008], [0.004, 0.0, 0.015]])
 C_TRUE = np.array([300.0, -150.0, 80.0])
@@ -80,7 +80,7 @@ def _score(cal: trimag.Calibration, sim, dB: NDArray[np.float64]) -> tuple[float
 def _tl_held_out(X_fit: NDArray[np.float64], sim, X_test: NDArray[np.float64], test) -> float:
     """The scalar's TL fitted with ``X_fit`` as its vector source on ``sim``, scored on ``test`` (``X_test``): the
     mean band-passed (0.1-0.9 Hz) std of the compensated scalar over the test box's legs, nT."""
-    from trimag.filtering import BandPass
+    from trimag.aircraft.filtering import BandPass
 
     bp = BandPass(0.1, 0.9, test.rate_hz, 4, 20)
     comp = fit_tolles_lawson(X_fit, sim.scalar_nT, rate_hz=sim.rate_hz, segments=sim.segments, bootstrap=0)

@@ -26,7 +26,7 @@ Three parts, all measured in one run (``docs/performance.md`` records a run and 
 2. **apply / evaluate.** A CSV (and a Parquet) file of ``apply_rows`` rows (time, x, y, z) is written in a
    temporary folder, then ``trimag apply`` and ``trimag evaluate`` run as separate processes: wall time, rows
    per second and peak resident memory (``/usr/bin/time``, else polled with psutil).
-3. **batch.** ``batch_files`` CSV files of ``batch_samples`` samples, fitted with ``trimag.batch.fit_batch``
+3. **batch.** ``batch_files`` CSV files of ``batch_samples`` samples, fitted with ``trimag.app.batch.fit_batch``
    (default method ``ml``) with 1 and 2 workers (Dask processes, and threads for comparison): files per second.
 """
 
@@ -56,7 +56,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from trimag.crlb import UPPER
 from trimag.errors import TrimagInputError
 from trimag.estimators import available_methods, get_estimator, make_estimator
 from trimag.experiments._output import jsonable, save_figure, write_dict_csv
@@ -67,6 +66,7 @@ from trimag.experiments._output import jsonable, save_figure, write_dict_csv
 from trimag.io.atomic import atomic_write_text
 from trimag.models import get_model
 from trimag.models.ellipsoid import to_upper
+from trimag.quality.crlb import UPPER
 
 __all__ = ["add_arguments", "machine_facts", "main", "run"]
 
@@ -519,7 +519,7 @@ def batch_benchmark(n_files: int, n_samples: int, tmp: Path, log: Callable[[str]
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    from trimag.batch import fit_batch
+    from trimag.app.batch import fit_batch
     from trimag.parallel import shutdown_pools
 
     d = tmp / "fleet"

@@ -13,6 +13,10 @@ from types import ModuleType
 import numpy as np
 import pytest
 
+#: the tests' folder (``tests/``, where ``data/`` is) and the repository's root
+TESTS_DIR = Path(__file__).resolve().parent
+REPO_DIR = TESTS_DIR.parent
+
 # the folder beside the repository (CI clones beside shared/), or where TRIMAG_SHARED_DATA points; nothing else
 SHARED_DATA = Path(os.environ.get("TRIMAG_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 
@@ -21,7 +25,7 @@ requires_shared = pytest.mark.skipif(
 )
 
 #: The repository's benchmark harnesses (``python benchmarks/speed.py ...``); not part of the installed package.
-BENCHMARKS_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCHMARKS_DIR = REPO_DIR / "benchmarks"
 
 
 def load_benchmark(name: str) -> ModuleType:

@@ -4,7 +4,9 @@
 - an estimator module imports no sibling estimator: only the estimators' base and shared private modules
   (``base``, ``_common``, ``_finish``, ``_pairs``, ``_quadric``), the numerical core and the support modules;
 - the numerical core (``trimag._core``) imports nothing of trimag but itself and ``trimag.errors``;
-- at most two module-level chunk/block-size constants (the one chunk setting and the rows of a streamed file).
+- at most two module-level chunk/block-size constants (the one chunk setting and the rows of a streamed file);
+- the house (issue 29): at most 16 top-level modules, each package imports only the layers below it
+  (``LAYERS``, the table of docs/architecture.md), and each package's ``__init__`` says its job.
 """
 
 from __future__ import annotations
@@ -186,20 +188,135 @@ def test_the_public_api_check_sees_the_experiments_imports():
     assert ("trimag.estimators.gauss_newton", "GaussNewton") in found
 
 
-def test_only_the_workflow_facade_imports_the_app_layer():
-    """The application layer (``trimag.app``, one module per command) sits on top: the library never imports it,
-    and the CLI and batch runs reach it through ``trimag.workflow`` (its stable names)."""
+def test_only_the_front_ends_import_the_app_layer():
+    """The application layer (``trimag.app``, one module per command) sits on top: the library never imports it;
+    the front ends (the CLI and ``trimag live``) call its entry points."""
+    front_ends = {"trimag.cli", "trimag.live"}
     outside = {
         name: sorted(m for m in GRAPH[name] if m == "trimag.app" or m.startswith("trimag.app."))
-        for name in GRAPH if not name.startswith("trimag.app") and name != "trimag.workflow"
+        for name in GRAPH if not name.startswith("trimag.app") and _unit(name) not in {"cli", "live"}
     }
     assert {name: found for name, found in outside.items() if found} == {}
+    assert front_ends <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", sorted(m for m in MODULES if m.startswith("trimag.app")))
 def test_the_app_layer_does_not_import_its_callers(name):
-    callers = {"trimag.cli", "trimag.batch", "trimag.workflow", "trimag.live"}
+    callers = {m for m in MODULES if _unit(m) in {"cli", "live"}}
     assert GRAPH[name] & callers == set(), f"{name} imports {sorted(GRAPH[name] & callers)}"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The house (issue 29): the jobs' packages and what each may import (docs/architecture.md, "Layers")
+
+FOUNDATION = {"errors", "units", "validation", "_version"}
+#: top-level module or package -> the top-level modules and packages it may import (besides itself)
+LAYERS: dict[str, set[str]] = {
+    "errors": set(),
+    "units": {"errors"},
+    "validation": {"errors"},
+    "_version": set(),
+    "_moved": set(),
+    "_core": {"errors"},
+    "models": {"_core", "errors"},
+    "calibration": FOUNDATION | {"_core", "models", "io"},
+    "io": FOUNDATION | {"_core", "calibration", "fields"},
+    "fields": FOUNDATION | {"_core"},
+    "quality": FOUNDATION | {"_core", "models", "calibration", "io", "fields"},
+    "aircraft": FOUNDATION | {"_core", "models", "calibration", "io", "_moved"},
+    "estimators": FOUNDATION | {"_core", "models", "calibration", "io", "fields", "quality", "aircraft"},
+    "vehicle": FOUNDATION | {"_core", "models", "calibration", "io", "fields", "quality"},
+    "simulate": FOUNDATION | {"_core", "models", "fields"},
+    "parallel": {"_core", "errors"},
+    "fitting": FOUNDATION | {"calibration", "estimators", "vehicle"},
+    "solvers": {"estimators"},
+    "testing": FOUNDATION | {"calibration", "estimators", "models", "simulate"},
+    "experiments": FOUNDATION | {"calibration", "models", "io", "fields", "quality", "estimators", "simulate",
+                                 "parallel", "solvers"},
+    "app": FOUNDATION | {"_core", "models", "calibration", "io", "fields", "quality", "aircraft", "estimators",
+                         "vehicle", "simulate", "parallel", "fitting"},
+    "live": FOUNDATION | {"_core", "models", "calibration", "io", "fields", "quality", "estimators", "vehicle",
+                          "fitting", "app"},
+    "cli": FOUNDATION | {"_core", "io", "quality", "vehicle", "parallel", "experiments", "app", "live"},
+    "__main__": {"cli"},
+    "trimag": FOUNDATION | {"_moved", "calibration", "aircraft", "quality", "estimators", "fitting", "models"},
+}
+TOP_LEVEL_LIMIT = 16  # modules at the top of src/trimag/, __init__, __main__ and _version not counted
+
+
+def _unit(name: str) -> str:
+    """The top-level module or package ``name`` belongs to (``trimag`` for the package's own ``__init__``)."""
+    parts = name.split(".")
+    return parts[1] if len(parts) > 1 else "trimag"
+
+
+def _layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    out = []
+    for name, imported in sorted(graph.items()):
+        unit = _unit(name)
+        allowed = LAYERS.get(unit)
+        if allowed is None:
+            out.append(f"{name}: {unit!r} is not in the layer table (docs/architecture.md)")
+            continue
+        out += [f"{name} imports {m}" for m in sorted(imported) if _unit(m) != unit and _unit(m) not in allowed]
+    return out
+
+
+def test_each_package_imports_only_the_layers_below_it():
+    assert _layer_violations(GRAPH) == []
+
+
+def test_the_layer_check_sees_a_violation():
+    graph = {"trimag.quality.metrics": {"trimag.estimators.ml"}, "trimag.vehicle.eddy": {"trimag.io.tables"},
+             "trimag.gadgets": set()}
+    assert _layer_violations(graph) == [
+        "trimag.gadgets: 'gadgets' is not in the layer table (docs/architecture.md)",
+        "trimag.quality.metrics imports trimag.estimators.ml",
+    ]
+
+
+def test_at_most_16_top_level_modules_each_in_the_layer_table():
+    top = sorted(p.stem for p in ROOT.glob("*.py") if p.stem not in {"__init__", "__main__", "_version"})
+    assert len(top) <= TOP_LEVEL_LIMIT, top
+    packages = sorted(p.parent.name for p in ROOT.glob("*/__init__.py"))
+    assert set(top) | set(packages) <= set(LAYERS), sorted(set(top) | set(packages) - set(LAYERS))
+    assert {"vehicle", "aircraft", "quality", "fields", "app"} <= set(packages)
+
+
+@pytest.mark.parametrize("package", sorted(p.parent.name for p in ROOT.glob("*/__init__.py")))
+def test_each_package_says_its_job(package):
+    """Each package's ``__init__`` opens with a docstring of at least two lines: its job, and what lives there."""
+    doc = ast.get_docstring(ast.parse((ROOT / package / "__init__.py").read_text(encoding="utf-8")))
+    assert doc is not None and len(doc.split("\n\n")[0].splitlines()) >= 2, package
+
+
+def test_the_former_paths_still_import_with_a_warning():
+    """The modules moved into the job packages keep their former import paths, deprecated (docs/architecture.md,
+    "Former paths"): the same module object, one DeprecationWarning naming the new home."""
+    import importlib
+    import sys
+    import warnings
+
+    from trimag._moved import MOVED
+
+    for old, new in MOVED.items():
+        sys.modules.pop(old, None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            module = importlib.import_module(old)
+        assert module is importlib.import_module(new), old
+        assert [str(w.message).split(" is deprecated")[0] for w in caught
+                if issubclass(w.category, DeprecationWarning)] == [old], old
+        assert any(new in str(w.message) for w in caught)
+    with pytest.warns(DeprecationWarning, match="trimag.app.tolles_lawson.parse_segments"):
+        from trimag.aircraft import parse_segments
+    assert parse_segments("0:1") == [(0.0, 1.0)]
+    sys.modules.pop("trimag.workflow", None)
+    with pytest.warns(DeprecationWarning, match="trimag.app"):
+        from trimag.workflow import fit_file
+    from trimag.app import fit_file as new_fit_file
+
+    assert fit_file is new_fit_file
 
 
 def _block_loops(sources: dict[str, str] | None = None) -> list[str]:

@@ -60,7 +60,7 @@ def test_fit_json_contract(ellipsoid_log: Path, tmp_path: Path) -> None:
 
 
 def test_fit_igrf_reference(ellipsoid_log: Path) -> None:
-    # NOAA's calculator (IGRF-14) at 20 N, 50 E, sea level, 2020-01-01: F = 41232.3 nT (tests/test_reference.py)
+    # NOAA's calculator (IGRF-14) at 20 N, 50 E, sea level, 2020-01-01: F = 41232.3 nT (tests/fields/test_reference.py)
     proc = run_trimag("fit", ellipsoid_log, "--units", "nT", "--igrf", "20,50,0,2020-01-01", "--json")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
@@ -204,8 +204,8 @@ def test_each_command_builds_its_request_from_its_flags() -> None:
     """cli._request fills each request field (and each field of its input/reference/attitude specs) from the flag
     of the same destination: nothing a user gives is dropped, and a plain field named like a spec (live's
     `reference`, a number) stays a plain field."""
+    from trimag.app.requests import ApplyRequest, EvaluateRequest, ExportRequest, LiveRequest, SimulateRequest
     from trimag.cli import _request, build_parser
-    from trimag.requests import ApplyRequest, EvaluateRequest, ExportRequest, LiveRequest, SimulateRequest
 
     parse = build_parser().parse_args
     live = _request(LiveRequest, parse(["live", "--replay", "x.csv", "--reference", "48000", "--port", "0"]))

@@ -7,7 +7,7 @@
 - 1 mG = 100 nT end to end, ``--igrf`` for ``interference12`` on data in uT, ``simulate --noise`` adds that noise.
 
 Expected values are independent of the code under test: numpy on the JSON's numbers, the spread of repeated
-fits, and the NOAA calculator's IGRF-14 values at 20 N, 50 E, 2020-01-01 (as in tests/test_reference.py).
+fits, and the NOAA calculator's IGRF-14 values at 20 N, 50 E, 2020-01-01 (as in tests/fields/test_reference.py).
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ import trimag
 
 from _helpers import ellipsoid_truth, run_trimag, simulate_ellipsoid
 
-#: NOAA IGRF-14 at 20 N, 50 E, sea level, 2020-01-01: north, east, down and total field, nT (tests/test_reference.py)
+#: NOAA IGRF-14 at 20 N, 50 E, sea level, 2020-01-01: north, east, down and total field, nT
+#: (tests/fields/test_reference.py)
 NOAA_SPEC = "20,50,0,2020-01-01"
 NOAA_NED_NT = np.array([35747.8, 1220.6, 20511.3])
 NOAA_F_NT = 41232.3
@@ -192,7 +193,7 @@ def test_cli_user_mistakes_exit_2_not_1(small_log: Path, tmp_path: Path, capsys:
 def test_batch_programming_error_exits_1_and_says_it_is_a_bug(
     small_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from trimag import cli, workflow
+    from trimag import app, cli
 
     fleet = tmp_path / "fleet"
     fleet.mkdir()
@@ -203,7 +204,7 @@ def test_batch_programming_error_exits_1_and_says_it_is_a_bug(
     assert code == 2, capsys.readouterr().err
     capsys.readouterr()
     (fleet / "c.csv").unlink()
-    monkeypatch.setattr(workflow, "fit_file", _boom)  # every fit now fails as a bug would
+    monkeypatch.setattr(app, "fit_file", _boom)  # every fit now fails as a bug would
     code = cli.main(["batch", str(fleet / "*.csv"), "--out", str(tmp_path / "o2"), "--json"])
     out, err = capsys.readouterr()
     assert code == 1

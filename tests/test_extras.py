@@ -196,12 +196,12 @@ def test_an_unguarded_import_of_an_extra_still_exits_2(monkeypatch: pytest.Monke
                                                         capsys: pytest.CaptureFixture[str]) -> None:
     """A code path that imports an optional package without ``require`` is caught by the CLI: exit 2, the extra
     named; a missing module that is not an extra is a bug (exit 1)."""
-    from trimag import cli, workflow
+    from trimag import app, cli
 
     def needs_pyarrow(*args: object, **kwargs: object) -> None:
         raise ModuleNotFoundError("No module named 'pyarrow'", name="pyarrow")
 
-    monkeypatch.setattr(workflow, "simulate_to_file", needs_pyarrow)
+    monkeypatch.setattr(app, "simulate_to_file", needs_pyarrow)
     argv = ["simulate", "--model", "ellipsoid", "--params", "p.json", "--n", "10", "-o", "x.csv"]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
@@ -210,6 +210,6 @@ def test_an_unguarded_import_of_an_extra_still_exits_2(monkeypatch: pytest.Monke
     def needs_nothing_known(*args: object, **kwargs: object) -> None:
         raise ModuleNotFoundError("No module named 'trimag_gone'", name="trimag_gone")
 
-    monkeypatch.setattr(workflow, "simulate_to_file", needs_nothing_known)
+    monkeypatch.setattr(app, "simulate_to_file", needs_nothing_known)
     assert cli.main(argv) == 1
     assert "a bug in trimag" in capsys.readouterr().err

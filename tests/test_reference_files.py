@@ -19,9 +19,9 @@ import pytest
 from numpy.typing import NDArray
 
 from trimag import Calibration
+from trimag.aircraft.compensation import COMPENSATION_FORMAT_VERSION, ScalarCompensation
 from trimag.calibration import FORMAT_VERSION
 from trimag.cli import main as trimag_main
-from trimag.compensation import COMPENSATION_FORMAT_VERSION, ScalarCompensation
 from trimag.models import available_models
 
 DATA = Path(__file__).resolve().parent / "data" / "calibrations"

@@ -50,7 +50,7 @@ def test_duplicating_every_row_does_not_shrink_the_sigmas():
 def test_as_many_samples_as_parameters_reports_unknown_uncertainty():
     """Finding: 9 samples reported c3 = -40719.9 +- 2.89e-09 nT (no degree of freedom left for the noise)."""
     from trimag.calibration import Calibration
-    from trimag.honesty import honest_uncertainty
+    from trimag.quality.honesty import honest_uncertainty
 
     X = simulate_ellipsoid(9, noise=0.0, seed=2)
     cal = Calibration.from_matrix_offset(np.eye(3), [0, 0, 0], units="nT", model="scalar9",
@@ -61,7 +61,7 @@ def test_as_many_samples_as_parameters_reports_unknown_uncertainty():
 
 
 def test_correlated_residuals_inflate_and_white_noise_does_not():
-    from trimag.honesty import correlation_time
+    from trimag.quality.honesty import correlation_time
 
     rng = np.random.default_rng(0)
     white = rng.normal(size=5000)
@@ -416,7 +416,7 @@ def test_poorly_covered_ellipsoid_warning_names_the_cone():
 def test_messages_never_dump_arrays():
     """Finding: passing a per-sample background vector (N, 3) dumped the whole array (a 537 235-character message)."""
     from trimag.errors import TrimagInputError
-    from trimag.reference import as_vector
+    from trimag.fields.reference import as_vector
 
     with pytest.raises(TrimagInputError) as info:
         as_vector(np.ones((50_000, 3)))

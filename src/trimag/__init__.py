@@ -5,10 +5,10 @@
 >>> corrected = cal.apply(samples)                               # doctest: +SKIP
 """
 
+from . import _moved
 from ._version import __version__
+from .aircraft.compensation import ScalarCompensation
 from .calibration import Calibration
-from .compensation import ScalarCompensation
-from .crlb import crlb
 from .errors import (
     IdentifiabilityError,
     IdentifiabilityWarning,
@@ -20,6 +20,9 @@ from .errors import (
 from .estimators import available_methods, get_estimator
 from .fitting import fit
 from .models import available_models, get_model
+from .quality.crlb import crlb
+
+_moved.install()
 
 __all__ = [
     "Calibration",

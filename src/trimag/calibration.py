@@ -69,7 +69,7 @@ def file_major_version(data: Any, kind: str, current: str) -> int:
 
 #: The fields every ``Calibration.uncertainty`` has, whatever made it (an estimator, a regressor refit, a quick
 #: recalibration, a joint fit: :func:`make_uncertainty`); ``None`` where the method does not know the value.
-#: ``trimag.honesty`` then adds ``inflation``.
+#: ``trimag.quality.honesty`` then adds ``inflation``.
 UNCERTAINTY_FIELDS = (
     "basis", "gauge", "param_std", "covariance", "covariance_order", "noise_std", "predicted_field_rms",
     "predicted_magnitude_rms",

@@ -1,4 +1,4 @@
-"""The ``trimag`` command: parsing and printing only; the work is done in :mod:`trimag.workflow`.
+"""The ``trimag`` command: parsing and printing only; the work is done in :mod:`trimag.app`.
 
 Exit codes (docs/cli.md): 0 success; 2 bad input or usage; 3 the data cannot identify the requested model;
 1 internal error. Errors are one line on stderr, never a traceback.
@@ -21,7 +21,7 @@ from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
 
 if TYPE_CHECKING:
-    from .requests import EvaluateRequest
+    from .app.requests import EvaluateRequest
 
 _R = TypeVar("_R")
 
@@ -359,7 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _print_fit(result: Any, args: argparse.Namespace) -> None:
-    from .report import params_table, summary_table
+    from .quality.report import params_table, summary_table
 
     for msg in result.messages:
         _err(msg) if msg.startswith("warning:") else _say(msg, args)
@@ -374,7 +374,7 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
     if cal.regressors is not None:
-        from .regressors import ranking_table
+        from .vehicle.regressors import ranking_table
 
         _say(ranking_table(cal.diagnostics["regressors"]["ranking"], cal.units), args)
     for what, path in result.written.items():
@@ -386,8 +386,8 @@ def _split_list(text: str | None) -> list[str] | None:
 
 
 def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
-    from .aircraft import TollesLawsonFitRequest, fit_compensation_file, parse_segments
-    from .workflow import parse_options
+    from .app import parse_options
+    from .app.tolles_lawson import TollesLawsonFitRequest, fit_compensation_file, parse_segments
 
     if not args.columns or not args.scalar_column:
         raise TrimagInputError("model tolles-lawson needs --columns FX,FY,FZ (vector magnetometer) and "
@@ -447,11 +447,11 @@ def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None
 
 
 def _request(cls: type[_R], args: argparse.Namespace, path: Any = None, **given: Any) -> _R:
-    """The typed request ``cls`` (:mod:`trimag.requests`) of a command from its parsed flags: each field (and each
+    """The typed request ``cls`` (:mod:`trimag.app.requests`) of a command from its parsed flags: each field (and each
     field of its ``input``, ``reference`` and ``attitude`` specs, when it has them) takes the flag whose destination
     has its name, the field's default when the command has no such flag; ``path`` is the input's path and
     ``given`` sets fields directly."""
-    from .requests import AttitudeSpec, InputSpec, ReferenceSpec
+    from .app.requests import AttitudeSpec, InputSpec, ReferenceSpec
 
     specs: dict[str, type] = {"input": InputSpec, "reference": ReferenceSpec, "attitude": AttitudeSpec}
 
@@ -475,7 +475,7 @@ def _regressor_flag(text: str | None) -> tuple[str, ...] | None:
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    from .workflow import fit_file, parse_options
+    from .app import fit_file, parse_options
 
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
@@ -485,7 +485,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                                    "scalar (drop --accel-columns)")
         return _cmd_fit_tolles_lawson(args)
 
-    from .requests import FitRequest
+    from .app.requests import FitRequest
 
     result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
                                regressors=_regressor_flag(args.regressors), rate_hz=args.rate))
@@ -520,9 +520,9 @@ def _progress(args: argparse.Namespace) -> tuple[Callable[[int], None], Callable
 
 
 def _cmd_apply(args: argparse.Namespace) -> int:
-    from .aircraft import apply_compensation_file, is_compensation_file
-    from .requests import ApplyRequest
-    from .workflow import apply_to_file
+    from .app import apply_to_file
+    from .app.requests import ApplyRequest
+    from .app.tolles_lawson import apply_compensation_file, is_compensation_file
 
     _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
     req = _request(ApplyRequest, args, args.data)
@@ -578,8 +578,8 @@ def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .aircraft import evaluate_compensation_file, is_compensation_file
-    from .requests import EvaluateRequest
+    from .app.requests import EvaluateRequest
+    from .app.tolles_lawson import evaluate_compensation_file, is_compensation_file
 
     req = _request(EvaluateRequest, args, args.data, rate_hz=args.rate)
     if req.accel_columns or req.heading_column or req.declination is not None:
@@ -603,7 +603,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
-    from .workflow import evaluate_file
+    from .app import evaluate_file
 
     r = _with_progress(args, evaluate_file, req)
     if r["n_dropped"]:
@@ -629,7 +629,7 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
 def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .workflow import evaluate_vector_file
+    from .app import evaluate_vector_file
 
     v = evaluate_vector_file(req)
     if args.json:
@@ -648,7 +648,7 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_heading(req: EvaluateRequest, args: argparse.Namespace) -> int:
-    from .workflow import evaluate_heading_file
+    from .app import evaluate_heading_file
 
     if not req.accel_columns:
         raise TrimagInputError("--heading-column and --declination need --accel-columns AX,AY,AZ (the heading is "
@@ -672,8 +672,8 @@ def _cmd_evaluate_heading(req: EvaluateRequest, args: argparse.Namespace) -> int
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from .requests import ExportRequest
-    from .workflow import export_to_file
+    from .app import export_to_file
+    from .app.requests import ExportRequest
 
     _check_writable(args.out)
     r = export_to_file(_request(ExportRequest, args))
@@ -689,8 +689,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from .requests import SimulateRequest
-    from .workflow import simulate_to_file
+    from .app import simulate_to_file
+    from .app.requests import SimulateRequest
 
     _check_writable(args.out)
     _check_writable(args.truth)
@@ -701,7 +701,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .workflow import DEMO_DATA, run_demo
+    from .app import DEMO_DATA, run_demo
 
     _say(f"trimag demo: calibrating the bundled real log {DEMO_DATA} (QMC5883L, raw counts, hand-rotated)", args)
     result = run_demo(args.out)
@@ -710,9 +710,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_batch(args: argparse.Namespace) -> int:
-    from .batch import fit_batch
-    from .requests import FitRequest
-    from .workflow import parse_options
+    from .app import parse_options
+    from .app.batch import fit_batch
+    from .app.requests import FitRequest
 
     # every file's request: the flags given, without an output (one calibration per file)
     request = _request(FitRequest, args, "", options=parse_options(args.option),
@@ -759,9 +759,9 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def _cmd_live(args: argparse.Namespace) -> int:
+    from .app import parse_options
+    from .app.requests import LiveRequest
     from .live import run_live
-    from .requests import LiveRequest
-    from .workflow import parse_options
 
     _check_writable(args.out, suffixes=(".json",))
     _check_writable(args.samples_out, suffixes=(".csv", ".txt"))

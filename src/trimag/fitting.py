@@ -46,7 +46,7 @@ def fit(
     regressors : mapping str -> array_like, shape (N,), optional
         Channels the offset depends on linearly (motor current, throttle, temperature, ...), in their own units:
         ``b(t) = b0 + sum_j k_j (u_j(t) - mean_j)``, fitted jointly with the model (``ellipsoid`` and
-        ``interference12``; :func:`trimag.regressors.fit_regressors`, docs/vehicle.md). Apply the result with
+        ``interference12``; :func:`trimag.vehicle.regressors.fit_regressors`, docs/vehicle.md). Apply the result with
         ``cal.apply(B, regressors=...)``.
     **options
         Method options (see each method's class, e.g. ``form="symmetric"`` for ``ml``).
@@ -77,7 +77,7 @@ def fit(
     estimator.fit(samples, reference, units=units, attitude=attitude)
     if regressors is None:
         return estimator.calibration_
-    from .regressors import fit_regressors
+    from .vehicle.regressors import fit_regressors
 
     return fit_regressors(estimator.calibration_, np.asarray(samples, dtype=np.float64), regressors, reference,
                           attitude=attitude)

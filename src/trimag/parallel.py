@@ -1,7 +1,7 @@
 """A small executor for independent trials: in-process, a local pool of worker processes (or threads), or a
 ``dask.distributed`` cluster.
 
-Every Monte Carlo reproduction, benchmark and :mod:`trimag.batch` run goes through :func:`map_trials`, so one
+Every Monte Carlo reproduction, benchmark and :mod:`trimag.app.batch` run goes through :func:`map_trials`, so one
 ``--workers N`` (or ``--scheduler ADDRESS``) option speeds all of them up.
 
 Rules for the function you pass (so that the same code runs in one process, in worker processes, or on a
@@ -260,7 +260,7 @@ def map_trials(
         ``scheduler`` is given and Dask is not installed (``pip install "trimag[batch]"``).
     Exception
         The first exception raised by ``fn`` is re-raised (catch errors inside ``fn`` to keep going, as
-        :mod:`trimag.batch` does for bad files).
+        :mod:`trimag.app.batch` does for bad files).
     """
     if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
         raise TrimagInputError(f"workers must be an integer >= 1; got {workers!r}")

@@ -14,8 +14,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from .attitude import body_field
 from .errors import TrimagInputError
+from .fields.attitude import body_field
 from .models.base import ErrorModel
 
 __all__ = [
@@ -223,10 +223,10 @@ def simulate_aircraft(
     amplitude_deg : (yaw, pitch, roll)
         Manoeuvre amplitudes, degrees.
     vector_K, vector_c, vector_E : array_like, (3, 3), (3,), (3, 3), optional
-        The vector magnetometer's interference (``interference12`` with eddy-current terms, :mod:`trimag.eddy`): it
-        then reads ``H_m = K H_b + c + E dH_m/dt`` (nT, ``E`` in s), solved exactly for ``H_m`` with the same
-        finite differences (central, one-sided at the ends) as the fit, before the noise. Default: none (``H_m =
-        H_b``).
+        The vector magnetometer's interference (``interference12`` with eddy-current terms,
+        :mod:`trimag.vehicle.eddy`): it then reads ``H_m = K H_b + c + E dH_m/dt`` (nT, ``E`` in s), solved exactly
+        for ``H_m`` with the same finite differences (central, one-sided at the ends) as the fit, before the noise.
+        Default: none (``H_m = H_b``).
     """
     from .models.tolles_lawson import design, parse_terms, term_names
 
@@ -280,7 +280,7 @@ def simulate_aircraft(
 
 
 def _solve_eddy(rhs: NDArray[np.float64], E: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
-    """``H`` (N, 3) with ``H - E D(H) = rhs``, ``D`` the finite-difference time derivative of :mod:`trimag.eddy`
+    """``H`` (N, 3) with ``H - E D(H) = rhs``, ``D`` the finite-difference time derivative of :mod:`trimag.vehicle.eddy`
     (central inside, one-sided at the ends, per second): one sparse (3N x 3N) solve."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve

@@ -1,4 +1,5 @@
-"""trimag's numerical core (private): what every estimator shares, and every performance trick, documented once.
+"""trimag's numerical core (private): what every estimator shares, and every performance trick, documented once;
+it imports nothing of trimag but itself and :mod:`trimag.errors`.
 
 - :mod:`~trimag._core.chunks`: the one chunk setting of every pass over samples (working memory per chunk).
 - :mod:`~trimag._core.rowwise`: component-major passes over (N, 3) samples and the reused scratch buffers.

@@ -1,4 +1,4 @@
-"""Nearly equal-area points on the unit sphere (not public API; :func:`trimag.diagnostics.fibonacci_sphere`)."""
+"""Nearly equal-area points on the unit sphere (not public API; :func:`trimag.quality.diagnostics.fibonacci_sphere`)."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from ..reference import igrf, parse_igrf_spec
+from ..fields.reference import igrf, parse_igrf_spec
 
 
 def dip_check(dip_deg: float, igrf_spec: str) -> str:

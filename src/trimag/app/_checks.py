@@ -11,8 +11,8 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import TrimagError, TrimagInputError
 from ..estimators import make_estimator
+from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..reference import igrf, parse_igrf_spec
 from ..units import normalise_unit
 
 
@@ -70,8 +70,9 @@ def check_unit(
 
 
 def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
-    """The acceptance policy's verdict (:func:`trimag.policy.check_policy`) with the site's inclination and F."""
-    from ..policy import check_policy
+    """The acceptance policy's verdict (:func:`trimag.vehicle.policy.check_policy`) with the site's inclination
+    and F."""
+    from ..vehicle.policy import check_policy
 
     inclination = None
     if igrf_spec is not None:
@@ -94,7 +95,7 @@ def _attitude_alternatives(
     """The usual mistakes of an attitude convention, each as (what to give instead, attitudes)."""
     from itertools import permutations
 
-    from .. import attitude as _attitude
+    from ..fields import attitude as _attitude
 
     out: list[tuple[str, Any]] = []
 

@@ -14,11 +14,11 @@ from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ..fields.reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
 from ..io import Samples, column_values
 from ..io.tables import strict_refusal
-from ..reference import ScalarReference, as_scalar_reference, igrf, igrf_reference, parse_igrf_spec
-from ..requests import AttitudeSpec, ReferenceSpec
 from ..units import convert
+from .requests import AttitudeSpec, ReferenceSpec
 
 
 def parse_options(items: list[str] | None) -> dict[str, Any]:
@@ -154,15 +154,15 @@ def calibration_regressors(
     cal: Calibration, samples: Samples, path: Any, *, time_column: str | None = None, rate_hz: float | None = None
 ) -> dict[str, NDArray[np.float64]] | None:
     """The values (N,) of a calibration's regressors on the kept rows of ``samples``: logged channels from their
-    columns, eddy-current terms (:mod:`trimag.eddy`) from the samples' own derivative (from ``time_column`` or at
-    ``rate_hz`` when given, :func:`trimag.eddy.values_from_table`); None without terms."""
+    columns, eddy-current terms (:mod:`trimag.vehicle.eddy`) from the samples' own derivative (from ``time_column``
+    or at ``rate_hz`` when given, :func:`trimag.vehicle.eddy.values_from_table`); None without terms."""
     if cal.regressors is None:
         return None
     spec = cal.regressors.get("eddy")
     derived = set(spec["names"]) if spec else set()
     out = regressor_columns(samples, tuple(n for n in cal.regressors["names"] if n not in derived), path)
     if spec:
-        from ..eddy import values_from_table
+        from ..vehicle.eddy import values_from_table
 
         out.update(values_from_table(spec, samples.table, samples.field, path, time_column=time_column,
                                      rate_hz=rate_hz))
@@ -174,7 +174,7 @@ def _split_names(spec: str, samples: Samples, arg: str) -> list[str]:
     items = [c.strip() for c in spec.split(",") if c.strip()]
     if len(items) != 3:
         raise TrimagInputError(f"`{arg}` needs exactly three columns (N, E, D); got {len(items)}")
-    from ..attitude import column_names
+    from ..fields.attitude import column_names
 
     names = [str(c) for c in samples.table.columns]
     for item in items:
@@ -206,7 +206,7 @@ def drop_rows_without_background(
 def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.float64]:
     """The accelerometer columns ``"AX,AY,AZ"`` of the kept rows of ``samples``, shape (N, 3); one line naming the
     missing column, or the rows with a non-numeric value, when they are not there."""
-    from ..attitude import parse_columns
+    from ..fields.attitude import parse_columns
 
     names = parse_columns(accel_columns, 3, option="`accel_columns`")
     assert names is not None
@@ -229,7 +229,7 @@ def accel_values(samples: Samples, accel_columns: str, path: Any) -> NDArray[np.
 def attitudes_of(samples: Samples, att: AttitudeSpec) -> Rotation:
     """The attitude of every kept row of ``samples`` from the columns ``att`` names (Euler angles or quaternions,
     in its order and frame; docs/conventions-attitude.md)."""
-    from ..attitude import attitude_from_table
+    from ..fields.attitude import attitude_from_table
 
     return attitude_from_table(
         samples.table, euler_columns=att.attitude_columns, quaternion_columns=att.quaternion_columns,
@@ -259,7 +259,7 @@ def drop_rows_without_attitude(
     kept = dataclasses.replace(
         samples,
         field=samples.field[ok],
-        table=samples.table[ok],  # the index keeps the original row numbers (trimag.eddy's gaps)
+        table=samples.table[ok],  # the index keeps the original row numbers (trimag.vehicle.eddy's gaps)
         n_dropped=samples.n_dropped + n_bad,
     )
     return kept, n_bad

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..io import Samples
-from ..requests import FitRequest
+from .requests import FitRequest
 
 
 def write_fit_outputs(
@@ -21,7 +21,7 @@ def write_fit_outputs(
     path = req.input.path
     try:
         if req.report is not None:
-            from ..report import fit_report, save_figure
+            from ..quality.report import fit_report, save_figure
 
             notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
             title = f"trimag fit of {Path(path).name}: model {cal.model}, method {cal.method}"

@@ -10,9 +10,8 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..reference import igrf, parse_igrf_spec
-from ..requests import FitRequest
 from ..units import normalise_unit
 from ._inputs import (
     attitudes_of,
@@ -21,6 +20,7 @@ from ._inputs import (
     magnitude_reference,
     regressor_columns,
 )
+from .requests import FitRequest
 
 
 def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
@@ -51,9 +51,9 @@ def _inclination(igrf_spec: str | None) -> float | None:
 def refit_prior(
     req: FitRequest, samples: Samples, unit: str, prior: Calibration, options: dict[str, Any]
 ) -> tuple[Samples, Calibration, dict[str, NDArray[np.float64]] | None, list[str]]:
-    """Quick recalibration (:func:`trimag.prior.refit_offset`): ``(samples, calibration, regressor values,
+    """Quick recalibration (:func:`trimag.vehicle.prior.refit_offset`): ``(samples, calibration, regressor values,
     messages)``."""
-    from ..prior import file_digest, refit_offset
+    from ..vehicle.prior import file_digest, refit_offset
 
     given, att = req.reference, req.attitude
     messages = [f"quick recalibration: the matrix{' and regressor terms' if prior.regressors else ''} of "
@@ -87,7 +87,7 @@ def refit_prior(
     if attitude is None:
         inclination = None
     regressor_values = None
-    if prior.regressors is not None and prior.regressors.get("eddy"):  # derived from the data (trimag.eddy)
+    if prior.regressors is not None and prior.regressors.get("eddy"):  # derived from the data (trimag.vehicle.eddy)
         regressor_values = calibration_regressors(prior, samples, req.input.path,
                                                   time_column=req.attitude.time_column, rate_hz=req.rate_hz)
     elif prior.regressors is not None:

@@ -1,5 +1,5 @@
 """Attitudes from a second file (its own clock) attached to the samples: ``fit`` and ``evaluate`` with
-``attitude_file`` (:mod:`trimag.timesync`)."""
+``attitude_file`` (:mod:`trimag.vehicle.timesync`)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 
 from ..errors import TrimagInputError
 from ..io import Samples
-from ..requests import EvaluateRequest, FitRequest, ReferenceSpec
 from ._inputs import background_field, truthy
+from .requests import EvaluateRequest, FitRequest, ReferenceSpec
 
 _Q = TypeVar("_Q", FitRequest, EvaluateRequest)
 
@@ -20,10 +20,10 @@ def attach_attitude_file(
     req: _Q, samples: Samples, unit: str, options: dict[str, Any], estimator: Any
 ) -> tuple[Samples, _Q, dict[str, Any], list[str]]:
     """Attitudes from ``attitude_file`` interpolated (slerp) to the samples' time stamps, after the lag when
-    ``estimate_lag`` (:mod:`trimag.timesync`): the samples outside the stream's span dropped, the attitudes put in
-    the table as quaternion columns and the request pointed at them."""
-    from ..requests import AttitudeSpec
-    from ..timesync import estimate_lag, interpolate_attitude, read_attitude_stream, time_values
+    ``estimate_lag`` (:mod:`trimag.vehicle.timesync`): the samples outside the stream's span dropped, the attitudes
+    put in the table as quaternion columns and the request pointed at them."""
+    from ..vehicle.timesync import estimate_lag, interpolate_attitude, read_attitude_stream, time_values
+    from .requests import AttitudeSpec
 
     att = req.attitude
     if att.time_column is None:

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..io import apply_file
-from ..requests import ApplyRequest, as_request
+from .requests import ApplyRequest, as_request
 
 __all__ = ["apply_to_file"]
 
@@ -22,8 +22,8 @@ def apply_to_file(
 ) -> dict[str, Any]:
     """Correct a whole file with a calibration (streamed; see :func:`trimag.io.apply_file`).
 
-    ``request``: an :class:`~trimag.requests.ApplyRequest`, or the calibration's, the data's and the output's paths
-    with the request's fields as keyword arguments (:meth:`ApplyRequest.of <trimag.requests.ApplyRequest.of>`).
+    ``request``: an :class:`~trimag.app.requests.ApplyRequest`, or the calibration's, the data's and the output's paths
+    with the request's fields as keyword arguments (:meth:`ApplyRequest.of <trimag.app.requests.ApplyRequest.of>`).
     ``progress`` is called with the rows written so far. A calibration with regressor terms reads its regressors
     from the columns of the same names; a missing column raises :class:`TrimagInputError`, and a row whose
     regressor value is missing is left uncorrected.
@@ -35,8 +35,8 @@ def apply_to_file(
         cal.check_units(src.units)
     names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
-    if spec:  # eddy-current terms: the derivative of the samples themselves, streamed (trimag.eddy)
-        from ..eddy import streamed_calibrate
+    if spec:  # eddy-current terms: the derivative of the samples themselves, streamed (trimag.vehicle.eddy)
+        from ..vehicle.eddy import streamed_calibrate
 
         calibrate, names = streamed_calibrate(cal, spec, src.path, fmt=src.fmt, columns=src.columns, var=src.var,
                                               chunk_rows=req.chunk_rows, sensor=src.sensor)

@@ -11,13 +11,13 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ..fields.reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
-from ..reference import as_scalar_reference, igrf, parse_igrf_spec
-from ..requests import EvaluateRequest, as_request
 from ..units import convert, normalise_unit
 from ._inputs import refuse_background_vector
+from .requests import EvaluateRequest, as_request
 
 __all__ = ["evaluate_file"]
 
@@ -28,8 +28,8 @@ def evaluate_file(
 ) -> dict[str, Any]:
     """Statistics of ``|B| - F`` before and after applying a calibration to a file (streamed, one pass).
 
-    ``request``: an :class:`~trimag.requests.EvaluateRequest`, or the calibration's and the data's paths with the
-    request's fields as keyword arguments (:meth:`EvaluateRequest.of <trimag.requests.EvaluateRequest.of>`).
+    ``request``: an :class:`~trimag.app.requests.EvaluateRequest`, or the calibration's and the data's paths with the
+    request's fields as keyword arguments (:meth:`EvaluateRequest.of <trimag.app.requests.EvaluateRequest.of>`).
     Without a reference, ``F`` is the mean corrected magnitude (as in ``trimag fit``). ``progress`` is called with
     the rows read so far.
     """
@@ -47,7 +47,7 @@ def evaluate_file(
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
     read_names = regressor_names
     if spec:  # the derivative needs neighbouring rows: the selected rows are collected, then corrected at once
-        from ..eddy import evaluate_columns, with_row_numbers
+        from ..vehicle.eddy import evaluate_columns, with_row_numbers
 
         read_names = evaluate_columns(cal, spec, req.attitude.time_column, req.rate_hz)
     kept: list[tuple[Any, ...]] = []
@@ -69,7 +69,7 @@ def evaluate_file(
         if progress:
             progress(chunk.start + len(chunk.xyz))
     if spec and kept:
-        from ..eddy import corrected_magnitudes
+        from ..vehicle.eddy import corrected_magnitudes
 
         after.add(*corrected_magnitudes(cal, spec, kept, req.attitude.time_column, req.rate_hz))
     if n_bad and src.strict:

@@ -12,11 +12,11 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples, read_samples
 from ..io.tables import strict_refusal
-from ..reference import igrf, parse_igrf_spec
-from ..requests import EvaluateRequest, as_request
 from ._inputs import calibration_regressors
+from .requests import EvaluateRequest, as_request
 
 __all__ = ["evaluate_heading_file"]
 
@@ -26,11 +26,11 @@ def evaluate_heading_file(
 ) -> dict[str, Any]:
     """Tilt-compensated true heading of a calibrated log against a reference heading (issue 20, item 3).
 
-    ``request``: an :class:`~trimag.requests.EvaluateRequest` (or the calibration's and the data's paths with its
+    ``request``: an :class:`~trimag.app.requests.EvaluateRequest` (or the calibration's and the data's paths with its
     fields as keyword arguments). The corrected field is rotated into the accelerometer frame by the calibration's
     alignment (``diagnostics.alignment``, from ``fit --accel-columns``; without one the frames are taken as the
     same), the heading computed with the accelerometer ``accel_columns``
-    (:func:`trimag.heading.tilt_compensated_heading`) plus the declination (IGRF at ``igrf_spec``, or
+    (:func:`trimag.vehicle.heading.tilt_compensated_heading`) plus the declination (IGRF at ``igrf_spec``, or
     ``declination`` in degrees east; 0 when neither: magnetic heading), and compared with ``heading_column``
     (degrees clockwise from true north) or the yaw of ``attitude_columns`` (yaw, pitch, roll).
 
@@ -42,7 +42,7 @@ def evaluate_heading_file(
         (``"calibration"`` or ``"none"``), ``reference_heading`` and the usual ``calibration``, ``data``,
         ``units``, ``columns``, ``n_samples``, ``n_dropped``.
     """
-    from ..heading import heading_error_stats, tilt_compensated_heading
+    from ..vehicle.heading import heading_error_stats, tilt_compensated_heading
 
     req = as_request(EvaluateRequest, request, paths, arguments)
     src, heading_column, attitude_columns = req.input, req.heading_column, req.attitude.attitude_columns
@@ -111,7 +111,7 @@ def _declination(req: EvaluateRequest) -> tuple[float, str]:
 def _reference_and_accel(req: EvaluateRequest, samples: Samples) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The reference heading (N,) (degrees; NaN where missing) and the accelerometer (N, 3) of the samples' rows;
     one line naming a missing column."""
-    from ..attitude import parse_columns
+    from ..fields.attitude import parse_columns
 
     path, attitude_columns = req.input.path, req.attitude.attitude_columns
     ref_col = req.heading_column if req.heading_column is not None else (attitude_columns or "").split(",")[0].strip()

@@ -12,7 +12,6 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, read_samples
-from ..requests import AttitudeSpec, EvaluateRequest, as_request
 from ._inputs import (
     attitudes_of,
     background_field,
@@ -21,6 +20,7 @@ from ._inputs import (
     drop_rows_without_background,
 )
 from ._timesync import attach_attitude_file
+from .requests import AttitudeSpec, EvaluateRequest, as_request
 
 __all__ = ["evaluate_vector_file"]
 
@@ -28,7 +28,7 @@ __all__ = ["evaluate_vector_file"]
 def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Path, **arguments: Any) -> dict[str, Any]:
     """Vector errors of an attitude-based calibration (``interference12``) on a log with attitudes.
 
-    ``request``: an :class:`~trimag.requests.EvaluateRequest` (or the calibration's and the data's paths with its
+    ``request``: an :class:`~trimag.app.requests.EvaluateRequest` (or the calibration's and the data's paths with its
     fields as keyword arguments). The background field (N, E, D) -- one vector, or one per row from
     ``background_columns`` -- is rotated into the body frame at every sample (docs/conventions-attitude.md) and
     compared with the raw and the corrected vector: per-axis RMS, vector RMS, and the angle between the corrected
@@ -36,7 +36,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     file (its own ``attitude_time_column``), interpolated (slerp) to the data's ``time_column`` after the lag the
     calibration stores (``diagnostics.time_sync.lag_s``, 0 when none); samples outside its span are dropped.
     """
-    from .. import attitude as _attitude
+    from ..fields import attitude as _attitude
 
     req = as_request(EvaluateRequest, request, paths, arguments)
     src, given = req.input, req.reference

@@ -6,7 +6,7 @@ from typing import Any
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
-from ..requests import ExportRequest
+from .requests import ExportRequest
 
 __all__ = ["export_to_file"]
 
@@ -14,7 +14,7 @@ __all__ = ["export_to_file"]
 def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> dict[str, Any]:
     """Write the calibration in ``target``'s convention (:func:`trimag.io.export.export_calibration`).
 
-    ``request``: an :class:`~trimag.requests.ExportRequest`, or its fields as keyword arguments.
+    ``request``: an :class:`~trimag.app.requests.ExportRequest`, or its fields as keyword arguments.
 
     Returns
     -------

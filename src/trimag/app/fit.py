@@ -1,5 +1,5 @@
 """``trimag fit``: read a log, take its reference (and attitudes), fit, check, write (:class:`FitRequest
-<trimag.requests.FitRequest>` in, :class:`FitResult` out)."""
+<trimag.app.requests.FitRequest>` in, :class:`FitResult` out)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,8 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
+from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
-from ..reference import ScalarReference, igrf, parse_igrf_spec
-from ..requests import FitRequest, as_request
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
@@ -41,6 +40,7 @@ from ._inputs import (
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
 from ._timesync import attach_attitude_file
+from .requests import FitRequest, as_request
 
 __all__ = ["FitResult", "fit_file", "fit_summary"]
 
@@ -94,18 +94,18 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
 def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     """Read a log, fit a calibration, write the calibration JSON and the report PNG when asked.
 
-    ``request``: a :class:`~trimag.requests.FitRequest`, or a path with the request's fields as keyword arguments
-    (:meth:`FitRequest.of <trimag.requests.FitRequest.of>`). With a ``policy`` (a TOML file or ``"default"``,
-    :mod:`trimag.policy`) the calibration is checked against its limits; the result is in
+    ``request``: a :class:`~trimag.app.requests.FitRequest`, or a path with the request's fields as keyword arguments
+    (:meth:`FitRequest.of <trimag.app.requests.FitRequest.of>`). With a ``policy`` (a TOML file or ``"default"``,
+    :mod:`trimag.vehicle.policy`) the calibration is checked against its limits; the result is in
     ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
     req = as_request(FitRequest, request, (), arguments)
-    from ..policy import read_policy
+    from ..vehicle.policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
-        from ..regressors import MODELS as REGRESSOR_MODELS
+        from ..vehicle.regressors import MODELS as REGRESSOR_MODELS
 
         if req.model not in REGRESSOR_MODELS:
             raise TrimagInputError(
@@ -134,7 +134,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         samples, req, sync, sync_messages = attach_attitude_file(req, samples, unit, sync_options, estimator)
         messages += sync_messages
     if req.accel_columns is not None:
-        from ..alignment import check_tilt_variation
+        from ..vehicle.alignment import check_tilt_variation
 
         # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
         check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
@@ -183,7 +183,7 @@ def _finish(
         cal = cal.with_diagnostics(time_sync=sync)
     alignment_messages: list[str] = []
     if req.accel_columns is not None:
-        from ..alignment import fit_alignment
+        from ..vehicle.alignment import fit_alignment
 
         accel = accel_values(samples, req.accel_columns, req.input.path)  # the rows the fit kept
         alignment = fit_alignment(cal, samples.field, accel, regressors=regressor_values)
@@ -215,10 +215,11 @@ def _finish(
 
 
 def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
-    """``option eddy=9|3`` (popped from ``options``): eddy-current terms of ``interference12`` (:mod:`trimag.eddy`)."""
+    """``option eddy=9|3`` (popped from ``options``): eddy-current terms of ``interference12``
+    (:mod:`trimag.vehicle.eddy`)."""
     if "eddy" not in options:
         return None
-    from ..eddy import parse_terms
+    from ..vehicle.eddy import parse_terms
 
     terms = parse_terms(options.pop("eddy"))
     if req.model != "interference12":
@@ -241,7 +242,7 @@ def _fit_model(
     )
     accel = None
     if req.accel_columns is not None:
-        from ..alignment import check_tilt_variation
+        from ..vehicle.alignment import check_tilt_variation
 
         accel = accel_values(samples, req.accel_columns, src.path)
         check_tilt_variation(accel)  # before the fit: a level log cannot give the alignment (exit 3)
@@ -262,14 +263,14 @@ def _fit_model(
                         "reference and the unit")
     free, record = None, None
     if eddy_terms is not None:
-        from ..eddy import fit_values, free_mask
+        from ..vehicle.eddy import fit_values, free_mask
 
         values, spec, eddy_messages = fit_values(samples, eddy_terms, req.attitude.time_column, req.rate_hz,
                                                  req.input.path)
         regressor_values, free, record = {**(regressor_values or {}), **values}, free_mask(eddy_terms), {"eddy": spec}
         messages += eddy_messages
     if regressor_values is not None:
-        from ..regressors import fit_regressors
+        from ..vehicle.regressors import fit_regressors
 
         cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
     if estimator.reference_kind == "vector" and req.reference.reference_column is not None:
@@ -284,8 +285,8 @@ def _joint_scalar(
     regressor_values: dict[str, NDArray[np.float64]] | None, unit: str,
 ) -> tuple[Calibration, str]:
     """A compensated scalar magnetometer beside the vector one (``reference_column``): the joint fit
-    (:mod:`trimag.joint`) and its message."""
-    from ..joint import fit_joint_scalar
+    (:mod:`trimag.vehicle.joint`) and its message."""
+    from ..vehicle.joint import fit_joint_scalar
 
     column = req.reference.reference_column
     assert column is not None
@@ -390,7 +391,7 @@ def _fit_reference(
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:
     """The heading error the calibration predicts at the IGRF site's inclination (into ``summary``), as a line."""
-    from ..heading import predicted_heading_sigma
+    from ..vehicle.heading import predicted_heading_sigma
 
     north, east, down = igrf(*parse_igrf_spec(igrf_spec)).ned_nT
     heading = predicted_heading_sigma(cal, float(np.degrees(np.arctan2(down, np.hypot(north, east)))))

@@ -10,8 +10,8 @@ import numpy as np
 
 from ..errors import TrimagInputError
 from ..io.atomic import atomic_write_text
-from ..requests import SimulateRequest
 from ..units import normalise_unit
+from .requests import SimulateRequest
 
 __all__ = ["simulate_to_file"]
 
@@ -21,7 +21,7 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
     columns ``x, y, z`` (raw), ``qw, qx, qy, qz`` (attitude, scalar first, body -> navigation NED) and, with
     ``truth``, a JSON file with the true parameters and settings.
 
-    ``request``: a :class:`~trimag.requests.SimulateRequest`, or its fields as keyword arguments.
+    ``request``: a :class:`~trimag.app.requests.SimulateRequest`, or its fields as keyword arguments.
     """
     req = request if request is not None else SimulateRequest(**arguments)
     if request is not None and arguments:

@@ -1,4 +1,5 @@
-"""Identification methods: one module per method, each an :class:`~trimag.estimators.base.Estimator`.
+"""Identification methods: one module per method, each an :class:`~trimag.estimators.base.Estimator`, and the
+registry; an estimator imports its base, the shared private modules and the core, never a sibling.
 
 The public entry point is :func:`trimag.fit`; the classes follow a scikit-learn-like contract.
 """

@@ -9,9 +9,9 @@ from numpy.typing import NDArray
 
 from .._core.normalise import Normalisation, normalisation_of, normalisation_stats, normalise
 from .._core.quadric import TERMS, quadric_scatter, quadric_to_ellipsoid
-from ..diagnostics import check_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..reference import ScalarReference, as_scalar_reference
+from ..fields.reference import ScalarReference, as_scalar_reference
+from ..quality.diagnostics import check_condition, weak_directions
 
 __all__ = [
     "Normalisation", "algebraic_ellipsoid", "check_ellipsoid_options", "gauge_scale", "iterative_start",
@@ -20,7 +20,7 @@ __all__ = [
 
 
 def scalar_reference(reference: Any, n: int, units: str) -> ScalarReference:
-    """Shortcut to :func:`trimag.reference.as_scalar_reference`."""
+    """Shortcut to :func:`trimag.fields.reference.as_scalar_reference`."""
     return as_scalar_reference(reference, n, units=units)
 
 

@@ -14,7 +14,11 @@ from numpy.typing import NDArray
 from .._core.rowwise import column_means
 from .._core.sphere import fibonacci_sphere
 from ..calibration import UNCERTAINTY_FIELDS, Calibration, Uncertainty, make_uncertainty
-from ..crlb import (
+from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
+from ..fields.reference import ScalarReference
+from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
+from ..models.zhang_cheng import ZhangCheng, upper_from_quadric
+from ..quality.crlb import (
     UPPER,
     UPPER_NAMES,
     _constrained_inverse,
@@ -23,7 +27,7 @@ from ..crlb import (
     ellipsoid_geometry,
     predicted_errors,
 )
-from ..diagnostics import (
+from ..quality.diagnostics import (
     CONDITION_ERROR,
     CONDITION_WARN,
     check_not_planar_within_noise,
@@ -31,10 +35,6 @@ from ..diagnostics import (
     diagnostic_subsample,
     sphere_coverage,
 )
-from ..errors import IdentifiabilityError, IdentifiabilityWarning, TrimagInputError
-from ..models.ellipsoid import Ellipsoid, to_symmetric, to_upper
-from ..models.zhang_cheng import ZhangCheng, upper_from_quadric
-from ..reference import ScalarReference
 from ._common import unpack
 from ._quadric import diagnostics_entries
 from .base import Estimator, build_calibration
@@ -57,7 +57,7 @@ __all__ = [
 
 _NAMES = UPPER_NAMES
 
-#: Covered fraction of the sphere (cells of :func:`trimag.diagnostics.sphere_coverage`) below which a fit warns.
+#: Covered fraction of the sphere (cells of :func:`trimag.quality.diagnostics.sphere_coverage`) below which a fit warns.
 COVERAGE_WARN = 0.25
 
 
@@ -267,7 +267,7 @@ def ellipsoid_result(
         Whether to replace the offset by the sample mean when the field directions are balanced
         (:func:`balance_test`): never, when the test accepts it, or always.
     principal : ndarray, shape (3,), optional
-        Principal standard deviations of ``B``, as :func:`~trimag.diagnostics.check_not_degenerate` returned
+        Principal standard deviations of ``B``, as :func:`~trimag.quality.diagnostics.check_not_degenerate` returned
         them (computed here when None).
     """
     if form not in ("upper", "symmetric"):

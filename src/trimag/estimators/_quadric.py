@@ -13,10 +13,10 @@ from .._core.chunks import row_blocks
 from .._core.normalise import normalisation_stats
 from .._core.qr import BlockedQR
 from .._core.rowwise import row_dot
-from ..diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ..errors import IdentifiabilityError, TrimagInputError
+from ..fields.reference import ScalarReference
 from ..models.zhang_cheng import ZhangCheng
-from ..reference import ScalarReference
+from ..quality.diagnostics import CONDITION_ERROR, CONDITION_WARN, check_condition, design_condition
 from ._common import scalar_reference
 
 __all__ = [

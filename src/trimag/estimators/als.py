@@ -33,8 +33,8 @@ from .._core.quadric import (
     scatter_from_moments,
 )
 from ..calibration import Calibration
-from ..diagnostics import check_not_degenerate
 from ..errors import IdentifiabilityError
+from ..quality.diagnostics import check_not_degenerate
 from ._common import algebraic_ellipsoid, check_ellipsoid_options, gauge_scale, normalisation_stats, scalar_reference
 from ._finish import ellipsoid_result
 from .base import Estimator

@@ -17,12 +17,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._core.threads import one_blas_thread
 from ..calibration import Calibration
-from ..diagnostics import diagnostic_subsample, sphere_coverage
 from ..errors import NotFittedError, TrimagInputError
-from ..honesty import honest_uncertainty
-from ..metrics import before_after_stats, row_norms
+from ..fields.reference import ScalarReference
 from ..models import get_model
-from ..reference import ScalarReference
+from ..quality.diagnostics import diagnostic_subsample, sphere_coverage
+from ..quality.honesty import honest_uncertainty
+from ..quality.metrics import before_after_stats, row_norms
 from ..units import normalise_unit
 from ..validation import check_field
 
@@ -210,9 +210,9 @@ def build_calibration(
     Statistics use ``F`` = the reference magnitude(s), or, when the magnitude is unknown, the mean corrected
     magnitude: ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``. ``fitted_magnitude`` (the radius
     implied by the method's scale gauge, e.g. det(W) = 1) is recorded as ``reference["fitted_radius"]``.
-    The statistics take one pass over the samples in blocks (:func:`~trimag.metrics.before_after_stats`);
-    ``coverage`` (the :func:`~trimag.diagnostics.sphere_coverage` of the corrected samples) may be passed when
-    the caller has it already, otherwise it is computed on :func:`~trimag.diagnostics.diagnostic_subsample`.
+    The statistics take one pass over the samples in blocks (:func:`~trimag.quality.metrics.before_after_stats`);
+    ``coverage`` (the :func:`~trimag.quality.diagnostics.sphere_coverage` of the corrected samples) may be passed when
+    the caller has it already, otherwise it is computed on :func:`~trimag.quality.diagnostics.diagnostic_subsample`.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..diagnostics import check_not_degenerate
+from ..quality.diagnostics import check_not_degenerate
 from ._common import algebraic_ellipsoid, gauge_scale, normalisation_of, scalar_reference
 from ._finish import ellipsoid_result
 from .base import Estimator

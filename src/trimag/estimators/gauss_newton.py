@@ -49,7 +49,10 @@ from .._core.quadric import quadratic_terms
 from .._core.rowwise import column_means, scratch, transposed_blocks
 from .._core.solve import gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
-from ..diagnostics import (
+from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
+from ..fields.reference import ScalarReference
+from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
+from ..quality.diagnostics import (
     CONDITION_ERROR,
     CONDITION_WARN,
     check_condition,
@@ -59,9 +62,6 @@ from ..diagnostics import (
     single_axis_turn,
     weak_directions,
 )
-from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
-from ..models.scalar9 import Scalar9, t_matrix, t_matrix_derivatives
-from ..reference import ScalarReference
 from ._common import normalisation_stats, scalar_reference
 from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
@@ -509,7 +509,7 @@ class GaussNewton(Estimator):
 
         def geometry_hint() -> str:
             """What the samples saw (the cone of field directions, or the axis they turned about) and what to
-            record (trimag.diagnostics.coverage_advice): computed only when a message needs it."""
+            record (trimag.quality.diagnostics.coverage_advice): computed only when a message needs it."""
             return coverage_advice(B, s, what="the 9 scalar9 parameters") + (
                 " (the paper pools turns about X, Y and Z and fits them together)"
             )
@@ -591,7 +591,7 @@ def _history_in_data_units(history: list[dict[str, Any]], s: float, n: int) -> l
 
 
 def params_text(cal: Calibration) -> str:
-    """Human-readable parameters of a calibration (see :func:`trimag.report.params_table`)."""
-    from ..report import params_table
+    """Human-readable parameters of a calibration (see :func:`trimag.quality.report.params_table`)."""
+    from ..quality.report import params_table
 
     return params_table(cal)

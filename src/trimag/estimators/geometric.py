@@ -36,10 +36,10 @@ from .._core.rowwise import scratch, sum_squares, transposed_blocks
 from .._core.solve import XTOL, GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from .._core.threads import one_blas_thread
 from ..calibration import Calibration
-from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import IdentifiabilityError
 from ..models import get_model
 from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
+from ..quality.diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ._common import normalisation_stats, scalar_reference
 from ._finish import make_uncertainty
 from .base import Estimator, build_calibration

@@ -7,7 +7,7 @@ Row ``a`` of ``K`` and ``c_a`` only enter sensor axis ``a``: ``H_m[:, a] = [H_b,
 full rank iff the body-frame background fields ``H_b`` of the attitudes do not lie in one plane (for a
 constant |H_n| they lie on a sphere; a plane cuts it in a circle, e.g. turns about one axis only), which
 needs at least 4 attitudes. The column-normalised condition number of ``A`` is reported; above
-``trimag.diagnostics.CONDITION_ERROR`` the fit stops with :class:`~trimag.errors.IdentifiabilityError`
+``trimag.quality.diagnostics.CONDITION_ERROR`` the fit stops with :class:`~trimag.errors.IdentifiabilityError`
 (exit 3).
 
 Attitudes follow ``docs/conventions-attitude.md``: ``Rotation`` body -> NED, ``H_b = R.inv().apply(H_n)``.
@@ -31,12 +31,12 @@ from .._core.chunks import row_blocks
 from .._core.qr import BlockedQR, panel_rows
 from .._core.rowwise import count_duplicate_rows
 from .._core.solve import levenberg_marquardt
-from ..attitude import body_field
 from ..calibration import Calibration
-from ..diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ..errors import IdentifiabilityError, TrimagInputError
+from ..fields.attitude import body_field
+from ..fields.reference import ScalarReference, as_background, as_vector
 from ..models.interference12 import Interference12
-from ..reference import ScalarReference, as_background, as_vector
+from ..quality.diagnostics import CONDITION_ERROR, check_condition, design_condition, weak_directions
 from ._finish import make_uncertainty
 from .base import Estimator, build_calibration
 

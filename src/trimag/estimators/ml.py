@@ -11,7 +11,7 @@ magnitude cannot see) and the offset ``b`` (3).
    Jacobian, on
    the geometric residual ``r_i = (|W (x_i - b)| - F_i) / |W^T n_i|`` (``n_i`` the corrected direction): the
    first-order signed distance of the sample from the ellipsoid, of variance ``sigma^2``. This is the ML
-   weighting (it attains the Cramér–Rao bound of :func:`trimag.crlb.crlb` to first order); the weight sits
+   weighting (it attains the Cramér–Rao bound of :func:`trimag.quality.crlb.crlb` to first order); the weight sits
    inside the residual with its exact derivative, which also stops the iteration from shrinking ``W`` towards a
    huge ellipsoid on partial coverage (as a magnitude residual with frozen weights does on one hemisphere).
 3. **Bias correction** (the point of this method): the estimate solves ``sum_i psi(x_i, theta) = 0`` with
@@ -21,10 +21,10 @@ magnitude cannot see) and the offset ``b`` (3).
    The Laplacian is evaluated on a tetrahedral stencil at the data and the estimate, ``sigma^2`` is estimated
    from the residuals (``sum r^2 / (N - 9)``), and the bias is subtracted. The remaining bias is ``O(sigma^2 / N)``
    and ``O(sigma^4)``.
-4. **Uncertainty**: covariance = inverse Fisher information at the estimate (:func:`trimag.crlb.fisher_information`,
-   noise from the data), the predicted RMS error of the corrected field and magnitude over the sphere, and the
-   identifiability diagnostics (condition number, variance inflation per parameter, sphere coverage).
-
+4. **Uncertainty**: covariance = inverse Fisher information at the estimate
+   (:func:`trimag.quality.crlb.fisher_information`, noise from the data), the predicted RMS error of the corrected
+   field and magnitude over the sphere, and the identifiability diagnostics (condition number, variance inflation
+   per parameter, sphere coverage).
 With an unknown magnitude the fit is made on the unit sphere and the result scaled to ``det(W) = 1``; the
 covariance is then stated in that gauge with ``F`` as a tenth parameter.
 """
@@ -41,11 +41,12 @@ from .._core.chunks import chunk_rows, row_blocks
 from .._core.rowwise import scratch, sum_squares
 from .._core.solve import GaussNewtonResult, contraction, gauss_newton, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
-from ..crlb import (
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..quality.crlb import (
     UPPER,
     UPPER_NAMES,
 )
-from ..diagnostics import (
+from ..quality.diagnostics import (
     DIAGNOSTIC_SAMPLES,
     check_condition,
     check_not_degenerate,
@@ -54,7 +55,6 @@ from ..diagnostics import (
     gram_condition,
     weak_directions,
 )
-from ..errors import IdentifiabilityError, TrimagInputError
 from ._common import (
     Normalisation,
     algebraic_ellipsoid,

@@ -36,10 +36,10 @@ from numpy.typing import NDArray
 
 from .._core.solve import gauss_newton_then_lm
 from ..calibration import Calibration
-from ..diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ..errors import TrimagInputError
 from ..models import get_model
 from ..models.ortho_gain import Q_INDEX, params_covariance, q_to_matrix
+from ..quality.diagnostics import check_condition, check_not_degenerate, design_condition, weak_directions
 from ._common import scalar_reference
 from ._finish import make_uncertainty
 from ._pairs import PAIRINGS, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples, quadric_entries

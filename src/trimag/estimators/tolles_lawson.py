@@ -2,7 +2,7 @@
 
 Equations (docs/method-tolles-lawson.md): with ``A`` the TL design of each contiguous segment
 (:func:`trimag.models.tolles_lawson.design`) and ``S`` the scalar magnetometer, both band-passed segment by
-segment and trimmed (:class:`trimag.filtering.BandPass`), then stacked into ``A_f`` and ``S_f``:
+segment and trimmed (:class:`trimag.aircraft.filtering.BandPass`), then stacked into ``A_f`` and ``S_f``:
 
     c = (A_f' A_f + lambda I)^-1 A_f' S_f                                      (MagNav.jl create_TL_coef)
 
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..compensation import ScalarCompensation
+from ..aircraft.compensation import ScalarCompensation
+from ..aircraft.filtering import BandPass, finite_runs
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..filtering import BandPass, finite_runs
 from ..models.tolles_lawson import TERM_KINDS, TollesLawsonTerms, parse_terms
 
 __all__ = ["fit_tolles_lawson"]

@@ -38,9 +38,9 @@ from .._core.chunks import chunk_rows
 from .._core.rowwise import row_dot, scratch, sum_squares, transposed_blocks
 from .._core.solve import GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from ..calibration import Calibration
-from ..diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ..errors import IdentifiabilityError
 from ..models.ellipsoid import to_upper
+from ..quality.diagnostics import CONDITION_WARN, check_not_degenerate, design_condition
 from ._common import (
     Normalisation,
     algebraic_ellipsoid,

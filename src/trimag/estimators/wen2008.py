@@ -37,10 +37,10 @@ from numpy.typing import NDArray
 
 from .._core.solve import levenberg_marquardt
 from ..calibration import Calibration
-from ..diagnostics import check_condition, check_not_degenerate, design_condition
 from ..errors import TrimagInputError
 from ..models.ortho_gain import OrthoGain, normalised_upper
 from ..models.wen2008 import WEN_PARAMS, Wen2008Model, distortion_and_derivatives, wen_params_from_matrix
+from ..quality.diagnostics import check_condition, check_not_degenerate, design_condition
 from ._common import scalar_reference
 from ._pairs import PAIRINGS, TERM_INDEX, closed_form_from_factor, pair_factor, pair_normalisation, pair_samples
 from .base import Estimator, build_calibration

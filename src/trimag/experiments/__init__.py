@@ -1,4 +1,5 @@
-"""Reproductions of the four papers, each a module with ``run(...) -> dict``.
+"""Reproductions of the four papers, each a module with ``run(...) -> dict``, written with trimag's public API
+only (what a user of the package could write).
 
 ``trimag reproduce NAME`` calls :func:`get_experiment` and then ``module.run``. Every module uses only trimag's
 public API. (The benchmarks are not here: they live in the repository's ``benchmarks/`` folder, which is not

@@ -10,7 +10,7 @@ from typing import Any
 
 from ..calibration import jsonable
 from ..io.atomic import atomic_write_text
-from ..report import save_figure
+from ..quality.report import save_figure
 
 __all__ = ["jsonable", "save_figure", "write_csv", "write_dict_csv"]
 

@@ -35,9 +35,9 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..estimators.gauss_newton import GaussNewton
-from ..metrics import magnitude_stats
 from ..models.scalar9 import Scalar9
 from ..parallel import map_trials, trial_seeds
+from ..quality.metrics import magnitude_stats
 from ..simulate import axis_turns, body_field
 from ._data import shared_data_dir
 from ._output import save_figure, write_csv

@@ -14,12 +14,12 @@ Simulation of the paper's turntable experiment (methods.md, paper C):
   perturbed at every attitude by an isotropic random moment of relative size ``hysteresis``), which is the
   only one of them that makes the 12 "constant" coefficients not quite constant;
 * the background ``H_n`` is, as in the paper, the mean of an iron-free run at the 10 fitting attitudes
-  (:func:`trimag.attitude.background_from_samples`); the "true" total field of a test attitude is the
+  (:func:`trimag.fields.attitude.background_from_samples`); the "true" total field of a test attitude is the
   iron-free reading at that attitude (the paper's procedure).
 
 Strong case: all five blocks, fit at 10 attitudes, test at 10 others. Weak case: block 1 only, same 10
 fitting attitudes, 5 test attitudes. Metrics: total-field error before/after per attitude, compensation rate
-``(|e_b| - |e_a|) / |e_b|`` and precision ``|e_a| / F`` (:mod:`trimag.metrics`), their mean and spread
+``(|e_b| - |e_a|) / |e_b|`` and precision ``|e_a| / F`` (:mod:`trimag.quality.metrics`), their mean and spread
 (standard deviation over the test attitudes, ddof=0; the paper's "均方差"), per-axis vector errors.
 
 Real data: BROAD (``$TRIMAG_SHARED_DATA/broad`` or ``../shared/data/broad``) trials with optical-reference
@@ -48,14 +48,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from scipy.special import elliprd
 
-from ..attitude import background_from_samples, body_field, from_euler, from_quaternion
 from ..errors import TrimagInputError
 from ..estimators.linear_vector import LinearVector
+from ..fields.attitude import background_from_samples, body_field, from_euler, from_quaternion
+from ..fields.reference import igrf
 from ..io.atomic import atomic_write_text
-from ..metrics import compensation_precision, compensation_rate, rms
 from ..models.interference12 import Interference12
 from ..parallel import map_trials, trial_seeds
-from ..reference import igrf
+from ..quality.metrics import compensation_precision, compensation_rate, rms
 from ..solvers import fit_with_background, solve_interference
 from ._data import shared_data_dir
 from ._output import write_dict_csv
@@ -450,7 +450,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _figure(strong: dict[str, Any], weak: dict[str, Any], path: Path) -> None:
     from matplotlib.figure import Figure
 
-    from ..report import save_figure
+    from ..quality.report import save_figure
 
     fig = Figure(figsize=(10, 4))
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.13, top=0.9, wspace=0.25)

@@ -36,11 +36,11 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import TrimagInputError
 from ..io.atomic import atomic_write_text
-from ..metrics import j_index
 from ..models.base import ErrorModel
 from ..models.ortho_gain import OrthoGain, params_from_q
 from ..models.wen2008 import Wen2008Model, wen_params_from_matrix
 from ..parallel import map_trials, trial_seeds
+from ..quality.metrics import j_index
 from ..solvers import pair_samples, solve_geometric, solve_pairs, solve_wen_pairs
 from ._data import shared_data_dir
 from ._output import save_figure, write_csv

@@ -1,4 +1,5 @@
-"""Reading and writing magnetometer logs and calibration files (I/O lives only here and in the CLI).
+"""Reading and writing magnetometer logs and calibration files (I/O lives only here and in the CLI): table and
+vehicle-log readers, streamed apply/evaluate, firmware writers and the one atomic writer.
 
 The readers are imported on first use (pandas and pyarrow take ~0.3 s to import), so ``trimag.io.atomic`` and
 ``trimag.io.export`` stay light.

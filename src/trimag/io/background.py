@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..attitude import attitude_from_table, background_from_samples, parse_columns
 from ..errors import TrimagInputError
+from ..fields.attitude import attitude_from_table, background_from_samples, parse_columns
 from ..units import normalise_unit
 from .tables import read_samples
 
@@ -94,9 +94,9 @@ def igrf_along_track(
     latitude_deg: NDArray[np.float64], longitude_deg: NDArray[np.float64], altitude_m: NDArray[np.float64], date: str,
     *, units: str = "nT",
 ) -> tuple[NDArray[np.float64], str]:
-    """IGRF-14 (N, E, D) at every sample's position (:func:`trimag.reference.igrf_ned`), in ``units``, shape (N, 3),
-    and a description of it for messages and the calibration file."""
-    from ..reference import igrf_ned
+    """IGRF-14 (N, E, D) at every sample's position (:func:`trimag.fields.reference.igrf_ned`), in ``units``, shape
+    (N, 3), and a description of it for messages and the calibration file."""
+    from ..fields.reference import igrf_ned
     from ..units import convert
 
     H = igrf_ned(latitude_deg, longitude_deg, altitude_m, date) * convert(1.0, "nT", units)

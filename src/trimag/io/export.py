@@ -224,6 +224,6 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
 
 def write_export(exp: Export, out: str | Path) -> Path:
     """Write the export atomically (``.mat`` for the MATLAB target writes a MAT file with A and b)."""
-    from ..io.atomic import atomic_write_text
+    from .atomic import atomic_write_text
 
     return atomic_write_text(out, exp.text)

@@ -1,4 +1,5 @@
-"""``trimag live``: watch the sphere of field directions fill while recording, and know when to stop.
+"""``trimag live``: watch the sphere of field directions fill while recording, and know when to stop; a front end
+like the CLI, on top of the application layer.
 
 A source (:mod:`trimag.live.sources`) feeds a :class:`~trimag.live.session.LiveSession`, which refits on a
 background thread; a local web page (:mod:`trimag.live.server`, 127.0.0.1 only) shows the clouds, the coverage, the
@@ -15,8 +16,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..app.requests import LiveRequest
 from ..errors import TrimagInputError
-from ..requests import LiveRequest
 from .server import LiveServer
 from .session import LiveSession
 from .sources import Batch, line_source, mavlink_source, replay_source, serial_source

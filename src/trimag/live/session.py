@@ -21,7 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..diagnostics import (
+from ..errors import IdentifiabilityError, TrimagError, TrimagWarning
+from ..fitting import fit
+from ..io.atomic import atomic_write_text
+from ..quality.diagnostics import (
     _axis_name,
     coverage_advice,
     describe_directions,
@@ -29,10 +32,7 @@ from ..diagnostics import (
     raw_direction_geometry,
     sphere_coverage,
 )
-from ..errors import IdentifiabilityError, TrimagError, TrimagWarning
-from ..fitting import fit
-from ..io.atomic import atomic_write_text
-from ..policy import DEFAULT_LIMITS, check_policy
+from ..vehicle.policy import DEFAULT_LIMITS, check_policy
 from .sources import Batch
 
 __all__ = ["GOOD_ENOUGH_INFLATION", "GOOD_ENOUGH_UNSEEN_DEG", "MIN_FIT_SAMPLES", "LiveSession"]
@@ -67,7 +67,7 @@ def _finite(value: Any) -> Any:
 def next_orientations(geometry: Mapping[str, Any] | None) -> str:
     """Plain words: where the field has not been seen from yet, and how to turn the sensor to see it.
 
-    ``geometry`` is a :func:`trimag.diagnostics.sphere_coverage` result (of corrected or raw directions).
+    ``geometry`` is a :func:`trimag.quality.diagnostics.sphere_coverage` result (of corrected or raw directions).
     """
     if geometry is None or geometry.get("cone_axis") is None:
         return "turn the sensor slowly about all three axes (tumble it through every attitude)"
@@ -99,7 +99,7 @@ class LiveSession:
     reference : float, optional
         The field magnitude in ``units`` (unknown when None: the fit estimates it).
     limits : mapping, optional
-        Acceptance limits (:data:`trimag.policy.DEFAULT_LIMITS` by default) for ``good_enough``.
+        Acceptance limits (:data:`trimag.vehicle.policy.DEFAULT_LIMITS` by default) for ``good_enough``.
     interval : float
         Seconds between refits.
     options : mapping, optional

@@ -1,4 +1,5 @@
-"""Error models: one module per model, each a frozen dataclass of physical parameters.
+"""Error models: one module per model, each a frozen dataclass of physical parameters with its own algebra;
+models import only the core and :mod:`trimag.errors`.
 
 =====================  =========================================  ==============================
 name                   class                                      source

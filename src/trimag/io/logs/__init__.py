@@ -1,4 +1,5 @@
-"""Readers of vehicle logs: one :class:`VehicleLog` per file (docs/autopilot.md).
+"""Readers of vehicle logs: one :class:`VehicleLog` per file (docs/autopilot.md), with the onboard calibration
+undone and the streams aligned to one magnetometer.
 
 Formats: ArduPilot DataFlash (``.bin``, ``.log``) and MAVLink telemetry (``.tlog``), PX4 ULog (``.ulg``) and sdlog2
 (``.px4log``), ROS 1/2 bags and MCAP (``.bag``, ROS 2 folders, ``.mcap``), phone sensor-logger exports

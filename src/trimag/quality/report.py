@@ -1,0 +1,206 @@
+"""Figures and the text report of a fit (matplotlib, Agg backend; nothing is shown on screen).
+
+:func:`fit_report` draws one PNG: |B| before and after per sample, the distribution of |B| - F, the coverage of
+the sphere of field directions, and the point cloud before and after in three projections.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..calibration import Calibration
+from ..io.atomic import atomic_path
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+__all__ = ["fit_report", "params_table", "save_figure", "summary_rows", "summary_table"]
+
+_MAX_POINTS = 6000
+
+
+def _figure(figsize: tuple[float, float]) -> Figure:
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize, layout="constrained")
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 110) -> Path:
+    """Save a figure as PNG atomically (temporary file in the same folder, then rename)."""
+    target = Path(path)
+    with atomic_path(target) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    return target
+
+
+def summary_rows(cal: Calibration) -> list[tuple[str, float, float]]:
+    """(quantity, before, after) rows of |B| statistics in the calibration's unit."""
+    s = cal.stats
+    return [
+        ("|B| mean", s["mean_norm_before"], s["mean_norm_after"]),
+        ("|B| std", s["std_norm_before"], s["std_norm_after"]),
+        ("RMS(|B| - F)", s["rms_before"], s["rms_after"]),
+        ("max ||B| - F|", s["max_abs_before"], s["max_abs_after"]),
+    ]
+
+
+def summary_table(cal: Calibration) -> str:
+    """A small plain-text before/after table."""
+    unit = cal.units
+    ref = cal.reference or {}
+    value = ref.get("value")
+    head = f"reference F = {value:.6g} {unit} ({ref.get('source', '?')})" if value is not None else ""
+    lines = [head, f"{'':16}{'before':>14}{'after':>14}   [{unit}]"]
+    for name, before, after in summary_rows(cal):
+        lines.append(f"{name:16}{before:14.6g}{after:14.6g}")
+    return "\n".join(line for line in lines if line)
+
+
+def _param_kinds(model: str) -> dict[str, str]:
+    """The parameters' declared kinds (:attr:`trimag.models.base.ErrorModel.kinds`) of a registered model; empty
+    for another (e.g. an ``affine`` calibration, whose parameters are then shown without a unit)."""
+    from ..models import MODELS, get_model
+
+    return dict(get_model(model).kinds) if model in MODELS else {}
+
+
+def params_table(cal: Calibration) -> str:
+    """The model's named parameters with 1-sigma uncertainties when known, angles also in degrees, and the
+    iteration history when the method recorded one."""
+    import math
+
+    std = (cal.uncertainty or {}).get("param_std", {}) or {}
+    unit = cal.units
+    lines = [f"{cal.model} parameters (value +- 1 sigma):"]
+    kinds = _param_kinds(cal.model)
+    for name, value in cal.params.items():
+        s = std.get(name)
+        pm = f" +- {s:.3g}" if s is not None else ""
+        if kinds.get(name) == "angle":
+            deg = f"  ({math.degrees(value):.5f} deg" + (f" +- {math.degrees(s):.2g}" if s is not None else "") + ")"
+            lines.append(f"  {name:12s} = {value:.6g}{pm} rad{deg}")
+        elif kinds.get(name) == "offset":
+            lines.append(f"  {name:12s} = {value:.6g}{pm} {unit}")
+        else:
+            lines.append(f"  {name:12s} = {value:.8g}{pm}")
+    hist = (cal.diagnostics or {}).get("history") or []
+    if hist and isinstance(hist, list) and isinstance(hist[0], dict) and "rms" in hist[0]:
+        steps = ", ".join(f"{h.get('iteration', i)}: {h['rms']:.4g}" for i, h in enumerate(hist))
+        lines.append(f"iteration history, RMS(|B| - F) [{unit}]: {steps}")
+    if (cal.diagnostics or {}).get("fallback"):
+        info = cal.diagnostics.get("fallback_info") or {}
+        lines.append(f"note: Levenberg-Marquardt fallback ({info.get('reason', 'see diagnostics')})")
+    balance = (cal.diagnostics or {}).get("balanced_offset")
+    if isinstance(balance, dict) and balance.get("applied"):
+        lines.append(
+            "note: offset = sample mean (field directions balanced: chi2 "
+            f"{balance.get('chi2', float('nan')):.3g}, p = {balance.get('p_value', float('nan')):.3g}; "
+            "`option balance=never` to keep the maximum-likelihood offset)"
+        )
+    return "\n".join(lines)
+
+
+def fit_report(
+    raw: ArrayLike,
+    cal: Calibration,
+    *,
+    reference: ArrayLike | float | None = None,
+    title: str = "",
+    notes: Sequence[str] = (),
+) -> Figure:
+    """Draw the fit report.
+
+    Parameters
+    ----------
+    raw : array_like, shape (N, 3)
+        The raw samples the calibration was fitted (or is evaluated) on, in ``cal.units``.
+    cal : Calibration
+    reference : float or array_like (N,), optional
+        Reference magnitude(s); defaults to the calibration's reference value.
+    title : str
+    notes : sequence of str
+        Extra lines printed under the title (e.g. dropped-row counts).
+    """
+    B = np.asarray(raw, dtype=np.float64)
+    corrected = cal.apply(B)
+    n_before = np.linalg.norm(B, axis=1)
+    n_after = np.linalg.norm(corrected, axis=1)
+    if reference is None:
+        ref_value = (cal.reference or {}).get("value")
+        F: Any = float(ref_value) if ref_value is not None else float(n_after.mean())
+    else:
+        F = reference
+    sub = np.arange(len(B))[:: max(1, len(B) // _MAX_POINTS)]
+
+    fig = _figure((15, 9))
+    axes = fig.subplots(2, 3)
+    _magnitude_panel(axes[0, 0], n_before, n_after, F, sub, cal.units)
+    _error_panel(axes[0, 1], n_before - F, n_after - F, cal)
+    _coverage_panel(fig, axes[0, 2], corrected / np.maximum(n_after[:, None], 1e-300), cal)
+    _cloud_panels(axes[1], B, corrected, sub, cal.units)
+    head = title or f"trimag fit: model {cal.model}, method {cal.method}"
+    sub_title = "; ".join([f"N = {cal.stats.get('n_used', len(B))}", *notes])
+    fig.suptitle(f"{head}\n{sub_title}", fontsize=11)
+    return fig
+
+
+def _magnitude_panel(ax: Any, n_before: NDArray[np.float64], n_after: NDArray[np.float64], F: Any,
+                     sub: NDArray[np.intp], unit: str) -> None:
+    """|B| per sample (the samples ``sub``) before and after, and the reference ``F`` (a number or (N,))."""
+    ax.plot(sub, n_before[sub], ".", ms=2, color="tab:red", label="before")
+    ax.plot(sub, n_after[sub], ".", ms=2, color="tab:blue", label="after")
+    if np.ndim(F) == 0:
+        ax.axhline(float(F), color="k", lw=1, label=f"F = {float(F):.5g}")
+    else:
+        ax.plot(sub, np.asarray(F)[sub], "k-", lw=1, label="F (per sample)")
+    ax.set(xlabel="sample", ylabel=f"|B| [{unit}]", title="field magnitude per sample")
+    ax.legend(loc="best", fontsize=8)
+
+
+def _error_panel(ax: Any, err_b: NDArray[np.float64], err_a: NDArray[np.float64], cal: Calibration) -> None:
+    """Histograms of |B| - F before and after (0.5-99.5 percentile range), with the calibration's RMS."""
+    lo = float(min(np.percentile(err_b, 0.5), np.percentile(err_a, 0.5)))
+    hi = float(max(np.percentile(err_b, 99.5), np.percentile(err_a, 99.5)))
+    bins = np.linspace(lo, hi, 80) if hi > lo else 40
+    rms_b, rms_a = cal.stats.get("rms_before", np.nan), cal.stats.get("rms_after", np.nan)
+    ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {rms_b:.3g}")
+    ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {rms_a:.3g}")
+    ax.set(xlabel=f"|B| - F [{cal.units}]", ylabel="samples", title="magnitude error")
+    ax.legend(fontsize=8)
+
+
+def _coverage_panel(fig: Figure, ax: Any, u: NDArray[np.float64], cal: Calibration) -> None:
+    """Where the corrected field's directions ``u`` ((N, 3), unit vectors) fall: azimuth against sin(elevation)."""
+    from matplotlib.colors import LogNorm
+
+    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    sin_el = np.clip(u[:, 2], -1, 1)
+    h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1, norm=LogNorm())
+    fig.colorbar(h[3], ax=ax, label="samples per cell (log scale; grey = none)")
+    cov = (cal.diagnostics or {}).get("coverage", {})
+    ax.set(
+        xlabel="azimuth of corrected field [deg]",
+        ylabel="sin(elevation)",
+        title=f"sphere coverage: {100 * cov.get('fraction', np.nan):.0f}% of cells, "
+        f"isotropy {cov.get('isotropy', np.nan):.2f}",
+    )
+    ax.set_facecolor("#eeeeee")
+
+
+def _cloud_panels(axes: Any, B: NDArray[np.float64], corrected: NDArray[np.float64], sub: NDArray[np.intp],
+                  unit: str) -> None:
+    """The point clouds before and after in the x-y, y-z and x-z planes (three axes)."""
+    for k, (i, j, name) in enumerate(((0, 1, "x-y"), (1, 2, "y-z"), (0, 2, "x-z"))):
+        ax = axes[k]
+        ax.plot(B[sub, i], B[sub, j], ".", ms=1.5, color="tab:red", alpha=0.5, label="before")
+        ax.plot(corrected[sub, i], corrected[sub, j], ".", ms=1.5, color="tab:blue", alpha=0.5, label="after")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set(xlabel=f"{name[0]} [{unit}]", ylabel=f"{name[2]} [{unit}]", title=f"point cloud, {name} plane")
+        if k == 0:
+            ax.legend(fontsize=8, markerscale=6)

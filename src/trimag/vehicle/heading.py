@@ -1,0 +1,124 @@
+"""Heading error a calibration predicts, from its covariance (issue 20; conventions: docs/conventions-attitude.md).
+
+A level sensor heading ``psi`` (degrees clockwise from magnetic north) in a field of magnitude ``F`` and
+inclination ``I`` sees, in its body frame (forward-right-down), ``n(psi) = F [cos I cos psi, -cos I sin psi, sin I]``;
+the raw reading is ``x = W^-1 n + b``. An error ``d theta`` of the calibration's parameters moves the corrected
+field by ``dy = G d theta`` and the heading ``atan2(-y_2, y_1)`` by ``d psi = (y_2 dy_1 - y_1 dy_2) / (y_1^2 + y_2^2)``,
+so ``sigma_psi(psi)^2 = g C g'`` with ``C`` the covariance of the fit. Computed for the ellipsoid model's gauge
+(upper-triangular ``W`` and the hard iron), the covariance every ellipsoid estimator reports.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+
+__all__ = ["predicted_heading_sigma"]
+
+_UPPER = ("w11", "w12", "w13", "w22", "w23", "w33")
+
+
+def predicted_heading_sigma(
+    cal: Calibration, inclination_deg: float, headings_deg: NDArray[np.float64] | None = None
+) -> dict[str, Any]:
+    """1-sigma heading error (degrees) of a level sensor at each heading, from ``cal``'s covariance.
+
+    Returns
+    -------
+    dict
+        ``headings_deg``, ``sigma_deg`` (per heading), ``rms_deg``, ``max_deg``, ``inclination_deg``.
+
+    Raises
+    ------
+    TrimagInputError
+        The calibration has no covariance in the ellipsoid model's gauge.
+    """
+    unc = cal.uncertainty or {}
+    order = list(unc.get("covariance_order") or [])
+    if unc.get("covariance") is None or not all(n in order for n in (*_UPPER, "hard_iron_x")):
+        raise TrimagInputError("a predicted heading error needs a calibration of the ellipsoid model with its "
+                               "covariance (fit with model ellipsoid, method ml, twostep, als or ellipsoid-fit)")
+    idx = [order.index(n) for n in (*_UPPER, "hard_iron_x", "hard_iron_y", "hard_iron_z")]
+    C = np.asarray(unc["covariance"], dtype=np.float64)[np.ix_(idx, idx)]
+    W = np.asarray(cal.matrix)
+    b = np.asarray(cal.offset)
+    F = float((cal.reference or {}).get("value") or np.linalg.norm(W @ (np.zeros(3) - b)))
+    psi = np.radians(np.arange(0.0, 360.0, 5.0) if headings_deg is None else np.asarray(headings_deg, float))
+    inc = np.radians(inclination_deg)
+    n = F * np.column_stack([np.cos(inc) * np.cos(psi), -np.cos(inc) * np.sin(psi), np.full(len(psi), np.sin(inc))])
+    x = np.linalg.solve(W, n.T).T + b
+    d = x - b
+    # dy/dtheta for theta = (w11, w12, w13, w22, w23, w33, b_x, b_y, b_z): y = W (x - b)
+    G = np.zeros((len(psi), 3, 9))
+    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        G[:, i, k] = d[:, j]
+    G[:, :, 6:] = -W
+    y = n
+    g = (y[:, 1:2] * G[:, 0, :] - y[:, 0:1] * G[:, 1, :]) / (y[:, 0:1] ** 2 + y[:, 1:2] ** 2)
+    sigma = np.degrees(np.sqrt(np.clip(np.einsum("ni,ij,nj->n", g, C, g), 0.0, None)))
+    return {"headings_deg": np.degrees(psi).tolist(), "sigma_deg": sigma.tolist(),
+            "rms_deg": float(np.sqrt(np.mean(sigma**2))), "max_deg": float(sigma.max()),
+            "inclination_deg": float(inclination_deg)}
+
+
+def tilt_compensated_heading(
+    field: ArrayLike, accel: ArrayLike, *, declination_deg: float = 0.0
+) -> NDArray[np.float64]:
+    """Heading (degrees clockwise from north, 0-360) from a body-frame field and the accelerometer.
+
+    The down direction is ``d = -a / |a|`` (specific force; at rest and level ``a = (0, 0, -g)``), magnetic east
+    ``e = d x h / |d x h|`` and north ``n = e x d`` in the body frame (forward-right-down); the heading is the angle
+    of the forward axis, ``atan2(e_x, n_x)``, plus the declination. It is the yaw of the Z-Y-X attitude
+    (docs/conventions-attitude.md) at any tilt short of the forward axis pointing straight up or down.
+
+    Parameters
+    ----------
+    field : array_like, shape (N, 3)
+        Corrected field in the accelerometer's (body) frame, any unit.
+    accel : array_like, shape (N, 3)
+        Specific force, any unit.
+    declination_deg : float
+        Magnetic declination, degrees east of true north: the result is true heading.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+
+    Examples
+    --------
+    >>> float(tilt_compensated_heading([[0.0, -20.0, 40.0]], [[0.0, 0.0, -9.81]])[0])   # north on the left: east
+    90.0
+    """
+    h = np.atleast_2d(np.asarray(field, dtype=np.float64))
+    a = np.atleast_2d(np.asarray(accel, dtype=np.float64))
+    if h.shape != a.shape or h.shape[-1] != 3:
+        raise TrimagInputError(f"field and accelerometer must both have shape (N, 3); got {h.shape} and {a.shape}")
+    d = -a / np.linalg.norm(a, axis=1, keepdims=True)
+    east = np.cross(d, h)
+    east /= np.linalg.norm(east, axis=1, keepdims=True)
+    north = np.cross(east, d)
+    psi = np.degrees(np.arctan2(east[:, 0], north[:, 0])) + declination_deg
+    return np.asarray(np.mod(psi, 360.0), dtype=np.float64)
+
+
+def heading_difference(a_deg: ArrayLike, b_deg: ArrayLike) -> NDArray[np.float64]:
+    """``a - b`` wrapped into [-180, 180) degrees (359 against 1 is -2, not 358)."""
+    diff = np.asarray(a_deg, dtype=np.float64) - np.asarray(b_deg, dtype=np.float64)
+    return np.asarray(np.mod(diff + 180.0, 360.0) - 180.0, dtype=np.float64)
+
+
+def heading_error_stats(estimate_deg: ArrayLike, reference_deg: ArrayLike) -> dict[str, float]:
+    """RMS, maximum absolute, mean and standard deviation (degrees) of the wrapped heading error."""
+    e = heading_difference(estimate_deg, reference_deg)
+    return {"heading_error_rms_deg": float(np.sqrt(np.mean(e**2))),
+            "heading_error_max_deg": float(np.max(np.abs(e))),
+            "heading_error_mean_deg": float(np.mean(e)),
+            "heading_error_std_deg": float(np.std(e))}
+
+
+__all__ += ["heading_difference", "heading_error_stats", "tilt_compensated_heading"]

@@ -1,0 +1,100 @@
+"""Acceptance policy: declared limits a calibration must meet (``trimag fit --policy FILE.toml``; exit code 4).
+
+A policy file has a ``[limits]`` table; every rule present is checked, and every failed rule is listed with its
+measured value. A rule that the data cannot evaluate (no reference for the field error, no IGRF for the heading)
+is reported as not evaluated, never as passed. ``--policy default`` uses :data:`DEFAULT_LIMITS`.
+
+| rule | measured as |
+|---|---|
+| ``max_rms_after`` | RMS of ``|B| - F`` after calibration, in the data's unit |
+| ``max_field_error_pct`` | fitted magnitude against the reference or IGRF, % |
+| ``min_coverage`` | fraction of the sphere of field directions seen (0-1) |
+| ``max_offset`` | largest hard-iron component, in the data's unit |
+| ``max_heading_sigma_deg`` | largest predicted 1-sigma heading error of a level sensor (needs ``--igrf``) |
+| ``max_inclination_error_deg`` | dip fitted with the accelerometer (``--accel-columns``) against IGRF's (needs both) |
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import TrimagError, TrimagInputError
+
+__all__ = ["DEFAULT_LIMITS", "PolicyRejected", "check_policy", "read_policy"]
+
+#: ``--policy default``: what a fitted MEMS or fluxgate calibration should meet in the field
+DEFAULT_LIMITS: dict[str, float] = {"max_field_error_pct": 5.0, "min_coverage": 0.5, "max_heading_sigma_deg": 1.0}
+
+_RULES = ("max_rms_after", "max_field_error_pct", "max_inclination_error_deg", "min_coverage",
+          "max_heading_sigma_deg", "max_offset")
+
+
+class PolicyRejected(TrimagError):
+    """The calibration fails its acceptance policy (exit code 4)."""
+
+    exit_code = 4
+
+
+def read_policy(spec: str) -> dict[str, float]:
+    """The ``[limits]`` of a policy file, or the default limits for ``"default"``."""
+    if spec == "default":
+        return dict(DEFAULT_LIMITS)
+    p = Path(spec)
+    if not p.is_file():
+        raise TrimagInputError(f"policy file {spec!r} does not exist (or use `policy=default`)")
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise TrimagInputError(f"{p}: not a TOML policy file ({exc})") from None
+    limits = data.get("limits")
+    if not isinstance(limits, dict) or not limits:
+        raise TrimagInputError(f"{p}: needs a [limits] table with at least one of {', '.join(_RULES)}")
+    unknown = [k for k in limits if k not in _RULES]
+    if unknown:
+        raise TrimagInputError(f"{p}: unknown rule(s) {', '.join(unknown)}; rules are {', '.join(_RULES)}")
+    try:
+        return {k: float(v) for k, v in limits.items()}
+    except (TypeError, ValueError):
+        raise TrimagInputError(f"{p}: every limit must be a number") from None
+
+
+def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg: float | None = None,
+                 reference_F: float | None = None) -> dict[str, Any]:
+    """Evaluate every rule in ``limits``; returns ``{"accepted", "failed", "passed", "not_evaluated"}``."""
+    measured: dict[str, float | None] = {}
+    stats, diag = cal.stats, cal.diagnostics
+    measured["max_rms_after"] = stats.get("rms_after")
+    fitted = (cal.reference or {}).get("fitted_radius") or stats.get("mean_norm_after")
+    measured["max_field_error_pct"] = (
+        abs(float(fitted) / reference_F - 1.0) * 100.0 if reference_F and fitted else None
+    )
+    measured["min_coverage"] = (diag.get("coverage") or {}).get("fraction")
+    measured["max_offset"] = float(np.abs(np.asarray(cal.offset)).max())
+    dip = (diag.get("alignment") or {}).get("dip_deg")
+    measured["max_inclination_error_deg"] = (
+        abs(float(dip) - inclination_deg) if dip is not None and inclination_deg is not None else None
+    )
+    measured["max_heading_sigma_deg"] = None
+    if inclination_deg is not None and "max_heading_sigma_deg" in limits:
+        from .heading import predicted_heading_sigma
+
+        try:
+            measured["max_heading_sigma_deg"] = predicted_heading_sigma(cal, inclination_deg)["max_deg"]
+        except TrimagInputError:
+            pass
+    failed: list[dict[str, Any]] = []
+    passed: list[dict[str, Any]] = []
+    not_evaluated: list[str] = []
+    for rule, limit in limits.items():
+        value = measured.get(rule)
+        if value is None or not np.isfinite(value):
+            not_evaluated.append(rule)
+            continue
+        ok = value >= limit if rule.startswith("min_") else value <= limit
+        (passed if ok else failed).append({"rule": rule, "limit": limit, "measured": float(value)})
+    return {"accepted": not failed, "failed": failed, "passed": passed, "not_evaluated": not_evaluated}

@@ -1,0 +1,214 @@
+"""Autopilot log readers (issue 19): the onboard calibration undone, streams aligned, fit or refuse, and the path
+from a log to firmware parameters."""
+
+from __future__ import annotations
+
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trimag.errors import TrimagInputError
+from trimag.io.logs import read_log
+from trimag.io.logs.ardupilot import onboard_matrix
+
+from _helpers import SHARED_DATA, TESTS_DIR, run_trimag
+
+LOGS = TESTS_DIR / "data" / "logs"
+FLIGHT = SHARED_DATA / "flight-logs"
+requires_flight_logs = pytest.mark.skipif(
+    not FLIGHT.exists(), reason="../shared/data/flight-logs absent (GPL/LGPL logs are not copied into the repository)"
+)
+
+
+def test_px4log_undone_reading_recalibrates_to_the_logged_one():
+    log = read_log(LOGS / "px4tools_01_07_59.px4log")
+    assert [m.name for m in log.magnetometers] == ["IMU.Mag", "IMU1.Mag"]
+    for mag in log.magnetometers:
+        slot = mag.instance
+        off = np.array([log.parameters[f"CAL_MAG{slot}_{a}OFF"] for a in "XYZ"])
+        scale = np.array([log.parameters[f"CAL_MAG{slot}_{a}SCALE"] for a in "XYZ"])
+        # the sdlog2-era driver: report = (raw - offset) * scale
+        recal = (mag.field - off) * scale
+        assert np.abs(recal - mag.logged).max() <= 1e-6  # the log stores float32 gauss
+        assert mag.unit == "G" and 80 < mag.rate_hz < 90
+    assert not np.allclose(log.magnetometers[0].field, log.magnetometers[0].logged)
+    df, _ = log.table("1")
+    assert {"current_A", "yaw_deg", "pitch_deg", "roll_deg"} <= set(df.columns)
+    corr = np.corrcoef(np.linalg.norm(df[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1), df["current_A"])[0, 1]
+    assert corr > 0.5  # the second magnetometer sees the motor current (flight-logs/README.md)
+    assert log.gps is not None and log.gps["date"] == "2015-06-11"
+
+
+def test_ulog_slow_magnetometer_is_warned_and_vehicle_magnetometer_undone():
+    log = read_log(LOGS / "pyulog_sample_log_small.ulg")
+    assert any("SDLOG_PROFILE" in m for m in log.messages)
+    vm = log.choose()
+    assert vm.name == "vehicle_magnetometer" and vm.rate_hz > 40
+    slot = vm.instance
+    off = np.array([log.parameters[f"CAL_MAG{slot}_{a}OFF"] for a in "XYZ"])
+    scale = np.array([log.parameters[f"CAL_MAG{slot}_{a}SCALE"] for a in "XYZ"])
+    np.testing.assert_allclose((vm.field - off) * scale, vm.logged, atol=1e-6)
+
+
+def test_dataflash_offsets_undone_and_instances_listed():
+    log = read_log(LOGS / "ardusub_small.BIN")
+    assert [m.name for m in log.magnetometers] == ["MAG[0]", "MAG[1]"]
+    mag = log.choose("1")
+    ofs, M, s = onboard_matrix(log.parameters, 1)
+    np.testing.assert_allclose(M @ ((mag.field + ofs) * s).T, mag.logged.T, atol=1e-9)
+    assert "COMPASS_OFS2" in mag.undone[0]
+    assert "current_A" in log.channels
+    with pytest.raises(TrimagInputError, match="no magnetometer '7'"):
+        log.choose("7")
+
+
+@requires_flight_logs
+def test_dataflash_soft_iron_matrix_is_undone():
+    log = read_log(FLIGHT / "pymavlink_test.BIN")
+    mag = log.choose("0")
+    ofs, M, s = onboard_matrix(log.parameters, 0)
+    assert not np.allclose(M, np.eye(3))
+    # AP_Compass_Backend::correct_field: mag += offsets; mag = mat * mag
+    np.testing.assert_allclose(((mag.field + ofs) * s) @ M.T, mag.logged, atol=1e-9)
+    assert any("DIA" in u for u in mag.undone)
+
+
+@requires_flight_logs
+def test_tlog_streams_share_one_clock():
+    log = read_log(FLIGHT / "ardusub_small.tlog")
+    df, _ = log.table()
+    assert np.isfinite(df["current_A"]).mean() > 0.95 and np.isfinite(df["yaw_deg"]).mean() > 0.95
+
+
+@pytest.mark.parametrize("name", ["ardusub_small.BIN", "pyulog_sample_log_small.ulg", "px4tools_01_07_59.px4log"])
+def test_fit_on_real_logs_refuses_with_what_to_record(name: str, tmp_path: Path):
+    out = tmp_path / "cal.json"
+    r = run_trimag("fit", LOGS / name, "-o", out)
+    assert r.returncode == 3, r.stderr
+    assert "pitched" in r.stderr or "rotate the vehicle" in r.stderr or "turn the vehicle" in r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+
+
+def test_missing_extra_is_named(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyulog", None)  # as if trimag[logs] were not installed
+    with pytest.raises(TrimagInputError, match=r'trimag\[logs\]'):
+        read_log(LOGS / "pyulog_sample_log_small.ulg")
+
+
+# ----------------------------------------------------------------- a simulated tumble, log -> fit -> .param
+def _write_tlog(path: Path, logged_mG: np.ndarray, params: dict[str, float], t0_unix: float,
+                lat: float, lon: float) -> None:
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    link = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    with path.open("wb") as fh:
+        def put(t: float, msg) -> None:
+            fh.write(struct.pack(">Q", int(t * 1e6)) + msg.pack(link))
+
+        for k, (name, value) in enumerate(params.items()):
+            put(t0_unix, link.param_value_encode(name.encode(), value, 9, len(params), k))
+        for i, m in enumerate(logged_mG):
+            t = t0_unix + 0.1 * i
+            put(t, link.raw_imu_encode(int(t * 1e6), 0, 0, -1000, 0, 0, 0, *np.round(m).astype(int).tolist()))
+            if i % 10 == 0:
+                put(t, link.global_position_int_encode(int(i * 100), int(lat * 1e7), int(lon * 1e7), 50_000, 0,
+                                                        0, 0, 0, 0))
+
+
+def test_simulated_tumble_from_tlog_to_ardupilot_param(tmp_path: Path):
+    import datetime as dt
+
+    from trimag.fields.reference import igrf
+
+    lat, lon, date = 52.5, 13.4, "2024-06-01"
+    F_mG = igrf(lat, lon, 50.0, date).total_nT / 100.0
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(1500, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    W = np.array([[1.08, 0.02, -0.03], [0.02, 0.95, 0.04], [-0.03, 0.04, 1.02]])  # symmetric, as ArduPilot's
+    hard_iron = np.array([120.0, -80.0, 45.0])
+    raw = np.linalg.solve(W, (F_mG * u).T).T + hard_iron + rng.normal(scale=0.3, size=u.shape)
+    onboard_ofs = {"COMPASS_OFS_X": -50.0, "COMPASS_OFS_Y": 20.0, "COMPASS_OFS_Z": 10.0}
+    logged = raw + np.array(list(onboard_ofs.values()))
+    t0 = dt.datetime(2024, 6, 1, 12, tzinfo=dt.UTC).timestamp()
+    tlog = tmp_path / "tumble.tlog"
+    _write_tlog(tlog, logged, onboard_ofs, t0, lat, lon)
+    cal_path, param = tmp_path / "cal.json", tmp_path / "compass.param"
+    r = run_trimag("fit", tlog, "-o", cal_path)
+    assert r.returncode == 0, r.stderr
+    assert "IGRF at the log's GPS fix" in r.stdout and "COMPASS_OFS_X..Z" in r.stdout
+    r = run_trimag("export", cal_path, "--to", "ardupilot", "-o", param)
+    assert r.returncode == 0, r.stderr
+    p = dict(line.split(",") for line in param.read_text().splitlines() if not line.startswith("#"))
+    p = {k: float(v) for k, v in p.items()}
+    np.testing.assert_allclose([p["COMPASS_OFS_X"], p["COMPASS_OFS_Y"], p["COMPASS_OFS_Z"]], -hard_iron, atol=1.5)
+    M = np.array([[p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+                  [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+                  [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]]])
+    np.testing.assert_allclose(M, W, atol=5e-3)
+
+
+def _tumble_uT(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    hard_iron = np.array([12.0, -8.0, 30.0])
+    return 49.0 * u + hard_iron + rng.normal(scale=0.05, size=u.shape), hard_iron
+
+
+def test_phone_sensor_logger_export_is_read_in_uT_and_fitted(tmp_path: Path):
+    field, hard_iron = _tumble_uT(800)
+    t = np.arange(len(field)) * 0.01
+    path = tmp_path / "MagnetometerUncalibrated.csv"
+    cols = np.column_stack([(1.7e18 + t * 1e9), t, field[:, 2], field[:, 1], field[:, 0]])
+    np.savetxt(path, cols, delimiter=",", header="time,seconds_elapsed,z,y,x", comments="", fmt="%.9g")
+    log = read_log(path)
+    assert log.format == "phone sensor logger" and log.choose().unit == "uT"
+    np.testing.assert_allclose(log.choose().field, field, atol=1e-6)
+    r = run_trimag("fit", path, "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    d = json.loads(r.stdout)
+    assert d["units"] == "uT"
+    np.testing.assert_allclose(d["offset"], hard_iron, atol=0.1)
+
+
+def test_ros2_bag_magnetic_field_in_tesla_and_imu_attitude(tmp_path: Path):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    from scipy.spatial.transform import Rotation
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    MF, Imu = ts.types["sensor_msgs/msg/MagneticField"], ts.types["sensor_msgs/msg/Imu"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    V3, Q = ts.types["geometry_msgs/msg/Vector3"], ts.types["geometry_msgs/msg/Quaternion"]
+    field, _ = _tumble_uT(200)
+    # the IMU faces east, level: in ROS's ENU world / FLU body that is yaw 0; in NED / FRD it is yaw 90 deg
+    q_enu = Rotation.identity().as_quat()
+    bag = tmp_path / "bag"
+    with Writer(bag, version=8) as w:
+        cm = w.add_connection("/imu/mag", MF.__msgtype__, typestore=ts)
+        ci = w.add_connection("/imu/data", Imu.__msgtype__, typestore=ts)
+        for i, f in enumerate(field):
+            stamp = Time(sec=100 + i // 10, nanosec=(i % 10) * 100_000_000)
+            h = Header(stamp=stamp, frame_id="imu")
+            t_ns = (100 + i // 10) * 10**9 + (i % 10) * 10**8
+            m = MF(header=h, magnetic_field=V3(x=f[0] * 1e-6, y=f[1] * 1e-6, z=f[2] * 1e-6),
+                   magnetic_field_covariance=np.zeros(9))
+            w.write(cm, t_ns, ts.serialize_cdr(m, MF.__msgtype__))
+            imu = Imu(header=h, orientation=Q(x=q_enu[0], y=q_enu[1], z=q_enu[2], w=q_enu[3]),
+                      orientation_covariance=np.zeros(9), angular_velocity=V3(x=0, y=0, z=0),
+                      angular_velocity_covariance=np.zeros(9), linear_acceleration=V3(x=0, y=0, z=9.81),
+                      linear_acceleration_covariance=np.zeros(9))
+            w.write(ci, t_ns, ts.serialize_cdr(imu, Imu.__msgtype__))
+    log = read_log(bag)
+    mag = log.choose()
+    assert mag.unit == "uT" and mag.name == "/imu/mag"
+    np.testing.assert_allclose(mag.field, field, rtol=1e-9)
+    df, _ = log.table()
+    np.testing.assert_allclose(df["yaw_deg"].to_numpy(), 90.0, atol=1e-6)
+    np.testing.assert_allclose(df[["pitch_deg", "roll_deg"]].to_numpy(), 0.0, atol=1e-6)

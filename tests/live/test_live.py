@@ -1,0 +1,397 @@
+"""``trimag live`` (issue 23): sources, the background fit, ``GET /status``, ``POST /save``, SIGINT, the page.
+
+The demo log is replayed at 2 000 samples/s by the real command in a subprocess and driven over HTTP, as a script
+would; the hemisphere and garbage cases run the same code in-process or through standard input.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import trimag
+from trimag.app.requests import LiveRequest
+from trimag.io import read_samples
+from trimag.live import LiveSession, run_live
+from trimag.live.sources import Batch, LineParser, line_source, replay_source
+from trimag.simulate import hemisphere_directions, uniform_directions
+
+from _helpers import REPO_DIR, restore_sigint
+
+DEMO = Path(str(resources.files("trimag") / "data" / "qmc5883l_noisy_raw_data.csv"))
+DOCS = REPO_DIR / "docs"
+
+
+def _get(url: str, timeout: float = 5.0) -> dict:
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def _post(url: str) -> dict:
+    with urllib.request.urlopen(urllib.request.Request(url, method="POST", data=b""), timeout=30) as r:
+        return json.loads(r.read())
+
+
+def _sensor(directions: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Raw counts of a sensor with hard and soft iron seeing ``directions`` (unit vectors) of a 500-count field."""
+    W_inv = np.array([[1.1, 0.05, 0.0], [0.0, 0.9, -0.03], [0.0, 0.0, 1.0]])
+    noise = np.random.default_rng(seed).normal(0.0, 2.0, directions.shape)
+    return (500.0 * directions) @ W_inv.T + [30.0, -20.0, 10.0] + noise
+
+
+def _start_live(*args: str, cwd: Path, stdin: int | None = None) -> tuple[subprocess.Popen, str]:
+    """``trimag live ARGS --no-browser --port 0`` in a subprocess; returns it and the page's address."""
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    proc = subprocess.Popen([sys.executable, "-m", "trimag", "live", *args, "--no-browser", "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env, stdin=stdin,
+                            preexec_fn=restore_sigint)
+    stream = proc.stderr if "--json" in args else proc.stdout  # --json keeps stdout for the JSON object
+    assert stream is not None
+    first = stream.readline()
+    if "http://127.0.0.1:" not in first:
+        proc.kill()
+        raise AssertionError(f"no address printed: {first!r} {proc.stderr.read() if proc.stderr else ''}")
+    return proc, first.split("the page is at ")[1].split()[0]
+
+
+def _wait_until_done(url: str, timeout: float = 90.0) -> tuple[dict, list[dict]]:
+    """Poll /status until the source has ended and the fit has used every sample; returns the last state and the
+    states seen (without points)."""
+    seen = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        st = _get(url + "status?points=0")
+        seen.append(st)
+        if st["source_state"] == "ended" and st["up_to_date"]:
+            return _get(url + "status"), seen
+        time.sleep(0.2)
+    raise AssertionError(f"not done after {timeout} s: {seen[-1]}")
+
+
+# -- sources ---------------------------------------------------------------------------------------------------------
+def test_line_parser_reads_numbers_and_headers_and_flags_garbage():
+    p = LineParser()
+    assert p.parse("1, 2, 3") == (1.0, 2.0, 3.0)
+    assert p.parse("1 2 3\n") == (1.0, 2.0, 3.0)
+    assert p.parse("1;2;3") == (1.0, 2.0, 3.0)
+    assert p.parse("") is True and p.parse("# a comment") is True
+    assert p.parse("hello") is None
+    assert p.parse("1,2") is None and p.parse("1,2,x") is None and p.parse("1,2,nan") is None
+    h = LineParser()
+    assert h.parse("time,mag_x,mag_y,mag_z,temp") is True
+    assert h.parse("0.1,10,20,30,25") == (10.0, 20.0, 30.0)
+    assert h.parse("0.1,10,20") is None
+    named = LineParser(["A", "B", "C"])
+    assert named.parse("t,c,b,a") is True
+    assert named.parse("0,3,2,1") == (1.0, 2.0, 3.0)
+
+
+def test_line_source_counts_garbage_and_undecodable_lines():
+    lines = [b"mx,my,mz\n", b"1,2,3\n", b"\xff\xfe\n", b"garbage\n", b"4,5,6\n", b"7,8\n"]
+    batches = list(line_source(lines))
+    samples = np.vstack([b.samples for b in batches])
+    assert samples.tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert sum(b.n_garbage for b in batches) == 3
+
+
+def test_replay_plays_the_whole_log_at_the_rate():
+    slept = []
+    batches = list(replay_source(DEMO, rate=None))
+    assert np.array_equal(np.vstack([b.samples for b in batches]), read_samples(DEMO).field)
+    t0 = time.monotonic()
+    played = sum(len(b.samples) for b in replay_source(DEMO, rate=50_000, sleep=lambda s: (slept.append(s),
+                                                                                            time.sleep(s))))
+    assert played == len(read_samples(DEMO).field)
+    assert 0.3 < time.monotonic() - t0 < 5.0 and slept  # ~0.45 s at 50 000 samples/s
+
+
+# -- the session -----------------------------------------------------------------------------------------------------
+def test_session_reports_garbage_and_non_finite_rows_without_failing():
+    s = LiveSession(units="counts")
+    s.add(Batch(np.array([[1.0, 2.0, 3.0], [np.nan, 0.0, 0.0]]), n_garbage=2))
+    st = s.status()
+    assert st["n_samples"] == 1 and st["n_garbage"] == 3 and st["good_enough"] is False
+    assert s.refit() is None  # too few samples: no fit, no error
+    assert "waiting for" in s.status()["fit_message"]
+
+
+def test_a_failing_source_is_shown_as_ended_not_raised():
+    def broken():
+        yield Batch(_sensor(uniform_directions(100, seed=1)))
+        raise OSError("device unplugged")
+
+    s = LiveSession(units="counts")
+    s.consume(broken())
+    st = s.status(points=False)
+    assert st["source_state"] == "ended" and "device unplugged" in st["source_message"]
+    assert st["n_samples"] == 100
+
+
+def test_hemisphere_replay_is_not_good_enough_and_names_the_unseen_hemisphere(tmp_path):
+    raw = _sensor(hemisphere_directions(3000, seed=2))
+    log = tmp_path / "hemisphere.csv"
+    np.savetxt(log, raw, delimiter=",", header="x,y,z", comments="")
+    request = LiveRequest(replay=log, rate=None, units="counts", port=0, open_browser=False, exit_at_end=True,
+                          out=tmp_path / "cal.json", interval=0.05)
+    messages: list[str] = []
+    result = run_live(request, say=messages.append)
+    st = result.status
+    assert st["n_samples"] == 3000 and st["source_state"] == "ended"
+    assert st["good_enough"] is False
+    assert "-z hemisphere" in st["next_orientations"], st["next_orientations"]
+    assert any("full sphere" in r or "unseen" in r for r in st["not_good_enough_because"])
+    assert set(result.written) == {"samples", "calibration"}
+    assert any("saved" in m for m in messages)
+
+
+def test_full_sphere_replay_is_good_enough(tmp_path):
+    log = tmp_path / "sphere.csv"
+    np.savetxt(log, _sensor(uniform_directions(3000, seed=3)), delimiter=",", header="x,y,z", comments="")
+    result = run_live(LiveRequest(replay=log, rate=None, units="counts", port=0, open_browser=False,
+                                  exit_at_end=True, out=tmp_path / "cal.json", interval=0.05), say=lambda m: None)
+    assert result.status["good_enough"] is True, result.status["not_good_enough_because"]
+    assert result.status["coverage_fraction"] > 0.9
+
+
+# -- the command -----------------------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_demo_replay_converges_to_trimag_fit_and_sigint_saves_it(tmp_path):
+    proc, url = _start_live("--replay", str(DEMO), "--rate", "2000", "--units", "counts", "--out",
+                            str(tmp_path / "cal.json"), cwd=tmp_path)
+    try:
+        page = urllib.request.urlopen(url, timeout=5).read().decode()
+        assert "trimag live" in page and "live.js" in page
+        assert b"function poll" in urllib.request.urlopen(url + "live.js", timeout=5).read()
+        final, seen = _wait_until_done(url)
+    except BaseException:
+        proc.kill()
+        raise
+    whole = trimag.fit(read_samples(DEMO).field, units="counts")
+    assert final["n_samples"] == len(read_samples(DEMO).field) and final["n_garbage"] == 0
+    assert final["converged"] and final["identifiable"] and final["good_enough"]
+    cov = whole.diagnostics["coverage"]["fraction"]
+    assert final["coverage_fraction"] == pytest.approx(cov, rel=0.02)
+    assert final["rms_after"] == pytest.approx(whole.stats["rms_after"], rel=0.02)
+    assert final["rms_before"] == pytest.approx(whole.stats["rms_before"], rel=0.02)
+    fitted = [s for s in seen if s["coverage_fraction"] is not None]
+    assert len(fitted) >= 5, "the fit refreshed while the log was playing"
+    assert fitted[0]["coverage_fraction"] < cov, "the coverage grew as samples arrived"
+    assert len(final["points_raw"]) == len(final["points_corrected"]) <= 1500
+    assert len(final["coverage_centres"]) == len(final["coverage_cells"]) == 100
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    saved = trimag.Calibration.from_file(tmp_path / "cal.json")
+    recorded = read_samples(tmp_path / "cal-samples.csv").field
+    assert np.array_equal(recorded, read_samples(DEMO).field)
+    again = trimag.fit(recorded, units="counts")
+    assert np.allclose(saved.matrix, again.matrix, rtol=1e-9, atol=1e-12)
+    assert np.allclose(saved.offset, again.offset, rtol=1e-9)
+    assert np.allclose(saved.offset, whole.offset, rtol=1e-9)
+    assert "good enough" in out
+
+
+def test_save_button_writes_while_running_and_stdin_garbage_is_counted(tmp_path):
+    raw = _sensor(uniform_directions(800, seed=4))
+    lines = ["# a logger's banner", "mx,my,mz"] + [f"{x:.3f},{y:.3f},{z:.3f}" for x, y, z in raw[:400]]
+    lines += ["ERROR sensor timeout", "1.0,2.0", "\x00\x01", "12,abc,3"]
+    lines += [f"{x:.3f} {y:.3f} {z:.3f}" for x, y, z in raw[400:]]
+    proc, url = _start_live("--stdin", "--units", "counts", "--out", str(tmp_path / "live.json"),
+                            "--exit-at-end", "--json", cwd=tmp_path, stdin=subprocess.PIPE)
+    try:
+        assert proc.stdin is not None
+        proc.stdin.write("\n".join(lines[:300]) + "\n")
+        proc.stdin.flush()
+        for _ in range(100):
+            if _get(url + "status?points=0")["n_samples"] >= 298 and _get(url + "status?points=0")["up_to_date"]:
+                break
+            time.sleep(0.1)
+        written = _post(url + "save")["written"]
+        assert set(written) == {"samples", "calibration"}
+        assert len(read_samples(written["samples"]).field) >= 298
+        out, err = proc.communicate(input="\n".join(lines[300:]) + "\n", timeout=60)
+    except BaseException:
+        proc.kill()
+        raise
+    assert proc.returncode == 0, err
+    final = json.loads(out.strip().splitlines()[-1])
+    assert final["n_samples"] == 800 and final["n_garbage"] == 4
+    assert final["source_state"] == "ended" and final["reason"] == "source ended"
+    saved = trimag.Calibration.from_file(tmp_path / "live.json")
+    assert np.allclose(saved.offset, trimag.fit(raw, units="counts").offset, atol=1e-3)
+
+
+def test_mavlink_stream_from_a_telemetry_log(tmp_path):
+    """``--mavlink`` reads SCALED_IMU (mG) as an autopilot sends it; a .tlog file is a recorded stream."""
+    import struct
+
+    common = pytest.importorskip("pymavlink.dialects.v20.common", reason="pymavlink (the logs extra) is missing")
+    raw = np.round(_sensor(uniform_directions(600, seed=6)))
+    mav = common.MAVLink(None, srcSystem=1)
+    tlog = tmp_path / "imu.tlog"
+    with open(tlog, "wb") as f:
+        for i, (x, y, z) in enumerate(raw):
+            msg = mav.scaled_imu_encode(i * 20, 0, 0, 1000, 0, 0, 0, int(x), int(y), int(z))
+            f.write(struct.pack(">Q", 1_700_000_000_000_000 + i * 20_000) + msg.pack(mav))
+    result = run_live(LiveRequest(mavlink=str(tlog), port=0, open_browser=False, exit_at_end=True,
+                                  out=tmp_path / "cal.json", interval=0.05), say=lambda m: None)
+    assert result.status["n_samples"] == 600 and result.status["units"] == "mG"
+    assert np.array_equal(read_samples(result.written["samples"]).field, raw)
+    assert trimag.Calibration.from_file(result.written["calibration"]).units == "mG"
+
+
+def test_a_single_axis_turn_exits_3_with_the_samples_written(tmp_path):
+    a = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    raw = _sensor(np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]))
+    text = "\n".join(f"{x:.3f},{y:.3f},{z:.3f}" for x, y, z in raw) + "\n"
+    proc = subprocess.run([sys.executable, "-m", "trimag", "live", "--stdin", "--units", "counts", "--no-browser",
+                           "--port", "0", "--exit-at-end", "-o", str(tmp_path / "cal.json")], input=text,
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    assert "Traceback" not in proc.stderr and "no calibration written" in proc.stderr
+    assert "turn" in proc.stdout  # the advice names the single-axis turn
+    assert not (tmp_path / "cal.json").exists()
+    assert len(read_samples(tmp_path / "cal-samples.csv").field) == 400
+
+
+def test_a_flooding_source_never_blocks_the_status(tmp_path, monkeypatch):
+    """200 000 samples as fast as they can be read: the fit lags behind, /status answers at once. Every fit is
+    made 1 s slower, so a status that waited for a fit would take over 1 s: the bound below (0.5 s) is far from
+    both that and a status' own time (milliseconds), so the test does not depend on the machine's load."""
+    original = LiveSession._fit
+
+    def slow_fit(self, B):  # type: ignore[no-untyped-def]
+        time.sleep(1.0)
+        return original(self, B)
+
+    monkeypatch.setattr(LiveSession, "_fit", slow_fit)
+    raw = _sensor(uniform_directions(200_000, seed=7))
+    session = LiveSession(units="counts", interval=0.0)
+    session.start(Batch(raw[k : k + 5000]) for k in range(0, len(raw), 5000))
+    slowest = 0.0
+    t0 = time.monotonic()
+    done = False
+    while not done and time.monotonic() - t0 < 60:
+        t = time.monotonic()  # every call the page makes is timed: the state properties and the status
+        done = session.ended and session.up_to_date
+        st = session.status()
+        slowest = max(slowest, time.monotonic() - t)
+        time.sleep(0.01)
+    session.stop()
+    assert st["n_samples"] == 200_000 and session.up_to_date
+    assert slowest < 0.5, f"status took {slowest:.3f} s"
+    assert session.status()["rms_after"] == pytest.approx(trimag.fit(raw, units="counts").stats["rms_after"])
+
+
+def _run(*args: str, cwd: Path, blocked: tuple[str, ...] = ()) -> subprocess.CompletedProcess[str]:
+    code = ("import sys\n" + "".join(f"sys.modules[{b!r}] = None\n" for b in blocked)
+            + "from trimag.cli import main\nraise SystemExit(main(sys.argv[1:]))\n")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, timeout=120)
+
+
+def test_usage_errors_are_one_line_with_exit_2(tmp_path):
+    none = _run("live", "--no-browser", cwd=tmp_path)
+    both = _run("live", "--replay", str(DEMO), "--stdin", "--no-browser", cwd=tmp_path)
+    serial = _run("live", "--serial", "/dev/ttyUSB9", "--no-browser", cwd=tmp_path, blocked=("serial",))
+    for proc in (none, both, serial):
+        assert proc.returncode == 2, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+    assert "--replay" in none.stderr and "--stdin" in none.stderr and "`" not in none.stderr.split("given:")[1]
+    assert "given: --replay, --stdin" in both.stderr
+    assert 'pip install "trimag[live]"' in serial.stderr
+
+
+def test_a_port_in_use_is_an_input_error(tmp_path):
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        port = str(sock.getsockname()[1])
+        proc = _run("live", "--replay", str(DEMO), "--no-browser", "--port", port, cwd=tmp_path)
+    assert proc.returncode == 2 and "cannot listen on 127.0.0.1:" + port in proc.stderr and "--port" in proc.stderr
+
+
+# -- a real browser --------------------------------------------------------------------------------------------------
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+@pytest.mark.slow
+def test_the_page_in_a_real_browser(tmp_path):
+    """Headless Chromium (the distribution's package) driven by Selenium loads the page, sees the cloud and the
+    coverage drawn, and takes screenshots (test artefacts in tmp_path; copied into docs/ when
+    TRIMAG_LIVE_SCREENSHOTS=docs)."""
+    browser = _chromium()
+    if browser is None:
+        pytest.skip("no Chromium installed (apt-get install chromium chromium-driver; see README, 'trimag live')")
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install selenium)")
+    log = tmp_path / "log.csv"
+    np.savetxt(log, read_samples(DEMO).field, delimiter=",", header="mx,my,mz", comments="")
+    proc, url = _start_live("--replay", str(log), "--rate", "1500", "--units", "counts", "--out",
+                            str(tmp_path / "cal.json"), cwd=tmp_path)
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1400,1100"):
+        options.add_argument(arg)
+    try:
+        driver = webdriver.Chrome(options=options)
+    except Exception as exc:  # no chromedriver matching the browser
+        proc.kill()
+        pytest.skip(f"Chromium is installed but Selenium cannot drive it: {exc}")
+    shots = []
+    try:
+        driver.get(url)
+        for label, n in (("raw-cloud", 400), ("half-filled", 5000), ("finished", None)):
+            for _ in range(300):
+                st = _get(url + "status?points=0")
+                if (n is not None and st["n_samples"] >= n) or (n is None and st["source_state"] == "ended"
+                                                               and st["up_to_date"]):
+                    break
+                time.sleep(0.1)
+            time.sleep(0.6)  # two polls of the page
+            assert driver.execute_script("return document.body.dataset.drawn") == "1"
+            drawn = driver.execute_script(
+                "const g = document.getElementById('coverage').getContext('2d');"
+                "return Array.from(g.getImageData(0, 0, 640, 320).data).filter((v, i) => i % 4 === 3 && v).length")
+            assert drawn > 1000, "the coverage map is drawn"
+            path = tmp_path / f"live-{label}.png"
+            driver.save_screenshot(str(path))
+            shots.append(path)
+        assert "good enough" in driver.find_element("id", "badge").text
+    finally:
+        driver.quit()
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    if os.environ.get("TRIMAG_LIVE_SCREENSHOTS") == "docs":
+        for path in shots:
+            shutil.copy(path, DOCS / path.name)
+    assert all(p.stat().st_size > 10_000 for p in shots)
+
+
+def test_threads_end_with_the_session(tmp_path):
+    before = {t.name for t in threading.enumerate()}
+    log = tmp_path / "sphere.csv"
+    np.savetxt(log, _sensor(uniform_directions(300, seed=5)), delimiter=",", header="x,y,z", comments="")
+    run_live(LiveRequest(replay=log, rate=None, units="counts", port=0, open_browser=False, exit_at_end=True,
+                         out=tmp_path / "cal.json", interval=0.05), say=lambda m: None)
+    time.sleep(0.2)
+    left = {t.name for t in threading.enumerate()} - before
+    assert not {"trimag-live-fit", "trimag-live-http"} & left
