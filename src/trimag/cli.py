@@ -164,6 +164,18 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                    help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
                         "only its offset, e.g. from a few headings at level (needs the field magnitude; "
                         "docs/vehicle.md)")
+    g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
+    g.add_argument("--level-turn", action="store_true",
+                   help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
+                        "the vertical offset from the field's magnitude and inclination (--igrf, or the log's GPS), "
+                        "the vertical scale held")
+    g.add_argument("--heading", type=float, metavar="DEG",
+                   help="the vehicle's true heading while it stood still (degrees from true north): the offsets from "
+                        "the field's vector at that attitude, as ArduPilot's MAG_CAL_YAW (needs --igrf or the log's "
+                        "GPS; roll and pitch from the log's attitude or --attitude-columns, else level)")
+    g.add_argument("--heading-column", metavar="NAME",
+                   help="as --heading, with the true heading of each sample from this column (a survey, a GPS "
+                        "course)")
     p.add_argument("--accel-columns", metavar="AX,AY,AZ",
                    help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
                         "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "

@@ -35,7 +35,7 @@ def test_px4log_undone_reading_recalibrates_to_the_logged_one():
         assert np.abs(recal - mag.logged).max() <= 1e-6  # the log stores float32 gauss
         assert mag.unit == "G" and 80 < mag.rate_hz < 90
     assert not np.allclose(log.magnetometers[0].field, log.magnetometers[0].logged)
-    df, _ = log.table("1")
+    df, _ = log.table("2")  # the second magnetometer (compasses count from 1)
     assert {"current_A", "yaw_deg", "pitch_deg", "roll_deg"} <= set(df.columns)
     corr = np.corrcoef(np.linalg.norm(df[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1), df["current_A"])[0, 1]
     assert corr > 0.5  # the second magnetometer sees the motor current (flight-logs/README.md)
@@ -56,7 +56,7 @@ def test_ulog_slow_magnetometer_is_warned_and_vehicle_magnetometer_undone():
 def test_dataflash_offsets_undone_and_instances_listed():
     log = read_log(LOGS / "ardusub_small.BIN")
     assert [m.name for m in log.magnetometers] == ["MAG[0]", "MAG[1]"]
-    mag = log.choose("1")
+    mag = log.choose("2")  # COMPASS_OFS2: compasses count from 1
     ofs, M, s = onboard_matrix(log.parameters, 1)
     np.testing.assert_allclose(M @ ((mag.field + ofs) * s).T, mag.logged.T, atol=1e-9)
     assert "COMPASS_OFS2" in mag.undone[0]
@@ -68,7 +68,7 @@ def test_dataflash_offsets_undone_and_instances_listed():
 @requires_flight_logs
 def test_dataflash_soft_iron_matrix_is_undone():
     log = read_log(FLIGHT / "pymavlink_test.BIN")
-    mag = log.choose("0")
+    mag = log.choose("1")
     ofs, M, s = onboard_matrix(log.parameters, 0)
     assert not np.allclose(M, np.eye(3))
     # AP_Compass_Backend::correct_field: mag += offsets; mag = mat * mag

@@ -20,7 +20,6 @@ from ..errors import TrimagInputError
 
 __all__ = ["predicted_heading_sigma"]
 
-_UPPER = ("w11", "w12", "w13", "w22", "w23", "w33")
 
 
 def predicted_heading_sigma(
@@ -38,13 +37,7 @@ def predicted_heading_sigma(
     TrimagInputError
         The calibration has no covariance in the ellipsoid model's gauge.
     """
-    unc = cal.uncertainty or {}
-    order = list(unc.get("covariance_order") or [])
-    if unc.get("covariance") is None or not all(n in order for n in (*_UPPER, "hard_iron_x")):
-        raise TrimagInputError("a predicted heading error needs a calibration of the ellipsoid model with its "
-                               "covariance (fit with model ellipsoid, method ml, twostep, als or ellipsoid-fit)")
-    idx = [order.index(n) for n in (*_UPPER, "hard_iron_x", "hard_iron_y", "hard_iron_z")]
-    C = np.asarray(unc["covariance"], dtype=np.float64)[np.ix_(idx, idx)]
+    C = _entry_covariance(cal)
     W = np.asarray(cal.matrix)
     b = np.asarray(cal.offset)
     F = float((cal.reference or {}).get("value") or np.linalg.norm(W @ (np.zeros(3) - b)))
@@ -53,17 +46,52 @@ def predicted_heading_sigma(
     n = F * np.column_stack([np.cos(inc) * np.cos(psi), -np.cos(inc) * np.sin(psi), np.full(len(psi), np.sin(inc))])
     x = np.linalg.solve(W, n.T).T + b
     d = x - b
-    # dy/dtheta for theta = (w11, w12, w13, w22, w23, w33, b_x, b_y, b_z): y = W (x - b)
-    G = np.zeros((len(psi), 3, 9))
-    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
-        G[:, i, k] = d[:, j]
-    G[:, :, 6:] = -W
+    # dy/dtheta for theta = (W's nine entries, row-major, then b_x, b_y, b_z): y = W (x - b)
+    G = np.zeros((len(psi), 3, 12))
+    for i in range(3):
+        G[:, i, 3 * i:3 * i + 3] = d
+    G[:, :, 9:] = -W
     y = n
     g = (y[:, 1:2] * G[:, 0, :] - y[:, 0:1] * G[:, 1, :]) / (y[:, 0:1] ** 2 + y[:, 1:2] ** 2)
     sigma = np.degrees(np.sqrt(np.clip(np.einsum("ni,ij,nj->n", g, C, g), 0.0, None)))
     return {"headings_deg": np.degrees(psi).tolist(), "sigma_deg": sigma.tolist(),
             "rms_deg": float(np.sqrt(np.mean(sigma**2))), "max_deg": float(sigma.max()),
             "inclination_deg": float(inclination_deg)}
+
+
+def _entry_covariance(cal: Calibration) -> NDArray[np.float64]:
+    """The covariance (12, 12) of ``W``'s nine entries (row-major) and the offset, from the calibration's covariance
+    in its own parameters: the upper-triangular ``w11 .. w33`` of the ellipsoid estimators, the symmetric
+    ``m11 .. m33`` of a level turn (``m12`` both ``W[0, 1]`` and ``W[1, 0]``), or none (a matrix held: the offset's
+    only)."""
+    unc = cal.uncertainty or {}
+    order = list(unc.get("covariance_order") or [])
+    offset = ("hard_iron_x", "hard_iron_y", "hard_iron_z")
+    if unc.get("covariance") is None or not all(n in order for n in offset):
+        raise TrimagInputError("a predicted heading error needs a calibration of the ellipsoid model with its "
+                               "covariance (fit with model ellipsoid, method ml, twostep, als or ellipsoid-fit)")
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    names: list[str] = []
+    T_rows: list[NDArray[np.float64]] = []  # entry -> parameter: theta_full = T^T p
+    for prefix, symmetric in (("w", False), ("m", True)):
+        if all(f"{prefix}{i + 1}{j + 1}" in order for i, j in pairs):
+            for i, j in pairs:
+                t = np.zeros(12)
+                t[3 * i + j] = 1.0
+                if symmetric:
+                    t[3 * j + i] = 1.0
+                names.append(f"{prefix}{i + 1}{j + 1}")
+                T_rows.append(t)
+            break
+    for k, name in enumerate(offset):
+        t = np.zeros(12)
+        t[9 + k] = 1.0
+        names.append(name)
+        T_rows.append(t)
+    idx = [order.index(n) for n in names]
+    C = np.asarray(unc["covariance"], dtype=np.float64)[np.ix_(idx, idx)]
+    T = np.array(T_rows).T  # (12, p)
+    return np.asarray(T @ C @ T.T, dtype=np.float64)
 
 
 def tilt_compensated_heading(

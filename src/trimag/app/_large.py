@@ -1,0 +1,199 @@
+"""``trimag fit --level-turn`` and ``--heading`` / ``--heading-column``: the calibration of a vehicle that cannot
+be tumbled (issue 30, item 5; :mod:`trimag.vehicle.level_turn`, :mod:`trimag.vehicle.fixed_yaw`,
+docs/autopilot.md "Large vehicles")."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
+from ..io import Samples
+from ..units import convert
+from ._inputs import attitudes_of, drop_rows_without_attitude, magnitude_reference
+from .requests import FitRequest
+
+#: ``option`` keys of the two modes (besides the quick recalibration's ``scale_sigma``, ``inclination_deg``,
+#: ``inclination_sigma_deg``, which they share)
+MODE_OPTIONS = ("vertical_scale_sigma", "gain_sigma", "heading_sigma_deg", "attitude_sigma_deg",
+                "declination_sigma_deg")
+_LEVEL_KEYS = ("vertical_scale_sigma", "gain_sigma", "scale_sigma", "inclination_sigma_deg")
+_HEADING_KEYS = ("scale_sigma", "inclination_sigma_deg", "declination_sigma_deg", "heading_sigma_deg",
+                 "attitude_sigma_deg")
+
+
+def large_mode(req: FitRequest) -> str | None:
+    """``"level_turn"``, ``"heading"`` or None; a combination that cannot work is refused."""
+    heading = req.heading is not None or req.heading_column is not None
+    if req.heading is not None and req.heading_column is not None:
+        raise TrimagInputError("give the heading once: `heading=DEG` (one, for the whole log) or "
+                               "`heading_column=NAME` (one per sample)")
+    if req.level_turn and heading:
+        raise TrimagInputError("give one mode: `level_turn` (the vehicle turns; no heading needed) or `heading` "
+                               "(the vehicle's known heading)")
+    if req.level_turn and req.prior is not None:
+        raise TrimagInputError("`prior` already refits an earlier calibration's offset from a level turn; drop "
+                               "`level_turn`")
+    mode = "level_turn" if req.level_turn else ("heading" if heading else None)
+    if mode is not None and req.model != "ellipsoid":
+        raise TrimagInputError(f"`{mode}` fits the firmware's offsets and matrix (model ellipsoid); drop "
+                               f"`model={req.model}`")
+    if mode is not None and req.regressors:
+        raise TrimagInputError(f"`regressors` cannot be fitted with `{mode}`; drop one of them")
+    return mode
+
+
+def _options(options: dict[str, Any], keys: tuple[str, ...], mode: str) -> dict[str, float]:
+    """The mode's options as floats; another mode's option is refused."""
+    out: dict[str, float] = {}
+    for key, value in options.items():
+        if key == "inclination_deg":
+            continue
+        if key not in keys:
+            raise TrimagInputError(f"`option {key}` is not an option of `{mode}`; its options: {', '.join(keys)}")
+        try:
+            out[key] = float(value)
+        except (TypeError, ValueError):
+            raise TrimagInputError(f"`option {key}` takes a number; got {value!r}") from None
+    return out
+
+
+def _attitude(req: FitRequest, samples: Samples) -> tuple[Samples, Any, list[str]]:
+    """The attitudes (the request's columns, or the log's), rows without one dropped and counted: ``(samples,
+    Rotation or None, messages)``."""
+    att = req.attitude
+    log_info = samples.log_info
+    if att.attitude_columns is None and att.quaternion_columns is None and log_info and log_info.get("has_attitude"):
+        att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
+    if att.attitude_columns is None and att.quaternion_columns is None:
+        return samples, None, ["no attitudes: the vehicle is taken as level (give `attitude_columns` for its roll "
+                               "and pitch)"]
+    samples, n_bad = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns,
+                                                strict=req.input.strict)
+    messages = [f"dropped {n_bad} rows without an attitude"] if n_bad else []
+    rotation = attitudes_of(samples, att)
+    tilt = np.degrees(np.arccos(np.clip(rotation.inv().apply([0.0, 0.0, 1.0])[:, 2], -1.0, 1.0)))
+    source = "the log's" if log_info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg" else "the given"
+    messages.append(f"roll and pitch from {source} attitudes: tilt {float(np.sqrt(np.mean(tilt**2))):.2g} deg RMS, "
+                    f"{float(tilt.max()):.2g} deg at most")
+    return samples, rotation, messages
+
+
+def _inclination(req: FitRequest, options: dict[str, Any]) -> tuple[float | None, str]:
+    if options.get("inclination_deg") is not None:
+        return float(options["inclination_deg"]), "`option inclination_deg`"
+    if req.reference.igrf_spec is not None:
+        north, east, down = igrf(*parse_igrf_spec(req.reference.igrf_spec)).ned_nT
+        return float(np.degrees(np.arctan2(down, np.hypot(north, east)))), "IGRF"
+    return None, ""
+
+
+def fit_level_turn_file(req: FitRequest, samples: Samples, unit: str, options: dict[str, Any]
+                        ) -> tuple[Samples, Calibration, ScalarReference, list[str]]:
+    """``level_turn``: :func:`trimag.vehicle.level_turn.fit_level_turn` on the request's samples."""
+    from ..vehicle.level_turn import fit_level_turn
+
+    sigmas = _options(options, _LEVEL_KEYS, "level_turn")
+    samples, rotation, messages = _attitude(req, samples)
+    ref = magnitude_reference(samples, req.reference, unit)
+    if not ref.known or ref.values is None:
+        raise TrimagInputError("`level_turn` needs the field's magnitude (and, best, its inclination): give "
+                               "`igrf_spec=LAT,LON,ALT_M,DATE` (a log with a GPS fix has it) or `reference=F`")
+    inclination, source = _inclination(req, options)
+    cal = fit_level_turn(samples.field, ref.values, inclination_deg=inclination, attitude=rotation, units=unit,
+                         **sigmas)
+    messages.insert(0, f"level turn: reference F = {float(np.mean(ref.values)):.6g} {unit} ({ref.source})"
+                    + (f", inclination {inclination:.3f} deg ({source})" if inclination is not None else
+                       ", inclination unknown (the horizontal gain held at the data's unit)"))
+    return samples, cal, ref, messages + level_turn_lines(cal)
+
+
+def level_turn_lines(cal: Calibration) -> list[str]:
+    """What a level turn fitted and held, for the user."""
+    d = cal.diagnostics["level_turn"]
+    std = (cal.uncertainty or {})["param_std"]
+    unit = cal.units
+    parts = d["offset_z_sigma_parts"]
+    lines = [f"  turned through {d['turn_covered_deg']:.0f} deg of heading; tilt {d['tilt_rms_deg']:.2g} deg RMS"]
+    for k, axis in enumerate("xyz"):
+        lines.append(f"  offset_{axis} = {cal.offset[k]:.6g} +- {std[f'hard_iron_{axis}']:.3g} {unit}"
+                     + (f" (from {d['offset_z_from']}; sigma from the data {parts['data']:.3g}, the held vertical "
+                        f"scale {parts['vertical_scale']:.3g}, the reference {parts['reference']:.3g})"
+                        if axis == "z" else " (the turn's centre)"))
+    if d["held"]:
+        lines.append(f"held, not identified by a level turn: {'; '.join(d['held'])} (tilt the vehicle while it "
+                     "turns to fit it, or widen `option vertical_scale_sigma`)")
+    else:
+        lines.append(f"the vertical scale is fitted (the tilt identifies it: sigma {d['vertical_scale_std']:.3g})")
+    if d["offset_z_alternative"] is not None:
+        lines.append(f"warning: without the inclination a level turn cannot tell the vertical field's sign: the "
+                     f"vertical offset {cal.offset[2]:.6g} {unit} was chosen (the smaller); the other solution is "
+                     f"{d['offset_z_alternative']:.6g} {unit}; give `igrf_spec` or `option inclination_deg` to decide")
+    return lines
+
+
+def fit_fixed_heading_file(req: FitRequest, samples: Samples, unit: str, prior: Calibration | None,
+                           options: dict[str, Any]) -> tuple[Samples, Calibration, ScalarReference, list[str]]:
+    """``heading`` / ``heading_column``: :func:`trimag.vehicle.fixed_yaw.fit_fixed_heading` on the request's samples
+    (the matrix of ``prior`` held when given, else the identity)."""
+    from ..vehicle.fixed_yaw import fit_fixed_heading, heading_misfit_message
+
+    sigmas = _options(options, _HEADING_KEYS, "heading")
+    messages: list[str] = []
+    if req.heading_column is not None:
+        samples, n_bad = drop_rows_without_attitude(samples, req.heading_column, None, strict=req.input.strict,
+                                                    what="heading")
+        if n_bad:
+            messages.append(f"dropped {n_bad} rows without a heading in {req.heading_column} (e.g. a GPS course "
+                            "while the vehicle stood still)")
+    samples, rotation, att_messages = _attitude(req, samples)
+    messages += att_messages
+    if req.heading_column is not None:
+        from ..io import column_values
+
+        yaw = column_values(samples, req.heading_column)
+    else:
+        yaw = np.full(len(samples.field), float(req.heading))  # type: ignore[arg-type]
+    pitch = roll = np.zeros(len(samples.field))
+    if rotation is not None:
+        _, pitch, roll = rotation.as_euler("ZYX", degrees=True).T
+    F, incl, decl, source = _field_vector(req, unit)
+    if req.heading_column is None and options.get("heading_sigma_deg") is None:
+        messages.append("the heading given is taken as known to 1 deg (`option heading_sigma_deg`)")
+    matrix = None if prior is None else np.asarray(prior.matrix)
+    cal = fit_fixed_heading(samples.field, (F, incl, decl), yaw, pitch_deg=pitch, roll_deg=roll, matrix=matrix,
+                            units=unit, sigmas=sigmas, model="ellipsoid" if prior is None else prior.model)
+    std = (cal.uncertainty or {})["param_std"]
+    messages.insert(0, f"fixed heading (as ArduPilot's MAG_CAL_YAW): field {F:.6g} {unit}, inclination {incl:.3f} "
+                       f"deg, declination {decl:.3f} deg ({source}); true heading "
+                       + (f"{float(req.heading):.2f} deg" if req.heading is not None else
+                          f"from column {req.heading_column}")
+                       + f"; matrix held: {cal.diagnostics['fixed_heading']['matrix_held']}")
+    for k, axis in enumerate("xyz"):
+        messages.append(f"  offset_{axis} = {cal.offset[k]:.6g} +- {std[f'hard_iron_{axis}']:.3g} {unit}")
+    misfit = heading_misfit_message(cal)
+    if misfit:
+        messages.append(f"warning: {misfit}")
+    ref = ScalarReference(np.full(len(samples.field), F), source, unit)
+    return samples, cal, ref, messages
+
+
+def _field_vector(req: FitRequest, unit: str) -> tuple[float, float, float, str]:
+    """The field's magnitude (``unit``), inclination and declination (degrees) for a fixed heading."""
+    given = req.reference
+    if given.background_ned is not None:
+        from ._inputs import _parse_vector
+
+        n, e, d = _parse_vector(given.background_ned, "`background_ned`")
+        return float(np.linalg.norm([n, e, d])), float(np.degrees(np.arctan2(d, np.hypot(n, e)))), \
+            float(np.degrees(np.arctan2(e, n))), "`background_ned`"
+    if given.igrf_spec is None:
+        raise TrimagInputError("a fixed heading needs the field's vector at the site: give "
+                               "`igrf_spec=LAT,LON,ALT_M,DATE` (a log with a GPS fix has it) or `background_ned=N,E,D`")
+    north, east, down = (convert(v, "nT", unit) for v in igrf(*parse_igrf_spec(given.igrf_spec)).ned_nT)
+    return (float(np.linalg.norm([north, east, down])), float(np.degrees(np.arctan2(down, np.hypot(north, east)))),
+            float(np.degrees(np.arctan2(east, north))), f"IGRF at {given.igrf_spec}")
