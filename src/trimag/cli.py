@@ -212,6 +212,9 @@ def _add_fit(sub: Any) -> None:
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
+    p.add_argument("--deviation-card", metavar="CARD.png",
+                   help="with --level-turn or --heading: write the deviation card (heading error against heading, "
+                        "before and after) as a figure; its table is printed")
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -491,6 +494,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
+    _check_writable(args.deviation_card, suffixes=(".png",))
     if args.model == "tolles-lawson":
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "

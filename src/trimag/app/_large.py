@@ -39,6 +39,8 @@ def large_mode(req: FitRequest) -> str | None:
         raise TrimagInputError("`prior` already refits an earlier calibration's offset from a level turn; drop "
                                "`level_turn`")
     mode = "level_turn" if req.level_turn else ("heading" if heading else None)
+    if req.deviation_card is not None and mode is None:
+        raise TrimagInputError("`deviation_card` is drawn by a large vehicle's fit: give `level_turn` or `heading`")
     if mode is not None and req.model != "ellipsoid":
         raise TrimagInputError(f"`{mode}` fits the firmware's offsets and matrix (model ellipsoid); drop "
                                f"`model={req.model}`")
@@ -109,7 +111,18 @@ def fit_level_turn_file(req: FitRequest, samples: Samples, unit: str, options: d
     messages.insert(0, f"level turn: reference F = {float(np.mean(ref.values)):.6g} {unit} ({ref.source})"
                     + (f", inclination {inclination:.3f} deg ({source})" if inclination is not None else
                        ", inclination unknown (the horizontal gain held at the data's unit)"))
-    return samples, cal, ref, messages + level_turn_lines(cal)
+    declination = _declination(req)
+    cal, card_lines = attach_deviation_card(cal, samples, rotation, declination,
+                                            cal.diagnostics["level_turn"]["fitted_inclination_deg"])
+    return samples, cal, ref, messages + level_turn_lines(cal) + card_lines
+
+
+def _declination(req: FitRequest) -> float:
+    """IGRF's declination at the request's site (degrees east), 0 without one (magnetic headings)."""
+    if req.reference.igrf_spec is None:
+        return 0.0
+    north, east, _ = igrf(*parse_igrf_spec(req.reference.igrf_spec)).ned_nT
+    return float(np.degrees(np.arctan2(east, north)))
 
 
 def level_turn_lines(cal: Calibration) -> list[str]:
@@ -178,8 +191,9 @@ def fit_fixed_heading_file(req: FitRequest, samples: Samples, unit: str, prior: 
     misfit = heading_misfit_message(cal)
     if misfit:
         messages.append(f"warning: {misfit}")
+    cal, card_lines = attach_deviation_card(cal, samples, rotation, decl, incl, yaw)
     ref = ScalarReference(np.full(len(samples.field), F), source, unit)
-    return samples, cal, ref, messages
+    return samples, cal, ref, messages + card_lines
 
 
 def _field_vector(req: FitRequest, unit: str) -> tuple[float, float, float, str]:
@@ -197,3 +211,38 @@ def _field_vector(req: FitRequest, unit: str) -> tuple[float, float, float, str]
     north, east, down = (convert(v, "nT", unit) for v in igrf(*parse_igrf_spec(given.igrf_spec)).ned_nT)
     return (float(np.linalg.norm([north, east, down])), float(np.degrees(np.arctan2(down, np.hypot(north, east)))),
             float(np.degrees(np.arctan2(east, north))), f"IGRF at {given.igrf_spec}")
+
+
+def attach_deviation_card(cal: Calibration, samples: Samples, rotation: Any, declination_deg: float,
+                          inclination_deg: float | None, reference_deg: Any = None) -> tuple[Calibration, list[str]]:
+    """The deviation card of the fit (:func:`trimag.vehicle.heading.deviation_card`) into the calibration's
+    diagnostics, and its table for the user. Before: the log's onboard calibration (what the autopilot used), or
+    the raw reading; the reference: ``reference_deg`` (a heading column), else the new calibration's own heading
+    (then the card is the old compass's deviation, and the new one's predicted sigma)."""
+    from ..vehicle.heading import deviation_card, deviation_table, predicted_heading_sigma, tilt_compensated_heading
+
+    n = len(samples.field)
+    down = np.tile([0.0, 0.0, 1.0], (n, 1)) if rotation is None else rotation.inv().apply([0.0, 0.0, 1.0])
+    logged = [f"mag_logged_{a}" for a in "xyz"]
+    if samples.log_info is not None and all(c in samples.table.columns for c in logged):
+        before_field, before = samples.table[logged].to_numpy(dtype=np.float64), "the onboard calibration"
+    else:
+        before_field, before = samples.field, "raw"
+    ok = np.isfinite(before_field).all(axis=1)
+    after_deg = tilt_compensated_heading(cal.apply(samples.field), -down, declination_deg=declination_deg)
+    before_deg = np.where(ok, 0.0, np.nan)
+    before_deg[ok] = tilt_compensated_heading(before_field[ok], -down[ok], declination_deg=declination_deg)
+    reference = after_deg if reference_deg is None else np.asarray(reference_deg, dtype=np.float64)
+    sigma = None
+    if inclination_deg is not None:
+        def sigma(h: Any) -> Any:
+            return predicted_heading_sigma(cal, inclination_deg, h)["sigma_deg"]
+    card = deviation_card(reference[ok], before_deg[ok], None if reference_deg is None else after_deg[ok],
+                          after_sigma=sigma)
+    card.update({"before_label": before, "reference": "the heading column" if reference_deg is not None else
+                 "the new calibration's heading", "declination_deg": declination_deg,
+                 "level": rotation is None})
+    heading = "true" if declination_deg else "magnetic"
+    lines = [f"deviation card ({heading} heading; before: {before}; reference: {card['reference']}"
+             + ("; the vehicle taken as level" if rotation is None else "") + "):", deviation_table(card)]
+    return cal.with_diagnostics(deviation_card=card), lines

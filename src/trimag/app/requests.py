@@ -113,6 +113,8 @@ class FitRequest:
     #: (:func:`trimag.vehicle.fixed_yaw.fit_fixed_heading`, as ArduPilot's MAG_CAL_YAW)
     heading: float | None = None
     heading_column: str | None = None
+    #: the deviation card's figure (PNG) of a ``level_turn`` or ``heading`` fit
+    deviation_card: str | Path | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

@@ -149,4 +149,81 @@ def heading_error_stats(estimate_deg: ArrayLike, reference_deg: ArrayLike) -> di
             "heading_error_std_deg": float(np.std(e))}
 
 
-__all__ += ["heading_difference", "heading_error_stats", "tilt_compensated_heading"]
+def deviation_card(
+    reference_deg: ArrayLike, before_deg: ArrayLike, after_deg: ArrayLike | None = None, *, step_deg: float = 15.0,
+    after_sigma: Any = None,
+) -> dict[str, Any]:
+    """A compass deviation card: the heading error against the heading, before and after a calibration.
+
+    The samples are put into bins of ``step_deg`` of the reference heading (centred on 0, 15, 30 ... degrees); each
+    bin gives the mean and RMS of the wrapped errors ``before - reference`` and ``after - reference`` (degrees; the
+    deviation with the sign of compass minus reference). Bins without samples are kept, with ``n = 0`` and empty
+    (None) values. Without an independent reference (a level turn has none), the calibrated heading is the reference:
+    ``after`` is then None and the card gives the deviation of the compass before, and the heading error the new
+    calibration predicts (``after_sigma``).
+
+    Parameters
+    ----------
+    reference_deg, before_deg : array_like, shape (N,)
+        The reference heading and the compass heading before, degrees.
+    after_deg : array_like, shape (N,), optional
+        The compass heading after the calibration, degrees.
+    step_deg : float
+        Bin width, degrees (a divisor of 360, at most 90).
+    after_sigma : callable, optional
+        ``after_sigma(headings_deg) -> sigma_deg``: the heading error the calibration predicts (1 sigma) at each
+        bin's heading (:func:`predicted_heading_sigma`), stored as ``after_sigma_deg``.
+
+    Returns
+    -------
+    dict
+        ``headings_deg`` (bin centres), ``n``, ``before_mean_deg``, ``before_rms_deg`` (per bin), ``before`` (the
+        whole log, :func:`heading_error_stats`), the same for ``after`` when given, and ``after_sigma_deg`` (or None).
+    """
+    if not (0 < step_deg <= 90 and abs(360.0 / step_deg - round(360.0 / step_deg)) < 1e-9):
+        raise TrimagInputError(f"the deviation card's step must divide 360 degrees; got {step_deg}")
+    ref = np.asarray(reference_deg, dtype=np.float64)
+    centres = np.arange(0.0, 360.0, step_deg)
+    k = np.mod(np.round(np.mod(ref, 360.0) / step_deg), len(centres)).astype(int)
+    n = np.bincount(k, minlength=len(centres))
+    card: dict[str, Any] = {"headings_deg": centres.tolist(), "n": n.tolist(), "step_deg": float(step_deg)}
+    for name, heading in (("before", before_deg), ("after", after_deg)):
+        if heading is None:
+            card[name] = None
+            continue
+        e = heading_difference(heading, ref)
+        total = np.bincount(k, weights=e, minlength=len(centres))
+        squares = np.bincount(k, weights=e * e, minlength=len(centres))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean, rms = total / n, np.sqrt(squares / n)
+        card[f"{name}_mean_deg"] = [float(v) if c else None for v, c in zip(mean, n, strict=True)]
+        card[f"{name}_rms_deg"] = [float(v) if c else None for v, c in zip(rms, n, strict=True)]
+        card[name] = heading_error_stats(heading, ref)
+    card["after_sigma_deg"] = None if after_sigma is None else [float(v) for v in after_sigma(centres)]
+    return card
+
+
+def deviation_table(card: dict[str, Any]) -> str:
+    """The deviation card as text: one line per heading bin with samples, then the whole log (degrees)."""
+    sigma, after = card.get("after_sigma_deg"), card.get("after")
+    head = f"{'heading':>8}{'n':>6}{'before: mean':>14}{'rms':>7}"
+    head += f"{'after: mean':>13}{'rms':>7}" if after else ""
+    head += f"{'after: predicted 1 sigma':>26}" if sigma else ""
+    lines = [head + "   [deg]"]
+    for k, centre in enumerate(card["headings_deg"]):
+        if not card["n"][k]:
+            continue
+        line = f"{centre:8.0f}{card['n'][k]:6d}{card['before_mean_deg'][k]:14.2f}{card['before_rms_deg'][k]:7.2f}"
+        line += f"{card['after_mean_deg'][k]:13.2f}{card['after_rms_deg'][k]:7.2f}" if after else ""
+        lines.append(line + (f"{sigma[k]:26.3f}" if sigma else ""))
+    b = card["before"]
+    last = f"{'all':>8}{sum(card['n']):6d}{b['heading_error_mean_deg']:14.2f}{b['heading_error_rms_deg']:7.2f}"
+    if after:
+        last += f"{after['heading_error_mean_deg']:13.2f}{after['heading_error_rms_deg']:7.2f}"
+    if sigma:
+        last += f"{float(np.sqrt(np.mean(np.square(sigma)))):26.3f}"
+    return "\n".join([*lines, last])
+
+
+__all__ += ["deviation_card", "deviation_table", "heading_difference", "heading_error_stats",
+            "tilt_compensated_heading"]
