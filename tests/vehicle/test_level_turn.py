@@ -156,3 +156,20 @@ def test_cli_level_turn_needs_a_magnitude_and_one_mode(tmp_path) -> None:
     r = run_trimag("fit", tmp_path / "boat.csv", "--units", "mG", "--igrf", BOAT_SITE, "--level-turn", "--option",
                    "heading_sigma_deg=2")
     assert r.returncode == 2 and "not an option of --level-turn" in r.stderr
+
+
+def test_halves_that_disagree_are_flagged() -> None:
+    """The real ground-handled log (pyflightcoach box_pilot) gave half-log offsets 8 sigma apart with no word: the
+    two halves are now fitted and compared. A boat whose hard iron moves by 20 mG halfway is flagged; one whose
+    does not, is not."""
+    steady = simulate_boat(seed=14, turns=4)
+    cal = fit_level_turn(steady["raw"], F, inclination_deg=INCLINATION, units="mG")
+    assert cal.diagnostics["level_turn"]["halves"]["agree"]
+    moved = steady["raw"].copy()
+    moved[360:] += [20.0, -10.0, 0.0]
+    cal = fit_level_turn(moved, F, inclination_deg=INCLINATION, units="mG")
+    halves = cal.diagnostics["level_turn"]["halves"]
+    assert not halves["agree"] and max(halves["z"]) > 10
+    np.testing.assert_allclose(np.subtract(*halves["offsets"])[:2], [-20.0, 10.0], atol=2.0)
+    short = simulate_boat(seed=15, turns=0.4)  # 144 deg: the halves turned too little to be fitted
+    assert fit_level_turn(short["raw"], F, inclination_deg=INCLINATION).diagnostics["level_turn"]["halves"] is None

@@ -142,6 +142,13 @@ def level_turn_lines(cal: Calibration) -> list[str]:
                      "turns to fit it, or widen `option vertical_scale_sigma`)")
     else:
         lines.append(f"the vertical scale is fitted (the tilt identifies it: sigma {d['vertical_scale_std']:.3g})")
+    halves = d.get("halves")
+    if halves is not None and not halves["agree"]:
+        diff = np.subtract(*halves["offsets"])
+        lines.append(f"warning: the log's two halves give offsets that differ by {np.round(diff, 3).tolist()} {unit} "
+                     f"({max(halves['z']):.1f} times their combined sigma): the field or the vehicle's iron changed "
+                     "during the log (nearby iron, a moved battery or cable), and the sigmas above understate the "
+                     "uncertainty; record the turns again, away from iron")
     if d["offset_z_alternative"] is not None:
         lines.append(f"warning: without the inclination a level turn cannot tell the vertical field's sign: the "
                      f"vertical offset {cal.offset[2]:.6g} {unit} was chosen (the smaller); the other solution is "

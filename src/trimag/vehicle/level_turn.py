@@ -53,6 +53,8 @@ NAMES = ("m11", "m12", "m13", "m22", "m23", "m33", "hard_iron_x", "hard_iron_y",
 DEFAULTS = {"vertical_scale_sigma": 0.01, "gain_sigma": 0.02, "scale_sigma": 0.005, "inclination_sigma_deg": 0.2}
 #: The samples' RMS scatter about the horizontal ellipse, relative to its size, above which they trace none.
 MAX_ELLIPSE_SCATTER = 0.2
+#: The halves' offsets differ by more than this many combined sigmas: the field or the vehicle's iron changed.
+HALVES_Z = 3.0
 #: At least this much of the circle of headings must be covered (degrees).
 MIN_TURN_DEG = 90.0
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -184,7 +186,10 @@ def _ellipse_start(X: NDArray[np.float64], down: NDArray[np.float64]) -> tuple[N
             f"one is {100 * scatter:.0f} % of its size): the vehicle did not turn, "
             "or the field changed while it did; turn it through a full circle, slowly and level"
         )
-    angle = np.sort(np.mod(np.degrees(np.arctan2(y - centre[1], x - centre[0])), 360.0))
+    # the turn covered, seen from a circle's centre (three parameters: steadier than an ellipse's on a short arc)
+    kasa, *_ = np.linalg.lstsq(np.column_stack([u, v, np.ones(len(u))]), u * u + v * v, rcond=None)
+    circle = np.array([kasa[0], kasa[1]]) / 2 * scale + np.array([xm, ym])
+    angle = np.sort(np.mod(np.degrees(np.arctan2(y - circle[1], x - circle[0])), 360.0))
     gaps = np.diff(np.concatenate([angle, [angle[0] + 360.0]]))
     return centre, Q, np.array([float(np.mean(X[:, 2]))]), np.array([360.0 - float(gaps.max())])
 
@@ -255,6 +260,7 @@ def fit_level_turn(
     gain_sigma: float = DEFAULTS["gain_sigma"],
     scale_sigma: float = DEFAULTS["scale_sigma"],
     inclination_sigma_deg: float = DEFAULTS["inclination_sigma_deg"],
+    check_halves: bool = True,
 ) -> Calibration:
     """Fit a symmetric soft-iron matrix and the offset from a level turn (module docstring).
 
@@ -276,6 +282,10 @@ def fit_level_turn(
         horizontal gain (magnitude only) and of the reference's magnitude.
     inclination_sigma_deg : float
         Standard deviation (degrees) of ``inclination_deg``.
+    check_halves : bool
+        Also fit the log's first and second halves (each that turned through :data:`MIN_TURN_DEG`) and compare
+        their offsets (``diagnostics["level_turn"]["halves"]``): offsets that differ by more than
+        :data:`HALVES_Z` of their combined sigma say that the field or the vehicle's iron changed during the log.
 
     Returns
     -------
@@ -323,7 +333,31 @@ def fit_level_turn(
                 (q, run), (other, other_run) = (other, other_run), (q, run)
             alternative = float(other[8])
     problem.w_mag, problem.w_vert = run["weights"]
-    return _assemble(problem, q, run, covered, alternative, units, inclination_deg, sigmas)
+    cal = _assemble(problem, q, run, covered, alternative, units, inclination_deg, sigmas)
+    if not check_halves:
+        return cal
+    halves = _halves(X, F, inclination_deg, attitude, units, sigmas)
+    return cal.with_diagnostics(level_turn={**cal.diagnostics["level_turn"], "halves": halves})
+
+
+def _halves(X: NDArray[np.float64], F: NDArray[np.float64], inclination_deg: float | None, attitude: Any, units: str,
+            sigmas: dict[str, float]) -> dict[str, Any] | None:
+    """The offsets of the log's first and second halves and how far apart they are (in their combined sigma); None
+    when a half did not turn enough to be fitted."""
+    n = len(X)
+    offsets, stds = [], []
+    for part in (slice(0, n // 2), slice(n // 2, n)):
+        try:
+            half = fit_level_turn(X[part], F[part], inclination_deg=inclination_deg,
+                                  attitude=None if attitude is None else attitude[part], units=units,
+                                  check_halves=False, **sigmas)
+        except (IdentifiabilityError, TrimagInputError):
+            return None
+        offsets.append(np.asarray(half.offset))
+        stds.append(np.array([half.uncertainty["param_std"][f"hard_iron_{a}"] for a in "xyz"]))  # type: ignore[index]
+    z = np.abs(offsets[0] - offsets[1]) / np.hypot(stds[0], stds[1])
+    return {"offsets": [o.tolist() for o in offsets], "std": [s.tolist() for s in stds], "z": z.tolist(),
+            "agree": bool(z.max() <= HALVES_Z)}
 
 
 def _offset_z_parts(problem: _Problem, q: NDArray[np.float64], sigmas: dict[str, float]) -> dict[str, float]:
