@@ -106,8 +106,12 @@ def fit_level_turn_file(req: FitRequest, samples: Samples, unit: str, options: d
         raise TrimagInputError("`level_turn` needs the field's magnitude (and, best, its inclination): give "
                                "`igrf_spec=LAT,LON,ALT_M,DATE` (a log with a GPS fix has it) or `reference=F`")
     inclination, source = _inclination(req, options)
+    from ..vehicle.level_turn import DEFAULTS
+
+    s = {**DEFAULTS, **sigmas}
     cal = fit_level_turn(samples.field, ref.values, inclination_deg=inclination, attitude=rotation, units=unit,
-                         **sigmas)
+                         vertical_scale_sigma=s["vertical_scale_sigma"], gain_sigma=s["gain_sigma"],
+                         scale_sigma=s["scale_sigma"], inclination_sigma_deg=s["inclination_sigma_deg"])
     messages.insert(0, f"level turn: reference F = {float(np.mean(ref.values)):.6g} {unit} ({ref.source})"
                     + (f", inclination {inclination:.3f} deg ({source})" if inclination is not None else
                        ", inclination unknown (the horizontal gain held at the data's unit)"))

@@ -350,7 +350,9 @@ def _halves(X: NDArray[np.float64], F: NDArray[np.float64], inclination_deg: flo
         try:
             half = fit_level_turn(X[part], F[part], inclination_deg=inclination_deg,
                                   attitude=None if attitude is None else attitude[part], units=units,
-                                  check_halves=False, **sigmas)
+                                  vertical_scale_sigma=sigmas["vertical_scale_sigma"], gain_sigma=sigmas["gain_sigma"],
+                                  scale_sigma=sigmas["scale_sigma"],
+                                  inclination_sigma_deg=sigmas["inclination_sigma_deg"], check_halves=False)
         except (IdentifiabilityError, TrimagInputError):
             return None
         offsets.append(np.asarray(half.offset))
