@@ -212,6 +212,11 @@ def _add_fit(sub: Any) -> None:
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
+    g = p.add_argument_group("all compasses of a log (--sensor all; docs/autopilot.md)")
+    g.add_argument("--export-to", choices=["ardupilot", "px4"],
+                   help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
+                        "this firmware")
+    g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
     p.add_argument("--deviation-card", metavar="CARD.png",
                    help="with --level-turn or --heading: write the deviation card (heading error against heading, "
                         "before and after) as a figure; its table is printed")
@@ -503,8 +508,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     from .app.requests import FitRequest
 
-    result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
-                               regressors=_regressor_flag(args.regressors), rate_hz=args.rate))
+    request = _request(FitRequest, args, args.data, options=parse_options(args.option),
+                       regressors=_regressor_flag(args.regressors), rate_hz=args.rate)
+    if (args.sensor or "").strip().lower() == "all":
+        return _cmd_fit_all(request, args)
+    result = fit_file(request)
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:
@@ -515,6 +523,29 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
             _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
             return EXIT_POLICY
+    return EXIT_OK
+
+
+def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
+    """``trimag fit LOG --sensor all``: every compass fitted, compared, and written (docs/autopilot.md)."""
+    from .app.fit_all import comparison_lines, fit_all_sensors
+
+    _check_writable(args.export_out)
+    result = fit_all_sensors(request)
+    if args.json:
+        print(json.dumps(result.summary, allow_nan=False))
+    else:
+        first = result.fits[min(result.fits)]
+        for msg in first.messages:  # the log's summary (its compasses, its reference)
+            if not msg.startswith("warning:"):
+                _say(msg, args)
+        _say(f"compasses fitted: {', '.join(map(str, result.fits))}", args)
+        for line in comparison_lines(result, first.calibration.units):
+            _say(line, args)
+    for msg in result.messages:
+        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    for what, path in result.written.items():
+        _say(f"wrote {what}: {path}", args)
     return EXIT_OK
 
 

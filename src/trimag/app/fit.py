@@ -102,6 +102,12 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
     req = as_request(FitRequest, request, (), arguments)
+    if str(req.input.sensor).strip().lower() == "all":
+        raise TrimagInputError("`sensor=all` fits every compass of a log: call trimag.app.fit_all_sensors (on the "
+                               "command line, trimag fit LOG --sensor all)")
+    if req.export_to is not None or req.export_out is not None:
+        raise TrimagInputError("`export_to` and `export_out` write every compass of a log to one file: give "
+                               "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None

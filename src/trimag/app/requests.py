@@ -115,6 +115,10 @@ class FitRequest:
     heading_column: str | None = None
     #: the deviation card's figure (PNG) of a ``level_turn`` or ``heading`` fit
     deviation_card: str | Path | None = None
+    #: with ``input.sensor="all"`` (:func:`trimag.app.fit_all_sensors`): one parameter file (``export_out``) of
+    #: ``export_to`` (``"ardupilot"`` or ``"px4"``) with every compass fitted
+    export_to: str | None = None
+    export_out: str | Path | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
