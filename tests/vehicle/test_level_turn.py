@@ -173,3 +173,25 @@ def test_halves_that_disagree_are_flagged() -> None:
     np.testing.assert_allclose(np.subtract(*halves["offsets"])[:2], [-20.0, 10.0], atol=2.0)
     short = simulate_boat(seed=15, turns=0.4)  # 144 deg: the halves turned too little to be fitted
     assert fit_level_turn(short["raw"], F, inclination_deg=INCLINATION).diagnostics["level_turn"]["halves"] is None
+
+
+def test_a_log_that_is_no_level_turn_is_refused() -> None:
+    """Real copter flights fitted with --level-turn gave offsets of 856, -644, -696 mG with exit 0 (UoB 10-12-18,
+    MAG[1]; its yaw stayed near north, while the raw field's own circle looked complete). Now: the attitudes' yaw
+    counts the turn too, a fit that misses a level turn by more than 5 % of the field is refused, and so is one whose
+    predicted heading error exceeds 5 deg."""
+    yaw = 10.0 * np.sin(np.linspace(0, 12 * np.pi, 720))  # a copter holding north within 10 deg
+    copter = simulate_boat(seed=16, yaw_deg=yaw, tilt_deg=20.0)
+    attitude = Rotation.from_euler("ZYX", copter["ypr"], degrees=True)
+    with pytest.raises(IdentifiabilityError, match="turned through only"):
+        fit_level_turn(copter["raw"], F, inclination_deg=INCLINATION, attitude=attitude)
+    rolling = simulate_boat(seed=17, tilt_deg=25.0)  # a boat rolling 25 deg, fitted as if level
+    with pytest.raises(IdentifiabilityError, match="tilted"):
+        fit_level_turn(rolling["raw"], F, inclination_deg=INCLINATION)
+    motors = simulate_boat(seed=17)  # a field that changes: 70 mG of vertical field switching on and off (motors)
+    motors["raw"][(np.arange(720) // 20) % 2 == 1] += [0.0, 0.0, 70.0]
+    with pytest.raises(IdentifiabilityError, match="do not follow a level turn"):
+        fit_level_turn(motors["raw"], F, inclination_deg=INCLINATION)
+    noisy = simulate_boat(seed=18, n=60, turns=0.5, noise_mG=15.0)  # half a turn, 60 noisy samples
+    with pytest.raises(IdentifiabilityError, match="does not determine the heading"):
+        fit_level_turn(noisy["raw"], F, inclination_deg=INCLINATION)

@@ -53,6 +53,10 @@ NAMES = ("m11", "m12", "m13", "m22", "m23", "m33", "hard_iron_x", "hard_iron_y",
 DEFAULTS = {"vertical_scale_sigma": 0.01, "gain_sigma": 0.02, "scale_sigma": 0.005, "inclination_sigma_deg": 0.2}
 #: The samples' RMS scatter about the horizontal ellipse, relative to its size, above which they trace none.
 MAX_ELLIPSE_SCATTER = 0.2
+#: The residuals' RMS above this fraction of the field: the samples do not follow a level turn.
+MAX_RESIDUAL_FRACTION = 0.05
+#: The heading error the calibration predicts (1 sigma, RMS over headings, degrees) above which it is refused.
+MAX_HEADING_SIGMA_DEG = 5.0
 #: The halves' offsets differ by more than this many combined sigmas: the field or the vehicle's iron changed.
 HALVES_Z = 3.0
 #: At least this much of the circle of headings must be covered (degrees).
@@ -183,7 +187,7 @@ def _ellipse_start(X: NDArray[np.float64], down: NDArray[np.float64]) -> tuple[N
     if not tilted and scatter > MAX_ELLIPSE_SCATTER:
         raise IdentifiabilityError(
             f"the horizontal field of these {len(X)} samples does not trace an ellipse (their scatter about the best "
-            f"one is {100 * scatter:.0f} % of its size): the vehicle did not turn, "
+            f"one is {100 * scatter:.0f} % of its size): the vehicle did not turn, it tilted (give its attitudes), "
             "or the field changed while it did; turn it through a full circle, slowly and level"
         )
     # the turn covered, seen from a circle's centre (three parameters: steadier than an ellipse's on a short arc)
@@ -316,6 +320,8 @@ def fit_level_turn(
     down = _down(attitude, len(X))
     incl0 = None if inclination_deg is None else float(np.radians(inclination_deg))
     starts, covered = _starts(X, F, down, incl0)
+    if attitude is not None:  # the attitudes' own yaw (an autopilot's, even one the compass steered) says it too
+        covered = min(covered, _covered_deg(np.atleast_2d(attitude.as_euler("ZYX", degrees=True))[:, 0]))
     if covered < MIN_TURN_DEG:
         raise IdentifiabilityError(
             f"the vehicle turned through only {covered:.0f} deg of heading (at least {MIN_TURN_DEG:.0f} needed, a "
@@ -334,10 +340,41 @@ def fit_level_turn(
             alternative = float(other[8])
     problem.w_mag, problem.w_vert = run["weights"]
     cal = _assemble(problem, q, run, covered, alternative, units, inclination_deg, sigmas)
+    _refuse_a_poor_turn(cal, float(np.mean(F)))
     if not check_halves:
         return cal
     halves = _halves(X, F, inclination_deg, attitude, units, sigmas)
     return cal.with_diagnostics(level_turn={**cal.diagnostics["level_turn"], "halves": halves})
+
+
+def _covered_deg(heading_deg: NDArray[np.float64]) -> float:
+    """The part of the circle (degrees) that the headings cover: 360 minus the largest gap between them."""
+    angle = np.sort(np.mod(heading_deg, 360.0))
+    return 360.0 - float(np.diff(np.concatenate([angle, [angle[0] + 360.0]])).max())
+
+
+def _refuse_a_poor_turn(cal: Calibration, F_mean: float) -> None:
+    """Refuse (exit 3) a fit whose samples do not follow a level turn in a steady field (residuals above
+    :data:`MAX_RESIDUAL_FRACTION` of the field) or that does not determine the heading (the heading error it
+    predicts above :data:`MAX_HEADING_SIGMA_DEG`, 1 sigma RMS over headings)."""
+    from .heading import predicted_heading_sigma
+
+    d = cal.diagnostics["level_turn"]
+    rms = float(np.hypot(d["noise_magnitude"], d["noise_vertical"]))
+    if rms > MAX_RESIDUAL_FRACTION * F_mean:
+        raise IdentifiabilityError(
+            f"the samples do not follow a level turn in a steady field: they miss the fitted one by {rms:.3g} "
+            f"{cal.units} RMS ({100 * rms / F_mean:.0f} % of the field; a level turn is fitted to the noise): the "
+            "vehicle tilted without attitudes, or the field changed (motors, nearby iron); record the turns level "
+            "and slow, away from iron"
+        )
+    sigma = predicted_heading_sigma(cal, d["fitted_inclination_deg"])["rms_deg"]
+    if sigma > MAX_HEADING_SIGMA_DEG:
+        raise IdentifiabilityError(
+            f"this turn does not determine the heading: the calibration it gives would be uncertain by "
+            f"{sigma:.2g} deg of heading (1 sigma, RMS over headings; it turned through {d['turn_covered_deg']:.0f} "
+            "deg): turn the vehicle through a full circle or two, slowly and level"
+        )
 
 
 def _halves(X: NDArray[np.float64], F: NDArray[np.float64], inclination_deg: float | None, attitude: Any, units: str,
