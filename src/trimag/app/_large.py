@@ -202,7 +202,8 @@ def fit_fixed_heading_file(req: FitRequest, samples: Samples, unit: str, prior: 
     misfit = heading_misfit_message(cal)
     if misfit:
         messages.append(f"warning: {misfit}")
-    cal, card_lines = attach_deviation_card(cal, samples, rotation, decl, incl, yaw)
+    cal, card_lines = attach_deviation_card(cal, samples, rotation, decl, incl, yaw,
+                                            "the heading column" if req.heading_column else "the heading given")
     ref = ScalarReference(np.full(len(samples.field), F), source, unit)
     return samples, cal, ref, messages + card_lines
 
@@ -225,7 +226,8 @@ def _field_vector(req: FitRequest, unit: str) -> tuple[float, float, float, str]
 
 
 def attach_deviation_card(cal: Calibration, samples: Samples, rotation: Any, declination_deg: float,
-                          inclination_deg: float | None, reference_deg: Any = None) -> tuple[Calibration, list[str]]:
+                          inclination_deg: float | None, reference_deg: Any = None,
+                          reference_label: str = "the heading column") -> tuple[Calibration, list[str]]:
     """The deviation card of the fit (:func:`trimag.vehicle.heading.deviation_card`) into the calibration's
     diagnostics, and its table for the user. Before: the log's onboard calibration (what the autopilot used), or
     the raw reading; the reference: ``reference_deg`` (a heading column), else the new calibration's own heading
@@ -250,7 +252,7 @@ def attach_deviation_card(cal: Calibration, samples: Samples, rotation: Any, dec
             return predicted_heading_sigma(cal, inclination_deg, h)["sigma_deg"]
     card = deviation_card(reference[ok], before_deg[ok], None if reference_deg is None else after_deg[ok],
                           after_sigma=sigma)
-    card.update({"before_label": before, "reference": "the heading column" if reference_deg is not None else
+    card.update({"before_label": before, "reference": reference_label if reference_deg is not None else
                  "the new calibration's heading", "declination_deg": declination_deg,
                  "level": rotation is None})
     heading = "true" if declination_deg else "magnetic"
