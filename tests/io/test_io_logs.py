@@ -212,3 +212,19 @@ def test_ros2_bag_magnetic_field_in_tesla_and_imu_attitude(tmp_path: Path):
     df, _ = log.table()
     np.testing.assert_allclose(df["yaw_deg"].to_numpy(), 90.0, atol=1e-6)
     np.testing.assert_allclose(df[["pitch_deg", "roll_deg"]].to_numpy(), 0.0, atol=1e-6)
+
+
+def test_gps_course_channel_is_empty_when_still_and_unwrapped():
+    """A DataFlash log's GPS course becomes the channel ``gps_course_deg`` for ``fit --heading-column`` (issue 30,
+    item 5b): empty without a 3-D fix or below 1 m/s (a course while still is noise), unwrapped so that the
+    channel's interpolation crosses north the short way."""
+    from trimag.io.logs.ardupilot import gps_course
+
+    course = np.array([350.0, 355.0, 2.0, 8.0, 8.0, 10.0])
+    speed = np.array([3.0, 3.0, 3.0, 3.0, 0.2, 3.0])
+    fixed = np.array([True, True, True, True, True, False])
+    out = gps_course(course, speed, fixed)
+    np.testing.assert_allclose(out[:4], [350.0, 355.0, 362.0, 368.0])
+    assert np.isnan(out[4]) and np.isnan(out[5])
+    log = read_log(LOGS / "ardusub_small.BIN")  # a submarine: no GPS fix, no course
+    assert "gps_course_deg" not in log.channels
