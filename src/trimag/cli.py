@@ -89,8 +89,9 @@ def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> 
                             "rosbag", "phone"],
                    help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
     g.add_argument("--sensor", metavar="N|NAME",
-                   help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "
-                        "with the most samples)")
+                   help="autopilot logs: which magnetometer: its number from 1, as the firmware's parameters count "
+                        "(COMPASS_OFS = 1, COMPASS_OFS2 = 2; CAL_MAG0 = 1), its name or device id; fit: `all` fits "
+                        "every one (default: the one with the most samples)")
     g.add_argument("--columns", help="x,y,z columns: header names or 0-based indices (default: recognised)")
     g.add_argument("--var", help="variable name inside an NPZ or MAT file")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (recorded in every output)")
