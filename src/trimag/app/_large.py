@@ -167,6 +167,9 @@ def fit_fixed_heading_file(req: FitRequest, samples: Samples, unit: str, prior: 
     from ..vehicle.fixed_yaw import fit_fixed_heading, heading_misfit_message
 
     sigmas = _options(options, _HEADING_KEYS, "heading")
+    if prior is not None and prior.regressors is not None:
+        raise TrimagInputError(f"the prior calibration {req.prior} has regressor terms, which a fixed heading does "
+                               "not refit: give a prior without them (or refit its offset with `prior` alone)")
     messages: list[str] = []
     if req.heading_column is not None:
         samples, n_bad = drop_rows_without_attitude(samples, req.heading_column, None, strict=req.input.strict,
