@@ -157,3 +157,19 @@ def test_cli_heading_column_drops_rows_without_a_heading(tmp_path) -> None:
     assert "dropped 50 rows without a heading" in r.stderr
     offset = json.loads(r.stdout)["offset"]
     assert np.abs(np.asarray(offset) - boat["offset"]).max() < 3.0
+
+
+def test_a_prior_with_regressor_terms_is_refused(tmp_path) -> None:
+    """A fixed heading holds the prior's matrix only: a prior with regressor terms would have lost them silently."""
+    import trimag
+    from trimag.app import fit_file
+    from trimag.simulate import uniform_directions
+
+    rng = np.random.default_rng(30)
+    current = rng.uniform(0, 20, 1000)
+    raw = F * uniform_directions(1000, rng) + np.outer(current, [1.0, -0.5, 0.3]) + rng.normal(0, 2, (1000, 3))
+    trimag.fit(raw, reference=F, units="mG", regressors={"current": current}).to_file(tmp_path / "prior.json")
+    boat = _still(seed=31)
+    pd.DataFrame(boat["raw"], columns=list("xyz")).to_csv(tmp_path / "still.csv", index=False)
+    with pytest.raises(TrimagInputError, match="regressor terms"):
+        fit_file(tmp_path / "still.csv", units="mG", igrf_spec=BOAT_SITE, heading=137.0, prior=tmp_path / "prior.json")
