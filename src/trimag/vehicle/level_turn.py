@@ -162,8 +162,9 @@ def _down(attitude: Any, n: int) -> NDArray[np.float64]:
 
 
 def _ellipse_start(X: NDArray[np.float64], down: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
-    """The horizontal ellipse (algebraic conic fit of the components across ``down``'s mean): centre (2,), the
-    shape ``Q`` (2, 2; ``(p - c)^T Q (p - c) = 1``), the mean vertical reading and the turn covered (degrees)."""
+    """The horizontal ellipse (algebraic conic fit of the body's x, y components; a rough start when ``down`` says
+    the vehicle tilted): centre (2,), the shape ``Q`` (2, 2; ``(p - c)^T Q (p - c) = 1``), the mean vertical reading
+    and the turn covered (degrees, around a circle's centre)."""
     x, y = X[:, 0], X[:, 1]
     scale = float(np.std(np.concatenate([x, y]))) or 1.0
     xm, ym = x.mean(), y.mean()
