@@ -89,8 +89,9 @@ def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> 
                             "rosbag", "phone"],
                    help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
     g.add_argument("--sensor", metavar="N|NAME",
-                   help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "
-                        "with the most samples)")
+                   help="autopilot logs: which magnetometer: its number from 1, as the firmware's parameters count "
+                        "(COMPASS_OFS = 1, COMPASS_OFS2 = 2; CAL_MAG0 = 1), its name or device id; fit: `all` fits "
+                        "every one (default: the one with the most samples)")
     g.add_argument("--columns", help="x,y,z columns: header names or 0-based indices (default: recognised)")
     g.add_argument("--var", help="variable name inside an NPZ or MAT file")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (recorded in every output)")
@@ -164,6 +165,18 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                    help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
                         "only its offset, e.g. from a few headings at level (needs the field magnitude; "
                         "docs/vehicle.md)")
+    g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
+    g.add_argument("--level-turn", action="store_true",
+                   help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
+                        "the vertical offset from the field's magnitude and inclination (--igrf, or the log's GPS), "
+                        "the vertical scale held")
+    g.add_argument("--heading", type=float, metavar="DEG",
+                   help="the vehicle's true heading while it stood still (degrees from true north): the offsets from "
+                        "the field's vector at that attitude, as ArduPilot's MAG_CAL_YAW (needs --igrf or the log's "
+                        "GPS; roll and pitch from the log's attitude or --attitude-columns, else level)")
+    g.add_argument("--heading-column", metavar="NAME",
+                   help="as --heading, with the true heading of each sample from this column (a survey, a GPS "
+                        "course)")
     p.add_argument("--accel-columns", metavar="AX,AY,AZ",
                    help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
                         "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
@@ -200,6 +213,14 @@ def _add_fit(sub: Any) -> None:
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
+    g = p.add_argument_group("all compasses of a log (--sensor all; docs/autopilot.md)")
+    g.add_argument("--export-to", choices=["ardupilot", "px4"],
+                   help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
+                        "this firmware")
+    g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
+    p.add_argument("--deviation-card", metavar="CARD.png",
+                   help="with --level-turn or --heading: write the deviation card (heading error against heading, "
+                        "before and after) as a figure; its table is printed")
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -479,6 +500,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
+    _check_writable(args.deviation_card, suffixes=(".png",))
     if args.model == "tolles-lawson":
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
@@ -487,8 +509,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     from .app.requests import FitRequest
 
-    result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
-                               regressors=_regressor_flag(args.regressors), rate_hz=args.rate))
+    request = _request(FitRequest, args, args.data, options=parse_options(args.option),
+                       regressors=_regressor_flag(args.regressors), rate_hz=args.rate)
+    if (args.sensor or "").strip().lower() == "all":
+        return _cmd_fit_all(request, args)
+    result = fit_file(request)
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:
@@ -499,6 +524,29 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
             _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
             return EXIT_POLICY
+    return EXIT_OK
+
+
+def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
+    """``trimag fit LOG --sensor all``: every compass fitted, compared, and written (docs/autopilot.md)."""
+    from .app.fit_all import comparison_lines, fit_all_sensors
+
+    _check_writable(args.export_out)
+    result = fit_all_sensors(request)
+    if args.json:
+        print(json.dumps(result.summary, allow_nan=False))
+    else:
+        first = result.fits[min(result.fits)]
+        for msg in first.messages:  # the log's summary (its compasses, its reference)
+            if not msg.startswith("warning:"):
+                _say(msg, args)
+        _say(f"compasses fitted: {', '.join(map(str, result.fits))}", args)
+        for line in comparison_lines(result, first.calibration.units):
+            _say(line, args)
+    for msg in result.messages:
+        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    for what, path in result.written.items():
+        _say(f"wrote {what}: {path}", args)
     return EXIT_OK
 
 

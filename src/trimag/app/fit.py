@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import TrimagInputError, TrimagWarning
+from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
 from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
@@ -37,6 +37,8 @@ from ._inputs import (
     parse_regressor_names,
     regressor_columns,
 )
+from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, large_mode
+from ._log_advice import log_refusal
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
 from ._timesync import attach_attitude_file
@@ -100,6 +102,12 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
     req = as_request(FitRequest, request, (), arguments)
+    if str(req.input.sensor).strip().lower() == "all":
+        raise TrimagInputError("`sensor=all` fits every compass of a log: call trimag.app.fit_all_sensors (on the "
+                               "command line, trimag fit LOG --sensor all)")
+    if req.export_to is not None or req.export_out is not None:
+        raise TrimagInputError("`export_to` and `export_out` write every compass of a log to one file: give "
+                               "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
@@ -111,20 +119,38 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             raise TrimagInputError(
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
-    options, sync_options, prior_options = _split_options(req)
+    mode = large_mode(req)
+    options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
     estimator = make_estimator(req.model, req.method, options)
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
-    req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
+    try:
+        return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
+                            prior_options, mode)
+    except IdentifiabilityError as exc:  # a log: its compasses and the modes that would help (issue 30, item 7)
+        if samples.log_info is None or mode is not None or req.prior is not None:
+            raise
+        raise log_refusal(exc, samples.log_info, samples.field) from None
+
+
+def _fit_samples(
+    req: FitRequest, samples: Samples, estimator: Any, limits: dict[str, float] | None,
+    regressor_names: tuple[str, ...] | None, eddy_terms: int | None, sync_options: dict[str, Any],
+    prior_options: dict[str, Any], mode: str | None,
+) -> FitResult:
+    """:func:`fit_file` after reading the samples."""
+    src = req.input
+    log_unit = samples.log_info is not None and src.units is None
+    req, messages = _log_defaults(req, samples, estimator, mode)  # a vehicle log states its unit, site and attitudes
     prior = None
     if req.prior is not None:
         if regressor_names is not None:
             raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
                                    "prior's regressor terms and refits only the offset; drop `regressors`")
         prior = Calibration.from_file(req.prior)
-        req, prior_messages = prior_units(req, prior)
+        req, prior_messages = prior_units(req, prior, log_unit)
         messages += prior_messages
     units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
@@ -138,30 +164,50 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
 
         # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
         check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
-    if prior is not None:
+    warn_texts: list[str] = []
+    ref: Any
+    regressor_values: dict[str, NDArray[np.float64]] | None
+    if mode == "level_turn":
+        samples, cal, ref, mode_messages = fit_level_turn_file(req, samples, unit, prior_options)
+        messages += mode_messages
+        regressor_values = None
+    elif mode == "heading":
+        samples, cal, ref, mode_messages = fit_fixed_heading_file(req, samples, unit, prior, prior_options)
+        messages += mode_messages
+        regressor_values = None
+    elif prior is not None:
         samples, cal, regressor_values, prior_messages = refit_prior(req, samples, unit, prior, prior_options)
-        ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
+        ref = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
         messages += prior_messages
-        warn_texts: list[str] = []
     else:
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
                                                                                    regressor_names, eddy_terms)
         messages += fit_messages
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
-                                            prior is not None)
+                                            prior is not None and mode is None)
+    if samples.log_info is not None:
+        summary["log"] = {"compass": samples.log_info.get("compass"), "name": samples.log_info.get("sensor"),
+                          "format": samples.log_info.get("format")}
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
                      written)
 
 
-def _split_options(req: FitRequest) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     """The request's options split into the estimator's, the time synchronisation's (``estimate_lag``,
-    ``max_lag``) and the quick recalibration's; an option of a step the request does not take is refused."""
+    ``max_lag``) and the quick recalibration's (or a large vehicle's ``mode``'s); an option of a step the request
+    does not take is refused."""
     options = dict(req.options)
     sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
     prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
-                                                                 "inclination_sigma_deg") if k in options}
+                                                                 "inclination_sigma_deg", *MODE_OPTIONS)
+                                     if k in options}
+    if mode is not None:
+        return options, sync_options, prior_options
+    if set(prior_options) & set(MODE_OPTIONS):
+        key = next(k for k in prior_options if k in MODE_OPTIONS)
+        raise TrimagInputError(f"`option {key}` belongs to a large vehicle's fit; give `level_turn` or `heading`")
     if prior_options and req.prior is None:
         raise TrimagInputError(f"`option {next(iter(prior_options))}` belongs to a quick recalibration; give `prior`")
     if sync_options and req.attitude.attitude_file is None:
@@ -299,7 +345,8 @@ def _joint_scalar(
                  f"{joint['vector_rms_axis_after']:.4g}, magnitude RMS {joint['scalar_rms_after']:.4g} {unit}")
 
 
-def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
+def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str | None = None
+                  ) -> tuple[FitRequest, list[str]]:
     """What a vehicle log states itself (unit, the IGRF site of its GPS fix, its attitude columns) filled into the
     request, the log reader's messages, and the refusal of a log that cannot be fitted (static, too short)."""
     log_info = samples.log_info
@@ -322,7 +369,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
+    if src.columns is None and req.prior is None and mode is None:  # those are made for logs that barely tilt
         refuse_static_log(samples, log_info)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 

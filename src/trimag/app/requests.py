@@ -107,6 +107,18 @@ class FitRequest:
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.vehicle.prior`)
     prior: str | Path | None = None
     accel_columns: str | None = None
+    #: a vehicle that turns but cannot tilt: :func:`trimag.vehicle.level_turn.fit_level_turn` (docs/autopilot.md)
+    level_turn: bool = False
+    #: the vehicle's known true heading (degrees), or a column of it: the offsets from the field's vector
+    #: (:func:`trimag.vehicle.fixed_yaw.fit_fixed_heading`, as ArduPilot's MAG_CAL_YAW)
+    heading: float | None = None
+    heading_column: str | None = None
+    #: the deviation card's figure (PNG) of a ``level_turn`` or ``heading`` fit
+    deviation_card: str | Path | None = None
+    #: with ``input.sensor="all"`` (:func:`trimag.app.fit_all_sensors`): one parameter file (``export_out``) of
+    #: ``export_to`` (``"ardupilot"`` or ``"px4"``) with every compass fitted
+    export_to: str | None = None
+    export_out: str | Path | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

@@ -446,6 +446,8 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
         "unit": mag.unit,
         "sensor": mag.name,
         "instance": mag.instance,
+        "compass": mag.number,  # as the user numbers it (`sensor`, export's instance): from 1
+        "compasses": [{"number": m.number, "name": m.name, "n_samples": len(m.time_s)} for m in log.magnetometers],
         "device_id": mag.device_id,
         "gps": log.gps,
         "messages": log.summary_lines(sensor) + messages,

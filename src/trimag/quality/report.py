@@ -204,3 +204,35 @@ def _cloud_panels(axes: Any, B: NDArray[np.float64], corrected: NDArray[np.float
         ax.set(xlabel=f"{name[0]} [{unit}]", ylabel=f"{name[2]} [{unit}]", title=f"point cloud, {name} plane")
         if k == 0:
             ax.legend(fontsize=8, markerscale=6)
+
+
+def deviation_figure(card: dict[str, Any], *, title: str = "deviation card", before: str = "before",
+                     after: str = "after") -> Figure:
+    """The deviation card of :func:`trimag.vehicle.heading.deviation_card` as a figure: the heading error against
+    the heading, before (``before`` names it) and after (or the error the calibration predicts, 1 sigma, as a
+    band around zero)."""
+    fig = _figure((8.0, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    h = np.asarray(card["headings_deg"], dtype=np.float64)
+    n = np.asarray(card["n"])
+    has = n > 0
+
+    def values(key: str) -> NDArray[np.float64]:
+        return np.array([np.nan if v is None else v for v in card[key]], dtype=np.float64)
+
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.plot(h[has], values("before_mean_deg")[has], "o-", color="tab:red", label=f"{before}: mean error")
+    if card.get("after"):
+        ax.errorbar(h[has], values("after_mean_deg")[has], yerr=values("after_rms_deg")[has], fmt="s-",
+                    color="tab:blue", capsize=2, label=f"{after}: mean error (bars: RMS)")
+    if card.get("after_sigma_deg"):
+        sigma = np.asarray(card["after_sigma_deg"], dtype=np.float64)
+        ax.fill_between(h, -sigma, sigma, color="tab:blue", alpha=0.25, label=f"{after}: predicted 1 sigma")
+    ax.set(xlabel="heading [deg]", ylabel="heading error [deg]", title=title, xlim=(-5, 360))
+    ax.set_xticks(np.arange(0, 361, 45))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    return fig
+
+
+__all__ += ["deviation_figure"]

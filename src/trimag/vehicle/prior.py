@@ -31,8 +31,12 @@ estimate (``G C_W G^T``, ``G = -cov J^T J_W`` the sensitivity of the estimate to
 priors, whose covariance holds ``w11 .. w33``).
 
 An offset component counts as **identified by the data** when, with the field scale left free, its posterior
-standard deviation is below half its prior one and within 10x the best component's; the others are reported as
-unidentified, with the sigma the data and the priors give them. No component below half its prior sigma:
+standard deviation is below half its prior one and within 10x the best component's. A component the data alone
+cannot fix but the known field magnitude does (the vertical offset of a level turn: ``|c| = s F`` with ``s`` known
+to ``scale_sigma``) is **identified by the field's magnitude** when its posterior standard deviation, which then
+holds the reference's own uncertainty, is below half its prior one (issue 30, item 5c); each sigma is split into the
+data's and the reference's parts (``std_from_data``, ``std_from_reference``). The others are reported as
+unidentified, with the sigma the priors give them. No component that the data inform beyond the prior:
 :class:`~trimag.errors.IdentifiabilityError` (exit 3).
 """
 
@@ -59,6 +63,8 @@ DEFAULT_SCALE_SIGMA = 0.005
 DEFAULT_CHANGE_FRACTION = 0.1
 #: The ``option`` keys a quick recalibration takes.
 OPTIONS = ("prior_offset_sigma", "scale_sigma", "inclination_deg", "inclination_sigma_deg")
+#: The standard deviation (relative, and radians) of a reference taken as exact, to split a sigma into its parts.
+REFERENCE_EXACT = 1e-7
 #: A component is identified when the data shrink its prior standard deviation below this fraction.
 IDENTIFIED_RATIO = 0.5
 #: ... and when its standard deviation (field scale free) is within this factor of the best component's.
@@ -234,9 +240,14 @@ def refit_offset(
             f"the sigmas stay {np.round(std_free, 3).tolist()} against the prior's {np.round(prior_std, 3).tolist()} "
             f"{prior.units}): turn the vehicle through several headings (at least three, spread over the circle)"
         )
+    # the reference's own uncertainty in each sigma: the posterior with the magnitude (and inclination) exact
+    exact = _posterior(problem, prior, q, REFERENCE_EXACT if down is not None else incl_sigma, REFERENCE_EXACT)[0]
+    std_data = np.sqrt(np.clip(np.diag(exact)[:3], 0.0, None))
+    std_reference = np.sqrt(np.clip(np.diag(cov)[:3] - np.diag(exact)[:3], 0.0, None))
+    parts = {"data": std_data, "reference": std_reference, "by_reference": std[:3] < IDENTIFIED_RATIO * prior_std}
     return _assemble(prior, X, F, q, r, sigma, tau, cov, std, std_free, prior_std, identified, axes, nfev,
                      converged, change, scale_sigma, down is not None, inclination_deg, inclination_sigma_deg,
-                     prior_source)
+                     prior_source, parts)
 
 
 def _checked_samples(
@@ -344,8 +355,10 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
               std_free: NDArray[np.float64], prior_std: NDArray[np.float64], identified: NDArray[np.bool_],
               axes: tuple[str, ...], nfev: int, converged: bool, change: float, scale_sigma: float,
               vertical: bool, inclination_deg: float | None, inclination_sigma_deg: float,
-              prior_source: Mapping[str, Any] | None) -> Calibration:
-    """The Calibration of a quick recalibration: the prior's shape, the new offset, what was identified."""
+              prior_source: Mapping[str, Any] | None, parts: Mapping[str, NDArray[Any]]) -> Calibration:
+    """The Calibration of a quick recalibration: the prior's shape, the new offset, what was identified (by the
+    data, or by the data and the reference's magnitude), the sigmas' parts (``parts``: ``data``, ``reference``,
+    ``by_reference``)."""
     from ..models import get_model
 
     M = np.asarray(prior.matrix, dtype=np.float64)
@@ -358,7 +371,9 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
         params = get_model(prior.model).from_matrix_offset(M, b).as_dict()
     except Exception:  # an 'affine' prior, or a model whose parameters do not hold this matrix exactly
         params = dict(prior.params)
-    unidentified = [f"offset_{a}" for a, ok in zip(axes, identified, strict=True) if not ok]
+    by = [("data" if identified[k] else ("the field's magnitude" + (" and inclination" if vertical else ""))
+           if parts["by_reference"][k] else None) for k in range(3)]
+    unidentified = [f"offset_{a}" for a, how in zip(axes, by, strict=True) if how is None]
     k_par = 5 if vertical else 4  # the inclination is a parameter only with the vertical component's residuals
     names, cov, std = list(_NAMES[:k_par]), cov[:k_par, :k_par], std[:k_par]
     components = {
@@ -366,6 +381,8 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
             "value": float(b[k]), "std": float(std[k]), "prior_value": float(prior.offset[k]),
             "prior_std": float(prior_std[k]), "std_with_free_scale": float(std_free[k]),
             "identified_by_data": bool(identified[k]),
+            "identified": by[k] is not None, "identified_by": by[k],
+            "std_from_data": float(parts["data"][k]), "std_from_reference": float(parts["reference"][k]),
         }
         for k, a in enumerate(axes)
     }

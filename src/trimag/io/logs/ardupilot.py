@@ -156,7 +156,30 @@ def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLo
     log = VehicleLog(str(path), "ArduPilot DataFlash", _dataflash_magnetometers(rows, params), parameters=params)
     _dataflash_channels(log, rows)
     log.gps = _dataflash_gps(rows.get("GPS"))
+    gps = rows.get("GPS")
+    if _n(gps) and gps is not None and {"GCrs", "Spd", "Status"} <= set(gps):
+        course = gps_course(_array(gps, ["GCrs"])[:, 0], _array(gps, ["Spd"])[:, 0],
+                            np.asarray(gps["Status"]) >= 3)
+        if np.isfinite(course).any():
+            log.channels["gps_course_deg"] = Channel(_time_s(gps), course, "deg", "GPS.GCrs")
     return log
+
+
+#: Below this ground speed (m/s) a GPS course says nothing of the heading.
+MIN_COURSE_SPEED_MPS = 1.0
+
+
+def gps_course(course_deg: NDArray[np.float64], speed_mps: NDArray[np.float64], fixed: NDArray[np.bool_]
+               ) -> NDArray[np.float64]:
+    """The GPS course over ground (degrees), empty (NaN) without a 3-D fix or below :data:`MIN_COURSE_SPEED_MPS`,
+    unwrapped over the valid samples (so that the channel's linear interpolation never crosses 360 -> 0 the long
+    way; a heading column is read modulo 360). A course is the heading only when the vehicle moves straight ahead:
+    leeway, a current or a side slip make them differ (docs/autopilot.md, "Fixed heading")."""
+    out = np.full(len(course_deg), np.nan)
+    ok = fixed & (speed_mps >= MIN_COURSE_SPEED_MPS) & np.isfinite(course_deg)
+    if ok.any():
+        out[ok] = np.degrees(np.unwrap(np.radians(course_deg[ok])))
+    return out
 
 
 def _dataflash_magnetometers(rows: Columns, params: dict[str, float]) -> list[MagnetometerStream]:

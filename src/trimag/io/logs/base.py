@@ -90,6 +90,12 @@ class MagnetometerStream:
     onboard: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
+    def number(self) -> int:
+        """The compass number the user gives (``sensor``, ``export --instance``): ``instance + 1``, as the firmware's
+        parameter names count (``COMPASS_OFS`` = 1, ``COMPASS_OFS2`` = 2; PX4 ``CAL_MAG0`` = 1)."""
+        return self.instance + 1
+
+    @property
     def rate_hz(self) -> float:
         """Median sample rate, Hz (0 for fewer than 2 samples)."""
         dt = np.diff(self.time_s)
@@ -116,9 +122,12 @@ class VehicleLog:
     messages: list[str] = field(default_factory=list)
 
     def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
-        """The magnetometer named by ``sensor`` (instance number, name or device id), or the best one.
+        """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.
 
-        Without ``sensor``: the magnetometer with the most samples (the first on a tie).
+        Compasses are numbered from 1, as the firmware's parameter names count them (ArduPilot ``COMPASS_OFS``,
+        ``COMPASS_OFS2``, ``COMPASS_OFS3`` = 1, 2, 3; PX4 ``CAL_MAG0`` = 1) and as ``export --instance`` does:
+        :attr:`MagnetometerStream.number`. Without ``sensor``: the magnetometer with the most samples (the first on
+        a tie).
         """
         if not self.magnetometers:
             raise TrimagInputError(f"{self.path}: the log has no magnetometer readings")
@@ -126,10 +135,20 @@ class VehicleLog:
             return max(self.magnetometers, key=lambda m: len(m.time_s))
         text = str(sensor).strip()
         for m in self.magnetometers:
-            if text in (str(m.instance), m.name, str(m.device_id)):
+            if text in (str(m.number), m.name, str(m.device_id)):
                 return m
-        names = ", ".join(f"{m.instance} ({m.name})" for m in self.magnetometers)
-        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with `sensor`)")
+        if text == "0":
+            raise TrimagInputError(
+                f"{self.path}: compasses are numbered from 1, as the firmware's parameters (COMPASS_OFS = 1, "
+                f"COMPASS_OFS2 = 2; CAL_MAG0 = 1): `sensor=1` is {self.magnetometers[0].name}; the log has "
+                f"{self.compass_list()}"
+            )
+        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {self.compass_list()} (choose "
+                               "with `sensor`)")
+
+    def compass_list(self) -> str:
+        """The compasses as the user numbers them: ``"1 (MAG[0]), 2 (MAG[1])"``."""
+        return ", ".join(f"{m.number} ({m.name})" for m in self.magnetometers)
 
     def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
         """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
@@ -194,8 +213,8 @@ class VehicleLog:
         """What the user should know: the magnetometers, what was undone, what else the log offers."""
         chosen = self.choose(sensor)
         lines = [f"{self.format} log with {len(self.magnetometers)} magnetometer(s): "
-                 + "; ".join(("* " if m is chosen else "") + m.describe() for m in self.magnetometers)
-                 + " (* = used; choose another with sensor)"]
+                 + "; ".join(("* " if m is chosen else "") + f"{m.number}: {m.describe()}" for m in self.magnetometers)
+                 + " (* = used; choose another with `sensor`)"]
         lines += [f"{chosen.name}: {u}" for u in chosen.undone]
         offered = list(self.channels)
         if offered:
