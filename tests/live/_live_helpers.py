@@ -102,8 +102,10 @@ def chrome(profile: Path, *flags: str):  # type: ignore[no-untyped-def]
     profile.mkdir(parents=True, exist_ok=True)
     for arg in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}", *flags):
         options.add_argument(arg)
+    from selenium.webdriver.chrome.service import Service
+
     driver = shutil.which("chromedriver")  # the distribution's (else Selenium looks for one, online)
-    service = webdriver.ChromeService(executable_path=driver) if driver else None
+    service = Service(executable_path=driver) if driver else None
     try:
         return webdriver.Chrome(options=options, service=service)
     except Exception as exc:  # no chromedriver matching the browser
