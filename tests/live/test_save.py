@@ -7,6 +7,7 @@ the replayed log, and flags that cannot work, are refused before the session sta
 
 from __future__ import annotations
 
+import json
 import signal
 import threading
 from pathlib import Path
@@ -145,3 +146,27 @@ def test_the_header_unit_is_checked_as_fit_checks_it(tmp_path, capsys):
         assert code_fit == code == 2, (err_fit, err)
         assert err == err_fit and "the page is at" not in out
     assert not list(tmp_path.glob("cal*")) and not list(tmp_path.glob("fit*"))
+
+
+def test_a_unit_in_the_header_of_standard_input_is_checked_too(tmp_path):
+    """A header naming its unit (x_uT,y_uT,z_uT) is the unit of the samples: taken without --units, and a --units
+    that contradicts it ends the source with fit's message (no samples recorded in the wrong unit)."""
+    import subprocess
+    import sys
+
+    raw = sensor(uniform_directions(300, seed=16)) / 10.0
+    text = "x_uT,y_uT,z_uT\n" + "\n".join(f"{x:.4f},{y:.4f},{z:.4f}" for x, y, z in raw) + "\n"
+    runs = {}
+    for name, flags in (("taken", []), ("contradicted", ["--units", "nT"])):
+        runs[name] = subprocess.run(
+            [sys.executable, "-m", "trimag", "live", "--stdin", "--no-browser", "--port", "0", "--exit-at-end",
+             "--json", "-o", str(tmp_path / f"{name}.json"), *flags],
+            input=text, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    taken = json.loads(runs["taken"].stdout.strip().splitlines()[-1])
+    assert runs["taken"].returncode == 0 and taken["units"] == "uT" and taken["n_samples"] == 300
+    assert trimag.Calibration.from_file(tmp_path / "taken.json").units == "uT"
+    bad = runs["contradicted"]
+    assert bad.returncode == 2, bad.stderr
+    assert "the column headers say uT" in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
+    assert json.loads(bad.stdout.strip().splitlines()[-1])["n_samples"] == 0
+    assert not (tmp_path / "contradicted.json").exists()

@@ -117,9 +117,10 @@ class LiveServer:
             return None
         if headers.get("Sec-Fetch-Site", "same-origin") not in ("same-origin", "none"):
             return "a request from another site cannot change anything here"
-        if headers.get("Origin") not in self.origins:
-            return (f"only the page itself ({self.url}) can {method} here (Origin {headers.get('Origin')!r}); a "
-                    f"script sends the header Origin: {self.origins[0]}")
+        origin = headers.get("Origin")
+        if origin not in self.origins:
+            return (f"only the page itself ({self.url}) can {method} here (Origin: {origin or 'none'}); a script "
+                    f"sends the header Origin: {self.origins[0]}")
         token = str(headers.get(TOKEN_HEADER) or "").encode("utf-8", "replace")
         if not hmac.compare_digest(token, self.token.encode()):
             return (f"the session's token is missing or wrong (header {TOKEN_HEADER}; the page holds it in its "

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import IdentifiabilityError, TrimagError, TrimagWarning
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, TrimagWarning
 from ..fitting import fit
 from ..io.atomic import atomic_write_text
 from ..quality.diagnostics import (
@@ -32,6 +32,7 @@ from ..quality.diagnostics import (
     raw_direction_geometry,
     sphere_coverage,
 )
+from ..units import normalise_unit
 from ..vehicle.policy import DEFAULT_LIMITS, check_policy
 from .sources import Batch
 
@@ -147,8 +148,8 @@ class LiveSession:
             if self._stop.is_set():  # the recording has stopped: what arrives now is not part of it
                 self._after_stop += len(x)
                 return
-            if self.units is None and batch.units is not None:
-                self.units = batch.units
+            if batch.units is not None:
+                self._check_units(batch.units, batch.units_stated_by)
             self._garbage += int(batch.n_garbage) + int((~good).sum())
             x = x[good]
             need = self._n + len(x)
@@ -162,6 +163,14 @@ class LiveSession:
                 self._source_state = "running"
         if len(x):
             self._new_data.set()
+
+    def _check_units(self, stated: str, by: str) -> None:
+        """The unit a source states (a header, a MAVLink message) is the samples' unit: taken when none was given;
+        a different one given is refused as ``trimag fit`` refuses it, which ends the source."""
+        if self.units is None:
+            self.units = stated
+        elif normalise_unit(self.units) != normalise_unit(stated):
+            raise TrimagInputError(f"{by} {stated} but units={self.units!r}; give the data's real unit")
 
     def samples(self) -> NDArray[np.float64]:
         """A copy of every sample received so far, shape (N, 3)."""
