@@ -262,7 +262,7 @@ class LiveSession:
             state["fit_seconds"] = time.monotonic() - t0
             cal = state.pop("calibration", None)
             with self._lock:
-                if cal is not None:
+                if cal is not None and len(B) >= self._latest[1]:
                     self._latest = (cal, len(B))
                 if len(B) >= self._fitted_n:  # samples only grow: a smaller snapshot is an older one
                     self._fit_state = state
