@@ -346,7 +346,7 @@ def test_the_page_in_a_real_browser(tmp_path):
             shots.append(path)
         assert "good enough" in driver.find_element("id", "badge").text
         driver.find_element("id", "save").click()  # the page's POST carries its origin and the session's token
-        for _ in range(600):
+        for _ in range(1200):
             if driver.find_element("id", "saved").text.startswith(("saved", "not saved")):
                 break
             time.sleep(0.05)

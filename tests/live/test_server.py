@@ -168,7 +168,7 @@ def test_no_page_on_the_web_can_drive_the_server_in_a_real_browser(served, tmp_p
     driver = chrome(tmp_path / "profile", f"--host-resolver-rules={rules}", "--disable-features=HttpsUpgrades")
     try:
         driver.get(f"http://attacker.test:{attacker.server_address[1]}/")
-        for _ in range(400):  # the form's answer replaces the attacker's page
+        for _ in range(1200):  # the form's answer replaces the attacker's page
             if '"error"' in driver.page_source or "written" in driver.page_source:
                 break
             time.sleep(0.05)
@@ -178,7 +178,7 @@ def test_no_page_on_the_web_can_drive_the_server_in_a_real_browser(served, tmp_p
         assert "n_samples" not in driver.page_source and "answers as" in driver.page_source
         driver.get(served.url)
         driver.find_element("id", "save").click()
-        for _ in range(600):
+        for _ in range(1200):
             if driver.find_element("id", "saved").text.startswith(("saved", "not saved")):
                 break
             time.sleep(0.05)
