@@ -822,18 +822,18 @@ def _cmd_live(args: argparse.Namespace) -> int:
     st = result.status
     if args.json:
         print(json.dumps({**st, "written": result.written, "reason": result.reason}, allow_nan=False))
-        return EXIT_OK
+    else:
+        def num(value: Any) -> str:
+            return "-" if value is None else f"{value:.4g}"
 
-    def num(value: Any) -> str:
-        return "-" if value is None else f"{value:.4g}"
-
-    _say(f"{st['n_samples']} samples ({st['n_garbage']} lines not understood); coverage "
-         f"{num(st['coverage_fraction'])}, RMS before {num(st['rms_before'])}, after {num(st['rms_after'])} "
-         f"{st['units']}; {'good enough' if st['good_enough'] else 'NOT good enough'}", args)
-    if not st["good_enough"]:
-        _say(f"next: {st['next_orientations']}", args)
-    if "calibration" not in result.written:
-        _err(f"no calibration written: {st.get('fit_message') or 'too few samples'}")
+        _say(f"{st['n_samples']} samples ({st['n_garbage']} lines not understood); coverage "
+             f"{num(st['coverage_fraction'])}, RMS before {num(st['rms_before'])}, after {num(st['rms_after'])} "
+             f"{st['units']}; {'good enough' if st['good_enough'] else 'NOT good enough'}", args)
+        if not st["good_enough"]:
+            _say(f"next: {st['next_orientations']}", args)
+    if "calibration" not in result.written:  # the same exit code with --json
+        failed = st["source_message"] if st["source_message"].startswith("the source failed") else ""
+        _err(f"no calibration written: {failed or st.get('fit_message') or 'too few samples'}")
         return EXIT_IDENTIFIABILITY if st["n_samples"] else EXIT_INPUT
     return EXIT_OK
 

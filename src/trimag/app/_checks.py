@@ -69,6 +69,18 @@ def check_unit(
     return units, messages
 
 
+def check_log_unit(units: str | None, log_info: dict[str, Any] | None, columns: Any) -> str | None:
+    """The unit of a vehicle log's magnetometer, which the log states: a different ``units`` is refused (exit 2)
+    unless ``columns`` picks other columns."""
+    if log_info is None or columns is not None:
+        return units
+    if units is not None and normalise_unit(units) != log_info["unit"]:
+        raise TrimagInputError(
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
+        )
+    return units or str(log_info["unit"])
+
+
 def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
     """The acceptance policy's verdict (:func:`trimag.vehicle.policy.check_policy`) with the site's inclination
     and F."""

@@ -20,6 +20,7 @@ from ..io import Samples, column_values, read_samples
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
+    check_log_unit,
     check_unit,
     policy_verdict,
     refuse_impossible_vector_fit,
@@ -355,11 +356,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
     messages = [m for m in log_info["messages"] if not m.startswith("warning:")]
     messages += [m for m in log_info["messages"] if m.startswith("warning:")]
     src, given, att = req.input, req.reference, req.attitude
-    if src.units is not None and normalise_unit(src.units) != log_info["unit"] and src.columns is None:
-        raise TrimagInputError(
-            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={src.units!r} (it is known)"
-        )
-    src = dataclasses.replace(src, units=src.units or log_info["unit"])
+    src = dataclasses.replace(src, units=check_log_unit(src.units, log_info, src.columns) or log_info["unit"])
     gps = log_info.get("gps")
     if not given.given and gps and gps.get("date"):
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"

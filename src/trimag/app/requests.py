@@ -255,7 +255,9 @@ class LiveRequest:
     ``rate`` samples/s, ``stdin`` lines, a ``serial`` port at ``baud``, or a ``mavlink`` URL), fitted with ``model``
     (and ``method``, ``options``, the field magnitude ``reference`` in ``units`` when known), served on ``port``
     (127.0.0.1 only; 0 picks a free port), saved to ``out`` (calibration JSON) and ``samples_out`` (CSV; default
-    beside ``out``) on the page's save button, on SIGINT, and (``exit_at_end``) when the source ends."""
+    beside ``out``) on the page's save button, on SIGINT or SIGTERM, and (``exit_at_end``) when the source ends;
+    what cannot work (a non-finite ``rate``, ``interval`` or ``reference``, a ``port`` outside 0-65535, an unknown
+    unit, an output that cannot be written or would replace the replayed log) is refused before it starts."""
 
     replay: str | Path | None = None
     rate: float | None = 2000.0
