@@ -53,7 +53,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns,
                                               strict=src.strict)
     rot = attitudes_of(samples, att)
-    background, source = background_field(given, cal.units, samples)
+    background, source = _background(given, cal, samples)
     expected = _attitude.body_field(rot, background)
     u = calibration_regressors(cal, samples, src.path, time_column=req.attitude.time_column, rate_hz=req.rate_hz)
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
@@ -70,6 +70,42 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
     }
+
+
+#: A background given to ``evaluate`` agrees with the one a calibration fitted when their directions are within this
+#: angle (degrees) and their magnitudes within this fraction of each other.
+AGREE_DEG, AGREE_FRACTION = 0.5, 0.01
+
+
+def _background(given: Any, cal: Calibration, samples: Samples) -> tuple[NDArray[np.float64], str]:
+    """The background the evaluation measures against, and its source: the given one, or, when none is given, the
+    one stored in the calibration (``diagnostics.background_ned``: fitted, or given at fit time). A background
+    given for a calibration that fitted its own (``estimate_background``) must agree with it: the fitted one is in
+    the attitude source's frame (e.g. a motion-capture system's), so another vector is refused, never used."""
+    stored = cal.diagnostics.get("background_ned")
+    fitted = bool(cal.diagnostics.get("background_fitted"))
+    if not given.given:
+        if stored is None or cal.diagnostics.get("background_per_sample"):
+            raise TrimagInputError(
+                "the calibration stores no single background field: give `background_ned=N,E,D`, "
+                "`igrf_spec=LAT,LON,ALT_M,DATE` or `background_columns=N,E,D`")
+        vec = np.asarray(stored, dtype=np.float64)
+        how = "fitted" if fitted else "given at fit time"
+        return vec, f"stored in the calibration ({how}), NED {np.round(vec, 6).tolist()}"
+    background, source = background_field(given, cal.units, samples)
+    if fitted and stored is not None:
+        vec = np.asarray(stored, dtype=np.float64)
+        mean = background.mean(axis=0) if background.ndim == 2 else background
+        angle = float(np.degrees(np.arccos(np.clip(mean @ vec / (np.linalg.norm(mean) * np.linalg.norm(vec)), -1, 1))))
+        ratio = float(np.linalg.norm(mean) / np.linalg.norm(vec))
+        if background.ndim == 2 or angle > AGREE_DEG or abs(ratio - 1.0) > AGREE_FRACTION:
+            raise TrimagInputError(
+                f"the calibration fitted its own background, NED {np.round(vec, 3).tolist()} {cal.units} in the "
+                f"attitude source's frame; the given one ({source}) differs by {angle:.3g} deg and "
+                f"{100 * (ratio - 1):+.3g} % in magnitude: drop the background option to evaluate against the fitted "
+                "one")
+        source += f"; agrees with the fitted background stored in the calibration ({angle:.2g} deg)"
+    return background, source
 
 
 def _attitudes(req: EvaluateRequest, samples: Samples, cal: Calibration) -> tuple[Samples, AttitudeSpec, float | None]:

@@ -36,6 +36,7 @@ from ._inputs import (
     magnitude_reference,
     parse_regressor_names,
     regressor_columns,
+    truthy,
 )
 from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, large_mode
 from ._log_advice import log_refusal
@@ -423,6 +424,11 @@ def _fit_reference(
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
     attitude = attitudes_of(samples, att)
+    if _fits_background(estimator) and not _names_background(given):
+        scale = _background_scale(given)  # a magnitude, or None: det(K) = 1
+        messages.append("background field: fitted (`estimate_background`), |H_n| " + (
+            f"= {scale:.6g} {unit} (given)" if scale is not None else "from det(K) = 1 (the mean corrected magnitude)"))
+        return samples, scale, attitude, messages
     background, source = background_field(
         given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
@@ -434,6 +440,33 @@ def _fit_reference(
     else:
         messages.append(f"background field {source}")
     return samples, background, attitude, messages
+
+
+def _fits_background(estimator: Any) -> bool:
+    """Whether the estimator fits the background vector itself (``linear-vector`` with ``estimate_background``)."""
+    return truthy(getattr(estimator, "estimate_background", False))
+
+
+def _names_background(given: Any) -> bool:
+    """Whether the request names a background vector (or an iron-free run, or a per-sample background)."""
+    return any(getattr(given, name) is not None for name in
+               ("background_ned", "igrf_spec", "background_run", "background_columns", "igrf_columns"))
+
+
+def _background_scale(given: Any) -> float | None:
+    """The magnitude ``reference=F`` gives a fitted background (None: not given, or ``"mean"``)."""
+    if given.reference_column is not None:
+        raise TrimagInputError("`reference_column` is a per-sample magnitude; a fitted background takes one "
+                               "magnitude (`reference=F`) or none")
+    if given.reference is None or str(given.reference).strip().lower() == "mean":
+        return None
+    try:
+        value = float(given.reference)
+    except ValueError:
+        raise TrimagInputError(f"`reference` takes a number or 'mean'; got {given.reference!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {given.reference!r}")
+    return value
 
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:
