@@ -76,6 +76,7 @@ def attach_attitude_file(
     names = ("_attitude_qw", "_attitude_qx", "_attitude_qy", "_attitude_qz")
     q = rot.as_quat(scalar_first=True)
     table = table.assign(**{name: q[:, k] for k, name in enumerate(names)})
+    table = _positions_from_file(req, table, t[inside] + lag, messages)
     samples = dataclasses.replace(samples, field=samples.field[inside], table=table,
                                   n_dropped=samples.n_dropped + n_out)
     req = dataclasses.replace(req, attitude=AttitudeSpec(quaternion_columns=",".join(names),
@@ -131,7 +132,7 @@ def _lag_background(
         background, source = background_field(ReferenceSpec(background_ned=given.background_ned,
                                                             igrf_spec=given.igrf_spec), unit)
         return background, f"background {np.round(background, 6).tolist()} ({source})", False
-    from ..solvers import fit_with_background
+    from ..estimators.linear_vector import fit_with_background
 
     rot, inside = interpolate_attitude(stream, t, lag)
     if rot is None or inside.sum() < 20:
@@ -141,3 +142,39 @@ def _lag_background(
     _, _, background, _ = fit_with_background(B[inside], rot, 1.0)
     return background, (f"fitted background direction {np.round(background, 6).tolist()} (fitted at lag "
                         f"{lag:+.5g} s)"), True
+
+
+def _positions_from_file(req: FitRequest | EvaluateRequest, table: Any, t: Any, messages: list[str]) -> Any:
+    """The positions (``position_columns``) from the attitude file when the magnetometer's table lacks them: each
+    interpolated linearly to the (lag-shifted) time stamps ``t``; NaN where the file has none."""
+    import pandas as pd
+
+    spec = getattr(req, "position_columns", None)
+    if spec is None:
+        return table
+    names = [c.strip() for c in spec.split(",") if c.strip()]
+    if all(n in table.columns for n in names):
+        return table
+    from ..io.tables import read_table
+    from ..vehicle.timesync import time_values
+
+    att = req.attitude
+    source = read_table(att.attitude_file)  # type: ignore[arg-type]
+    missing = [n for n in names if n not in source.columns]
+    if missing:
+        raise TrimagInputError(f"no column {missing[0]!r} (named by `position_columns`) in the data or in "
+                               f"{att.attitude_file}")
+    ta = time_values(source, att.attitude_time_column or att.time_column, str(att.attitude_file))  # type: ignore[arg-type]
+    values = {n: np.asarray(pd.to_numeric(source[n], errors="coerce"), dtype=np.float64) for n in names}
+    out = {}
+    for n, v in values.items():
+        ok = np.isfinite(ta) & np.isfinite(v)
+        order = np.argsort(ta[ok], kind="stable")
+        tt, vv = ta[ok][order], v[ok][order]
+        col = np.interp(t, tt, vv) if len(tt) >= 2 else np.full(len(t), np.nan)
+        if len(tt):
+            col[(t < tt[0]) | (t > tt[-1])] = np.nan
+        out[n] = col
+    messages.append(f"positions {', '.join(names)} from {att.attitude_file}, interpolated to the magnetometer's time "
+                    "stamps")
+    return table.assign(**out)
