@@ -69,7 +69,7 @@ def _times(req: FitRequest, samples: Samples) -> np.ndarray:
         return time_values(samples.table, column, str(req.input.path))
     if req.rate_hz is None:
         raise TrimagInputError("the gyro-aided fit needs the samples' time: give `time_column=T` (seconds) or "
-                               "`rate_hz` (`--rate HZ`)")
+                               "`rate_hz=HZ`")
     return np.asarray(samples.table.index, dtype=np.float64) / float(req.rate_hz)
 
 
@@ -84,8 +84,12 @@ def angular_rate(
     """The samples (rows without a gyroscope value or time dropped, counted; with a gyroscope of its own clock,
     those outside its span less the lag search's ``max_lag`` when ``estimate_lag``) and their gyroscope."""
     messages: list[str] = []
+    own = req.gyro_file is not None or (req.gyro_columns is None and log_has_gyro(samples))
+    if not own and req.gyro_columns is None:
+        raise TrimagInputError("method gyro needs the gyroscope: `gyro_columns=GX,GY,GZ` (the same rows), "
+                               "`gyro_file=FILE` (its own clock) or a log with a gyroscope")
     t = _times(req, samples)
-    if req.gyro_file is not None or (req.gyro_columns is None and log_has_gyro(samples)):
+    if own:
         tg, rate, source = _own_stream(req, samples, messages)
         margin = max_lag if estimate_lag else 0.0
         ok = np.isfinite(t) & (t >= tg[0] + margin) & (t <= tg[-1] - margin)
@@ -99,9 +103,7 @@ def angular_rate(
         samples = _keep(samples, ok)
         gyro = AngularRate(t[ok], tg, rate, 0.0, True, source)
     else:
-        if req.gyro_columns is None:
-            raise TrimagInputError("method gyro needs the gyroscope: `gyro_columns=GX,GY,GZ` (the same rows), "
-                                   "`gyro_file=FILE` (its own clock) or a log with a gyroscope")
+        assert req.gyro_columns is not None
         names = _names(req.gyro_columns, "gyro_columns")
         unit = _unit(req, names, messages)
         values = _values(samples.table, names, req.input.path, "gyro_columns")
