@@ -630,11 +630,17 @@ def simulate_room(
     c: ArrayLike = (250.0, -120.0, 80.0),
     noise: float = 20.0,
     reach_m: float = 0.4,
+    centre_m: ArrayLike = (0.0, 0.0, 0.0),
+    dipole_at_m: ArrayLike | None = None,
+    dipole_moment_Am2: ArrayLike = (0.0, 0.0, 0.0),
 ) -> RoomSimulation:
     """A lab recording (issue 31, item 4): the sensor tumbles (:func:`smooth_attitudes`) while a hand carries it
-    within ``reach_m`` of a point, in a background with a gradient (nT per metre: the five terms ``g_xx, g_xy, g_xz,
-    g_yy, g_yz`` of a symmetric, traceless tensor; the default changes the field by a few thousand nT over the
-    reach, as indoors near steel), paper C's ``K`` and ``c``, white noise per axis."""
+    within ``reach_m`` of ``centre_m``, in a background with a gradient (nT per metre: the five terms ``g_xx, g_xy,
+    g_xz, g_yy, g_yz`` of a symmetric, traceless tensor; the default changes the field by a few thousand nT over the
+    reach, as indoors near steel), paper C's ``K`` and ``c``, white noise per axis (unit nT). With ``dipole_at_m``
+    a point source (moment in A m^2) adds a field that is not linear in position: ``100 (3 (m . r^) r^ - m) / r^3``
+    nT (``mu_0 / 4 pi = 100 nT m^3 / (A m^2)``), which a gradient only approximates near where it was fitted;
+    ``gradient`` is then the linear part alone."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) / float(rate_hz)
     att = smooth_attitudes(t, seed=int(rng.integers(0, 2**31)))
@@ -642,11 +648,17 @@ def simulate_room(
     phases = rng.uniform(0, 2 * np.pi, (3, 2))
     walk = np.column_stack([np.sin(freqs[a, 0] * 2 * np.pi * t + phases[a, 0])
                             + 0.5 * np.sin(freqs[a, 1] * 2 * np.pi * t + phases[a, 1]) for a in range(3)])
-    positions = reach_m * walk / 1.5
+    positions = np.asarray(centre_m, dtype=np.float64) + reach_m * walk / 1.5
     g = np.asarray(gradient_terms, dtype=np.float64)
     G = np.array([[g[0], g[1], g[2]], [g[1], g[3], g[4]], [g[2], g[4], -g[0] - g[3]]])
     H0 = np.asarray(background, dtype=np.float64)
     Hn = H0 + positions @ G.T
+    if dipole_at_m is not None:
+        r = positions - np.asarray(dipole_at_m, dtype=np.float64)
+        dist = np.linalg.norm(r, axis=1, keepdims=True)
+        u = r / dist
+        m = np.asarray(dipole_moment_Am2, dtype=np.float64)
+        Hn = Hn + 100.0 * (3.0 * (u @ m)[:, None] * u - m) / dist**3
     K_m = (np.array([[1.02, 0.01, -0.02], [0.015, 0.98, 0.01], [-0.01, 0.02, 1.01]]) if K is None
            else np.asarray(K, dtype=np.float64))
     c_v = np.asarray(c, dtype=np.float64)

@@ -100,6 +100,9 @@ def test_phone_export_takes_its_gyroscope(files):
     assert cal.method == "gyro"
     np.testing.assert_allclose(cal.offset, files["truth_phone"].offset, atol=0.1)
     assert abs(cal.diagnostics["gyro"]["lag_s"] - 0.004) < 3 * cal.uncertainty["param_std"]["lag_s"]
+    proc = run_trimag("fit", files["phone"], "--option", "estimate_lag=false", "--json")  # the fit's own option
+    assert proc.returncode == 0, proc.stderr
+    assert not json.loads(proc.stdout)["diagnostics"]["gyro"]["lag_estimated"]
     proc = run_trimag("fit", files["phone"], "--method", "ml", "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["method"] == "ml"

@@ -203,7 +203,8 @@ def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, 
     ``max_lag``) and the quick recalibration's (or a large vehicle's ``mode``'s); an option of a step the request
     does not take is refused."""
     options = dict(req.options)
-    gyro = gyro_requested(req) and req.attitude.attitude_file is None  # the gyro-aided fit's own lag options
+    # the gyro-aided fit's own lag options (a phone export with a gyroscope is fitted so by default)
+    gyro = (gyro_requested(req) or _phone_export(req)) and req.attitude.attitude_file is None
     sync_options: dict[str, Any] = {} if gyro else {k: options.pop(k) for k in ("estimate_lag", "max_lag")
                                                     if k in options}
     prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
@@ -490,6 +491,13 @@ def _fit_reference(
     else:
         messages.append(f"background field {source}")
     return samples, background, attitude, messages
+
+
+def _phone_export(req: FitRequest) -> bool:
+    """Whether the input is a phone's sensor-logger export (whose gyroscope the fit takes by default)."""
+    from ..io.logs import log_format
+
+    return req.method is None and log_format(req.input.path, req.input.fmt) == "phone"
 
 
 def _gyro_estimator(
