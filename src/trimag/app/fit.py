@@ -124,7 +124,9 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     mode = large_mode(req)
     options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
-    estimator = make_estimator(req.model, req.method, options)
+    # (a phone export's gyroscope is known once it is read: its gyro fit's own options wait till then)
+    estimator = make_estimator(req.model, req.method, {k: v for k, v in options.items()
+                                                       if not (_phone_export(req) and k in _GYRO_OPTIONS)})
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
@@ -493,6 +495,10 @@ def _fit_reference(
     return samples, background, attitude, messages
 
 
+#: Options of the gyro-aided fit alone (a phone export's default fit takes them once its gyroscope is found).
+_GYRO_OPTIONS = ("estimate_lag", "max_lag", "segment_s", "estimate_bias")
+
+
 def _phone_export(req: FitRequest) -> bool:
     """Whether the input is a phone's sensor-logger export (whose gyroscope the fit takes by default)."""
     from ..io.logs import log_format
@@ -513,6 +519,8 @@ def _gyro_estimator(
                                f"(`method=gyro`); model {req.model!r}, method {req.method!r} does not use a gyroscope")
     phone = bool(samples.log_info and samples.log_info.get("format") == "phone sensor logger" and log_has_gyro(samples))
     if not (named or (phone and req.method is None)) or req.model != "ellipsoid":
+        if any(k in options for k in _GYRO_OPTIONS) and estimator.name != "gyro":
+            make_estimator(req.model, req.method, options)  # refuses the gyro fit's options, naming the method's
         return estimator, []
     note = [] if named else [f"the export has a gyroscope ({samples.log_info['gyro']}): gyro-aided fit "  # type: ignore[index]
                              "(`method=ml` fits the magnitude alone; docs/method-gyro.md)"]
