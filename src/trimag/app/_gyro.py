@@ -124,7 +124,7 @@ def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple
     if req.gyro_file is None:
         from ..io.logs import read_log
 
-        log = read_log(Path(req.input.path), req.input.fmt if req.input.fmt in ("phone",) else None, gyro=True)
+        log = read_log(Path(req.input.path), req.input.fmt, gyro=True)  # (read as a log already: fmt is one or None)
         if log.gyro is None:
             raise TrimagInputError(f"{req.input.path}: the log has no gyroscope (IMU messages); give `gyro_file`")
         tg, rate, source = log.gyro.time_s, log.gyro.values, f"{log.gyro.source} (rad/s, the log's own)"

@@ -295,9 +295,13 @@ def _lag_start(problem: _Problem, max_lag: float) -> float:
                                f"+-{max_lag:g} s: check the two files' time columns")
     values = np.array([_scatter_start(problem, integrate_rate(gyro, np.zeros(3), float(lag)))[1] for lag in grid])
     k = int(np.argmin(values))
+    if values.max() - values.min() <= 1e-3 * values.max():
+        raise IdentifiabilityError("the fit's quality does not depend on the lag between the gyroscope and the "
+                                   f"magnetometer (the sensor barely turns); {_HINT}")
     if k in (0, len(grid) - 1) and len(grid) > 3:
         raise IdentifiabilityError(f"the best lag between the gyroscope and the magnetometer is at the edge of the "
-                                   f"search ({grid[k]:+.4g} s): widen it (`option max_lag`) or check the clocks")
+                                   f"search ({grid[k]:+.4g} s): widen it (`option max_lag`), check the clocks, or "
+                                   "check that the sensor turned while both logged")
     return float(grid[k])
 
 
