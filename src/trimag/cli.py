@@ -135,6 +135,10 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
                         "calibration's lag is applied (docs/vehicle.md)")
     g.add_argument("--attitude-time-column", metavar="NAME",
                    help="time column (s) of --attitude-file (default: the same name as --time-column)")
+    g.add_argument("--position-columns", metavar="X,Y,Z",
+                   help="the sensor's positions (m, the attitudes' frame; in the data or in --attitude-file): fit: "
+                        "the background's gradient across the room (5 terms); evaluate: default the fitted columns "
+                        "(docs/vehicle.md)")
 
 
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
@@ -183,6 +187,20 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                         "and the nearest autopilot board rotation (docs/vehicle.md)")
 
 
+def _add_gyro_options(p: argparse.ArgumentParser) -> None:
+    """The gyroscope of the gyro-aided fit (``--method gyro``, docs/method-gyro.md)."""
+    g = p.add_argument_group("gyroscope (the gyro-aided fit of the ellipsoid; docs/method-gyro.md)")
+    g.add_argument("--gyro-columns", metavar="GX,GY,GZ",
+                   help="angular rate columns: in the same rows (with --time-column or --rate), or in --gyro-file "
+                        "(default x,y,z there); implies --method gyro")
+    g.add_argument("--gyro-unit", choices=["rad/s", "deg/s"],
+                   help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
+    g.add_argument("--gyro-file", metavar="FILE",
+                   help="the gyroscope in a file of its own, with its own clock: the lag between the two is fitted "
+                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0)")
+    g.add_argument("--gyro-time-column", metavar="NAME", help="time column (s) of --gyro-file (default: --time-column)")
+
+
 def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
     p.add_argument("--model", default="ellipsoid", help=model_help)
     p.add_argument("--method", help="identification method (default: the model's default)")
@@ -221,6 +239,7 @@ def _add_fit(sub: Any) -> None:
     p.add_argument("--deviation-card", metavar="CARD.png",
                    help="with --level-turn or --heading: write the deviation card (heading error against heading, "
                         "before and after) as a figure; its table is printed")
+    _add_gyro_options(p)
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")

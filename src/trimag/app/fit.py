@@ -28,6 +28,7 @@ from ._checks import (
     refuse_unidentified_log,
     worse_than_raw,
 )
+from ._gyro import angular_rate, gyro_lines, gyro_requested, log_has_gyro
 from ._inputs import (
     accel_values,
     attitudes_of,
@@ -37,6 +38,7 @@ from ._inputs import (
     magnitude_reference,
     parse_regressor_names,
     regressor_columns,
+    truthy,
 )
 from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, large_mode
 from ._log_advice import log_refusal
@@ -123,13 +125,16 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     mode = large_mode(req)
     options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
-    estimator = make_estimator(req.model, req.method, options)
+    # (a phone export's gyroscope is known once it is read: its gyro fit's own options wait till then)
+    estimator = make_estimator(req.model, req.method, {k: v for k, v in options.items()
+                                                       if not (_phone_export(req) and k in _GYRO_OPTIONS)})
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
+    estimator, gyro_messages = _gyro_estimator(req, samples, estimator, options)
     try:
         return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
-                            prior_options, mode)
+                            prior_options, mode, gyro_messages)
     except IdentifiabilityError as exc:  # a log: its compasses and the modes that would help (issue 30, item 7)
         if samples.log_info is None or mode is not None or req.prior is not None:
             raise
@@ -139,12 +144,13 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
 def _fit_samples(
     req: FitRequest, samples: Samples, estimator: Any, limits: dict[str, float] | None,
     regressor_names: tuple[str, ...] | None, eddy_terms: int | None, sync_options: dict[str, Any],
-    prior_options: dict[str, Any], mode: str | None,
+    prior_options: dict[str, Any], mode: str | None, gyro_messages: list[str] | None = None,
 ) -> FitResult:
-    """:func:`fit_file` after reading the samples."""
+    """:func:`fit_file` after reading the samples (``gyro_messages``: the choice of the gyro-aided fit)."""
     src = req.input
     log_unit = samples.log_info is not None and src.units is None
-    req, messages = _log_defaults(req, samples, estimator, mode)  # a vehicle log states its unit, site and attitudes
+    req, log_messages = _log_defaults(req, samples, estimator, mode)  # a vehicle log states its unit, site, attitudes
+    messages = list(gyro_messages or []) + log_messages
     prior = None
     if req.prior is not None:
         if regressor_names is not None:
@@ -200,7 +206,10 @@ def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, 
     ``max_lag``) and the quick recalibration's (or a large vehicle's ``mode``'s); an option of a step the request
     does not take is refused."""
     options = dict(req.options)
-    sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
+    # the gyro-aided fit's own lag options (a phone export with a gyroscope is fitted so by default)
+    gyro = (gyro_requested(req) or _phone_export(req)) and req.attitude.attitude_file is None
+    sync_options: dict[str, Any] = {} if gyro else {k: options.pop(k) for k in ("estimate_lag", "max_lag")
+                                                    if k in options}
     prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
                                                                  "inclination_sigma_deg", *MODE_OPTIONS)
                                      if k in options}
@@ -228,6 +237,9 @@ def _finish(
     messages: list[str] = []
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
+    if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
+        cal, lines = gyro_lines(cal)
+        messages += lines
     alignment_messages: list[str] = []
     if req.accel_columns is not None:
         from ..vehicle.alignment import fit_alignment
@@ -320,11 +332,42 @@ def _fit_model(
         from ..vehicle.regressors import fit_regressors
 
         cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
+    if req.position_columns is not None:
+        cal, gradient_message = _background_gradient(req, cal, samples, attitude, regressor_values)
+        messages.append(gradient_message)
     if estimator.reference_kind == "vector" and req.reference.reference_column is not None:
         cal, joint_message = _joint_scalar(req, cal, samples, ref, attitude, regressor_values, unit)
         messages.append(joint_message)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
     return samples, cal, ref, regressor_values, warn_texts, messages
+
+
+def _background_gradient(
+    req: FitRequest, cal: Calibration, samples: Samples, attitude: Any,
+    regressor_values: dict[str, NDArray[np.float64]] | None,
+) -> tuple[Calibration, str]:
+    """``position_columns``: the background's gradient across the room (:mod:`trimag.vehicle.gradient`), and its
+    line."""
+    from ..vehicle.gradient import fit_background_gradient
+
+    if req.model != "interference12" or attitude is None:
+        raise TrimagInputError("`position_columns` fits the background's gradient of the model interference12 (with "
+                               "attitudes); drop it, or give `model=interference12`")
+    if regressor_values is not None or req.reference.reference_column is not None:
+        raise TrimagInputError("`position_columns` cannot be combined with `regressors`, eddy terms or "
+                               "`reference_column`: fit the background's gradient alone")
+    assert req.position_columns is not None
+    names = [c.strip() for c in req.position_columns.split(",") if c.strip()]
+    positions = regressor_columns(samples, tuple(names), req.input.path, "named by `position_columns`")
+    if len(names) != 3:
+        raise TrimagInputError(f"`position_columns` needs three columns X,Y,Z; got {req.position_columns!r}")
+    cal = fit_background_gradient(cal, samples.field, attitude, np.column_stack([positions[n] for n in names]),
+                                  position_columns=",".join(names))
+    g = cal.diagnostics["background_gradient"]
+    terms = ", ".join(f"{k} {v:.4g} +- {g['terms_std'][k]:.2g}" for k, v in g["terms"].items())
+    return cal, (f"background gradient ({g['unit']}): {terms}; vector RMS {g['vector_rms_without']:.4g} -> "
+                 f"{g['vector_rms_with']:.4g} {cal.units} over positions spanning "
+                 f"{np.round(g['position_span_m'], 3).tolist()} m")
 
 
 def _joint_scalar(
@@ -366,8 +409,9 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None and req.prior is None and mode is None:  # those are made for logs that barely tilt
-        refuse_static_log(samples, log_info)
+    if src.columns is None and req.prior is None and mode is None and estimator.reference_kind != "gyro":
+        refuse_static_log(samples, log_info)  # (those are made for logs that barely tilt; the gyroscope says itself
+        # whether the sensor turned)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
 
@@ -397,6 +441,11 @@ def _fit_reference(
     otherwise): ``(samples without the rows that lack an attitude, reference, attitude or None, messages)``."""
     given, att, src = req.reference, req.attitude, req.input
     messages: list[str] = []
+    gyro = None
+    if estimator.reference_kind == "gyro":
+        lag = estimator.estimate_lag
+        samples, gyro, messages = angular_rate(req, samples, float(estimator.max_lag),
+                                               lag is None or truthy(lag))
     if estimator.reference_kind != "vector":
         ref = magnitude_reference(samples, given, unit)
         if ref.source.startswith("igrf"):
@@ -407,7 +456,7 @@ def _fit_reference(
                 f"method {estimator.name!r} needs a known field magnitude: give `reference=F`, "
                 "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
             )
-        return samples, ref, None, messages
+        return samples, ref, gyro, messages
 
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns,
                                                         strict=src.strict)
@@ -419,7 +468,17 @@ def _fit_reference(
                                                             strict=src.strict)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
+    if req.position_columns is not None:
+        samples, n_no_position = drop_rows_without_attitude(samples, req.position_columns, None, strict=src.strict,
+                                                            what="position")
+        if n_no_position:
+            messages.append(f"dropped {n_no_position} rows whose position is missing or non-numeric")
     attitude = attitudes_of(samples, att)
+    if _fits_background(estimator) and not _names_background(given):
+        scale = _background_scale(given)  # a magnitude, or None: det(K) = 1
+        messages.append("background field: fitted (`estimate_background`), |H_n| " + (
+            f"= {scale:.6g} {unit} (given)" if scale is not None else "from det(K) = 1 (the mean corrected magnitude)"))
+        return samples, scale, attitude, messages
     background, source = background_field(
         given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
@@ -431,6 +490,65 @@ def _fit_reference(
     else:
         messages.append(f"background field {source}")
     return samples, background, attitude, messages
+
+
+#: Options of the gyro-aided fit alone (a phone export's default fit takes them once its gyroscope is found).
+_GYRO_OPTIONS = ("estimate_lag", "max_lag", "segment_s", "estimate_bias")
+
+
+def _phone_export(req: FitRequest) -> bool:
+    """Whether the input is a phone's sensor-logger export (whose gyroscope the fit takes by default)."""
+    from ..io.logs import log_format
+
+    return req.method is None and log_format(req.input.path, req.input.fmt) == "phone"
+
+
+def _gyro_estimator(
+    req: FitRequest, samples: Samples, estimator: Any, options: dict[str, Any]
+) -> tuple[Any, list[str]]:
+    """The gyro-aided estimator when the request names a gyroscope, or a phone export has one and no method is
+    named (the ellipsoid model); a gyroscope given to another method is refused."""
+    if estimator.name == "gyro":
+        return estimator, []
+    named = req.gyro_columns is not None or req.gyro_file is not None
+    if named and (req.method is not None or req.model != "ellipsoid"):
+        raise TrimagInputError(f"`gyro_columns` / `gyro_file` are for the gyro-aided fit of the ellipsoid model "
+                               f"(`method=gyro`); model {req.model!r}, method {req.method!r} does not use a gyroscope")
+    phone = bool(samples.log_info and samples.log_info.get("format") == "phone sensor logger" and log_has_gyro(samples))
+    if not (named or (phone and req.method is None)) or req.model != "ellipsoid":
+        if any(k in options for k in _GYRO_OPTIONS) and estimator.name != "gyro":
+            make_estimator(req.model, req.method, options)  # refuses the gyro fit's options, naming the method's
+        return estimator, []
+    note = [] if named else [f"the export has a gyroscope ({samples.log_info['gyro']}): gyro-aided fit "  # type: ignore[index]
+                             "(`method=ml` fits the magnitude alone; docs/method-gyro.md)"]
+    return make_estimator(req.model, "gyro", options), note
+
+
+def _fits_background(estimator: Any) -> bool:
+    """Whether the estimator fits the background vector itself (``linear-vector`` with ``estimate_background``)."""
+    return truthy(getattr(estimator, "estimate_background", False))
+
+
+def _names_background(given: Any) -> bool:
+    """Whether the request names a background vector (or an iron-free run, or a per-sample background)."""
+    return any(getattr(given, name) is not None for name in
+               ("background_ned", "igrf_spec", "background_run", "background_columns", "igrf_columns"))
+
+
+def _background_scale(given: Any) -> float | None:
+    """The magnitude ``reference=F`` gives a fitted background (None: not given, or ``"mean"``)."""
+    if given.reference_column is not None:
+        raise TrimagInputError("`reference_column` is a per-sample magnitude; a fitted background takes one "
+                               "magnitude (`reference=F`) or none")
+    if given.reference is None or str(given.reference).strip().lower() == "mean":
+        return None
+    try:
+        value = float(given.reference)
+    except ValueError:
+        raise TrimagInputError(f"`reference` takes a number or 'mean'; got {given.reference!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {given.reference!r}")
+    return value
 
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:

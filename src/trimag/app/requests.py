@@ -119,6 +119,17 @@ class FitRequest:
     #: ``export_to`` (``"ardupilot"`` or ``"px4"``) with every compass fitted
     export_to: str | None = None
     export_out: str | Path | None = None
+    #: the gyro-aided fit (``method=gyro``, docs/method-gyro.md): the gyroscope's columns ``"GX,GY,GZ"`` in the same
+    #: rows (with ``attitude.time_column`` or ``rate_hz``) or in ``gyro_file`` (its own clock: ``gyro_time_column``,
+    #: default ``attitude.time_column``), in ``gyro_unit`` (``"rad/s"``, ``"deg/s"``; default from the column names,
+    #: else rad/s)
+    gyro_columns: str | None = None
+    gyro_unit: str | None = None
+    gyro_file: str | Path | None = None
+    gyro_time_column: str | None = None
+    #: the sensor's positions ``"X,Y,Z"`` (m, the attitudes' frame; in the data or in ``attitude.attitude_file``):
+    #: ``interference12`` fits the background's gradient across the room (:mod:`trimag.vehicle.gradient`)
+    position_columns: str | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
@@ -185,6 +196,9 @@ class EvaluateRequest:
     #: sample rate (Hz) of the data for a calibration's eddy-current terms when there is no ``attitude.time_column``
     #: (checked against the calibration's)
     rate_hz: float | None = None
+    #: the sensor's positions ``"X,Y,Z"`` (m) for a calibration with a background gradient (default: the columns it
+    #: was fitted with)
+    position_columns: str | None = None
 
     @classmethod
     def of(cls, calibration: str | Path, data: str | Path, **arguments: Any) -> EvaluateRequest:

@@ -58,7 +58,7 @@ class Estimator:
         Models this method can identify; the first is the default.
     reference_kind : str
         ``"scalar"`` (magnitude optional or required, see ``requires_reference``), ``"none"`` (reference-free),
-        or ``"vector"`` (background vector + attitudes, paper C).
+        ``"vector"`` (background vector + attitudes, paper C) or ``"gyro"`` (magnitude optional + the gyroscope).
     requires_reference : bool
         True when a known magnitude (or background vector) is mandatory.
     """
@@ -123,10 +123,11 @@ class Estimator:
             the background field vector in the navigation frame, shape (3,).
         units : str
             Unit of ``B`` (and of a numeric reference); recorded in the Calibration.
-        attitude : scipy.spatial.transform.Rotation, optional
+        attitude : scipy.spatial.transform.Rotation or AngularRate, optional
             Per-sample attitude: N rotations body -> navigation frame (NED), so that a navigation-frame
             field is seen in the body frame as ``attitude.inv().apply(H_n)`` (docs/conventions.md); only for
-            methods with ``reference_kind == "vector"``.
+            methods with ``reference_kind == "vector"``. For ``reference_kind == "gyro"`` the gyroscope
+            (:class:`trimag.fields.gyro.AngularRate`: the samples' time stamps and the angular rate).
 
         Returns
         -------

@@ -453,6 +453,8 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
         "messages": log.summary_lines(sensor) + messages,
         "channels": [c for c in df.columns if c not in ("time_s",) and not c.startswith("mag_")],
         "has_attitude": "yaw_deg" in df.columns,
+        # the gyroscope (read again for the gyro-aided fit: a DataFlash log's IMU only then, docs/method-gyro.md)
+        "gyro": log.gyro.source if log.gyro is not None else ("IMU (read on request)" if kind == "dataflash" else None),
     }
     return df
 

@@ -68,8 +68,9 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
     return kind
 
 
-def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
-    """Read an autopilot log (format from ``fmt`` or the extension)."""
+def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False) -> VehicleLog:
+    """Read an autopilot log (format from ``fmt`` or the extension). ``gyro``: also read a DataFlash log's ``IMU``
+    messages (the gyroscope, ``VehicleLog.gyro``; the other formats always give theirs, at no extra cost)."""
     p = Path(path)
     kind = log_format(p, fmt)
     if not p.exists():
@@ -87,7 +88,7 @@ def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
     if kind in ("dataflash", "tlog"):
         from .ardupilot import read_ardupilot
 
-        return read_ardupilot(p, kind)
+        return read_ardupilot(p, kind, gyro=gyro)
     if kind == "ulog":
         from .px4 import read_ulog
 

@@ -89,9 +89,9 @@ def _gps_date(week: float, ms: float) -> str:
 Columns = dict[str, dict[str, NDArray[Any]]]
 
 
-def _collect(path: Path, kind: str) -> tuple[Columns, dict[str, float]]:
-    """Every wanted message type as columns, and the parameters (first value of each)."""
-    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES
+def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[str, float]]:
+    """Every wanted message type as columns, and the parameters (first value of each); ``gyro``: also ``IMU``."""
+    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES + (["IMU"] if gyro else [])
     if kind == "dataflash":
         with path.open("rb") as fh:
             binary = fh.read(2) == b"\xa3\x95"
@@ -300,10 +300,16 @@ def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     return log
 
 
-def read_ardupilot(path: Path, kind: str = "dataflash") -> VehicleLog:
-    """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log."""
-    rows, params = _collect(path, kind)
+def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False) -> VehicleLog:
+    """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log; ``gyro``: also the first
+    IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked)."""
+    rows, params = _collect(path, kind, gyro)
     log = _dataflash(path, rows, params) if kind == "dataflash" else _tlog(path, rows, params)
+    imu = rows.get("IMU")
+    if gyro and _n(imu) and imu is not None and "GyrX" in imu:
+        if "I" in imu:
+            imu = _take(imu, np.asarray(imu["I"]).astype(int) == 0)
+        log.gyro = Channel(_time_s(imu), _array(imu, ["GyrX", "GyrY", "GyrZ"]), "rad/s", "IMU.GyrX..Z (instance 0)")
     if not log.magnetometers:
         raise TrimagInputError(
             f"{path}: the log has no magnetometer messages ({'MAG' if kind == 'dataflash' else 'RAW_IMU/SCALED_IMU'}); "

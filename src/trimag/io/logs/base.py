@@ -116,6 +116,7 @@ class VehicleLog:
     format: str
     magnetometers: list[MagnetometerStream]
     attitude: Channel | None = None  # yaw, pitch, roll in degrees (Z-Y-X, body -> NED)
+    gyro: Channel | None = None  # angular rate (N, 3), rad/s, in the IMU's own frame (the gyro-aided fit)
     channels: dict[str, Channel] = field(default_factory=dict)  # current_A, throttle, temperature_C, ...
     gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
     parameters: dict[str, float] = field(default_factory=dict)
@@ -219,5 +220,8 @@ class VehicleLog:
         offered = list(self.channels)
         if offered:
             lines.append(f"channels for regressors: {', '.join(offered)}")
+        if self.gyro is not None:
+            lines.append(f"gyroscope: {self.gyro.source}, {len(self.gyro.time_s)} samples (the gyro-aided fit, "
+                         "docs/method-gyro.md)")
         lines += self.messages
         return lines
