@@ -212,3 +212,14 @@ def test_ros2_bag_magnetic_field_in_tesla_and_imu_attitude(tmp_path: Path):
     df, _ = log.table()
     np.testing.assert_allclose(df["yaw_deg"].to_numpy(), 90.0, atol=1e-6)
     np.testing.assert_allclose(df[["pitch_deg", "roll_deg"]].to_numpy(), 0.0, atol=1e-6)
+
+
+def test_random_bin_file_is_one_line_not_a_dataflash_log(tmp_path: Path):
+    """Finding (issue 32, item 6): a random .bin printed ~4 500 "bad header" lines from pymavlink before the error."""
+    pytest.importorskip("pymavlink")
+    path = tmp_path / "random.bin"
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+    r = run_trimag("fit", path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "not an ArduPilot DataFlash log" in r.stderr
+    assert r.stdout == ""

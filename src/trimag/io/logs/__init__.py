@@ -68,6 +68,24 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
     return kind
 
 
+def _check_dataflash_head(path: Path) -> None:
+    """Refuse a file that is not a DataFlash log before pymavlink reads it byte by byte (it prints a "bad header"
+    line for each byte it skips): a binary log (``.bin``; pymavlink reads any ``.bin`` as binary) starts with a
+    message header ``0xA3 0x95``, a text log (``.log``) with ``FMT`` (``AP_Logger`` writes the ``FMT`` messages
+    first)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(3)
+    except OSError as exc:
+        raise TrimagInputError(f"{path}: cannot read the log ({exc.strerror or exc})") from None
+    binary = head[:2] == b"\xa3\x95"
+    if not binary and (path.suffix.lower() == ".bin" or not head.startswith(b"FMT")):
+        raise TrimagInputError(
+            f"{path}: not an ArduPilot DataFlash log (a binary log starts with the message header 0xA3 0x95, a "
+            "text .log with FMT lines); if it is a table of x, y, z values, give `--format` (csv, npy, mat, ...)"
+        )
+
+
 def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
     """Read an autopilot log (format from ``fmt`` or the extension)."""
     p = Path(path)
@@ -86,6 +104,9 @@ def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
         return read_phone(p)
     if kind in ("dataflash", "tlog"):
         from .ardupilot import read_ardupilot
+
+        if kind == "dataflash":
+            _check_dataflash_head(p)
 
         return read_ardupilot(p, kind)
     if kind == "ulog":
