@@ -113,7 +113,7 @@ def test_plane_noise_ratio_of_a_sphere_and_of_a_slab():
     sphere = uniform_directions(4000, seed=10) + rng.normal(scale=0.01, size=(4000, 3))
     assert check_not_planar_within_noise(sphere, 0.01) == pytest.approx(np.sqrt(1 / 3) / 0.01, rel=0.05)
     slab = np.column_stack([rng.uniform(-1, 1, (4000, 2)), rng.normal(scale=0.01, size=4000)])
-    with pytest.raises(IdentifiabilityError, match="one plane within the noise: .* 1 x the fit's residuals"):
+    with pytest.raises(IdentifiabilityError, match=r"one plane within the noise: .* 1 x the fit.s residuals"):
         check_not_planar_within_noise(slab, 0.01)
     assert check_not_planar_within_noise(slab, 0.0) == np.inf
 
