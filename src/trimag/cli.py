@@ -625,6 +625,8 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
         what = " or ".join(["x/y/z"] + (["regressor values"] if r.get("regressors") else [])
                            + ([f"reference ({column})"] if column else []))
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
+    for warning in r["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
         return EXIT_OK
@@ -646,6 +648,8 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .app import evaluate_vector_file
 
     v = evaluate_vector_file(req)
+    for warning in v["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(v, allow_nan=False))
         return EXIT_OK

@@ -20,6 +20,7 @@ from ..io import Samples, column_values, read_samples
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
+    check_fitted_field,
     check_unit,
     policy_verdict,
     refuse_impossible_vector_fit,
@@ -252,6 +253,8 @@ def _fit_model(
     cal = estimator.calibration_
     if samples.log_info is not None and src.columns is None:
         refuse_unidentified_log(cal, samples, samples.log_info)
+    if estimator.reference_kind != "vector":
+        messages += check_fitted_field(cal, unit, autopilot_log=samples.log_info is not None)
     if estimator.reference_kind == "vector":
         att = req.attitude
         refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
@@ -324,6 +327,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
     if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
         refuse_static_log(samples, log_info)
+        refuse_unidentified_log(None, samples, log_info)  # the data's coverage, before any method (issue 32)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
 
