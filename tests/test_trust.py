@@ -11,7 +11,7 @@ import pytest
 
 import trimag
 
-from _helpers import SHARED_DATA, ellipsoid_truth, run_trimag, simulate_ellipsoid
+from _helpers import SHARED_DATA, ellipsoid_truth, requires_shared, run_trimag, simulate_ellipsoid
 
 
 def _cone(n: int, half_deg: float, seed: int = 0, F: float = 50_000.0, noise: float = 5.0) -> np.ndarray:
@@ -471,3 +471,32 @@ def test_twostep_with_the_scalar_magnetometer_as_reference_on_a_real_aircraft():
         cal = trimag.fit(B, model="ellipsoid", method="twostep", reference=F, units="nT")
     assert np.mean(np.linalg.norm(cal.apply(B), axis=1)) == pytest.approx(np.mean(F), abs=5.0)
     assert cal.stats["rms_after"] < 0.1 * cal.stats["rms_before"]
+
+
+def test_a_log_whose_gain_changes_halfway_is_flagged_and_its_sigmas_widened():
+    """Finding (issue 32, item 7): the halves of a real log differed by 1.5 RMS z with no warning: the drift check
+    refitted the offsets only. A gain that changes halfway (x axis +3 %, as with a temperature step) is now named, and
+    the sigmas cover the difference; a stable log is left alone."""
+    B = simulate_ellipsoid(4000, noise=10.0, seed=2)
+    stable = trimag.fit(B, model="ellipsoid", units="nT")
+    assert stable.diagnostics["drift"]["drift"] is False and "halves_disagree" not in stable.uncertainty["inflation"]
+    centre = np.asarray(stable.offset)
+    B[2000:, 0] = centre[0] + 1.03 * (B[2000:, 0] - centre[0])
+    moved = trimag.fit(B, model="ellipsoid", units="nT")
+    drift = moved.diagnostics["drift"]
+    assert drift["drift"] is True and "w11" in drift["moved"] and abs(drift["z"]["w11"]) > 10
+    assert moved.uncertainty["inflation"]["halves_disagree"] > 10
+    assert any("w11 by" in w and "changed during the log" in w for w in moved.diagnostics["warnings"])
+
+
+@requires_shared
+def test_the_office_log_whose_halves_differ_by_1_5_rms_z_is_told():
+    """Finding (issue 32, item 7): on a real office log (ck-explorer, hand-turned) the halves differ by 1.5 RMS z; it
+    was passed in silence. Its sigmas are widened to cover the difference, and a warning says so."""
+    from trimag.io import read_samples
+
+    cal = trimag.fit(read_samples(SHARED_DATA / "ck-explorer-accmag" / "acc_mag_log.csv").field)
+    drift = cal.diagnostics["drift"]
+    assert 1.3 < drift["rms_z"] < 1.8 and drift["p_value"] < 0.05 and drift["drift"]
+    assert cal.uncertainty["inflation"]["halves_disagree"] > 1.5
+    assert any("RMS z 1.5" in w for w in cal.diagnostics["warnings"])
