@@ -183,6 +183,21 @@ def refuse_impossible_vector_fit(
     )
 
 
+def _field_directions(B: Any) -> Any:
+    """Unit field directions (N, 3) of raw samples: about the centre of the sphere they lie on when they do lie on one
+    (its residuals below 10 % of its radius: a phone's ~10 x hard iron would otherwise hide a whole tumble in a few
+    degrees, issue 32), else the raw vectors themselves (a static or barely turned sensor)."""
+    from ..quality.diagnostics import sphere_centre
+
+    centre = sphere_centre(B)
+    if centre is not None:
+        d = B - centre
+        radius = np.linalg.norm(d, axis=1)
+        if np.all(radius > 0) and float(np.std(radius)) < 0.1 * float(np.mean(radius)):
+            return d / radius[:, None]
+    return B / np.linalg.norm(B, axis=1, keepdims=True)
+
+
 def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
     from ..errors import IdentifiabilityError
@@ -195,7 +210,7 @@ def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
             f"{name} has only {n} samples in this log: too few to calibrate. Log the magnetometer faster or longer "
             "and turn the vehicle through all headings and attitudes"
         )
-    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    u = _field_directions(B)
     mean = u.mean(axis=0)
     mean /= np.linalg.norm(mean)
     cone = float(np.degrees(np.arccos(np.clip(u @ mean, -1.0, 1.0))).max())

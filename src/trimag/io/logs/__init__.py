@@ -50,7 +50,7 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
         return "rosbag" if (p / "metadata.yaml").exists() else None
     from .phone import PHONE_NAME
 
-    if PHONE_NAME.match(p.name):
+    if PHONE_NAME.match(p.name) and _sensor_logger_header(p):
         return "phone"
     suffix = p.suffix.lower()
     if suffix in (".bag", ".mcap"):
@@ -66,6 +66,17 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
         if not (head.startswith(b"FMT") or head[:2] == b"\xa3\x95"):
             return None
     return kind
+
+
+def _sensor_logger_header(path: Path) -> bool:
+    """Whether a file named like a phone's sensor-logger export has its header (``x``, ``y``, ``z`` among the
+    comma-separated names of its first line): a plain table of the same name is read as a table (issue 32)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            names = {n.strip().strip('"').lower() for n in fh.readline().split(",")}
+    except OSError:
+        return True  # the reader says what is wrong with the path
+    return {"x", "y", "z"} <= names
 
 
 def _check_dataflash_head(path: Path) -> None:
