@@ -500,3 +500,31 @@ def test_the_office_log_whose_halves_differ_by_1_5_rms_z_is_told():
     assert 1.3 < drift["rms_z"] < 1.8 and drift["p_value"] < 0.05 and drift["drift"]
     assert cal.uncertainty["inflation"]["halves_disagree"] > 1.5
     assert any("RMS z 1.5" in w for w in cal.diagnostics["warnings"])
+
+
+def test_the_halves_warning_reaches_the_command_line(tmp_path: Path):
+    """Finding (issue 32, item 7): the warning of a log whose halves disagree was kept in the calibration file's
+    diagnostics; `trimag fit` never printed it."""
+    B = simulate_ellipsoid(4000, noise=20.0, seed=1)
+    B[2000:] += np.array([150.0, 0.0, 0.0])
+    path = tmp_path / "log.csv"
+    np.savetxt(path, B, delimiter=",", header="x,y,z", comments="")
+    r = run_trimag("fit", path, "--units", "nT")
+    assert r.returncode == 0 and "changed during the log" in r.stderr and "hard_iron_x by" in r.stderr, r.stderr
+
+
+def test_a_mat_file_with_a_repeated_variable_reads_without_scipy_warnings(tmp_path: Path):
+    """Finding (unseen real logs, rasteiro-robot): scipy's MatReadWarning ("Duplicate variable name") leaked three
+    lines to stderr before trimag's own message."""
+    import io
+
+    import scipy.io
+
+    data = simulate_ellipsoid(600, noise=0.2, seed=4, F=50.0)
+    first, second = io.BytesIO(), io.BytesIO()
+    scipy.io.savemat(first, {"mag": data})
+    scipy.io.savemat(second, {"mag": data})
+    path = tmp_path / "dup.mat"
+    path.write_bytes(first.getvalue() + second.getvalue()[128:])  # the same variable twice, as the robot's files
+    r = run_trimag("fit", path, "--units", "uT")
+    assert r.returncode == 0 and "Warning" not in r.stderr and "Duplicate" not in r.stderr, r.stderr

@@ -280,6 +280,8 @@ def _fit_model(
         cal, joint_message = _joint_scalar(req, cal, samples, ref, attitude, regressor_values, unit)
         messages.append(joint_message)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    # what the fit's honesty checks found (halves that disagree, too few samples) is said too (issue 32)
+    warn_texts += [w for w in estimator.calibration_.diagnostics.get("warnings", []) if w not in warn_texts]
     return samples, cal, ref, regressor_values, warn_texts, messages
 
 

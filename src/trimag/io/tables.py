@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import io as _stdio
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -413,7 +414,9 @@ def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
     import scipy.io
 
     try:
-        data = scipy.io.loadmat(path)
+        with warnings.catch_warnings():  # "Duplicate variable name": scipy keeps the last one, as MATLAB does
+            warnings.simplefilter("ignore", scipy.io.matlab.MatReadWarning)
+            data = scipy.io.loadmat(path)
         candidates = {k: v for k, v in data.items() if not k.startswith("__")}
         structs = {k: v for k, v in candidates.items() if getattr(np.asarray(v).dtype, "names", None)}
         if structs and (var in structs or (var is None and len(structs) == len(candidates) == 1)):

@@ -314,7 +314,8 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
     """:func:`sphere_coverage` (with its cone and never-seen direction) of raw samples before any calibration.
 
     The offset is that of the sphere that fits the samples best: of radius ``field`` (the reference magnitude,
-    data unit) when given, else of free radius. The soft iron is ignored, so the angles are approximate (a few
+    data unit) when given, else of free radius (then it is :func:`data_coverage`, the one coverage of the data,
+    issue 32). The soft iron is ignored, so the angles are approximate (a few
     degrees for a few per cent of soft iron). None when no sphere is determined (a free radius on samples in one
     plane: describe them with :func:`turn_about_axis` instead).
 
@@ -325,29 +326,23 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
     field : float, optional
         The field magnitude in the samples' unit.
     """
+    if field is None or not np.isfinite(field) or field <= 0:  # the data's own coverage (one number, issue 32)
+        return data_coverage(B) if sphere_centre(B) is not None else None
     x = np.asarray(B, dtype=np.float64)[:: max(1, len(B) // _GEOMETRY_SAMPLES)]
     centroid = x.mean(axis=0)
     xc = x - centroid
     if len(x) < 4:
         return None
-    if field is None or not np.isfinite(field) or field <= 0:
-        A = np.column_stack([2.0 * xc, np.ones(len(xc))])
-        cond, _, _ = design_condition(A)
-        if not np.isfinite(cond) or cond > 1e6:
-            return None
-        sol = np.linalg.lstsq(A, row_dot(xc, xc), rcond=None)[0]
-        centre = centroid + sol[:3]
-    else:
-        normal = np.linalg.eigh(xc.T @ xc)[1][:, 0]
-        depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
-        best = None
-        for sign in (1.0, -1.0):
-            res = levenberg_marquardt(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal,
-                                      method="trf")
-            if best is None or res.cost < best.cost:
-                best = res
-        assert best is not None
-        centre = centroid + best.x
+    normal = np.linalg.eigh(xc.T @ xc)[1][:, 0]
+    depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
+    best = None
+    for sign in (1.0, -1.0):
+        res = levenberg_marquardt(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal,
+                                  method="trf")
+        if best is None or res.cost < best.cost:
+            best = res
+    assert best is not None
+    centre = centroid + best.x
     d = x - centre
     if not np.all(np.isfinite(d)):
         return None
