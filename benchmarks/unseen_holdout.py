@@ -12,8 +12,9 @@ where each comes from is in the table), as a new user would run it:
 * the same halves with a plain algebraic fit: the unconstrained quadric (9 parameters, least squares on centred and
   scaled samples, the smallest right singular vector), fitted on the first half, its ``|W (x - c)|`` on the second.
 
-Spreads are given in % of the field: trimag's by its fitted F on the first half, the raw data's and the algebraic
-fit's by the algebraic fit's radius (``det(W)^(-1/3)``). Nothing here is tuned to these logs.
+Spreads are given in % of the field: the raw data's and trimag's by trimag's fitted F on the first half (or, when
+trimag refuses that half, the raw data's by the algebraic fit's radius ``det(W)^(-1/3)``), the algebraic fit's as the
+relative spread of its ``|W (x - c)|``. Nothing here is tuned to these logs.
 """
 
 from __future__ import annotations
@@ -123,8 +124,9 @@ def row(data: Path, name: str, file: str, args: list[str], source: str, licence:
         raw_txt = f"{100 * np.linalg.norm(B[n // 2:], axis=1).std() / radius:.2f} %"
     else:
         alg_txt, raw_txt = "not an ellipsoid", "–"
-    if held is not None and fitted is not None:
+    if held is not None and fitted is not None:  # the raw spread in % of trimag's F when there is one
         F = fitted["reference"]["value"]
+        raw_txt = f"{100 * held['std_norm_before'] / F:.2f} %"
         worse = " (worse than raw)" if held["worse_than_raw"] else ""
         trimag_txt = f"{100 * held['std_norm_after'] / F:.2f} %{worse}"
     else:

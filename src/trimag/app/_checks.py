@@ -76,16 +76,17 @@ def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = Fal
         return []
     text = f"the fitted field magnitude F = {F:.4g} {unit} is not a plausible Earth field in {unit} ({lo:.3g}-{hi:.3g})"
     likely = [u for u in plausible_units(F, field=True) if u != unit]
-    if likely:
-        return [f"warning: {text}; the numbers look like {' or '.join(likely)}; check the unit"]
     coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
     weak = (cal.diagnostics.get("identifiability") or {}).get("warning") is not None or (
         coverage is not None and coverage < COVERAGE_WARN)
-    if weak or autopilot_log:
+    if likely and not weak:  # a well identified fit: its F is right, the unit is not
+        return [f"warning: {text}; the numbers look like {' or '.join(likely)}; check the unit"]
+    if weak or autopilot_log:  # a poorly identified fit's F says nothing of the unit: the fit is wrong
         seen = f" (the field directions cover {100 * coverage:.0f}% of the sphere)" if coverage is not None else ""
+        unit_too = f" (if the data are in {' or '.join(likely)}, give that unit)" if likely else ""
         raise IdentifiabilityError(
-            f"{text}: the fit cannot be right; the rotations recorded do not identify the model{seen}. Record the "
-            "sensor turning through all attitudes, or give the field's magnitude (`reference`, `igrf`)"
+            f"{text}: the fit cannot be right; the rotations recorded do not identify the model{seen}{unit_too}. "
+            "Record the sensor turning through all attitudes, or give the field's magnitude (`reference`, `igrf`)"
         )
     return [f"warning: {text}: check the unit and the sensor's scale, or give the field's magnitude (`reference`)"]
 
