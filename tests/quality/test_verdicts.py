@@ -4,6 +4,7 @@ magnitude cannot be an Earth field is refused."""
 
 from __future__ import annotations
 
+import os
 import re
 import struct
 import warnings
@@ -146,3 +147,18 @@ def test_a_fitted_field_that_is_not_an_earth_field_is_refused_when_poorly_identi
                header="x,y,z", comments="")
     r = run_trimag("fit", path, "--units", "mG")
     assert r.returncode == 0 and "F = 100 mG is not a plausible Earth field in mG (150-950)" in r.stderr, r.stderr
+
+
+#: Real logs trimag never saw (docs/accuracy.md, "Real logs trimag never saw"): most have no licence, so they are not in
+#: the repository; the tests that read them skip when the folder is absent.
+UNSEEN = Path(os.environ.get("TRIMAG_UNSEEN_DATA", "/work/notes/data/unseen"))
+
+
+@pytest.mark.skipif(not (UNSEEN / "emma-hmc5883l" / "mag_uT.csv").exists(), reason="unseen real logs absent")
+def test_a_single_axis_turn_with_a_static_tail_is_refused_for_its_turn():
+    """Finding (unseen real logs, emma-hmc5883l): the first 170 rows (a turn about y) were refused as a single-axis
+    turn, the whole file (the same turn, then static) only with "condition number 9.96e+13 (poorly determined:
+    hard_iron_x, hard_iron_y, hard_iron_z)": the refusal now names the turn there too."""
+    log = UNSEEN / "emma-hmc5883l" / "mag_uT.csv"
+    code, line = _verdict(log, "--columns", "bx_uT,by_uT,bz_uT")
+    assert code == 3 and "single axis" in line and "+y axis" in line, line
