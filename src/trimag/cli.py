@@ -577,7 +577,7 @@ def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
         _err(msg) if msg.startswith("warning:") else _say(msg, args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
-    return EXIT_OK
+    return EXIT_POLICY if result.rejected else EXIT_OK
 
 
 def _with_progress(args: argparse.Namespace, work: Callable[..., dict[str, Any]], request: Any) -> dict[str, Any]:
