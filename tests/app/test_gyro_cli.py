@@ -171,3 +171,34 @@ def test_a_gyroscope_that_does_not_match_the_magnetometer_is_refused(tmp_path, c
                   "gy": sim.rate[:, 1], "gz": sim.rate[:, 2]}).to_csv(right, index=False)
     assert run_trimag("fit", right, "--units", "uT", "--gyro-columns", "gx,gy,gz", "--time-column", "t",
                       "-o", out).returncode == 0
+
+
+def test_a_lag_between_columns_of_the_same_rows_is_fitted(tmp_path):
+    """Finding (review 2): the lag search between a gyroscope and a magnetometer logged in the same rows, documented
+    as `--option estimate_lag=true` (docs/method-gyro.md, BROAD's "gyro, lag fitted" column), could not be had from
+    the command line: with `--gyro-columns` alone it said "method 'ml' has no option 'estimate_lag'" (the implied
+    gyro method was chosen after the options were checked), and with `--method gyro` "the magnetometer's samples do
+    not lie inside the gyroscope's span for lags within +-0.5 s: check the two files' time columns" (one file). Now
+    the first and last `max_lag` seconds of the magnetometer are left out (counted) and the lag is fitted."""
+    sim = simulate_gyro(6000, 11, motion="cone")
+    shift = 3  # the magnetometer 3 rows (30 ms at 100 Hz) behind the gyroscope in the same rows
+    rate = sim.rate[shift:]
+    log = tmp_path / "lagged.csv"
+    pd.DataFrame({"t": sim.time_s[:-shift], "mx": sim.raw[:-shift, 0], "my": sim.raw[:-shift, 1],
+                  "mz": sim.raw[:-shift, 2], "gx": rate[:, 0], "gy": rate[:, 1], "gz": rate[:, 2]}).to_csv(log,
+                                                                                                          index=False)
+    dt = float(np.median(np.diff(sim.time_s)))
+    base = ("fit", log, "--columns", "mx,my,mz", "--units", "uT", "--gyro-columns", "gx,gy,gz", "--time-column", "t",
+            "--reference", "49.2")
+    held = run_trimag(*base, "--json")
+    assert held.returncode == 0, held.stderr
+    for extra in ((), ("--method", "gyro")):
+        out = tmp_path / f"lag{len(extra)}.json"
+        proc = run_trimag(*base, *extra, "--option", "estimate_lag=true", "--option", "max_lag=0.2", "-o", out)
+        assert proc.returncode == 0, proc.stderr
+        assert "left out" in proc.stdout and "lag search" in proc.stdout, proc.stdout  # the rows are counted
+        cal = Calibration.from_file(out)
+        g, sigma = cal.diagnostics["gyro"], cal.uncertainty["param_std"]["lag_s"]
+        assert g["lag_estimated"] and abs(abs(g["lag_s"]) - shift * dt) < 4 * sigma + 1e-3, (g["lag_s"], sigma)
+        assert g["vector_rms"] < 0.9 * json.loads(held.stdout)["diagnostics"]["gyro"]["vector_rms"]  # 0.52 vs 0.63
+        assert cal.stats["n_used"] < 6000 - shift - 2 * 0.2 / dt + 2

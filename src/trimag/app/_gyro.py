@@ -79,10 +79,12 @@ def _keep(samples: Samples, ok: np.ndarray) -> Samples:
 
 
 def angular_rate(
-    req: FitRequest, samples: Samples, max_lag: float, estimate_lag: bool
+    req: FitRequest, samples: Samples, max_lag: float, estimate_lag: bool | None
 ) -> tuple[Samples, AngularRate, list[str]]:
     """The samples (rows without a gyroscope value or time dropped, counted; with a gyroscope of its own clock,
-    those outside its span less the lag search's ``max_lag`` when ``estimate_lag``) and their gyroscope."""
+    those outside its span less the lag search's ``max_lag`` unless ``estimate_lag`` is False; in the same rows with
+    ``estimate_lag`` True, the first and last ``max_lag`` seconds, left out for the lag search) and their
+    gyroscope."""
     messages: list[str] = []
     own = req.gyro_file is not None or (req.gyro_columns is None and log_has_gyro(samples))
     if not own and req.gyro_columns is None:
@@ -91,7 +93,7 @@ def angular_rate(
     t = _times(req, samples)
     if own:
         tg, rate, source = _own_stream(req, samples, messages)
-        margin = max_lag if estimate_lag else 0.0
+        margin = max_lag if estimate_lag is not False else 0.0
         ok = np.isfinite(t) & (t >= tg[0] + margin) & (t <= tg[-1] - margin)
         if not ok.any():
             raise TrimagInputError(f"none of the magnetometer's samples ({np.nanmin(t):.6g}..{np.nanmax(t):.6g} s) "
@@ -114,9 +116,26 @@ def angular_rate(
                                        "`strict` to skip and count them")
             messages.append(f"dropped {int((~ok).sum())} rows whose gyroscope value or time is missing")
         samples = _keep(samples, ok)
-        gyro = AngularRate.same_rows(t[ok], values[ok], unit=unit, source=f"columns {', '.join(names)} ({unit})")
+        source = f"columns {', '.join(names)} ({unit})"
+        gyro = AngularRate.same_rows(t[ok], values[ok], unit=unit, source=source)
+        if estimate_lag:  # a lag between columns of the same rows: the rows' stamps as the gyroscope's own clock
+            samples, gyro = _same_rows_lag(samples, gyro, max_lag, messages)
     _plausible(gyro, messages)
     return samples, gyro, messages
+
+
+def _same_rows_lag(samples: Samples, gyro: AngularRate, max_lag: float, messages: list[str]
+                   ) -> tuple[Samples, AngularRate]:
+    """The samples less their first and last ``max_lag`` seconds (counted), and the gyroscope of the same rows taken
+    as a stream of its own on those stamps, so that the lag search can slide it by up to ``max_lag`` either way."""
+    t = gyro.time_s
+    inside = (t >= t[0] + max_lag) & (t <= t[-1] - max_lag)
+    if inside.sum() < 3:
+        raise TrimagInputError(f"the log ({t[-1] - t[0]:.3g} s) is too short for a lag search of +-{max_lag:g} s: "
+                               "give a smaller `option max_lag`")
+    messages.append(f"left out the first and last {max_lag:g} s ({int((~inside).sum())} of {len(t)} samples) for "
+                    "the lag search between the magnetometer and the gyroscope of the same rows")
+    return _keep(samples, inside), AngularRate(t[inside], t, gyro.rate, 0.0, True, gyro.source)
 
 
 def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple[np.ndarray, np.ndarray, str]:

@@ -127,8 +127,11 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
     # (a phone export's gyroscope is known once it is read: its gyro fit's own options wait till then)
-    estimator = make_estimator(req.model, req.method, {k: v for k, v in options.items()
-                                                       if not (_phone_export(req) and k in _GYRO_OPTIONS)})
+    # (a gyroscope named implies the gyro-aided method: its options are checked against it, not `ml`'s)
+    named_gyro = req.gyro_columns is not None or req.gyro_file is not None
+    method = "gyro" if named_gyro and req.method is None and req.model == "ellipsoid" else req.method
+    estimator = make_estimator(req.model, method, {k: v for k, v in options.items()
+                                                   if not (_phone_export(req) and k in _GYRO_OPTIONS)})
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
@@ -451,7 +454,7 @@ def _fit_reference(
     if estimator.reference_kind == "gyro":
         lag = estimator.estimate_lag
         samples, gyro, messages = angular_rate(req, samples, float(estimator.max_lag),
-                                               lag is None or truthy(lag))
+                                               None if lag is None else truthy(lag))
     if estimator.reference_kind != "vector":
         ref = magnitude_reference(samples, given, unit)
         if ref.source.startswith("igrf"):
