@@ -531,6 +531,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
     _check_writable(args.deviation_card, suffixes=(".png",))
+    _check_stdout(args)
+    if args.out == "-" and ((args.sensor or "").strip().lower() == "all" or args.model == "tolles-lawson"):
+        raise TrimagInputError("`-o -` writes one calibration to standard output; this fit writes "
+                               + ("one file per compass" if args.model != "tolles-lawson" else "a compensation file")
+                               + ": give `-o FILE.json`")
     if args.model == "tolles-lawson":
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "

@@ -74,3 +74,20 @@ def test_apply_and_export_write_to_standard_output(cal_and_log: tuple[Path, Path
     r = run_trimag("export", cal, "--to", "ardupilot", "-o", "-")
     assert r.returncode == 0, r.stderr
     assert "COMPASS_OFS_X" in r.stdout and "wrote" not in r.stdout
+
+
+def test_fit_writes_the_calibration_to_standard_output(cal_and_log: tuple[Path, Path], tmp_path: Path):
+    """Finding (review 2): `trimag fit log.csv -o -` sent its tables to stderr (as for `apply`/`export`) but wrote
+    the calibration to a file named "-" in the working folder and printed "wrote calibration: -": nothing reached
+    standard output. Now the calibration JSON is standard output, readable by the next command."""
+    _, log = cal_and_log
+    r = run_trimag("fit", log, "--units", "uT", "-o", "-", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert not (tmp_path / "-").exists()
+    from trimag import Calibration
+
+    cal = Calibration.from_dict(json.loads(r.stdout))
+    assert cal.units == "uT" and np.allclose(cal.offset, [5.0, -3.0, 2.0], atol=0.2)
+    assert "hard_iron_x" in r.stderr and "standard output" in r.stderr
+    r = run_trimag("fit", log, "--units", "uT", "-o", "-", "--json", cwd=tmp_path)
+    assert r.returncode == 2 and "standard output" in r.stderr

@@ -39,10 +39,25 @@ def write_fit_outputs(
             written["deviation_card"] = str(save_figure(figure, req.deviation_card))
         if req.out is not None:
             cal = cal.with_stats(source=str(path), columns=list(samples.columns))
-            written["calibration"] = str(cal.to_file(req.out))
+            if str(req.out) == "-":  # standard output: last, once every file is written
+                _to_standard_output(cal)
+                written["calibration"] = "standard output"
+            else:
+                written["calibration"] = str(cal.to_file(req.out))
     except BaseException:
-        for done in written.values():
-            Path(done).unlink(missing_ok=True)
+        for what, done in written.items():
+            if what != "calibration" or str(req.out) != "-":
+                Path(done).unlink(missing_ok=True)
         raise
     return cal, written
+
+
+def _to_standard_output(cal: Calibration) -> None:
+    """The calibration's JSON on standard output (``out="-"``), as ``trimag apply`` and ``export`` write theirs."""
+    import sys
+
+    text = cal.to_json() + "\n"
+    sys.stdout.flush()
+    sys.stdout.write(text)
+    sys.stdout.flush()
 
