@@ -277,3 +277,24 @@ def test_a_plain_table_named_magnetometer_csv_is_read_as_a_table(tmp_path: Path)
         f"{k};{a:.4f};{b:.4f};{c:.4f}" for k, (a, b, c) in enumerate(46 * u + [20, 10, -30])) + "\n")
     r = run_trimag("fit", semi, "--columns", "1,2,3", "--units", "uT")
     assert r.returncode == 0, r.stderr
+
+
+def test_an_old_dataflash_gps_gives_its_date_from_week_and_time_ms():
+    """Finding (review 2): an ArduCopter 3.3 log (dronekit-la-testdata log171.bin, a real flight with a 3-D fix near
+    Canberra) logs GPS time as ``Week`` / ``TimeMS`` (the 4.x logs: ``GWk`` / ``GMS``); its date was None, so
+    `fit --level-turn` and `--heading` said "give --igrf ... (a log with a GPS fix has it)" for a log that has one.
+    The fields as that log's FMT names them: Status, TimeMS, Week, Lat, Lng, Alt."""
+    from trimag.io.logs.ardupilot import _dataflash_gps
+
+    old = {"Status": np.array([1, 3, 3, 3]), "TimeMS": np.array([0, 443_000_000, 443_001_000, 443_002_000]),
+           "Week": np.array([0, 1843, 1843, 1843]), "Lat": np.array([0.0, -35.362, -35.362, -35.363]),
+           "Lng": np.array([0.0, 149.166, 149.166, 149.167]), "Alt": np.array([0.0, 601.0, 601.0, 602.0])}
+    fix = _dataflash_gps(old)
+    assert fix is not None and fix["lat_deg"] == -35.362
+    # GPS week 1843 began on Sunday 2015-05-03; 443 000 s later is Thursday 2015-05-08 (03:03:20 GPS time)
+    assert fix["date"] == "2015-05-08"
+    new = {"Status": np.array([3]), "GMS": np.array([443_000_000]), "GWk": np.array([1843]),
+           "Lat": np.array([-35.362]), "Lng": np.array([149.166]), "Alt": np.array([601.0])}
+    assert _dataflash_gps(new)["date"] == "2015-05-08"  # type: ignore[index]
+    old["Week"][1:] = 0  # no week yet (a fix before the GPS's time is known): no date, not 1980
+    assert _dataflash_gps(old)["date"] is None  # type: ignore[index]

@@ -252,8 +252,11 @@ def _dataflash_gps(gps: Any) -> dict[str, Any] | None:
     if not len(good):
         return None
     k = int(good[len(good) // 2])
+    # GPS time: GWk / GMS (ArduPilot 3.4 on), Week / TimeMS (earlier logs, e.g. ArduCopter 3.3); week 0: not known
+    week, ms = ("GWk", "GMS") if "GWk" in gps else ("Week", "TimeMS")
+    known = week in gps and ms in gps and float(gps[week][k]) > 0
     return {"lat_deg": float(gps["Lat"][k]), "lon_deg": float(gps["Lng"][k]), "alt_m": float(gps["Alt"][k]),
-            "date": _gps_date(gps["GWk"][k], gps["GMS"][k]) if "GWk" in gps else None}
+            "date": _gps_date(gps[week][k], gps[ms][k]) if known else None}
 
 
 def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
