@@ -480,6 +480,7 @@ def check_not_degenerate(B: NDArray[np.float64]) -> NDArray[np.float64]:
             "all samples are identical (the sensor appears stuck or the log repeats one value); "
             "check the sensor, then record it while turning it through many attitudes"
         )
+    _check_turned(B, std)
     if std[2] <= 1e-6 * std[0]:
         kind = "one line" if std[1] <= 1e-6 * std[0] else "one plane"
         raise IdentifiabilityError(
@@ -488,6 +489,31 @@ def check_not_degenerate(B: NDArray[np.float64]) -> NDArray[np.float64]:
             "more axes (or tumble the sensor through all attitudes)"
         )
     return std
+
+
+#: Samples whose widest principal spread is below this many times their sample-to-sample noise did not turn: a
+#: turn of a few degrees spreads them tens of times their noise (a MEMS part at 0.3 % of the field per axis: 1 deg
+#: of turn is ~6 x its noise), while a still sensor's spread is its noise (1-1.5 x).
+STILL_NOISE_RATIO = 3.0
+
+
+def _check_turned(B: NDArray[np.float64], std: NDArray[np.float64]) -> None:
+    """Refuse samples whose widest principal spread ``std[0]`` is within :data:`STILL_NOISE_RATIO` times their
+    sample-to-sample noise (:func:`sample_noise_std`): the sensor did not turn, and its noise must not be described
+    as a turn or as a sphere of directions (the unmoved HMC5883L logs of hmc5883l-sunsided were, review 2)."""
+    noise = sample_noise_std(B)
+    if noise is None or not noise > 0 or std[0] >= STILL_NOISE_RATIO * noise:
+        return
+    mean = B.mean(axis=0)
+    norm = float(np.linalg.norm(mean))
+    turned = float(np.degrees(np.arctan2(std[0], norm))) if norm > 0 else float("nan")
+    raise IdentifiabilityError(
+        f"the sensor did not turn: its samples spread only {std[0]:.4g} RMS at most (principal spreads "
+        f"{std[0]:.4g}, {std[1]:.4g}, {std[2]:.4g}), {std[0] / noise:.2g} x the sample-to-sample noise ({noise:.3g} "
+        f"per axis, from second differences), about {turned:.2g} deg of the field's direction: record it while "
+        "turning it through many attitudes (or tumble it); a vehicle standing still at a known heading can use a "
+        "fixed-heading calibration (`heading=DEG`)"
+    )
 
 
 def check_not_planar_within_noise(
