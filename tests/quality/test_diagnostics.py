@@ -208,3 +208,15 @@ def test_a_sensor_that_did_not_turn_is_called_so(method):
     text = str(info.value)
     assert "turned through" not in text and "surround" not in text and "sphere" not in text, text
     assert "sample-to-sample noise" in text, text
+
+
+def test_samples_in_random_order_are_not_called_still():
+    """The still-sensor check of the finding above must not fire on samples in random order (a simulation, a
+    shuffled file), whose second differences are as wide as their spread: a sphere with a phone's hard iron of 12 x
+    the field, shuffled, is fitted."""
+    import trimag
+
+    rng = np.random.default_rng(13)
+    shell = 46.0 * uniform_directions(2000, seed=13) + [550.0, -120.0, 90.0] + rng.normal(scale=0.1, size=(2000, 3))
+    cal = trimag.fit(shell, method="ml")
+    np.testing.assert_allclose(cal.offset, [550.0, -120.0, 90.0], atol=0.5)

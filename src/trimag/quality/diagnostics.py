@@ -495,18 +495,25 @@ def check_not_degenerate(B: NDArray[np.float64]) -> NDArray[np.float64]:
 #: turn of a few degrees spreads them tens of times their noise (a MEMS part at 0.3 % of the field per axis: 1 deg
 #: of turn is ~6 x its noise), while a still sensor's spread is its noise (1-1.5 x).
 STILL_NOISE_RATIO = 3.0
+#: ... and their widest spread is under this angle (degrees) seen from the origin: samples in random order (a
+#: simulation, a shuffled file) have a "sample-to-sample noise" as wide as their spread, but a sphere's spread is
+#: tens of degrees from the origin (4.8 deg for a phone's hard iron of 12 x the field), a still sensor's its noise
+#: (0.2 deg for the unmoved HMC5883L logs).
+STILL_MAX_DEG = 1.0
 
 
 def _check_turned(B: NDArray[np.float64], std: NDArray[np.float64]) -> None:
     """Refuse samples whose widest principal spread ``std[0]`` is within :data:`STILL_NOISE_RATIO` times their
-    sample-to-sample noise (:func:`sample_noise_std`): the sensor did not turn, and its noise must not be described
-    as a turn or as a sphere of directions (the unmoved HMC5883L logs of hmc5883l-sunsided were, review 2)."""
+    sample-to-sample noise (:func:`sample_noise_std`) and :data:`STILL_MAX_DEG` seen from the origin: the sensor did
+    not turn, and its noise must not be described as a turn or as a sphere of directions (the unmoved HMC5883L logs
+    of hmc5883l-sunsided were, review 2)."""
     noise = sample_noise_std(B)
     if noise is None or not noise > 0 or std[0] >= STILL_NOISE_RATIO * noise:
         return
-    mean = B.mean(axis=0)
-    norm = float(np.linalg.norm(mean))
-    turned = float(np.degrees(np.arctan2(std[0], norm))) if norm > 0 else float("nan")
+    norm = float(np.linalg.norm(B[diagnostic_subsample(len(B))].mean(axis=0)))
+    turned = float(np.degrees(np.arctan2(std[0], norm)))
+    if not turned < STILL_MAX_DEG:
+        return
     raise IdentifiabilityError(
         f"the sensor did not turn: its samples spread only {std[0]:.4g} RMS at most (principal spreads "
         f"{std[0]:.4g}, {std[1]:.4g}, {std[2]:.4g}), {std[0] / noise:.2g} x the sample-to-sample noise ({noise:.3g} "
