@@ -85,6 +85,8 @@ def evaluate_file(
     # about its own mean too (its spread), not against a magnitude it was never meant to have
     judged = ("rms", "RMS of |B| - F") if F is not None or given.reference_column else ("std_norm", "spread of |B|")
     worse = bool(stats_after[judged[0]] > stats_before[judged[0]])
+    fitted, fitted_warning = (None, None) if F is not None or given.reference_column else \
+        _against_fitted_reference(cal, after, before)
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
         "units": cal.units, "columns": list(columns.columns), "n_samples": n_rows, "n_used": after.n,
@@ -95,10 +97,37 @@ def evaluate_file(
         "p2p_before": stats_before["peak_to_peak"], "p2p_after": stats_after["peak_to_peak"],
         "mean_norm_before": stats_before["mean_norm"], "mean_norm_after": stats_after["mean_norm"],
         "std_norm_before": stats_before["std_norm"], "std_norm_after": stats_after["std_norm"],
-        "worse_than_raw": worse,
-        "warnings": [worse_than_raw_warning(judged[1], stats_after[judged[0]], stats_before[judged[0]], cal.units)]
-        if worse else [],
+        "worse_than_raw": worse, "fitted_reference": fitted,
+        "warnings": ([worse_than_raw_warning(judged[1], stats_after[judged[0]], stats_before[judged[0]], cal.units)]
+                     if worse else []) + ([fitted_warning] if fitted_warning else []),
     }
+
+
+#: Share by which the corrected mean magnitude may differ from the magnitude the calibration was fitted to before an
+#: evaluation against the corrected mean names it (the local anomaly and IGRF's error are well under 1 %).
+FITTED_REFERENCE_TOLERANCE = 0.02
+
+
+def _against_fitted_reference(cal: Calibration, after: Any, before: Any) -> tuple[dict[str, Any] | None, str | None]:
+    """An evaluation against the corrected mean, of a calibration fitted to a known magnitude: the statistics
+    against that magnitude, and a warning when the corrected mean is more than :data:`FITTED_REFERENCE_TOLERANCE`
+    from it (a scale error that the corrected data's own mean hides)."""
+    ref = cal.reference or {}
+    value = ref.get("value")
+    if str(ref.get("source", "mean")) == "mean" or not isinstance(value, (int, float)) or not value > 0:
+        return None, None
+    a, b = after.result(float(value)), before.result(float(value))
+    fitted = {"value": float(value), "source": ref.get("source"), "rms_after": a["rms"], "rms_before": b["rms"],
+              "max_abs_after": a["max_abs"]}
+    off = a["mean_norm"] / float(value) - 1.0
+    if abs(off) <= FITTED_REFERENCE_TOLERANCE:
+        return fitted, None
+    return fitted, (
+        f"the corrected field's mean |B| here is {a['mean_norm']:.4g} {cal.units}, {100 * off:+.1f} % from the "
+        f"{float(value):.4g} {cal.units} the calibration was fitted to ({ref.get('source')}); against that, RMS(|B| - "
+        f"F) is {a['rms']:.4g} {cal.units}: where the field is {float(value):.4g} {cal.units}, the calibration's scale "
+        "does not hold for these data; give `reference=F` (or `igrf_spec=LAT,LON,ALT_M,DATE`) to measure against the "
+        "field you expect")
 
 
 def worse_than_raw_warning(what: str, after: float, before: float, unit: str) -> str:
