@@ -222,6 +222,7 @@ def _worker_pids(parent: int) -> list[int]:
     return pids
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc to find the worker processes")
 def test_a_file_whose_worker_is_killed_is_reported_and_the_batch_finishes(tmp_path: Path) -> None:
     """A file that kills its worker (the kernel's out-of-memory killer on 20 MB of one wide line in the issue)
