@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,17 @@ def _special_outputs(tmp_path: Path, suffix: str = ".json") -> dict[str, Path]:
     return {"fifo": fifo, "symlink": link, "dangling symlink": dangling, "socket": sock_path}
 
 
+def _char_device(tmp_path: Path) -> Path:
+    """A character device (null's numbers, 1:3) made in ``tmp_path``: never the system's /dev/null, which a writer
+    with the bug (the tree before the fix, run to see these tests fail) would replace by a regular file."""
+    node = tmp_path / "null.dev"
+    try:
+        os.mknod(node, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except (PermissionError, OSError) as exc:
+        pytest.skip(f"cannot make a character device here ({exc}); mknod needs root")
+    return node
+
+
 def _unchanged(paths: dict[str, Path], tmp_path: Path) -> None:
     assert paths["fifo"].is_fifo()
     assert paths["symlink"].is_symlink() and (tmp_path / "precious.txt").read_text() == "keep me\n"
@@ -57,12 +69,12 @@ def _unchanged(paths: dict[str, Path], tmp_path: Path) -> None:
 
 def test_the_writer_refuses_what_is_not_a_regular_file(tmp_path: Path) -> None:
     paths = _special_outputs(tmp_path)
-    for kind, path in [*paths.items(), ("character device", Path(os.devnull))]:
+    for kind, path in [*paths.items(), ("character device", _char_device(tmp_path))]:
         with pytest.raises(TrimagInputError, match="not a regular file") as info:
             atomic_write_text(path, "x")
         assert kind.split()[-1] in str(info.value).lower(), str(info.value)
     _unchanged(paths, tmp_path)
-    assert Path(os.devnull).is_char_device()
+    assert (tmp_path / "null.dev").is_char_device()
     regular = tmp_path / "out.json"
     atomic_write_text(regular, "one")
     with atomic_path(regular) as tmp:
@@ -83,7 +95,7 @@ def test_commands_refuse_a_special_output_before_any_work(
     params.write_text(json.dumps({"hard_iron_x": 10.0, "hard_iron_y": 0.0, "hard_iron_z": 0.0, "w11": 1.0, "w12": 0.0,
                                   "w13": 0.0, "w21": 0.0, "w22": 1.0, "w23": 0.0, "w31": 0.0, "w32": 0.0, "w33": 1.0}),
                       encoding="utf-8")
-    for kind, out in [*paths.items(), ("character device", Path(os.devnull))]:
+    for kind, out in [*paths.items(), ("character device", _char_device(work))]:
         argv = {"fit": ["fit", str(log), "-o", str(out), "-q"],
                 "apply": ["apply", str(cal), str(log), "-o", str(out), "-q"],
                 "simulate": ["simulate", "--model", "ellipsoid", "--params", str(params), "--n", "50",
