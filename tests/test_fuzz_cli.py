@@ -126,7 +126,7 @@ def test_a_wide_line_anywhere_is_refused_by_its_limit_or_read(tmp_path: Path, ca
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(spikes=st.lists(st.tuples(st.integers(0, 399), st.sampled_from([1e3, -1e4, 1e308, 5.0, 1e-3])),
+@given(spikes=st.lists(st.tuples(st.integers(0, 399), st.sampled_from([1e3, -1e4, 1e308, 3.0, 0.5])),
                        max_size=8), seed=st.integers(0, 10**6))
 def test_spikes_are_dropped_and_counted_or_refused_never_an_internal_error(tmp_path: Path, capsys,
                                                                           spikes: list[tuple[int, float]],
@@ -136,7 +136,8 @@ def test_spikes_are_dropped_and_counted_or_refused_never_an_internal_error(tmp_p
     lines = _sphere_lines(400, seed)
     scale = np.ones(400)
     for row, factor in spikes:
-        scale[row] *= factor
+        with np.errstate(over="ignore"):  # 1e308 twice: inf, a non-finite row
+            scale[row] *= factor
         lines[row] = ",".join(f"{float(v) * factor:.6g}" for v in lines[row].split(","))
     finite = np.array([all(np.isfinite(float(v)) for v in line.split(",")) for line in lines])
     path = tmp_path / "spiky.csv"
@@ -146,7 +147,7 @@ def test_spikes_are_dropped_and_counted_or_refused_never_an_internal_error(tmp_p
     _assert_clean(code, captured.err, tmp_path / "none.json")
     if code == 0:
         s = json.loads(captured.out)
-        wild = int((finite & (np.abs(scale) > 10)).sum())  # 5x and 1e-3x are not wild, 25x (5x twice) is
+        wild = int((finite & (np.abs(scale) > 10)).sum())  # products of these are 9x or less, or 27x or more
         assert s["n_wild"] == wild and s["n_used"] == int(finite.sum()) - wild
 
 

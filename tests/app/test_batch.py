@@ -253,7 +253,11 @@ def test_a_file_whose_worker_is_killed_is_reported_and_the_batch_finishes(tmp_pa
     seen: set[Path] = set()
     deadline = time.monotonic() + 240
     while proc.poll() is None and time.monotonic() < deadline:
-        for copy in set(scratch.glob("trimag-*/**/culprit.csv")) - seen:  # a new try at the culprit
+        try:
+            copies = set(scratch.glob("trimag-*/**/culprit.csv"))
+        except OSError:  # a folder removed while it was listed
+            copies = set()
+        for copy in copies - seen:  # a new try at the culprit
             seen.add(copy)
             for pid in _worker_pids(proc.pid):
                 try:
@@ -315,3 +319,18 @@ def test_a_failing_file_leaves_no_stale_calibration(tmp_path: Path, fleet: Path,
     assert (out / "sensor1.json").exists()
     table = pd.read_csv(out / "summary.csv")
     assert table.loc[table["file"].str.endswith("sensor2.csv"), "error"].str.len().item() > 0
+
+
+def test_the_input_limits_hold_in_the_worker_processes(tmp_path: Path, fleet: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """--max-fields reaches the workers (the limits are a context of this process, handed to each task)."""
+    wide = fleet / "wide.csv"
+    wide.write_text(",".join(["note"] * 200) + "\n" + (fleet / "sensor0.csv").read_text(), encoding="utf-8")
+    out = tmp_path / "out"
+    argv = ["batch", str(wide), str(fleet / "sensor1.csv"), "--out", str(out), "--workers", "2", "--json"]
+    assert main([*argv, "--max-fields", "50"]) == 2
+    captured = capsys.readouterr()
+    failed = json.loads(captured.out)["failed"]
+    assert [Path(f["file"]).name for f in failed] == ["wide.csv"] and "more than 50" in failed[0]["error"]
+    assert "--max-fields" in captured.err
+    assert main(argv) == 0
