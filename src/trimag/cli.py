@@ -76,8 +76,8 @@ def _err(msg: str) -> None:
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
-    """Human-readable progress/info goes to stderr when --json reserves stdout for the JSON object."""
-    stream = sys.stderr if getattr(args, "json", False) else sys.stdout
+    """Human-readable progress/info goes to stderr when --json (or ``-o -``) reserves stdout for the output."""
+    stream = sys.stderr if getattr(args, "json", False) or getattr(args, "out", None) == "-" else sys.stdout
     if not getattr(args, "quiet", False):
         stream.write(_as_flags(msg) + "\n")
 
@@ -256,7 +256,8 @@ def _add_apply(sub: Any) -> None:
                        description="Correct every row of a log; all input columns are kept and x/y/z_cal appended.")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("data", metavar="DATA")
-    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output file (.csv, .parquet or .npz)")
+    p.add_argument("-o", "--out", required=True, metavar="OUT",
+                   help="output file (.csv, .parquet or .npz; - for CSV on standard output)")
     _add_data_options(p, selection=False)
     _add_chunk_rows(p)
     p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
@@ -272,7 +273,7 @@ def _add_export(sub: Any) -> None:
                    choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
     p.add_argument("--instance", type=int, default=1,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
-    p.add_argument("-o", "--out", required=True, metavar="FILE")
+    p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
     _add_output_options(p)
 
 
@@ -469,13 +470,23 @@ def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _where(out: str) -> str:
+    return "standard output" if out == "-" else out
+
+
+def _check_stdout(args: argparse.Namespace) -> None:
+    """``-o -`` writes the output to standard output, where ``--json`` would write its object too: refused."""
+    if args.out == "-" and getattr(args, "json", False):
+        raise TrimagInputError("`-o -` and `--json` both write to standard output; drop one of them")
+
+
 def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None) -> None:
     """Refuse an output path that cannot be written (or has the wrong extension), before any work is done."""
     import os
 
     from .io.atomic import check_output_path
 
-    if path is None:
+    if path is None or path == "-":  # "-": standard output
         return
     target = Path(path)
     if target.is_dir():
@@ -578,7 +589,7 @@ def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
         _err(msg) if msg.startswith("warning:") else _say(msg, args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
-    return EXIT_OK
+    return EXIT_POLICY if result.rejected else EXIT_OK
 
 
 def _with_progress(args: argparse.Namespace, work: Callable[..., dict[str, Any]], request: Any) -> dict[str, Any]:
@@ -604,9 +615,12 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     from .app.tolles_lawson import apply_compensation_file, is_compensation_file
 
     _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
+    _check_stdout(args)
     req = _request(ApplyRequest, args, args.data)
     src = req.input
     if is_compensation_file(req.calibration):
+        if args.out == "-":
+            raise TrimagInputError("a Tolles-Lawson compensation is applied to a file: give `-o OUT.csv`")
         _refuse_unused(args, ("strict", "sensor"), "a Tolles-Lawson compensation file")
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
@@ -639,7 +653,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
         print(json.dumps(r))
     else:
         _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
-             f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
+             f"{', '.join(r['output_columns'])}; wrote {_where(r['out'])}", args)
     return EXIT_OK
 
 
@@ -690,6 +704,8 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
         what = " or ".join(["x/y/z"] + (["regressor values"] if r.get("regressors") else [])
                            + ([f"reference ({column})"] if column else []))
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
+    for warning in r["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
         return EXIT_OK
@@ -711,6 +727,8 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .app import evaluate_vector_file
 
     v = evaluate_vector_file(req)
+    for warning in v["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(v, allow_nan=False))
         return EXIT_OK
@@ -755,6 +773,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .app.requests import ExportRequest
 
     _check_writable(args.out)
+    _check_stdout(args)
     r = export_to_file(_request(ExportRequest, args))
     for note in r["notes"]:
         _say(f"note: {note}", args)
@@ -763,7 +782,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(r))
     else:
-        _say(f"wrote {args.target} parameters: {r['out']}", args)
+        _say(f"wrote {args.target} parameters: {_where(r['out'])}", args)
     return EXIT_OK
 
 
@@ -774,6 +793,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_writable(args.out)
     _check_writable(args.truth)
     r = simulate_to_file(_request(SimulateRequest, args, params_path=args.params))
+    if r["defaulted"]:
+        _say(f"parameters not given (defaults: no error, identity and zero): {', '.join(r['defaulted'])}", args)
     for what, path in r["outputs"].items():
         _say(f"wrote {what}: {path}", args)
     return EXIT_OK

@@ -26,9 +26,10 @@ SECOND_MATRIX = np.array([[0.98, -0.01, 0.005], [-0.01, 1.03, 0.01], [0.005, 0.0
 SECOND_OFFSET = np.array([-40.0, 95.0, -30.0])
 
 
-def _write_boat_tlog(path: Path) -> tuple[dict, dict]:
+def _write_boat_tlog(path: Path, second_moves: float = 0.0) -> tuple[dict, dict]:
     """A boat's telemetry log: two compasses (RAW_IMU, SCALED_IMU2) turning level twice, its attitude and a GPS
-    position at :data:`BOAT_SITE`; no onboard calibration (no parameters)."""
+    position at :data:`BOAT_SITE`; no onboard calibration (no parameters). ``second_moves``: the second compass's
+    hard iron moves by this much (mG, along y) halfway."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
     from scipy.spatial.transform import Rotation
 
@@ -38,6 +39,7 @@ def _write_boat_tlog(path: Path) -> tuple[dict, dict]:
     h = body_field(Rotation.from_euler("ZYX", one["ypr"], degrees=True), one["field_ned"])  # the same headings
     two = {"raw": h @ np.linalg.inv(SECOND_MATRIX).T + SECOND_OFFSET + np.random.default_rng(23).normal(0, 2, h.shape),
            "offset": SECOND_OFFSET}
+    two["raw"][len(h) // 2:, 1] += second_moves
     lat, lon = (float(v) for v in BOAT_SITE.split(",")[:2])
     t0 = dt.datetime(2026, 6, 1, 12, tzinfo=dt.UTC).timestamp()
     link = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -91,6 +93,27 @@ def test_the_table_names_each_compass(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert "compasses fitted: 1, 2" in r.stdout and "heading - compass 1" in r.stdout
     assert "RAW_IMU" in r.stdout and "SCALED_IMU2" in r.stdout
+
+
+def test_each_compass_s_warnings_and_policy_verdict_reach_the_user(tmp_path: Path) -> None:
+    """Review of issue 30 item 6: ``--sensor all`` printed no compass's warnings (compass 1's were filtered out,
+    the others' never shown: a real log's 'two halves differ by 8.3 sigma' vanished) and exited 0 when a compass
+    failed ``--policy`` (``--sensor N`` exits 4). Each compass's warnings are printed naming it; a rejected
+    compass makes the run exit 4, naming it; the files are still written, as for one compass."""
+    log = tmp_path / "boat.tlog"
+    _write_boat_tlog(log, second_moves=25.0)
+    single = run_trimag("fit", log, "--sensor", "2", "--level-turn")
+    assert single.returncode == 0 and "two halves" in single.stderr, single.stderr
+    policy = tmp_path / "policy.toml"
+    policy.write_text("[limits]\nmax_offset = 100\n")  # compass 1's offset reaches 120 mG, compass 2's 95 (+25)
+    assert run_trimag("fit", log, "--sensor", "1", "--level-turn", "--policy", policy).returncode == 4
+    out = tmp_path / "cal.json"
+    r = run_trimag("fit", log, "--sensor", "all", "--level-turn", "--policy", policy, "-o", out)
+    assert r.returncode == 4, (r.returncode, r.stderr)
+    warnings = [line for line in r.stderr.splitlines() if "warning" in line]
+    assert any("compass 2" in line and "two halves" in line for line in warnings), r.stderr
+    assert any("compass 1" in line and "rejected" in line and "max_offset" in line for line in r.stderr.splitlines())
+    assert (tmp_path / "cal-1.json").exists() and (tmp_path / "cal-2.json").exists()
 
 
 def test_a_compass_that_cannot_be_fitted_is_named_and_the_others_written(tmp_path: Path) -> None:

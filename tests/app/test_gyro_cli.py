@@ -132,3 +132,42 @@ def test_refusals(files, tmp_path):
     proc = run_trimag("fit", still, "--columns", "mx,my,mz", "--gyro-columns", "gx,gy,gz", "--time-column", "t")
     assert proc.returncode == 3, proc.stderr
     _one_line(proc)
+
+
+_MISMATCHES = {  # case: (simulation speed, what is done to the rate, to the time, extra flags, what is said)
+    "deg/s read as rad/s, a slow turn": (0.15, np.degrees, 1.0, [], ("do not match the magnetometer", "deg/s")),
+    "deg/s read as rad/s": (1.0, np.degrees, 1.0, [], ("do not match the magnetometer", "deg/s")),
+    "rad/s read as deg/s": (1.0, lambda w: w, 1.0, ["--gyro-unit", "deg/s"], ("do not match the magnetometer",
+                                                                                "deg/s")),
+    "one axis reversed": (1.0, lambda w: w * np.array([1.0, 1.0, -1.0]), 1.0, [], ("do not match the magnetometer",
+                                                                                   "right-handed")),
+    "time in ms": (1.0, lambda w: w, 1000.0, [], ("in seconds",)),
+}
+
+
+@pytest.mark.parametrize("case", list(_MISMATCHES))
+def test_a_gyroscope_that_does_not_match_the_magnetometer_is_refused(tmp_path, case):
+    """A slow turn logged in deg/s read as rad/s (8.6 'rad/s' RMS: under the 20 rad/s of the deg/s warning) was
+    fitted with exit 0: F 71.6 uT for a true 49.3, |B| RMS 5.9 uT where the noise is 0.3, and 'identified with the
+    gyroscope'; rad/s read as deg/s ended in an internal error (exit 1: a mirror-image rotation); a fast turn in
+    deg/s read as rad/s, a gyroscope axis with the wrong sign, and a time column in ms, were refused as 'the sensor
+    barely turns'. Each is refused (exit 3, one line) saying what disagrees and what to check; nothing is
+    written."""
+    speed, rate, time_scale, flags, said = _MISMATCHES[case]
+    sim = simulate_gyro(3000, 1, speed=speed)
+    w = rate(sim.rate)
+    path, out = tmp_path / "log.csv", tmp_path / "cal.json"
+    pd.DataFrame({"t": sim.time_s * time_scale, "mx": sim.raw[:, 0], "my": sim.raw[:, 1], "mz": sim.raw[:, 2],
+                  "gx": w[:, 0], "gy": w[:, 1], "gz": w[:, 2]}).to_csv(path, index=False)
+    proc = run_trimag("fit", path, "--units", "uT", "--gyro-columns", "gx,gy,gz", "--time-column", "t", *flags,
+                      "-o", out)
+    assert proc.returncode == 3, (proc.returncode, proc.stdout[-600:], proc.stderr)
+    _one_line(proc)
+    assert all(words in proc.stderr for words in said), proc.stderr
+    assert not out.exists()
+    # the same rows with the rate as logged: fitted
+    right = tmp_path / "right.csv"
+    pd.DataFrame({"t": sim.time_s, "mx": sim.raw[:, 0], "my": sim.raw[:, 1], "mz": sim.raw[:, 2], "gx": sim.rate[:, 0],
+                  "gy": sim.rate[:, 1], "gz": sim.rate[:, 2]}).to_csv(right, index=False)
+    assert run_trimag("fit", right, "--units", "uT", "--gyro-columns", "gx,gy,gz", "--time-column", "t",
+                      "-o", out).returncode == 0

@@ -228,3 +228,52 @@ def test_gps_course_channel_is_empty_when_still_and_unwrapped():
     assert np.isnan(out[4]) and np.isnan(out[5])
     log = read_log(LOGS / "ardusub_small.BIN")  # a submarine: no GPS fix, no course
     assert "gps_course_deg" not in log.channels
+
+
+def test_random_bin_file_is_one_line_not_a_dataflash_log(tmp_path: Path):
+    """Finding (issue 32, item 6): a random .bin printed ~4 500 "bad header" lines from pymavlink before the error."""
+    pytest.importorskip("pymavlink")
+    path = tmp_path / "random.bin"
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+    r = run_trimag("fit", path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "not an ArduPilot DataFlash log" in r.stderr
+    assert r.stdout == ""
+
+
+def test_a_phone_export_with_a_large_hard_iron_is_not_called_static(tmp_path: Path):
+    """Finding (unseen real logs, simorxb-phone): a hand-turned phone was refused "the field direction stayed within
+    7 deg of its mean: the vehicle barely turned": the raw vectors were dominated by a ~585 uT hard iron. About the
+    fitted centre its directions span the sphere; it fits."""
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(1500, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    field = 46.0 * u + [220.0, 65.0, -540.0] + rng.normal(scale=0.12, size=u.shape)
+    t = np.arange(len(field)) * 0.01
+    path = tmp_path / "MagnetometerUncalibrated.csv"
+    np.savetxt(path, np.column_stack([1.7e18 + t * 1e9, t, field[:, 2], field[:, 1], field[:, 0]]), delimiter=",",
+               header="time,seconds_elapsed,z,y,x", comments="", fmt="%.9g")
+    r = run_trimag("fit", path, "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    np.testing.assert_allclose(json.loads(r.stdout)["offset"], [220.0, 65.0, -540.0], atol=0.2)
+
+
+def test_a_plain_table_named_magnetometer_csv_is_read_as_a_table(tmp_path: Path):
+    """Finding (unseen real logs, ybabs-9axis, oak-phone): any file named magnetometer.csv was forced into the Sensor
+    Logger reader: a 9-column table without a header failed "expected sensor-logger columns", with no hint."""
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(800, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    path = tmp_path / "magnetometer.csv"
+    table = np.column_stack([rng.normal(size=(800, 6)) * [50, 50, 50, 1e3, 1e3, 1.6e4], 6000 * u + [300, -200, 100]])
+    np.savetxt(path, table, delimiter=",", fmt="%.3f")
+    r = run_trimag("fit", path, "--columns", "6,7,8")
+    assert r.returncode == 0, r.stderr
+    semi = tmp_path / "sub" / "magnetometer.csv"
+    semi.parent.mkdir()
+    semi.write_text("timestamp;x (in microteslas);y (in microteslas);z (in microteslas)\n" + "\n".join(
+        f"{k};{a:.4f};{b:.4f};{c:.4f}" for k, (a, b, c) in enumerate(46 * u + [20, 10, -30])) + "\n")
+    r = run_trimag("fit", semi, "--columns", "1,2,3", "--units", "uT")
+    assert r.returncode == 0, r.stderr

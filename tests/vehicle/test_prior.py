@@ -95,7 +95,8 @@ def test_the_known_magnitude_identifies_the_vertical_with_the_references_sigma(p
     assert abs(z["value"] - HARD_AFTER[2]) < 3 * z["std"]
     # its sigma is the reference's: V * scale_sigma (V ~ F sin 68.6 deg, over the matrix's vertical gain)
     assert z["std_from_reference"] == pytest.approx(0.005 * F * np.sin(np.radians(INCLINATION)), rel=0.15)
-    assert z["std"] == pytest.approx(np.hypot(z["std_from_reference"], z["std_from_data"]), rel=1e-6)
+    assert z["std"] == pytest.approx(np.sqrt(z["std_from_reference"] ** 2 + z["std_from_data"] ** 2
+                                             + z["std_from_prior_matrix"] ** 2), rel=1e-6)
     for axis in "xy":
         c = d["components"][f"offset_{axis}"]
         assert c["identified"] and c["identified_by"] == "data"
@@ -286,3 +287,36 @@ def test_uncertainty_has_the_fields_of_every_estimator(prior) -> None:
     raw, _ = _level(tilt=10.0)
     cal = refit_offset(prior, raw, F)
     assert set(UNCERTAINTY_FIELDS) <= set(cal.uncertainty)
+
+
+def test_a_level_turn_prior_s_held_vertical_scale_reaches_the_new_vertical_offset() -> None:
+    """Review of issue 30 item 5c: a level turn holds its vertical scale ``m33`` (1 % sigma), which is most of its
+    vertical offset's sigma. A quick recalibration with it as ``--prior`` dropped that matrix covariance (its names
+    are the symmetric ``m11 .. m33``; only ``w11 .. w33`` were read): a boat whose m33 is 2 % off the held value got
+    its new vertical offset 9 mG off with a sigma of 2.3 mG (z = -3.9; the level turn itself: the same error, sigma
+    6.5). The symmetric matrix's covariance is now propagated too (an off-diagonal entry moves both of its
+    places)."""
+    from scipy.spatial.transform import Rotation
+
+    from trimag.fields.reference import igrf, parse_igrf_spec
+    from trimag.vehicle.level_turn import fit_level_turn
+
+    from _helpers import BOAT_MATRIX, BOAT_SITE, simulate_boat
+
+    ned = np.asarray(igrf(*parse_igrf_spec(BOAT_SITE)).ned_nT) / 100.0
+    F_mG = float(np.linalg.norm(ned))
+    incl = float(np.degrees(np.arctan2(ned[2], np.hypot(ned[0], ned[1]))))
+    M = BOAT_MATRIX.copy()
+    M[2, 2] = (M[0, 0] + M[1, 1]) / 2 + 0.02  # two sigmas of the held vertical scale off
+    turn = simulate_boat(seed=4, matrix=M)
+    level = fit_level_turn(turn["raw"], F_mG, inclination_deg=incl, units="mG")
+    later_offset = np.array([150.0, -40.0, 20.0])
+    later = simulate_boat(seed=104, n=360, matrix=M, offset=later_offset)
+    cal = refit_offset(level, later["raw"], F_mG, attitude=Rotation.from_euler("ZYX", later["ypr"], degrees=True),
+                       inclination_deg=incl)
+    sigma_level = level.uncertainty["param_std"]["hard_iron_z"]
+    sigma = cal.uncertainty["param_std"]["hard_iron_z"]
+    assert sigma > 0.8 * sigma_level, (sigma, sigma_level)
+    assert abs(cal.offset[2] - later_offset[2]) < 2.5 * sigma
+    # the horizontal offsets, which the turn identifies, keep sigmas near the data's
+    assert cal.uncertainty["param_std"]["hard_iron_x"] < 2.0

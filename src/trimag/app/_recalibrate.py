@@ -112,8 +112,10 @@ def refit_prior(
             state = "identified"
         elif c["identified"]:
             by_reference.append(name)
-            state = (f"from {c['identified_by']} (sigma from the reference {c['std_from_reference']:.3g}, from the "
-                     f"data {c['std_from_data']:.3g})")
+            matrix = c.get("std_from_prior_matrix") or 0.0
+            state = (f"from {c['identified_by']} (sigma from the reference {c['std_from_reference']:.3g}, "
+                     + (f"from the prior's matrix {matrix:.3g}, " if matrix >= 0.05 * c["std"] else "")
+                     + f"from the data {c['std_from_data']:.3g})")
         else:
             state = "NOT identified by these data (value and sigma from the priors)"
         messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit} (prior {c['prior_value']:.6g}): "

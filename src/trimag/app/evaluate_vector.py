@@ -22,6 +22,7 @@ from ._inputs import (
     drop_rows_without_background,
 )
 from ._timesync import attach_attitude_file
+from .evaluate import worse_than_raw_warning
 from .requests import AttitudeSpec, EvaluateRequest, as_request
 
 __all__ = ["evaluate_vector_file"]
@@ -77,6 +78,9 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
+        "worse_than_raw": bool(after["rms_vector"] > before["rms_vector"]),
+        "warnings": [worse_than_raw_warning("RMS vector error", after["rms_vector"], before["rms_vector"], cal.units)]
+        if after["rms_vector"] > before["rms_vector"] else [],
     }
 
 

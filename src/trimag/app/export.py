@@ -32,7 +32,14 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
                                f"{req.instance}")
     cal = _read_calibration(req.calibration, req.target)
     exp = export_calibration(cal, req.target, instance=req.instance - 1)
-    path = write_export(exp, req.out)
+    if str(req.out) == "-":  # standard output
+        import sys
+
+        sys.stdout.write(exp.text)
+        sys.stdout.flush()
+        path: Any = "-"
+    else:
+        path = write_export(exp, req.out)
     return {"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
             "violations": exp.violations}
 

@@ -20,6 +20,7 @@ from ..io import Samples, column_values, read_samples
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
+    check_fitted_field,
     check_log_unit,
     check_unit,
     policy_verdict,
@@ -312,6 +313,8 @@ def _fit_model(
     cal = estimator.calibration_
     if samples.log_info is not None and src.columns is None:
         refuse_unidentified_log(cal, samples, samples.log_info)
+    if estimator.reference_kind != "vector":
+        messages += check_fitted_field(cal, unit, autopilot_log=samples.log_info is not None)
     if estimator.reference_kind == "vector":
         att = req.attitude
         refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
@@ -340,6 +343,8 @@ def _fit_model(
         cal, joint_message = _joint_scalar(req, cal, samples, ref, attitude, regressor_values, unit)
         messages.append(joint_message)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    # what the fit's honesty checks found (halves that disagree, too few samples) is said too (issue 32)
+    warn_texts += [w for w in estimator.calibration_.diagnostics.get("warnings", []) if w not in warn_texts]
     return samples, cal, ref, regressor_values, warn_texts, messages
 
 
@@ -413,6 +418,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
     if src.columns is None and req.prior is None and mode is None and estimator.reference_kind != "gyro":
         refuse_static_log(samples, log_info)  # (those are made for logs that barely tilt; the gyroscope says itself
         # whether the sensor turned)
+        refuse_unidentified_log(None, samples, log_info)  # the data's coverage, before any method (issue 32)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
 

@@ -28,13 +28,19 @@ __all__ = ["AllSensorsResult", "fit_all_sensors"]
 @dataclass
 class AllSensorsResult:
     """What :func:`fit_all_sensors` produced: the fit of each compass (its number -> :class:`FitResult`), the
-    compasses refused (number -> reason), the comparison, the messages and the files written."""
+    compasses refused (number -> reason), the comparison, the messages (each compass's warnings and acceptance
+    verdict among them, naming it) and the files written."""
 
     fits: dict[int, Any]
     refused: dict[int, str]
     comparison: dict[str, Any]
     messages: list[str] = field(default_factory=list)
     written: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def rejected(self) -> list[int]:
+        """The compasses fitted but rejected by the acceptance policy (``policy``; the command exits 4)."""
+        return [n for n, r in self.fits.items() if not (r.summary.get("acceptance") or {}).get("accepted", True)]
 
     @property
     def summary(self) -> dict[str, Any]:
@@ -102,9 +108,28 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         written["parameters"] = str(atomic_write_text(req.export_out, exp.text))
         messages += [f"note: {note}" for note in exp.notes]
         messages += [f"warning: outside the firmware's limits: {v}" for v in exp.violations]
+    for n, r in fits.items():
+        messages += compass_warnings(n, r)
     for n, why in refused.items():
         messages.append(f"warning: compass {n} not calibrated (its parameters are not written): {why}")
     return AllSensorsResult(fits, refused, comparison, messages, written)
+
+
+def compass_warnings(number: int, fit: Any) -> list[str]:
+    """Compass ``number``'s warnings and acceptance verdict, each naming it (as ``trimag fit --sensor N`` says
+    them)."""
+    out = [f"warning: compass {number}: {m.removeprefix('warning:').strip()}" for m in fit.messages
+           if m.startswith("warning:")]
+    verdict = fit.summary.get("acceptance")
+    if verdict is not None:
+        if verdict["not_evaluated"]:
+            out.append(f"warning: compass {number}: policy rules not evaluated (the data cannot measure them): "
+                       f"{', '.join(verdict['not_evaluated'])}")
+        if not verdict["accepted"]:
+            failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
+            out.append(f"warning: compass {number} rejected by the acceptance policy: {failed} (its calibration is "
+                       "written, marked rejected)")
+    return out
 
 
 def _heading(field_: NDArray[np.float64], down: NDArray[np.float64]) -> NDArray[np.float64]:

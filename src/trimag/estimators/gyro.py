@@ -49,7 +49,7 @@ from scipy.spatial.transform import Rotation
 from .._core.chunks import row_blocks
 from .._core.solve import gauss_newton_rule
 from ..calibration import Calibration, make_uncertainty
-from ..errors import IdentifiabilityError, TrimagInputError
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError
 from ..fields.gyro import AngularRate, GyroAttitude, describe, integrate_rate, skew
 from ..models.ellipsoid import Ellipsoid, to_symmetric
 from ..quality.crlb import (
@@ -69,7 +69,7 @@ from ..quality.diagnostics import (
     sphere_coverage,
     weak_directions,
 )
-from ._common import normalise, scalar_reference
+from ._common import algebraic_ellipsoid, normalise, scalar_reference
 from ._finish import INFLATION_WARN, VIF_REPORT, VIF_WARN, _inflation_vs_full_sphere
 from .base import Estimator, build_calibration
 
@@ -86,6 +86,17 @@ _HINT = ("record the sensor turning about at least two axes while the gyroscope 
 POORLY_DETERMINED = 10.0
 #: A gap between samples longer than this many median intervals ends a segment (the integration does not bridge it).
 GAP_INTERVALS = 5.0
+#: The gyroscope is taken not to match the magnetometer (wrong unit, a reversed axis, a wrong time scale) when the
+#: fit's vector residual exceeds this many times the magnitude residual of an ellipsoid alone on the same samples
+#: (isotropic noise gives sqrt(3) = 1.7; measured 1.35-1.88 on BROAD, the robot and phone logs of
+#: docs/method-gyro.md; a slow turn in deg/s read as rad/s: 18) ...
+MISMATCH_RATIO = 3.0
+#: ... and this fraction of the field (below it the gyroscope's own noise may dominate a very quiet magnetometer's:
+#: docs/method-gyro.md, "Limitations").
+MISMATCH_FLOOR = 0.01
+#: A segment over which the gyroscope turned by more than this (median, degrees) did turn: a start that the
+#: equations do not single out then means that the two sensors disagree, not that the sensor stood still.
+TURNED_DEG = 5.0
 
 
 @dataclass
@@ -262,8 +273,17 @@ def _linear_start(problem: _Problem, lag: float) -> NDArray[np.float64]:
         A, c = -A, -c
     # a second (near-)null direction: the equations do not single out a start (no turning within the segments)
     if not abs(np.linalg.det(A)) > 0 or not ev[1] > max(1.5 * ev[0], 1e-10 * float(np.sum(ev))):
+        turned = _turned_deg(problem, att)
+        if turned > TURNED_DEG:
+            raise IdentifiabilityError(_mismatch(problem.gyro, f"no calibration turns the samples as the gyroscope "
+                                                 f"says (it turned {turned:.3g} deg in a median segment)"))
+        per_segment = len(problem.u) / len(problem.starts)
+        if per_segment < 3:
+            raise IdentifiabilityError(f"the gyro-aided fit's segments hold {per_segment:.2g} samples each: check "
+                                       "that the time column is in seconds (or give a longer `segment_s`)")
         raise IdentifiabilityError("the gyroscope and the magnetometer do not determine the start of the gyro-aided "
-                                   f"fit (the sensor barely turns within the segments); {_HINT}")
+                                   f"fit (the sensor barely turns within the segments: {turned:.2g} deg in a median "
+                                   f"one); {_HINT}")
     b = np.linalg.solve(A, c)
     y = (problem.u - b) @ A.T
     A /= float(np.mean(np.linalg.norm(y, axis=1)))
@@ -279,6 +299,54 @@ def _linear_start(problem: _Problem, lag: float) -> NDArray[np.float64]:
     if problem.fit_lag:
         parts.append(np.array([lag]))
     return np.concatenate([*parts, h.ravel()])
+
+
+def _turned_deg(problem: _Problem, att: GyroAttitude) -> float:
+    """The median over segments of the angle (degrees) the gyroscope turned between a segment's first and last
+    sample."""
+    ends = np.append(problem.starts[1:], len(problem.u)) - 1
+    rel = np.einsum("sji,sjk->sik", att.G[problem.starts], att.G[ends])
+    return float(np.degrees(np.median(Rotation.from_matrix(rel).magnitude())))
+
+
+def _mismatch(gyro: AngularRate, what: str) -> str:
+    """The refusal of a gyroscope that does not match the magnetometer: ``what`` was seen, and what to check."""
+    rms = float(np.sqrt(np.mean(np.sum(gyro.rate**2, axis=1))))
+    unit = ("; the numbers look like deg/s" if rms > 20.0 else
+            "; numbers in deg/s read as rad/s turn it 57x too far, rad/s read as deg/s 57x too little")
+    return (f"the gyroscope's turns do not match the magnetometer's: {what}. Check the rate's unit ({rms:.3g} rad/s "
+            f"RMS as read{unit}; `gyro_unit` rad/s or deg/s), that the gyroscope's columns are its x, y, z axes with "
+            "their signs (right-handed), and that the time is in seconds; a field that changes where the sensor "
+            "moves does the same. `method=ml` fits the magnitude alone")
+
+
+def _check_consistent(problem: _Problem, st: _State, sc: _Scale, units: str) -> None:
+    """Refuse (exit 3) a fit in which the gyroscope and the magnetometer disagree: a mirror-image solution, or a
+    vector residual over ``MISMATCH_RATIO`` times the magnitude residual that an ellipsoid alone leaves on these
+    samples (the algebraic fit of :func:`._common.algebraic_ellipsoid`; skipped when it cannot fit them) and over
+    ``MISMATCH_FLOOR`` of the field."""
+    import warnings
+
+    det = float(np.linalg.det(st.M))
+    if not det > 0:
+        raise IdentifiabilityError(_mismatch(problem.gyro, "the fit turned into the mirror image of a sensor"))
+    radius = det ** (1.0 / 3.0)  # the field's magnitude in the normalised samples
+    vector = float(np.sqrt(np.mean(np.sum(st.r**2, axis=1))))
+    if not vector > MISMATCH_FLOOR * radius:
+        return
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            W, c, _ = algebraic_ellipsoid(problem.u)
+    except TrimagError:
+        return
+    magnitude = float(np.sqrt(np.mean((np.linalg.norm((problem.u - c) @ W.T, axis=1) - 1.0) ** 2))
+                      / abs(np.linalg.det(W)) ** (1.0 / 3.0))
+    if vector > MISMATCH_RATIO * magnitude:
+        raise IdentifiabilityError(_mismatch(
+            problem.gyro, f"the field they predict misses the samples by {vector * sc.scale:.3g} {units} RMS, "
+                          f"{vector / magnitude:.3g}x the {magnitude * sc.scale:.3g} {units} an ellipsoid alone "
+                          "leaves"))
 
 
 def _lag_start(problem: _Problem, max_lag: float) -> float:
@@ -578,6 +646,7 @@ class GyroAided(Estimator):
         st, ne = run.state, run.model
         if st is None or ne is None:
             raise IdentifiabilityError(f"the gyro-aided fit did not converge; {_HINT}")
+        _check_consistent(problem, st, sc, units)
         n_free = 3 * len(B) - problem.p - 2 * len(problem.starts)
         sigma2 = float(np.sum(st.r**2)) / max(n_free, 1)
         theta = st.p[:problem.p]

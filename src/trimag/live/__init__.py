@@ -23,7 +23,7 @@ from typing import Any
 
 from ..app.requests import LiveRequest
 from ..errors import TrimagInputError
-from ._checks import check_request, replay_units
+from ._checks import check_method, check_request, replay_units
 from .server import LiveServer
 from .session import LiveSession
 from .sources import Batch, _play, line_source, mavlink_source, serial_source
@@ -130,10 +130,8 @@ def run_live(request: LiveRequest, say: Callable[[str], None] = print, *,
     -------
     LiveResult
     """
-    from ..estimators import make_estimator
-
     check_request(request)
-    make_estimator(request.model, request.method, dict(request.options))  # an unknown model fails before serving
+    check_method(request)  # an unknown model, or one live cannot feed, fails before serving
     batches, description, units, messages = _open(request)
     for message in messages:
         say(message)

@@ -1,7 +1,8 @@
 """What ``trimag live`` refuses before a session starts (exit 2), so that no recording is made that cannot be saved:
 numbers that cannot work (a rate, interval, reference or port that is not finite and in range), an unknown unit,
-outputs that cannot be written or would replace the replayed log, and a replayed log whose unit contradicts the
-one given (checked as ``trimag fit`` checks it).
+outputs that cannot be written or would replace the replayed log, a method that needs more than the magnetometer's
+samples (a gyroscope, attitudes, a known magnitude without ``--reference``), and a replayed log whose unit
+contradicts the one given (checked as ``trimag fit`` checks it).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from ..units import normalise_unit
 from .server import check_port
 from .session import samples_path
 
-__all__ = ["MAX_INTERVAL_S", "check_request", "replay_units"]
+__all__ = ["MAX_INTERVAL_S", "check_method", "check_request", "replay_units"]
 
 #: The longest wait between refits (seconds): a longer one would only leave the page without a fit.
 MAX_INTERVAL_S = 3600.0
@@ -40,6 +41,24 @@ def check_request(request: LiveRequest) -> None:
                 "the samples file (`samples_out`, by default beside `out`)")
             raise TrimagInputError(f"{named} would replace the replayed log {request.replay}; give another name")
         _check_writable(path, what)
+
+
+def check_method(request: LiveRequest) -> None:
+    """Refuse a model/method that ``live`` cannot feed (exit 2): it records the magnetometer's samples only, so a
+    method that needs the gyroscope's rate (``gyro``) or an attitude per sample (``linear-vector``), or a known
+    field magnitude when ``reference`` is not given, would never fit (the session ran to its end and wrote no
+    calibration, exit 3)."""
+    from ..estimators import make_estimator
+
+    estimator = make_estimator(request.model, request.method, dict(request.options))
+    needs = {"gyro": "the gyroscope's rate", "vector": "an attitude for every sample"}.get(estimator.reference_kind)
+    if needs is not None:
+        raise TrimagInputError(
+            f"method {estimator.name!r} needs {needs}, which `trimag live` does not record: record with the default "
+            "method, then fit the samples file with `trimag fit`")
+    if estimator.requires_reference and request.reference is None:
+        raise TrimagInputError(f"method {estimator.name!r} needs the field's magnitude: give `reference=F` in the "
+                               "data's unit")
 
 
 def _check_numbers(request: LiveRequest) -> None:

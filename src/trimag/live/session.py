@@ -27,10 +27,10 @@ from ..io.atomic import atomic_write_text
 from ..quality.diagnostics import (
     _axis_name,
     coverage_advice,
+    data_coverage,
     describe_directions,
     fibonacci_sphere,
     raw_direction_geometry,
-    sphere_coverage,
 )
 from ..units import normalise_unit
 from ..vehicle.policy import DEFAULT_LIMITS, check_policy
@@ -324,8 +324,9 @@ class LiveSession:
         if not converged:
             reasons.append("the fit did not converge")
         corrected = cal.apply(B[self._page_index(len(B))])
-        # the fit keeps the coverage's figures, not its cells: the map counts the corrected directions again
-        coverage = {**coverage, "cell_counts": sphere_coverage(cal.apply(B))["cell_counts"]}
+        # the fit keeps the coverage's figures, not its cells: the map counts them again, as the fit did (the data's
+        # directions, trimag.quality.diagnostics.data_coverage: the same cells as the number)
+        coverage = {**coverage, "cell_counts": data_coverage(B)["cell_counts"]}
         state.update({
             "fitted": True, "calibration": cal, "identifiable": identifiable, "converged": converged,
             "rms_before": stats.get("rms_before"), "rms_after": stats.get("rms_after"),

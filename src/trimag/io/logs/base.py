@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,26 +26,35 @@ def require(module: str) -> Any:
 
 
 def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
-    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error."""
+    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error.
+
+    pymavlink prints a line for each damaged byte it skips ("bad header ..."): its output goes to a buffer while
+    the log is read, so the callers (which collect the messages and print nothing) run with it redirected too.
+    """
     mavutil = require("pymavlink.mavutil")
-    try:
-        conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
-            mavutil.mavlink_connection(str(path))
-    except Exception as exc:  # pymavlink raises many kinds on a damaged file
-        raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
-    try:
-        while True:
-            try:
-                msg = conn.recv_match(type=types)
-            except Exception as exc:
-                raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
-            if msg is None:
-                return
-            yield msg
-    finally:  # the file pymavlink opened (an unclosed file otherwise: ResourceWarning)
-        close = getattr(conn, "close", None)
-        if callable(close):
-            close()
+    quiet = io.StringIO()
+    with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+        try:
+            conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
+                mavutil.mavlink_connection(str(path))
+        except Exception as exc:  # pymavlink raises many kinds on a damaged file
+            raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
+        try:
+            while True:
+                try:
+                    msg = conn.recv_match(type=types)
+                except Exception as exc:
+                    raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+                if msg is None:
+                    return
+                if quiet.tell() > 1 << 16:  # a long damaged stretch: the buffer is not kept
+                    quiet.seek(0)
+                    quiet.truncate()
+                yield msg
+        finally:  # the file pymavlink opened (an unclosed file otherwise: ResourceWarning)
+            close = getattr(conn, "close", None)
+            if callable(close):
+                close()
 
 
 @dataclass
