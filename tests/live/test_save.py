@@ -173,3 +173,24 @@ def test_a_unit_in_the_header_of_standard_input_is_checked_too(tmp_path):
     assert "the column headers say uT" in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
     assert json.loads(bad.stdout.strip().splitlines()[-1])["n_samples"] == 0
     assert not (tmp_path / "contradicted.json").exists()
+
+
+def test_a_live_source_whose_fitted_field_contradicts_the_reference_gives_no_calibration(tmp_path):
+    """A serial or stdin session cannot be checked before it starts: the session judges the unit on each fit, as
+    ``trimag fit`` does (the correction's gain 1000x off the reference), and shows fit's message instead of a
+    calibration; the save then writes the samples only (before the trust merge's post-fit unit check reached
+    live, the session saved a calibration with gain 0.001)."""
+    from trimag.live import LiveSession
+    from trimag.live.sources import Batch
+
+    session = LiveSession(units="uT", reference=0.5, source="test")
+    session.add(Batch(sensor(uniform_directions(400, seed=17))))
+    assert session.refit() is None
+    status = session.status(points=False)
+    assert "not in uT" in status["fit_message"], status["fit_message"]
+    written = session.save(tmp_path / "cal.json")
+    assert set(written) == {"samples"} and not (tmp_path / "cal.json").exists()
+    # the same samples with the right reference give a calibration
+    right = LiveSession(units="uT", reference=500.0, source="test")
+    right.add(Batch(sensor(uniform_directions(400, seed=17))))
+    assert right.refit() is not None

@@ -2,7 +2,8 @@
 numbers that cannot work (a rate, interval, reference or port that is not finite and in range), an unknown unit,
 outputs that cannot be written or would replace the replayed log, a method that needs more than the magnetometer's
 samples (a gyroscope, attitudes, a known magnitude without ``--reference``), and a replayed log whose unit
-contradicts the one given (checked as ``trimag fit`` checks it).
+contradicts the one given or whose fitted field contradicts ``--reference`` (checked as ``trimag fit`` checks
+it).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from ..app._checks import check_log_unit, check_unit
+from ..app._checks import check_fitted_field, check_log_unit, check_unit
 from ..app.requests import LiveRequest
 from ..errors import TrimagInputError
 from ..io import Samples
@@ -104,4 +105,29 @@ def replay_units(samples: Samples, request: LiveRequest) -> tuple[str | None, li
     column headers' against ``units``, the samples' magnitude against the unit and ``reference``; returns the unit
     (None when unknown) and the messages (warnings start with ``warning:``)."""
     units = check_log_unit(request.units, samples.log_info, request.columns)
-    return check_unit(samples, units, request.reference, None)
+    units, messages = check_unit(samples, units, request.reference, None)
+    if units is not None and request.reference is not None:
+        _check_replayed_field(samples, units, request)
+    return units, messages
+
+
+def _check_replayed_field(samples: Samples, units: str, request: LiveRequest) -> None:
+    """A known ``reference`` and a replayed log: the unit is judged on the fitted field, as ``trimag fit`` judges
+    it (:func:`~trimag.app._checks.check_fitted_field`, exit 2 with fit's message), so that a session in the wrong
+    unit is not recorded. A log that cannot be fitted yet is left to the session (its page says why)."""
+    import warnings
+
+    import numpy as np
+
+    from ..errors import TrimagError, TrimagWarning
+    from ..fitting import fit
+
+    B = np.asarray(samples.field, dtype=np.float64)
+    B = B[np.isfinite(B).all(axis=1)]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TrimagWarning)
+            cal = fit(B, request.model, request.method, request.reference, units=units, **dict(request.options))
+    except (TrimagError, ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return
+    check_fitted_field(cal, units)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..app._checks import check_fitted_field
 from ..calibration import Calibration
 from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, TrimagWarning
 from ..fitting import fit
@@ -298,6 +299,13 @@ class LiveSession:
             state["fit_message"] = f"no fit yet: {type(exc).__name__}: {exc}"
             state.update(self._raw_guidance(B, what))
             return state
+        if self.reference is not None and units != "unknown":
+            try:  # the unit judged on the fitted field, as trimag fit judges it: a 1000x gain is no calibration
+                check_fitted_field(cal, units)
+            except TrimagInputError as exc:
+                state["fit_message"] = f"no fit: {exc}"
+                state.update(self._raw_guidance(B, what))
+                return state
         stats, diag = cal.stats, cal.diagnostics
         coverage = diag.get("coverage") or {}
         ident = diag.get("identifiability") or {}
