@@ -99,6 +99,37 @@ def test_kept_process_pool_survives_a_failed_run_and_needs_no_dask(monkeypatch: 
     assert map_trials(_fail_on_three, [7, 8], workers=2, backend="threads", progress=False) == [49, 64]
 
 
+def _die_on_three(x: int) -> int:
+    """A trial whose worker process dies on item 3 (as the kernel's out-of-memory killer kills it)."""
+    import os
+    import signal
+
+    if x == 3:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return x * x
+
+
+def test_a_worker_that_dies_costs_only_its_own_item() -> None:
+    """Issue 33, item 4: a dead worker broke the pool and the whole run (batch exit 1, no summary). With
+    ``worker_died`` the items that were running are retried, each alone when suspected; the one that kills its
+    worker when alone gets ``worker_died(item)``; every other item gets its result; the kept pool is usable."""
+    died: list[int] = []
+
+    def note(item: int) -> int:
+        died.append(item)
+        return -1
+
+    # chunks of 3: the dead worker's chunk-mates and the other worker's chunk are struck too, then cleared
+    out = map_trials(_die_on_three, range(10), workers=2, chunksize=3, progress=False, worker_died=note)
+    assert out == [0, 1, 4, -1, 16, 25, 36, 49, 64, 81] and died == [3]
+    assert map_trials(_fail_on_three, [4, 5], workers=2, progress=False) == [16, 25]
+    from concurrent.futures.process import BrokenProcessPool
+
+    with pytest.raises(BrokenProcessPool):  # without `worker_died`: as before
+        map_trials(_die_on_three, range(6), workers=2, chunksize=1, progress=False)
+    assert map_trials(_fail_on_three, [6], workers=2, progress=False) == [36]
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [({"workers": 0}, "workers"), ({"workers": 1.5}, "workers"), ({"workers": True}, "workers"),

@@ -505,8 +505,14 @@ class Calibration:
                 raise CalibrationFormatError(
                     f"calibration file has format_version {data.get('format_version')} but no regressor terms"
                 )
+            matrix = _frozen_array(data["matrix"], (3, 3), "matrix")
+            if abs(np.linalg.det(matrix)) < 1e-300 or np.linalg.cond(matrix) > 1e12:
+                raise CalibrationFormatError(
+                    "calibration file's matrix is singular: it maps every field onto a plane or a line, which no "
+                    "calibration does (it was edited, or not written by trimag)"
+                )
             return cls(
-                matrix=_frozen_array(data["matrix"], (3, 3), "matrix"),
+                matrix=matrix,
                 offset=_frozen_array(data["offset"], (3,), "offset"),
                 units=normalise_unit(data.get("units", "unknown")),
                 model=str(data.get("model", "affine")),
@@ -529,6 +535,9 @@ class Calibration:
     @classmethod
     def from_json(cls, text: str) -> Calibration:
         """Parse JSON text written by :meth:`to_json`."""
+        from .validation import check_nesting
+
+        check_nesting(text, "calibration file", CalibrationFormatError)
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:

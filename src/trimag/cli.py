@@ -100,6 +100,10 @@ def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> 
         g.add_argument("--where", help="use only rows where COLUMN==VALUE (or COLUMN!=VALUE)")
     g.add_argument("--strict", action="store_true",
                    help="refuse rows with missing/non-numeric/NaN values instead of dropping and counting them")
+    g.add_argument("--max-fields", type=int, metavar="N",
+                   help="refuse a text line of more than N fields (default 10000; docs/cli.md, 'Limits')")
+    g.add_argument("--max-decompressed-mb", type=float, metavar="MB",
+                   help="refuse compressed input that expands past MB megabytes (default 1024)")
 
 
 def _add_reference_options(p: argparse.ArgumentParser) -> None:
@@ -480,11 +484,14 @@ def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None
     """Refuse an output path that cannot be written (or has the wrong extension), before any work is done."""
     import os
 
+    from .io.atomic import check_output_path
+
     if path is None or path == "-":  # "-": standard output
         return
     target = Path(path)
     if target.is_dir():
         raise TrimagInputError(f"{path} is a folder; give a file name for the output")
+    check_output_path(target)  # a symlink, a FIFO or a device is never replaced
     if suffixes is not None and target.suffix.lower() not in suffixes:
         raise TrimagInputError(f"cannot write {target.suffix or 'extension-less'} files here ({path}); use one of "
                                f"{', '.join(suffixes)}")
@@ -555,6 +562,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         if verdict["not_evaluated"]:
             _err(f"warning: policy rules not evaluated (the data cannot measure them): "
                  f"{', '.join(verdict['not_evaluated'])}")
+        if verdict.get("nothing_checked"):
+            _err("rejected by the acceptance policy: nothing was checked, none of its rules can be measured on these "
+                 "data (give --reference or --igrf, or rules the data can measure; the calibration is written, "
+                 "marked rejected)")
+            return EXIT_POLICY
         if not verdict["accepted"]:
             failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
             _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
@@ -915,7 +927,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError:  # not the main thread (main() called from a thread): keep the default
         pass
     try:
-        return handlers[args.command](args)
+        from .io.limits import input_limits
+
+        with input_limits(getattr(args, "max_fields", None), getattr(args, "max_decompressed_mb", None)):
+            return handlers[args.command](args)
     except _Terminated:
         _err("terminated")
         return 143
@@ -923,6 +938,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err(f"error: the file is not UTF-8 text (byte {exc.object[exc.start:exc.start + 1]!r} at position "
              f"{exc.start}); save it as UTF-8")
         return EXIT_INPUT
+    except BrokenPipeError:  # an OSError: `trimag fit ... | head` closed the pipe
+        return EXIT_OK
     except OSError as exc:  # the user's files: missing, unreadable, unwritable, a folder, a full disk
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
         _err(f"error: cannot read or write{where}: {exc.strerror or exc}")
@@ -939,8 +956,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return 130
-    except BrokenPipeError:
-        return EXIT_OK
+    except MemoryError:
+        from .errors import out_of_memory_message
+
+        _err(f"error: {out_of_memory_message()}")
+        return EXIT_INPUT
     except ImportError as exc:  # an optional package that a code path imported without `require`: still exit 2
         from ._core.extras import EXTRAS, missing_extra_message
 

@@ -71,3 +71,10 @@ class TrimagWarning(UserWarning):
 
 class IdentifiabilityWarning(TrimagWarning):
     """The model is identifiable, but poorly: a large condition number or a weakly covered sphere."""
+
+
+def out_of_memory_message(what: str = "the data") -> str:
+    """The one line for a :class:`MemoryError` while reading or fitting: the machine's memory, not a bug (exit 2)."""
+    return (f"not enough memory for {what}: the log is larger than this machine (or its memory limit) can hold while "
+            "reading and fitting it (about 5 bytes per byte of CSV text); fit part of it with `rows=START:STOP`, or "
+            "run on a machine with more memory")

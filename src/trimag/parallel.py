@@ -32,10 +32,14 @@ from __future__ import annotations
 import atexit
 import math
 import os
+import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -176,6 +180,8 @@ def _process_pool(workers: int) -> ProcessPoolExecutor:
     pool = _POOLS.get(workers)
     if pool is not None and not getattr(pool, "_broken", False):
         return pool
+    if pool is not None:  # a worker died (killed by the system, a crash in a C library): start a new pool
+        pool.shutdown(wait=False, cancel_futures=True)
     import multiprocessing
 
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
@@ -222,6 +228,7 @@ def map_trials(
     progress: bool | str = True,
     chunksize: int | None = None,
     backend: str | None = None,
+    worker_died: Callable[[T], R] | None = None,
 ) -> list[R]:
     """Apply ``fn`` to every item and return the results in the order of ``items``.
 
@@ -246,6 +253,11 @@ def map_trials(
     backend : {"processes", "threads"}, optional
         Local pool for ``workers > 1``; default :data:`DEFAULT_LOCAL_BACKEND`. ``"threads"`` avoids starting
         processes and suits trials dominated by large numpy operations (which release the GIL).
+    worker_died : callable, optional
+        Local worker processes only: survive a worker process that dies (killed by the kernel's out-of-memory
+        killer, a crash in a C library). The items it was running are run again, then each alone; an item whose
+        worker dies while it runs alone gets ``worker_died(item)`` (called in this process) as its result, every
+        other item its own result. Without it, such a death raises ``BrokenProcessPool``.
 
     Returns
     -------
@@ -283,7 +295,94 @@ def map_trials(
                     out.append(fn(item))
                     bar.advance(1)
             return out
+        if worker_died is not None and backend == "processes":
+            return _run_surviving(fn, items, int(workers), chunksize, bar, worker_died)
         return _run_local(fn, items, int(workers), backend, chunksize, bar)
+
+
+def _tracked_chunk(fn: Callable[[Any], Any], chunk: Sequence[Any], marker: str) -> list[Any]:
+    """:func:`_apply_chunk` that leaves the file ``marker`` while it runs: a chunk whose marker is left after its
+    worker died was running then (not merely queued)."""
+    with open(marker, "wb"):
+        pass
+    out = _apply_chunk(fn, chunk)
+    os.unlink(marker)
+    return out
+
+
+def _run_surviving(
+    fn: Callable[[T], R], items: list[T], workers: int, chunksize: int | None, bar: ProgressBar,
+    worker_died: Callable[[T], R],
+) -> list[R]:
+    """:func:`_run_local` on the kept process pool, surviving dead workers (see ``worker_died`` of
+    :func:`map_trials`). Rounds: items never caught in a death run in chunks; items running when a worker died run
+    again one per task; items caught twice run alone (nothing else running), where a death is their own."""
+    results: dict[int, R] = {}
+    strikes = [0] * len(items)
+    markers = Path(tempfile.mkdtemp(prefix="trimag-tasks-"))
+    todo = list(range(len(items)))
+    try:
+        for round_ in range(3 * len(items) + 1):  # every round finishes or strikes an item, or finishes a death
+            if not todo:
+                break
+            fresh = [i for i in todo if strikes[i] == 0]
+            tasks = _chunks(fresh, chunksize or _auto_chunksize(len(fresh), workers)) if fresh else []
+            tasks += [[i] for i in todo if strikes[i] == 1]
+            alone = [i for i in todo if strikes[i] >= 2]
+            todo = _surviving_round(fn, items, tasks, workers, markers / str(round_), results, strikes, bar)
+            for i in alone:
+                try:
+                    future = _process_pool(workers).submit(_tracked_chunk, fn, [items[i]],
+                                                           str(markers / f"{round_}-alone-{i}"))
+                except BrokenProcessPool:  # a new worker died as it started: try again next round
+                    todo.append(i)
+                    continue
+                try:
+                    results[i] = future.result()[0]
+                except BrokenProcessPool:
+                    results[i] = worker_died(items[i])
+                bar.advance(1)
+        for i in todo:  # deaths that struck no running task, round after round: give up on these items
+            results[i] = worker_died(items[i])
+    finally:
+        shutil.rmtree(markers, ignore_errors=True)
+    return [results[i] for i in range(len(items))]
+
+
+def _surviving_round(
+    fn: Callable[[T], R], items: list[T], tasks: list[list[int]], workers: int, markers: Path,
+    results: dict[int, R], strikes: list[int], bar: ProgressBar,
+) -> list[int]:
+    """Run ``tasks`` (lists of item indices) on the pool into ``results``; returns the indices to run again (a
+    death broke the pool before they finished), with a strike for those whose task was running."""
+    if not tasks:
+        return []
+    markers.mkdir()
+    try:
+        pool = _process_pool(workers)
+    except BrokenProcessPool:  # a new worker died as it started: no task ran, all run again
+        return sorted(i for task in tasks for i in task)
+    futures = {pool.submit(_tracked_chunk, fn, [items[i] for i in task], str(markers / str(k))): (task, k)
+               for k, task in enumerate(tasks)}
+    again: list[int] = []
+    pending: set[Future[list[R]]] = set(futures)
+    try:
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            for fut in done:
+                task, k = futures[fut]
+                if isinstance(fut.exception(), BrokenProcessPool):
+                    if (markers / str(k)).exists():
+                        for i in task:
+                            strikes[i] += 1
+                    again += task
+                    continue
+                results.update(zip(task, fut.result(), strict=True))  # a trial's own error is raised here
+                bar.advance(len(task))
+    finally:
+        for fut in pending:
+            fut.cancel()
+    return sorted(again)
 
 
 def _run_local(

@@ -9,7 +9,23 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import IdentifiabilityError, TrimagInputError
 
-__all__ = ["check_field", "check_reference_values"]
+__all__ = [
+    "MAX_NESTING", "MAX_READING", "WILD_FACTOR", "check_field", "check_nesting", "check_reference_values",
+    "describe_wild_rows", "load_json", "load_toml", "wild_rows",
+]
+
+#: A row whose magnitude is more than this many times the median magnitude of its samples is a glitch (a logger's
+#: bit flip, a spike, a unit change mid-log), not a field: hard and soft iron keep every real reading of a log
+#: within a few times its median (a hard iron as large as the field: 0-2 F around a median of 1.4 F; gains of 10:1:
+#: F-10 F around about 6 F).
+WILD_FACTOR = 10.0
+#: Largest value taken as a reading: beyond it, squares of magnitudes approach overflow (no sensor reads 1e150 in
+#: any unit).
+MAX_READING = 1e150
+#: Deepest nesting of lists and tables accepted in a JSON or TOML input (trimag's own files nest 5 deep); a deeper
+#: document is refused before Python's parsers recurse past their limit (a RecursionError was exit 1).
+MAX_NESTING = 64
+_MEDIAN_SAMPLES = 2048  # rows of the quick median that lets a log without wild rows skip the exact screen
 
 
 def check_field(
@@ -75,6 +91,12 @@ def check_field(
             f"`{name}` has {int(bad.sum())} row(s) with NaN or inf (first at row {int(np.argmax(bad))}); "
             "drop them first (the file readers do this and report the count)"
         )
+    wild = wild_rows(arr)
+    if wild.any():
+        raise TrimagInputError(
+            f"`{name}` has {describe_wild_rows(arr, wild)}; drop them first (the file readers drop and count such "
+            "rows)"
+        )
     if arr.shape[0] < min_samples:
         what = f" model {model!r}" if model else " this fit"
         raise IdentifiabilityError(
@@ -94,3 +116,99 @@ def check_reference_values(values: Any, n: int, *, name: str = "reference") -> N
     if not np.isfinite(arr).all() or (arr <= 0).any():
         raise TrimagInputError(f"`{name}` must be finite and positive (a field magnitude)")
     return arr
+
+
+def _norms(B: NDArray[np.float64], huge: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
+    """Row magnitudes, 0 for the rows in ``huge`` (their squares would overflow)."""
+    safe = B if huge is None or not huge.any() else np.where(huge[:, None], 0.0, B)
+    return np.sqrt(safe[:, 0] ** 2 + safe[:, 1] ** 2 + safe[:, 2] ** 2)
+
+
+def wild_rows(B: ArrayLike) -> NDArray[np.bool_]:
+    """Rows that are not magnetometer readings: a value beyond :data:`MAX_READING`, or a magnitude more than
+    :data:`WILD_FACTOR` times the median magnitude (of the other rows).
+
+    Parameters
+    ----------
+    B : array_like, shape (N, 3)
+        Finite field samples, any unit.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for a wild row. A log without one costs two passes and a median of 2048 rows (the exact screen runs
+        only when the largest value could make a row wild).
+    """
+    arr = np.asarray(B, dtype=np.float64)
+    n = len(arr)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    top = max(float(arr.max()), -float(arr.min()))
+    if top <= MAX_READING:
+        quick = float(np.median(_norms(arr[:: max(n // _MEDIAN_SAMPLES, 1)])))
+        if np.sqrt(3.0) * top <= 0.5 * WILD_FACTOR * quick:  # no row can be wild, with a factor 2 to spare
+            return np.zeros(n, dtype=bool)
+    huge = np.asarray((np.abs(arr) > MAX_READING).any(axis=1))
+    norms = _norms(arr, huge)
+    median = float(np.median(norms[~huge])) if not huge.all() else 0.0
+    return huge | (norms > WILD_FACTOR * median) if median > 0 else huge
+
+
+def describe_wild_rows(B: ArrayLike, wild: NDArray[np.bool_], row_label: str = "row", first: int | None = None) -> str:
+    """What the wild rows of ``B`` are, for a message: their count, the rule and the first one (its label
+    ``row_label first``, ``first`` defaulting to its 0-based position)."""
+    arr = np.asarray(B, dtype=np.float64)
+    k = int(np.argmax(wild))
+    huge = np.asarray((np.abs(arr) > MAX_READING).any(axis=1))
+    norms = _norms(arr, huge)
+    median = float(np.median(norms[~wild])) if not wild.all() else 0.0
+    if huge[k]:
+        what = f"a value beyond {MAX_READING:g}, not a magnetometer reading"
+    else:
+        what = f"|B| = {norms[k]:.4g}, {norms[k] / median:.0f}x the median"
+    return (f"{int(wild.sum())} row(s) whose |B| is more than {WILD_FACTOR:g}x the median |B| ({median:.4g}) or that "
+            f"hold a value beyond {MAX_READING:g} (not a magnetometer reading: a logging glitch), first at "
+            f"{row_label} {k if first is None else first} ({what})")
+
+
+def _nesting(text: str) -> int:
+    """Deepest nesting of ``[`` and ``{`` in JSON or TOML text, brackets inside strings counted too (an upper
+    bound: a deep string of brackets is refused as well, which no trimag file holds)."""
+    import re
+
+    depth = top = 0
+    for bracket in re.findall(r"[\[\]{}]", text):
+        depth = max(depth + (1 if bracket in "[{" else -1), 0)
+        top = max(top, depth)
+    return top
+
+
+def check_nesting(text: str, what: str, error: type[TrimagInputError] = TrimagInputError) -> None:
+    """Refuse JSON or TOML ``text`` nested deeper than :data:`MAX_NESTING` (``error``, its message starting with
+    ``what``)."""
+    if _nesting(text) > MAX_NESTING:
+        raise error(f"{what}: nested more than {MAX_NESTING} levels deep (lists or tables within each other); not a "
+                    "file trimag or a person wrote")
+
+
+def load_json(text: str, what: str, error: type[TrimagInputError] = TrimagInputError) -> Any:
+    """Parse JSON ``text``; malformed or nested deeper than :data:`MAX_NESTING` raises ``error`` (a
+    :class:`TrimagInputError`) starting with ``what``."""
+    import json
+
+    check_nesting(text, what, error)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{what}: not valid JSON ({exc})") from None
+
+
+def load_toml(text: str, what: str) -> dict[str, Any]:
+    """Parse TOML ``text`` (as :func:`load_json`)."""
+    import tomllib
+
+    check_nesting(text, what)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise TrimagInputError(f"{what}: not valid TOML ({exc})") from None

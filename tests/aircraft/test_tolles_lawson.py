@@ -266,3 +266,78 @@ def test_segment_consistency_shows_formal_sigmas_too_small_and_reported_ones_hol
     assert len(sc["pairs"]) == 3
     assert sc["rms_z_formal"] > 1.8  # white-noise sigmas understate the spread between segments
     assert 0.5 < sc["rms_z_reported"] < 1.8
+
+
+# ----------------------------------------------------------------- segments and gaps (issue 33, item 6)
+def _box_csv(path: Path, *, drop: slice | None = None, terms: str | None = None, scalar_scale: float = 1.0) -> Path:
+    sim = simulate_aircraft(60.0, seed=0, terms=terms)
+    cols = np.column_stack([sim.time_s, sim.vector_nT, sim.scalar_nT * scalar_scale])
+    if drop is not None:
+        cols = np.delete(cols, np.arange(len(cols))[drop], axis=0)
+    np.savetxt(path, cols, delimiter=",", header="time,fx,fy,fz,mag", comments="", fmt="%.6f")
+    return path
+
+
+def test_each_segment_reports_its_own_band_passed_spread(tmp_path: Path):
+    """--segments 0:100,100:300 with the default (near-collinear) terms: segment 0's std after compensation was
+    reported as 5.3 nT (4x worse than before) where the compensated, band-passed signal has 0.01 nT: the sums
+    behind the statistics cancelled catastrophically on coefficients of 4e9."""
+    from trimag.app.tolles_lawson import TollesLawsonFitRequest, fit_compensation_file, parse_segments
+
+    data = _box_csv(tmp_path / "box.csv")
+    comp, _ = fit_compensation_file(TollesLawsonFitRequest(
+        data=data, vector_columns=["fx", "fy", "fz"], scalar_column="mag", time_column="time",
+        segments=parse_segments("0:100,100:300"), bootstrap=0))
+    table = np.loadtxt(data, delimiter=",", skiprows=1)
+    assert len(comp.stats["segments"]) == 2
+    for seg in comp.stats["segments"]:
+        a, b = seg["rows"]
+        direct = float(np.std(comp.bandpass.apply(comp.apply(table[a:b, 1:4], table[a:b, 4]))))
+        assert seg["std_after_nT"] == pytest.approx(direct, rel=1e-6)
+        assert seg["std_after_nT"] < seg["std_before_nT"] / 50
+    assert np.abs(comp.coefficients).max() < 1e4  # the unidentified combinations are not fitted to noise
+
+
+def test_evaluate_and_apply_cut_the_compensation_at_time_gaps_as_the_fit_does(tmp_path: Path):
+    """A 0.5 s gap in the time column (5 rows lost in a turn): the fit cut its segments there, the evaluation and
+    apply differentiated across it and reported a 9x improvement where the fit had 170x."""
+    data = _box_csv(tmp_path / "gap.csv", drop=slice(700, 705), terms="p,i5,e8")
+    comp = tmp_path / "tl.json"
+    r = run_trimag("fit", data, "--model", "tolles-lawson", "--columns", "fx,fy,fz", "--scalar-column", "mag",
+                   "--time-column", "time", "--option", "terms=p,i5,e8", "-o", comp, "--json")
+    assert r.returncode == 0, r.stderr
+    fitted = json.loads(r.stdout)["stats"]["segments"]
+    assert [s["rows"] for s in fitted] == [[0, 700], [700, 2995]]
+    r = run_trimag("evaluate", comp, data, "--json")
+    assert r.returncode == 0, r.stderr
+    ev = json.loads(r.stdout)
+    assert ev["n_segments"] == 2
+    for seg, fit_seg in zip(ev["segments"], fitted, strict=True):
+        assert seg["improvement_ratio"] > 100
+        assert seg["std_after_nT"] == pytest.approx(fit_seg["std_after_nT"], rel=0.05)
+    out = tmp_path / "out.csv"
+    assert run_trimag("apply", comp, data, "-o", out).returncode == 0
+    import pandas as pd
+
+    table = np.loadtxt(data, delimiter=",", skiprows=1)
+    expected = ScalarCompensation.from_file(comp).apply(table[:, 1:4], table[:, 4], [(0, 700), (700, 2995)])
+    np.testing.assert_allclose(pd.read_csv(out)["mag_compensated"].to_numpy(), expected, rtol=0, atol=1e-6)
+
+
+def test_a_rate_the_band_cannot_be_filtered_at_is_refused(tmp_path: Path):
+    data = _box_csv(tmp_path / "box.csv", terms="p,i5,e8")
+    base = ["fit", data, "--model", "tolles-lawson", "--columns", "fx,fy,fz", "--scalar-column", "mag"]
+    r = run_trimag(*base, "--rate", "1e10")  # was a LinAlgError, exit 1
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "rate" in r.stderr and "Traceback" not in r.stderr and "internal error" not in r.stderr
+    r = run_trimag(*base, "--rate", "1e4")  # 3000 rows = 0.3 s: no segment holds one period of 0.1 Hz
+    assert r.returncode == 3 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "0.1 Hz" in r.stderr
+
+
+def test_a_scalar_in_another_unit_than_the_vector_is_refused(tmp_path: Path):
+    data = _box_csv(tmp_path / "box.csv", terms="p,i5,e8", scalar_scale=1e-3)  # scalar in uT, vector in nT
+    r = run_trimag("fit", data, "--model", "tolles-lawson", "--columns", "fx,fy,fz", "--scalar-column", "mag",
+                   "--time-column", "time")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "mag" in r.stderr and "unit" in r.stderr

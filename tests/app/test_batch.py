@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +201,136 @@ def test_cli_batch_fits_the_vector_model_with_attitudes(tmp_path: Path, capsys: 
         assert cal.model == "interference12" and cal.regressors is not None
         assert cal.regressors["eddy"]["rate_hz"] == pytest.approx(10.0)
         np.testing.assert_allclose(cal.offset, c, atol=5.0)
+
+
+# ------------------------------------------------ a worker that dies, the user's files, stale outputs (issue 33)
+def _worker_pids(parent: int) -> list[int]:
+    """The pool's worker processes under ``parent`` (spawned: ``multiprocessing.spawn``), not its resource
+    tracker."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == parent and "spawn_main" in cmdline:
+            pids.append(int(entry.name))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc to find the worker processes")
+def test_a_file_whose_worker_is_killed_is_reported_and_the_batch_finishes(tmp_path: Path) -> None:
+    """A file that kills its worker (the kernel's out-of-memory killer on 20 MB of one wide line in the issue)
+    stopped the batch: exit 1, no summary, a temporary folder left. Here every worker holding the culprit's
+    decompressed copy is killed, as the OOM killer would, each time the culprit is tried."""
+    import gzip
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from _helpers import trimag_command
+
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    for i in range(4):
+        _write_log(fleet / f"sensor{i}.csv", seed=i)
+    raw = simulate_ellipsoid(150_000, noise=20.0, seed=9)
+    with gzip.open(fleet / "culprit.csv.gz", "wt", compresslevel=1) as fh:
+        np.savetxt(fh, raw, delimiter=",", header="bx,by,bz", comments="", fmt="%.2f")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    out = tmp_path / "out"
+    proc = subprocess.Popen([*trimag_command(), "batch", str(fleet / "*"), "--out", str(out), "--workers", "2",
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "TMPDIR": str(scratch)})
+    kills = 0
+    seen: set[Path] = set()
+    deadline = time.monotonic() + 240
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            copies = set(scratch.glob("trimag-*/**/culprit.csv"))
+        except OSError:  # a folder removed while it was listed
+            copies = set()
+        for copy in copies - seen:  # a new try at the culprit
+            seen.add(copy)
+            for pid in _worker_pids(proc.pid):
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                    kills += 1
+                except ProcessLookupError:
+                    pass
+        time.sleep(0.02)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert kills >= 2, (kills, stderr)  # killed at the first try and again when tried alone
+    assert proc.returncode == 2, stderr
+    assert "Traceback" not in stderr and "internal error" not in stderr
+    summary = json.loads(stdout)
+    assert summary["n_files"] == 5 and summary["n_fitted"] == 4
+    assert [Path(f["file"]).name for f in summary["failed"]] == ["culprit.csv.gz"]
+    assert "died" in summary["failed"][0]["error"]
+    table = pd.read_csv(out / "summary.csv")
+    assert len(table) == 5 and all((out / f"sensor{i}.json").exists() for i in range(4))
+    assert not (out / "culprit.json").exists()
+    assert not list(scratch.iterdir())  # the batch's temporary folders are removed, the dead worker's too
+
+
+def test_a_file_that_cannot_be_read_or_written_is_an_input_error_as_in_fit(tmp_path: Path, fleet: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """An OSError (an unreadable file, an output that cannot be written) was an "internal error" in batch where
+    `fit` says exit 2."""
+    from trimag.app.batch import fit_one
+    from trimag.app.requests import FitRequest
+
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    row = fit_one((str(fleet / "sensor0.csv"), str(blocker / "sensor0.json")), FitRequest.of(""))
+    assert row["error_type"] == "input" and "cannot read or write" in row["error"], row
+    assert "internal error" not in row["error"]
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root reads a chmod-000 file")
+def test_a_chmod_000_file_exits_2_in_batch_as_in_fit(tmp_path: Path, fleet: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    locked = fleet / "sensor3.csv"
+    locked.chmod(0)
+    try:
+        assert main(["fit", str(locked), "-q"]) == 2
+        capsys.readouterr()
+        assert main(["batch", str(locked), "--out", str(tmp_path / "o")]) == 2
+        assert "internal error" not in capsys.readouterr().err
+    finally:
+        locked.chmod(0o644)
+
+
+def test_a_failing_file_leaves_no_stale_calibration(tmp_path: Path, fleet: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert main(["batch", str(fleet / "sensor*.csv"), "--out", str(out), "-q"]) == 0
+    assert (out / "sensor2.json").exists()
+    (fleet / "sensor2.csv").write_text("this is not\na magnetometer log\n", encoding="utf-8")
+    assert main(["batch", str(fleet / "sensor*.csv"), "--out", str(out), "-q"]) == 2
+    assert not (out / "sensor2.json").exists()  # the earlier run's calibration would pass for this input's
+    assert (out / "sensor1.json").exists()
+    table = pd.read_csv(out / "summary.csv")
+    assert table.loc[table["file"].str.endswith("sensor2.csv"), "error"].str.len().item() > 0
+
+
+def test_the_input_limits_hold_in_the_worker_processes(tmp_path: Path, fleet: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """--max-fields reaches the workers (the limits are a context of this process, handed to each task)."""
+    wide = fleet / "wide.csv"
+    wide.write_text(",".join(["note"] * 200) + "\n" + (fleet / "sensor0.csv").read_text(), encoding="utf-8")
+    out = tmp_path / "out"
+    argv = ["batch", str(wide), str(fleet / "sensor1.csv"), "--out", str(out), "--workers", "2", "--json"]
+    assert main([*argv, "--max-fields", "50"]) == 2
+    captured = capsys.readouterr()
+    failed = json.loads(captured.out)["failed"]
+    assert [Path(f["file"]).name for f in failed] == ["wide.csv"] and "more than 50" in failed[0]["error"]
+    assert "--max-fields" in captured.err
+    assert main(argv) == 0

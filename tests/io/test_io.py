@@ -345,3 +345,20 @@ def test_cli_non_utf8_geosoft_record_exits_2_with_one_line(tmp_path: Path) -> No
     r = run_trimag("fit", str(path))
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and "not UTF-8" in r.stderr
+
+
+def test_wild_rows_are_dropped_counted_and_named(tmp_path: Path) -> None:
+    """A row 1000x the others (a logger glitch) is dropped and counted like a NaN row, with its row number; `strict`
+    refuses it (issue 33, item 7)."""
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(300, 3))
+    B = 48000.0 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    B[57] *= 1000.0
+    B[200] = [1e308, 0.0, 0.0]
+    p = tmp_path / "wild.csv"
+    np.savetxt(p, B, delimiter=",", header="x,y,z", comments="", fmt="%.6g")
+    s = read_samples(p)
+    assert s.n_rows == 300 and s.n_dropped == 2 and s.n_wild == 2 and s.wild_index == [57, 200]
+    assert s.field.shape == (298, 3) and np.abs(s.field).max() < 50000
+    with pytest.raises(TrimagInputError, match="data row 57"):
+        read_samples(p, strict=True)

@@ -371,3 +371,13 @@ def test_threads_end_with_the_session(tmp_path):
     time.sleep(0.2)
     left = {t.name for t in threading.enumerate()} - before
     assert not {"trimag-live-fit", "trimag-live-http"} & left
+
+
+def test_a_value_no_sensor_reads_is_a_line_not_understood():
+    """``1e308`` on stdin reached the fit and ended in "LinAlgError: Eigenvalues did not converge" (issue 33)."""
+    p = LineParser()
+    assert p.parse("1e308,1e308,1e308") is None and p.parse("1,2,-1e200") is None
+    assert p.parse("1e12,2,3") == (1e12, 2.0, 3.0)
+    batches = list(line_source([b"1,2,3\n", b"1e308,1e308,1e308\n", b"4,5,6\n"]))
+    assert np.vstack([b.samples for b in batches]).tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert sum(b.n_garbage for b in batches) == 1

@@ -218,6 +218,9 @@ class ScalarCompensation:
     @classmethod
     def from_json(cls, text: str) -> ScalarCompensation:
         """Parse JSON text written by :meth:`to_json`."""
+        from ..validation import check_nesting
+
+        check_nesting(text, "compensation file", CalibrationFormatError)
         try:
             return cls.from_dict(json.loads(text))
         except json.JSONDecodeError as exc:

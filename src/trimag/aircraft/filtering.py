@@ -12,12 +12,18 @@ Conventions (docs/method-tolles-lawson.md, "The filter"):
   ``filtfilt`` pad length for second-order sections) with scipy's steady-state initial conditions; then
   ``trim`` samples are dropped at each end of every filtered segment (MagNav default 20) where the transient
   of the filter remains.
-- A segment too short to filter (fewer than ``3 * pad + 2 * trim + 1`` samples) is skipped and counted.
+- A segment too short to filter is skipped and counted: it needs ``3 * pad + 2 * trim + 1`` samples for the edges,
+  and one period of the band's low edge (``rate / low`` samples): a shorter one holds no cycle of the band, only the
+  filter's transient.
+- The rate must be at most ``1e6`` times the band's low edge (with the default 0.1 Hz: 200 kHz, far above any
+  survey's): beyond it the Butterworth sections lose their precision (at 1e7 the pass-band gain is 0.3 % off, at
+  1e8 the filter's initial conditions are singular).
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,6 +33,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import TrimagInputError
 
 __all__ = ["BandPass", "finite_runs", "split_segments"]
+
+#: the band's low edge must be at least this fraction of the Nyquist frequency (see the module's conventions)
+_MIN_RELATIVE_LOW = 1e-6
 
 
 @dataclass(frozen=True)
@@ -60,6 +69,12 @@ class BandPass:
                 f"the pass band must satisfy 0 < low < high < rate/2 = {nyquist:g} Hz; "
                 f"got {self.low_hz:g}-{self.high_hz:g} Hz"
             )
+        if self.low_hz < _MIN_RELATIVE_LOW * nyquist:
+            raise TrimagInputError(
+                f"a sample rate of {self.rate_hz:g} Hz is {self.rate_hz / self.low_hz:.3g}x the pass band's low edge "
+                f"{self.low_hz:g} Hz: no filter can be computed that narrow (at most {2 / _MIN_RELATIVE_LOW:.0e}x); "
+                "check `rate_hz` (or the time column's unit: seconds)"
+            )
         if self.poles < 1 or self.trim < 0:
             raise TrimagInputError("the filter needs poles >= 1 and trim >= 0")
 
@@ -78,8 +93,9 @@ class BandPass:
 
     @property
     def min_length(self) -> int:
-        """Shortest segment that is filtered (shorter ones are skipped)."""
-        return 3 * self.pad + 2 * self.trim + 1
+        """Shortest segment that is filtered (shorter ones are skipped): the filter's edges, and at least one period
+        of the band's low edge."""
+        return max(3 * self.pad + 2 * self.trim + 1, math.ceil(self.rate_hz / self.low_hz))
 
     def apply(self, x: ArrayLike) -> NDArray[np.float64]:
         """Filter one contiguous segment along axis 0 and drop ``trim`` samples at each end.

@@ -22,7 +22,8 @@ def check_unit(
     """The data's unit, checked against the column headers (issue 22): a unit in the headers that contradicts
     ``units`` is refused (exit 2); without ``units`` it is used. Whether the unit is plausible is judged after the
     fit, on the fitted field (:func:`check_fitted_field`): the raw magnitudes include the hard iron (a phone's is
-    ~10 x the Earth's field), so they cannot tell a unit (issue 32)."""
+    ~10 x the Earth's field), so they cannot tell a unit (issue 32). They can tell a reference that is too large:
+    a median below 1/5 of the reference is refused before the fit (:func:`refuse_below_reference`, issue 33)."""
     from ..units import header_unit
 
     messages: list[str] = []
@@ -36,6 +37,9 @@ def check_unit(
         if units is None:
             units = in_header
             messages.append(f"unit {in_header} (from the column headers)")
+    if len(samples.field):  # raw magnitudes never fall far below the field, hard iron or not (issue 33)
+        median = float(np.median(np.linalg.norm(samples.field, axis=1)))
+        refuse_below_reference(median, normalise_unit(units), reference, igrf_spec)
     return units, messages
 
 
@@ -49,6 +53,29 @@ def check_log_unit(units: str | None, log_info: dict[str, Any] | None, columns: 
             f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
         )
     return units or str(log_info["unit"])
+
+
+def refuse_below_reference(median: float, unit: str, reference: str | float | None, igrf_spec: str | None) -> None:
+    """Refuse raw data whose median magnitude is below 1/5 of the reference, whatever the unit and even inside the
+    Earth range (issue 33: 6.9x below was accepted). Raw magnitudes do not fall below the field: over the
+    directions of a turn ``|F u + h|`` has a median of ``sqrt(F^2 + |h|^2) >= F``; hard iron only adds (which is why
+    data far above the reference are not refused here)."""
+    from ..units import nT_per_unit
+
+    F: float | None = None
+    if reference is not None and str(reference).strip().lower() != "mean":
+        try:
+            F = float(reference)  # in the data's unit
+        except ValueError:
+            F = None
+    elif igrf_spec is not None and unit not in ("unknown", "counts"):
+        F = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT) / nT_per_unit(unit)
+    if F is not None and F > 0 and median < 0.2 * F:
+        shown = f" {unit}" if unit not in ("unknown", "counts") else ""
+        raise TrimagInputError(
+            f"the data's median |B| is {median:.6g}{shown}, {median / F:.3g}x the reference field ({F:.6g}{shown}): "
+            "raw magnitudes are never that far below the field; the reference or the data's unit is wrong"
+        )
 
 
 def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = False) -> list[str]:

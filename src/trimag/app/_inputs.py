@@ -18,6 +18,7 @@ from ..fields.reference import ScalarReference, as_scalar_reference, igrf, igrf_
 from ..io import Samples, column_values
 from ..io.tables import strict_refusal
 from ..units import convert
+from ..validation import check_nesting
 from .requests import AttitudeSpec, ReferenceSpec
 
 
@@ -28,6 +29,7 @@ def parse_options(items: list[str] | None) -> dict[str, Any]:
         if "=" not in item:
             raise TrimagInputError(f"`option` takes KEY=VALUE (e.g. `option form=symmetric`); got {item!r}")
         key, value = item.split("=", 1)
+        check_nesting(value, f"`option {key.strip()}`")
         try:
             out[key.strip()] = json.loads(value)
         except json.JSONDecodeError:

@@ -9,6 +9,12 @@ A file that cannot be read or fitted gets a row with its error; the others go on
 The work runs through :func:`trimag.parallel.map_trials`: in this process (``workers=1``), on a local pool of
 worker processes (``workers > 1``, nothing to start, no Dask needed), or on a ``dask.distributed`` cluster
 (``scheduler=ADDRESS``, the ``batch`` extra; the workers must see the same file system paths).
+
+A worker process that dies (the kernel's out-of-memory killer, a crash in a C library) costs only the file it was
+fitting: that file's row says so, the others are fitted, the summary is written (issue 33, item 4). The input limits
+in force (:mod:`trimag.io.limits`) hold in every worker; decompressed copies go to a temporary folder of this
+process, removed at the end whatever happened to the workers. A file that fails leaves no calibration in the output
+folder (an earlier run's is removed: it would pass for this input's).
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ from __future__ import annotations
 import dataclasses
 import glob
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -25,8 +33,9 @@ from typing import Any
 
 import pandas as pd
 
-from ..errors import IdentifiabilityError, TrimagError, TrimagInputError
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, out_of_memory_message
 from ..io.atomic import atomic_path, atomic_write_text
+from ..io.limits import InputLimits, current_limits, input_limits
 from .requests import FitRequest
 
 __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs", "fit_batch", "fit_one"]
@@ -131,15 +140,46 @@ def calibration_names(files: Sequence[Path]) -> list[str]:
     return names
 
 
-def _error_type(exc: BaseException) -> str:
+def _failure(exc: BaseException) -> tuple[str, str]:
+    """The row's ``error`` and ``error_type`` of a file that failed: what ``trimag fit`` would say and its exit
+    code's kind (an unreadable file, an unwritable output, not enough memory: the user's input, exit 2)."""
     if isinstance(exc, IdentifiabilityError):
-        return "identifiability"
-    if isinstance(exc, TrimagInputError):
-        return "input"
-    return "internal"
+        return str(exc), "identifiability"
+    if isinstance(exc, TrimagError):
+        return str(exc), "input" if isinstance(exc, TrimagInputError) else "internal"
+    if isinstance(exc, UnicodeDecodeError):
+        return "the file is not UTF-8 text; save it as UTF-8", "input"
+    if isinstance(exc, OSError):
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        return f"cannot read or write{where}: {exc.strerror or exc}", "input"
+    if isinstance(exc, MemoryError):
+        return out_of_memory_message("this file"), "input"
+    return f"internal error (a bug in trimag, not a problem with this file): {type(exc).__name__}: {exc}", "internal"
 
 
-def fit_one(job: tuple[str, str], request: FitRequest | None = None, **fit_options: Any) -> dict[str, Any]:
+def _worker_died(job: tuple[str, str]) -> dict[str, Any]:
+    """The row of a file whose worker process died while fitting it alone (``map_trials``' ``worker_died``)."""
+    row: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS)
+    row.update(file=job[0], warnings="", error_type="input", seconds=float("nan"), error=(
+        "the worker process fitting this file died (killed by the system, most often for lack of memory): fit it "
+        "alone with `trimag fit` to see what it needs, or lower the input limits (--max-fields, "
+        "--max-decompressed-mb)"))
+    _remove_stale(job[1])
+    return row
+
+
+def _remove_stale(out: str) -> None:
+    """Remove an earlier run's calibration of a file that failed now (a regular file only)."""
+    path = Path(out)
+    try:
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+    except OSError:
+        pass
+
+
+def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: InputLimits | None = None,
+            scratch: str | None = None, **fit_options: Any) -> dict[str, Any]:
     """Fit one file and write its calibration; never raises (a failure becomes the row's ``error``).
 
     Parameters
@@ -148,6 +188,10 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, **fit_optio
         Input path and output calibration path.
     request : FitRequest, optional
         The fit asked for every file (its input's path and its ``out`` are replaced by the job's).
+    limits : InputLimits, optional
+        The input limits to read with (:mod:`trimag.io.limits`; default: those in force).
+    scratch : str, optional
+        Folder for the file's decompressed copy (a new folder in it, removed when the file is done).
     **fit_options
         Without ``request``: keyword arguments of :func:`trimag.app.fit_file` (model, method, options, units,
         reference, ...).
@@ -161,14 +205,17 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, **fit_optio
     t0 = time.perf_counter()
     row: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS)
     row.update(file=path, warnings="", error="", error_type="")
+    limits = limits or current_limits()
     try:
+        from ..io.normalise import scratch_folder
         from . import fit_file  # the public entry (monkeypatched by the tests)
 
-        if request is not None:
-            one = dataclasses.replace(request, input=dataclasses.replace(request.input, path=path), out=out)
-            result = fit_file(one, **fit_options)
-        else:
-            result = fit_file(path, out=out, **fit_options)
+        with input_limits(limits.max_fields, limits.max_decompressed_mb), scratch_folder(scratch):
+            if request is not None:
+                one = dataclasses.replace(request, input=dataclasses.replace(request.input, path=path), out=out)
+                result = fit_file(one, **fit_options)
+            else:
+                result = fit_file(path, out=out, **fit_options)
         s = result.summary
         row.update(
             n=s.get("n_samples"), n_used=s.get("n_used"), rms_before=s.get("rms_before"),
@@ -176,9 +223,9 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, **fit_optio
             warnings="; ".join(s.get("warnings") or []), calibration=out,
         )
     except Exception as exc:
-        message = str(exc) if isinstance(exc, TrimagError) else \
-            f"internal error (a bug in trimag, not a problem with this file): {type(exc).__name__}: {exc}"
-        row.update(error=message or type(exc).__name__, error_type=_error_type(exc))
+        message, kind = _failure(exc)
+        row.update(error=message or type(exc).__name__, error_type=kind)
+        _remove_stale(out)
     row["seconds"] = time.perf_counter() - t0
     return row
 
@@ -271,11 +318,15 @@ def fit_batch(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(str(f), str(out / f"{name}.json")) for f, name in zip(files, calibration_names(files), strict=True)]
-    task = partial(fit_one, request=request)
+    scratch = tempfile.mkdtemp(prefix="trimag-batch-")  # this process's: removed even when a worker is killed
+    task = partial(fit_one, request=request, limits=current_limits(), scratch=scratch)
     t0 = time.perf_counter()
-    rows = map_trials(task, jobs, workers=workers, scheduler=scheduler,
-                      progress="batch fits" if progress is True else progress, chunksize=chunksize,
-                      backend=backend)
+    try:
+        rows = map_trials(task, jobs, workers=workers, scheduler=scheduler,
+                          progress="batch fits" if progress is True else progress, chunksize=chunksize,
+                          backend=backend, worker_died=_worker_died)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     seconds = time.perf_counter() - t0
     table = _table(rows)
     written = {

@@ -73,6 +73,7 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
         "n_samples": samples.n_rows if samples is not None else s.get("n_samples"),
         "n_used": s.get("n_used"),
         "n_dropped": samples.n_dropped if samples is not None else 0,
+        "n_wild": samples.n_wild if samples is not None else 0,
         "n_duplicates": samples.n_duplicates if samples is not None else None,
         "reference": d["reference"],
         "rms_before": s.get("rms_before"),
@@ -433,11 +434,13 @@ def _reading_messages(samples: Samples) -> list[str]:
         messages.append(samples.format_note)
     if samples.selection:
         messages.append(f"selected {samples.n_rows} of {samples.n_total_rows} rows ({samples.selection})")
-    if samples.n_dropped:
+    if samples.n_dropped - samples.n_wild:
         messages.append(
-            f"dropped {samples.n_dropped} of {samples.n_rows} rows with missing, non-numeric, NaN or inf "
-            f"x/y/z values (first at data row {samples.dropped_index[0]}; use `strict` to refuse them)"
+            f"dropped {samples.n_dropped - samples.n_wild} of {samples.n_rows} rows with missing, non-numeric, NaN or "
+            f"inf x/y/z values (first at data row {samples.dropped_index[0]}; use `strict` to refuse them)"
         )
+    if samples.n_wild:
+        messages.append(f"dropped {samples.wild_note}; use `strict` to refuse them")
     if samples.n_duplicates:
         messages.append(f"{samples.n_duplicates} rows repeat an earlier x/y/z exactly (kept)")
     return messages

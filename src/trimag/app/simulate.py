@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import TrimagInputError
 from ..io.atomic import atomic_write_text
 from ..units import normalise_unit
+from ..validation import load_json
 from .requests import SimulateRequest
 
 __all__ = ["simulate_to_file"]
@@ -34,10 +35,7 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
     p = Path(req.params_path)
     if not p.is_file():
         raise TrimagInputError(f"{p}: no such parameter file (JSON object of model parameters)")
-    try:
-        params = json.loads(p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise TrimagInputError(f"{p}: not valid JSON ({exc})") from None
+    params = load_json(p.read_text(encoding="utf-8"), str(p))
     if isinstance(params, dict) and "params" in params and isinstance(params["params"], dict):
         params = params["params"]
     if n < 1:

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from .._core.extras import require
 from ..aircraft.compensation import ScalarCompensation
-from ..aircraft.filtering import BandPass, finite_runs, split_segments
+from ..aircraft.filtering import BandPass, split_segments
 from ..errors import TrimagInputError
 from ..estimators.tolles_lawson import fit_tolles_lawson, manoeuvre_content, segment_std
 from ..io.atomic import atomic_write_text
@@ -160,7 +160,27 @@ def _read_series(
     factor = _unit_factor(units)
     vector = np.column_stack([_column(df, c, "vector magnetometer") for c in vector_columns]) * factor
     scalar = _column(df, scalar_column, "scalar magnetometer") * factor
+    _check_same_unit(vector, scalar, vector_columns, scalar_column)
     return df, vector, scalar
+
+
+def _check_same_unit(vector: NDArray[np.float64], scalar: NDArray[np.float64], vector_columns: Sequence[str],
+                     scalar_column: str) -> None:
+    """Refuse a scalar and a vector magnetometer in different units: both read the same Earth field, so their
+    magnitudes agree to a few percent (the aircraft's field is hundreds of nT); beyond 2x they are not in one unit
+    (a scalar in uT beside a vector in nT was fitted, with coefficients 1000x off)."""
+    ok = np.isfinite(vector).all(axis=1) & np.isfinite(scalar)
+    if not ok.any():
+        return
+    m_scalar = float(np.median(np.abs(scalar[ok])))
+    m_vector = float(np.median(np.linalg.norm(vector[ok], axis=1)))
+    if m_vector > 0 and m_scalar > 0 and 0.5 <= m_scalar / m_vector <= 2.0:
+        return
+    raise TrimagInputError(
+        f"the scalar magnetometer {scalar_column!r} reads {m_scalar:.6g} (median) where the vector magnetometer "
+        f"{', '.join(map(str, vector_columns))} reads |B| = {m_vector:.6g}: they measure the same field, so they are "
+        "not in the same unit; convert one of the columns (both in nT, or both in the unit given by `units`)"
+    )
 
 
 def fit_compensation_file(request: TollesLawsonFitRequest) -> tuple[ScalarCompensation, list[str]]:
@@ -211,18 +231,39 @@ def is_compensation_file(path: str | Path) -> bool:
     return '"trimag-compensation"' in head
 
 
+@dataclass
+class _Compensated:
+    """A data file compensated: its table, series (nT), time axis, rate and the segments the compensation ran on."""
+
+    df: pd.DataFrame
+    vector: NDArray[np.float64]
+    scalar: NDArray[np.float64]
+    compensated: NDArray[np.float64]
+    scalar_column: str
+    time_s: NDArray[np.float64]
+    rate_hz: float
+    ok: NDArray[np.bool_]
+
+
 def _compensate(comp: ScalarCompensation, data: Path, fmt: str | None, var: str | None,
-                columns: Sequence[str] | None, scalar_column: str | None, units: str | None
-                ) -> tuple[pd.DataFrame, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], str]:
+                columns: Sequence[str] | None, scalar_column: str | None, units: str | None,
+                time_column: str | None = None, rate_hz: float | None = None) -> _Compensated:
+    """Read ``data`` and compensate it, segment by segment as the fit cut them: at missing rows and at gaps in the
+    time (``time_column``, default the one the fit recorded when the data have it; else rows at ``rate_hz``,
+    default the fit's rate), so that no derivative of the eddy-current terms spans a gap."""
     vec_cols = list(columns) if columns else list(comp.sensors.get("vector_columns") or [])
     s_col = scalar_column or comp.sensors.get("scalar_column")
     if not vec_cols or not s_col:
         raise TrimagInputError("name the vector columns (columns) and the scalar column (scalar_column)")
     unit = units if units is not None else comp.sensors.get("input_units")
     df, vector, scalar = _read_series(data, fmt, var, vec_cols, str(s_col), unit)
+    if time_column is None:
+        recorded = comp.sensors.get("time_column")
+        time_column = recorded if recorded is not None and str(recorded) in map(str, df.columns) else None
+    t, rate = _time_axis(df, time_column, rate_hz or (None if time_column else comp.bandpass.rate_hz))
     ok = np.isfinite(vector).all(axis=1) & np.isfinite(scalar)
-    compensated = comp.apply(vector, scalar, finite_runs(ok))
-    return df, vector, scalar, compensated, str(s_col)
+    compensated = comp.apply(vector, scalar, split_segments(ok, t, None, max_gap_s=1.5 / rate))
+    return _Compensated(df, vector, scalar, compensated, str(s_col), t, rate, ok)
 
 
 def apply_compensation_file(
@@ -235,8 +276,8 @@ def apply_compensation_file(
     out_kind = guess_format(out_p) if out_p.suffix else "csv"
     if out_kind == "parquet":  # before the work
         require("pyarrow.parquet", "writing Parquet files")
-    df, _, _, compensated, s_col = _compensate(comp, data_p, fmt, var, columns, scalar_column, units)
-    name = f"{s_col}_compensated"
+    c = _compensate(comp, data_p, fmt, var, columns, scalar_column, units)
+    df, compensated, name = c.df, c.compensated, f"{c.scalar_column}_compensated"
     n_bad = int((~np.isfinite(compensated)).sum())
     if out_kind in ("csv", "txt") and guess_format(data_p, fmt) in ("csv", "txt"):
         _write_text_with_column(data_p, out_p, df, name, compensated)
@@ -294,16 +335,17 @@ def evaluate_compensation_file(
     """Band-passed std of the scalar before and after compensation, per segment, and the improvement ratio."""
     comp = ScalarCompensation.from_file(comp_path)
     data_p = Path(data)
-    df, vector, scalar, compensated, s_col = _compensate(comp, data_p, fmt, var, columns, scalar_column, units)
-    tcol = time_column if time_column is not None else comp.sensors.get("time_column")
-    t, rate = _time_axis(df, tcol, rate_hz or (None if tcol else comp.bandpass.rate_hz))
+    c = _compensate(comp, data_p, fmt, var, columns, scalar_column, units,
+                    time_column if time_column is not None else comp.sensors.get("time_column"), rate_hz)
+    df, vector, scalar, compensated, s_col, t, rate = (c.df, c.vector, c.scalar, c.compensated, c.scalar_column,
+                                                       c.time_s, c.rate_hz)
     if abs(rate - comp.bandpass.rate_hz) > 0.01 * comp.bandpass.rate_hz:
         raise TrimagInputError(
             f"the data are sampled at {rate:g} Hz but the compensation was fitted at {comp.bandpass.rate_hz:g} Hz "
             "(its eddy-current terms are per sample): resample the data or refit"
         )
     bp = BandPass(comp.bandpass.low_hz, comp.bandpass.high_hz, rate, comp.bandpass.poles, comp.bandpass.trim)
-    ok = np.isfinite(vector).all(axis=1) & np.isfinite(scalar)
+    ok = c.ok
     segs = split_segments(ok, t, parse_segments(segments), max_gap_s=1.5 / rate)
     before = segment_std(scalar, segs, bp)
     after = segment_std(compensated, segs, bp)

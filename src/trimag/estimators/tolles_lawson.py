@@ -10,6 +10,15 @@ segment and trimmed (:class:`trimag.aircraft.filtering.BandPass`), then stacked 
 stacked rows cut into ``k`` contiguous blocks; each block predicted from the others; lambda minimising the
 held-out error on a log grid). The compensated scalar is ``S - A c`` (the unfiltered design).
 
+Near-collinear terms (MagNav's default 18 terms hold two sums the band-passed data barely see: ``ind_xx + ind_yy +
+ind_zz`` and the eddy one) make ``A_f' A_f + lambda I`` numerically singular; its solve then returned coefficients
+of 1e9 fitted to rounding noise (issue 33, item 6). The system is solved with its columns scaled to unit diagonal;
+when the ratio of its smallest to largest eigenvalue is below 1e-12 the directions under that ratio are left out
+(the minimum-norm least-squares solution: their combinations are not identified, the collinear-terms warning says
+so). The band-passed standard deviations reported after compensation, per segment and overall, are those of the
+compensated signal ``S - A c`` band-passed segment by segment, not differences of the block sums (which cancel
+catastrophically on large coefficients).
+
 Uncertainty. The formal covariance ``s^2 H^-1 A_f'A_f H^-1`` (``H = A_f'A_f + lambda I``, ``s^2`` the residual
 variance) assumes white residuals; band-passed residuals are strongly correlated and the aircraft's field is
 not exactly the model, so the formal sigmas understate the spread between calibration segments. A moving-block
@@ -137,21 +146,31 @@ def filtered_sums(
     if not used:
         raise IdentifiabilityError(
             f"no segment is long enough for the band-pass filter (each needs >= {bandpass.min_length} samples "
-            f"= {bandpass.min_length / bandpass.rate_hz:.0f} s at {bandpass.rate_hz:g} Hz without gaps); "
-            "record longer calibration manoeuvres or give longer segments"
+            f"= {bandpass.min_length / bandpass.rate_hz:.3g} s at {bandpass.rate_hz:g} Hz without gaps: the filter's "
+            f"edges and one period of the band's low edge {bandpass.low_hz:g} Hz); record longer calibration "
+            "manoeuvres or give longer segments (or check the rate)"
         )
     G, g, yy, y_sum, A_sum, counts = (np.concatenate([part[k] for part in parts]) for k in range(6))
     return FilteredSums(G, g, yy, y_sum, A_sum, counts.astype(np.int64), np.concatenate(owner), used, n_skip,
                         n_skip_rows)
 
 
+#: smallest eigenvalue ratio of the scaled normal equations solved as they are (see the module docstring)
+_RCOND = 1e-12
+
+
 def _solve_gram(G: NDArray[np.float64], g: NDArray[np.float64], lam: float) -> NDArray[np.float64]:
-    """Ridge normal equations ``(G + lam I) c = g`` (least squares when singular)."""
+    """Ridge normal equations ``(G + lam I) c = g``, columns scaled to unit diagonal; directions whose eigenvalue is
+    below :data:`_RCOND` of the largest are left out (minimum-norm least squares)."""
     H = G + lam * np.eye(G.shape[0]) if lam else G
-    try:
+    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    d[d == 0] = 1.0
+    Hn = H / np.outer(d, d)
+    w, V = np.linalg.eigh(Hn)
+    if w[0] > _RCOND * w[-1]:  # well conditioned: the plain solve
         return np.asarray(np.linalg.solve(H, g), dtype=np.float64)
-    except np.linalg.LinAlgError:
-        return np.asarray(np.linalg.lstsq(H, g, rcond=None)[0], dtype=np.float64)
+    keep = w > _RCOND * w[-1]
+    return np.asarray(V[:, keep] @ ((V[:, keep].T @ (g / d)) / w[keep]) / d, dtype=np.float64)
 
 
 def _cv_lambda(sums: FilteredSums, folds: int = 5) -> tuple[float, dict[str, Any]]:
@@ -371,9 +390,10 @@ def fit_tolles_lawson(
     coef = _solve_gram(G_all, g_all, lam)
     uncertainty = _coefficient_uncertainty(sums, coef, lam, model_terms.names, int(bootstrap), bootstrap_block_s,
                                            block_rows, seed)
-    stats = _fit_stats(B, ok, sums, coef, None if attitude_deg is None else np.asarray(attitude_deg, dtype=float))
+    stats = _fit_stats(B, S, ok, sums, coef, model_terms, bandpass,
+                       None if attitude_deg is None else np.asarray(attitude_deg, dtype=float))
     diagnostics = _fit_diagnostics(sums, model_terms, lam, cv_info, int(bootstrap), seed,
-                                   stats["std_before_nT"], stats["std_after_nT"])
+                                   stats["std_before_nT"], stats["std_after_nT"], stats["segments"])
     return ScalarCompensation(
         terms=model_terms, coefficients=coef, bandpass=bandpass, ridge=lam, sensors=dict(sensors or {}),
         uncertainty=uncertainty, stats=stats, diagnostics=diagnostics,
@@ -437,21 +457,25 @@ def _coefficient_uncertainty(
 
 
 def _fit_stats(
-    B: NDArray[np.float64], ok: NDArray[np.bool_], sums: FilteredSums, coef: NDArray[np.float64],
-    att: NDArray[np.float64] | None,
+    B: NDArray[np.float64], S: NDArray[np.float64], ok: NDArray[np.bool_], sums: FilteredSums,
+    coef: NDArray[np.float64], terms: TollesLawsonTerms, bandpass: BandPass, att: NDArray[np.float64] | None,
 ) -> dict[str, Any]:
     """Sample counts, band-passed std before and after compensation (nT), overall and per segment with its
-    manoeuvre content."""
+    manoeuvre content. After: of the compensated signal band-passed segment by segment (see the module
+    docstring)."""
     per_segment = []
+    moments = np.zeros(3)  # n, sum, sum of squares of every segment's band-passed compensated signal
     for k, (start, stop) in enumerate(sums.segments):
         mask = sums.segment_of_block == k
-        sb, sa = sums.residual_std(None, mask), sums.residual_std(coef, mask)
+        residual = bandpass.apply(S[start:stop] - terms.design(B[start:stop], S[start:stop]) @ coef)
+        moments += np.array([len(residual), residual.sum(), residual @ residual])
+        sb, sa = sums.residual_std(None, mask), float(np.std(residual))
         entry: dict[str, Any] = {"rows": [start, stop], "n": stop - start, "std_before_nT": sb, "std_after_nT": sa,
                                  "improvement_ratio": (sb / sa) if sa > 0 else None}
         entry.update(manoeuvre_content(B[start:stop], None if att is None else att[start:stop]))
         per_segment.append(entry)
     y_std = sums.residual_std(None)
-    r_std = sums.residual_std(coef)
+    r_std = float(np.sqrt(max(moments[2] / moments[0] - (moments[1] / moments[0]) ** 2, 0.0)))
     return {
         "n_samples": len(B),
         "n_used": int(sum(b - a for a, b in sums.segments)),
@@ -468,7 +492,7 @@ def _fit_stats(
 
 def _fit_diagnostics(
     sums: FilteredSums, model_terms: TollesLawsonTerms, lam: float, cv_info: dict[str, Any] | None,
-    bootstrap: int, seed: int, y_std: float, r_std: float,
+    bootstrap: int, seed: int, y_std: float, r_std: float, segments: list[dict[str, Any]],
 ) -> dict[str, Any]:
     """Term kinds, collinearity, the ridge cross-validation, segment consistency and the warnings of a fit."""
     diagnostics: dict[str, Any] = {"term_kinds": {g: TERM_KINDS[g] for g in model_terms.terms}}
@@ -486,5 +510,12 @@ def _fit_diagnostics(
         )
     if y_std > 0 and r_std >= y_std:
         warnings_list.append("the compensation does not reduce the band-passed scalar: check the columns and units")
+    worse = [k for k, seg in enumerate(segments) if seg["std_after_nT"] >= seg["std_before_nT"] > 0]
+    if worse and not r_std >= y_std:
+        warnings_list.append(
+            f"the compensation does not reduce the band-passed scalar of segment(s) {', '.join(map(str, worse))}: "
+            "they do not behave as the others (another aircraft configuration, a disturbance); fit them apart or "
+            "leave them out with `segments`"
+        )
     diagnostics["warnings"] = warnings_list
     return diagnostics

@@ -68,7 +68,7 @@ def is_geosoft_xyz(path: str | Path) -> bool:
     try:
         with p.open("r", encoding="utf-8", errors="replace") as fh:
             for _ in range(50):
-                line = fh.readline()
+                line = fh.readline(1 << 16)  # bounded: a line without end is not read whole (trimag.io.limits)
                 if not line:
                     return False
                 if line.strip():

@@ -89,6 +89,11 @@ class Samples:
     log_info: dict[str, Any] | None = None
     #: what the file's format told besides the rows (e.g. a Geosoft XYZ file's line records and `*` nulls)
     format_note: str = ""
+    #: rows dropped as wild (:func:`trimag.validation.wild_rows`: a glitch, not a field; counted in ``n_dropped``),
+    #: their 0-based data-row numbers (first 1000) and what they were
+    n_wild: int = 0
+    wild_index: list[int] = dataclasses.field(default_factory=list)
+    wild_note: str = ""
 
 
 def detect_format(path: str | Path, fmt: str | None = None) -> str:
@@ -206,12 +211,14 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     The data block starts at the first line with >= 3 fields that is followed by a line with the same number of
     fields, mostly numeric; the line before the numbers is a header if it is not numeric itself.
     """
+    from .limits import current_limits, read_head_lines
+    from .normalise import source_name
+
     p = Path(path)
-    with p.open("r", encoding="utf-8", errors="replace", newline="") as fh:
-        head = [fh.readline() for _ in range(200)]
-    lines = [ln.rstrip("\r\n") for ln in head if ln != ""]
+    where = source_name(p)
+    lines = [ln.rstrip("\r\n") for ln in read_head_lines(p, 200, where=where)]
     if not any(ln.strip() for ln in lines):
-        raise TrimagInputError(f"{p}: the file is empty; it needs a header (optional) and rows of x, y, z values")
+        raise TrimagInputError(f"{where}: the file is empty; it needs a header (optional) and rows of x, y, z values")
     sample = "\n".join(lines[:50])
     if fmt == "txt" and "," not in sample and ";" not in sample and "\t" not in sample:
         delimiter: str | None = None
@@ -219,6 +226,12 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
         counts = {d: sample.count(d) for d in (",", ";", "\t")}
         best = max(counts, key=lambda d: counts[d])
         delimiter = best if counts[best] > 0 else None
+    limits = current_limits()
+    for k, line in enumerate(lines):  # a line of more fields than allowed is never made into columns
+        if (line.count(delimiter) + 1 if delimiter else len(line.split())) > limits.max_fields:
+            n_fields = len(_split(line, delimiter))
+            if n_fields > limits.max_fields:
+                raise limits.too_many_fields(where, k + 1, n_fields)
     # lines are split only as far as the search needs (the data usually start within the first few lines)
     split: list[list[str] | None] = [None] * len(lines)
 
@@ -244,7 +257,7 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
             if numeric_before:  # rows of numbers before the data block: a malformed row, never skipped silently
                 bad = next((k for k in range(numeric_before[0], i) if len(row(k)) != len(fields)), numeric_before[0])
                 raise TrimagInputError(
-                    f"{p}: line {bad + 1} has {len(row(bad))} fields where the data rows have {len(fields)}; "
+                    f"{where}: line {bad + 1} has {len(row(bad))} fields where the data rows have {len(fields)}; "
                     "fix or remove that line"
                 )
             plain = _plain_numbers(lines[i : i + _PLAIN_LINES], delimiter)
@@ -258,13 +271,13 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     narrow = [r for r in rows if r and all(_is_number(t) for t in r)]
     if narrow:
         raise TrimagInputError(
-            f"{p}: rows have only {max(len(r) for r in narrow)} numeric column(s); a magnetometer log needs "
+            f"{where}: rows have only {max(len(r) for r in narrow)} numeric column(s); a magnetometer log needs "
             "three (x, y, z)"
         )
     widths = [len(r) for r in rows if r]
     if len(rows) and widths and len([r for r in rows if r]) == 1:
-        raise TrimagInputError(f"{p}: the file has a header but no data rows")
-    raise TrimagInputError(f"{p}: no rows of numbers found; expected columns of x, y, z field values")
+        raise TrimagInputError(f"{where}: the file has a header but no data rows")
+    raise TrimagInputError(f"{where}: no rows of numbers found; expected columns of x, y, z field values")
 
 
 def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
@@ -286,7 +299,10 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
         if df is None:
             df = pd.read_csv(path, **kwargs)
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise TrimagInputError(f"{path}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
+        from .normalise import source_name
+
+        raise TrimagInputError(f"{source_name(path)}: cannot parse as delimited text: {str(exc).splitlines()[0]}") \
+            from None
     if not layout.has_header:
         df.columns = [f"col{i}" for i in range(df.shape[1])]
     df.columns = [str(c).strip() for c in df.columns]
@@ -444,7 +460,24 @@ def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
         raise TrimagInputError(f"{path}: not a readable MAT file ({exc})") from None
 
 
+def _npz_size(path: Path) -> int:
+    """Bytes the arrays of an NPZ file (a zip archive) expand to, as its members declare (0 for an NPY file)."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):
+        return 0
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return sum(member.file_size for member in zf.infolist())
+    except (OSError, zipfile.BadZipFile):
+        return 0  # np.load names the damage
+
+
 def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
+    from .limits import current_limits
+
+    if _npz_size(path) > current_limits().max_decompressed_bytes:
+        raise current_limits().too_large(str(path), "its arrays are decompressed")
     try:
         if path.suffix.lower() == ".npy":
             return _array_table(np.load(path, allow_pickle=False), "array", path)
@@ -762,6 +795,7 @@ def read_samples(
         )
     kept = df[ok] if n_bad else df
     field_arr = xyz[ok] if n_bad else xyz
+    kept, field_arr, wild_index, wild_note = _drop_wild_rows(pd.DataFrame(kept), field_arr, strict, p)
     n_dup = count_duplicate_rows(field_arr)
     return Samples(
         field=np.ascontiguousarray(field_arr),
@@ -769,7 +803,7 @@ def read_samples(
         columns=cols,
         column_note=note,
         n_rows=len(df),
-        n_dropped=n_bad,
+        n_dropped=n_bad + len(wild_index),
         dropped_index=[int(df.index[i]) for i in positions[:1000]],
         n_duplicates=n_dup,
         selection=selection,
@@ -777,7 +811,34 @@ def read_samples(
         n_total_rows=n_total,
         log_info=log_info,
         format_note=format_note,
+        n_wild=len(wild_index),
+        wild_index=wild_index[:1000],
+        wild_note=wild_note,
     )
+
+
+def _drop_wild_rows(
+    kept: pd.DataFrame, field: NDArray[np.float64], strict: bool, path: Path
+) -> tuple[pd.DataFrame, NDArray[np.float64], list[int], str]:
+    """``kept`` and ``field`` without their wild rows (:func:`trimag.validation.wild_rows`, screened again until
+    none is left: the median moves as they go), the wild rows' data-row numbers and what they were; ``strict``
+    refuses them."""
+    from ..validation import describe_wild_rows, wild_rows
+
+    wild_index: list[int] = []
+    note = ""
+    for _ in range(5):
+        wild = wild_rows(field)
+        if not wild.any():
+            break
+        rows = kept.index.to_numpy()[wild]
+        if not note:
+            note = describe_wild_rows(field, wild, "data row", int(rows[0]))
+        if strict:
+            raise TrimagInputError(f"{path}: {note}; fix them, or drop `strict` to skip and count them")
+        wild_index += [int(r) for r in rows]
+        kept, field = kept[~wild], field[~wild]
+    return kept, field, sorted(wild_index), note
 
 
 def _xyz_note(df: pd.DataFrame, cols: tuple[str, str, str], n_total: int) -> str:

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from .._core.extras import require
 from ..errors import TrimagInputError
 from ..units import header_unit
+from ..validation import MAX_READING
 
 __all__ = ["Batch", "LineParser", "line_source", "mavlink_source", "replay_source", "serial_source"]
 
@@ -45,7 +46,7 @@ def _number(token: str) -> float | None:
         value = float(token)
     except ValueError:
         return None
-    return value if np.isfinite(value) else None
+    return value if np.isfinite(value) and abs(value) <= MAX_READING else None  # 1e308 is not a reading
 
 
 def _xyz_indices(names: Sequence[str]) -> tuple[int, int, int] | None:

@@ -2,7 +2,12 @@
 
 A policy file has a ``[limits]`` table; every rule present is checked, and every failed rule is listed with its
 measured value. A rule that the data cannot evaluate (no reference for the field error, no IGRF for the heading)
-is reported as not evaluated, never as passed. ``--policy default`` uses :data:`DEFAULT_LIMITS`.
+is reported as not evaluated, never as passed; a policy none of whose rules could be evaluated accepts nothing (the
+verdict says that nothing was checked: exit 4). ``--policy default`` uses :data:`DEFAULT_LIMITS`.
+
+Every limit is a finite number (an integer or a float; not a string, a boolean or NaN), ``>= 0``, and ``min_coverage``
+at most 1: a limit no measurement can meet, or one every measurement meets by accident of a type, is refused when the
+file is read (exit 2, before the fit).
 
 | rule | measured as |
 |---|---|
@@ -16,7 +21,6 @@ is reported as not evaluated, never as passed. ``--policy default`` uses :data:`
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -47,25 +51,33 @@ def read_policy(spec: str) -> dict[str, float]:
     p = Path(spec)
     if not p.is_file():
         raise TrimagInputError(f"policy file {spec!r} does not exist (or use `policy=default`)")
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise TrimagInputError(f"{p}: not a TOML policy file ({exc})") from None
+    from ..validation import load_toml
+
+    data = load_toml(p.read_text(encoding="utf-8"), f"{p}: not a TOML policy file")
     limits = data.get("limits")
     if not isinstance(limits, dict) or not limits:
         raise TrimagInputError(f"{p}: needs a [limits] table with at least one of {', '.join(_RULES)}")
     unknown = [k for k in limits if k not in _RULES]
     if unknown:
         raise TrimagInputError(f"{p}: unknown rule(s) {', '.join(unknown)}; rules are {', '.join(_RULES)}")
-    try:
-        return {k: float(v) for k, v in limits.items()}
-    except (TypeError, ValueError):
-        raise TrimagInputError(f"{p}: every limit must be a number") from None
+    return {rule: _limit(p, rule, value) for rule, value in limits.items()}
+
+
+def _limit(path: Path, rule: str, value: Any) -> float:
+    """A limit as a float: a finite number >= 0 (at most 1 for ``min_coverage``), else refused naming it."""
+    what = "a fraction from 0 to 1" if rule == "min_coverage" else "a finite number >= 0"
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise TrimagInputError(f"{path}: {rule} = {value!r} is not a number; give {what}")
+    limit = float(value)
+    if not np.isfinite(limit) or limit < 0 or (rule == "min_coverage" and limit > 1):
+        raise TrimagInputError(f"{path}: {rule} = {value!r} can never be met as intended; give {what}")
+    return limit
 
 
 def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg: float | None = None,
                  reference_F: float | None = None) -> dict[str, Any]:
-    """Evaluate every rule in ``limits``; returns ``{"accepted", "failed", "passed", "not_evaluated"}``."""
+    """Evaluate every rule in ``limits``; returns ``{"accepted", "failed", "passed", "not_evaluated"}`` (and
+    ``"nothing_checked": True`` when no rule could be evaluated: then not accepted)."""
     measured: dict[str, float | None] = {}
     stats, diag = cal.stats, cal.diagnostics
     measured["max_rms_after"] = stats.get("rms_after")
@@ -97,4 +109,8 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
             continue
         ok = value >= limit if rule.startswith("min_") else value <= limit
         (passed if ok else failed).append({"rule": rule, "limit": limit, "measured": float(value)})
-    return {"accepted": not failed, "failed": failed, "passed": passed, "not_evaluated": not_evaluated}
+    verdict: dict[str, Any] = {"accepted": not failed and bool(passed), "failed": failed, "passed": passed,
+                               "not_evaluated": not_evaluated}
+    if not passed and not failed:
+        verdict["nothing_checked"] = True
+    return verdict
