@@ -162,3 +162,28 @@ def test_running_out_of_memory_is_one_line_and_exit_2_not_an_internal_error(
     assert main(["fit", str(path), "-q"]) == 2
     line = _one_line(capsys.readouterr().err)
     assert "memory" in line and "--rows" in line, line
+
+
+def test_a_quoted_cell_longer_than_the_csv_module_s_limit_is_input_not_a_bug(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A real R workspace (gyrolib-rahrs' calibrationGyroLib.RData, a gzip of binary data) was an internal error,
+    exit 1: a quote opened in the decompressed bytes and never closed made one cell longer than the csv module's
+    field limit (131 072 characters). A cell that long is not a number: the file is refused as having no table of
+    numbers, exit 2, one line."""
+    raw = simulate_ellipsoid(300, noise=20.0, seed=2)
+    path = tmp_path / "quoted.csv"
+    with path.open("w", encoding="utf-8") as fh:
+        fh.write('x,y,"' + "a" * 200_000 + "\n")  # an unclosed quote, then a cell longer than the limit
+        fh.write("x,y,z\n")
+        np.savetxt(fh, raw, delimiter=",", fmt="%.3f")
+    code = main(["fit", str(path), "-q", "-o", str(tmp_path / "cal.json")])
+    err = capsys.readouterr().err
+    assert code in (0, 2), err
+    assert "internal error" not in err and "Traceback" not in err
+    if code == 2:
+        _one_line(err)
+    gz = tmp_path / "binary.csv.gz"
+    gz.write_bytes(gzip.compress(b'RDX3\n"' + bytes(range(32, 127)) * 3000))
+    assert main(["fit", str(gz), "-q", "-o", str(tmp_path / "cal2.json")]) == 2
+    assert "internal error" not in _one_line(capsys.readouterr().err)

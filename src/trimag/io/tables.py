@@ -202,7 +202,10 @@ def _plain_numbers(lines: list[str], delimiter: str | None) -> bool:
 def _split(line: str, delimiter: str | None) -> list[str]:
     if delimiter is None:
         return line.split()
-    return next(csv.reader([line], delimiter=delimiter))
+    try:
+        return next(csv.reader([line], delimiter=delimiter))
+    except csv.Error:  # a quote never closed (binary bytes): a cell longer than the csv module's limit is no number
+        return line.split(delimiter)
 
 
 def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
