@@ -48,17 +48,23 @@ from ..errors import TrimagInputError
 __all__ = [
     "ARDUPILOT_ROTATIONS",
     "FIRMWARE_TARGETS",
+    "ORIENTATION_TOLERANCE_DEG",
     "PX4_ROTATIONS",
     "ArduPilotCompass",
     "FirmwareCompass",
     "PX4Magnetometer",
     "Violation",
+    "compass_from_affine",
     "euler_matrix",
     "firmware_class",
+    "nearest_rotation",
     "rotation_matrix",
 ]
 
 FIRMWARE_TARGETS = ("ardupilot", "px4")
+#: The largest rotation (degrees) beyond the nearest standard sensor rotation that a calibration may leave to the
+#: firmware's symmetric matrix (which cannot hold it: it stays as a heading error of about this size).
+ORIENTATION_TOLERANCE_DEG = 5.0
 
 #: ArduPilot ``enum Rotation`` (``libraries/AP_Math/rotations.h``): value -> (name, roll, pitch, yaw) in degrees
 #: (``tests/test_rotations.cpp``, ``TEST(RotationsTest, TestEulers)``). ``COMPASS_ORIENTn`` takes 0..43.
@@ -261,8 +267,9 @@ class FirmwareCompass:
 
     @classmethod
     def from_algebra(cls, A: ArrayLike, o: ArrayLike, m: ArrayLike, *, orientation: int,
-                     motor_type: str | None) -> FirmwareCompass:
-        """The parameters of ``(A, o, m)`` (the inverse of :meth:`algebra`)."""
+                     motor_type: str | None, scale: float | None = None) -> FirmwareCompass:
+        """The parameters of ``(A, o, m)`` (the inverse of :meth:`algebra`); ``scale``: ArduPilot's
+        ``COMPASS_SCALE`` to use (default: the mean of ``A``'s diagonal)."""
         raise NotImplementedError
 
 
@@ -383,14 +390,13 @@ class ArduPilotCompass(FirmwareCompass):
 
     @classmethod
     def from_algebra(cls, A: ArrayLike, o: ArrayLike, m: ArrayLike, *, orientation: int,
-                     motor_type: str | None) -> ArduPilotCompass:
-        """``COMPASS_SCALE`` = the mean of ``A``'s diagonal (as MAGFit renormalises), ``DIA``/``ODI`` = ``A /
-        SCALE``; SCALE is 0 ("off") when that mean is 1 to 1e-9."""
+                     motor_type: str | None, scale: float | None = None) -> ArduPilotCompass:
+        """``COMPASS_SCALE`` = ``scale`` or the mean of ``A``'s diagonal (as MAGFit renormalises), ``DIA``/``ODI``
+        = ``A / SCALE``."""
         A = np.asarray(A, dtype=np.float64)
-        s = float(np.mean(np.diag(A)))
+        s = float(np.mean(np.diag(A))) if scale is None else float(scale)
         M = A / s
-        return cls(orientation=orientation, offsets=np.asarray(o, dtype=np.float64),
-                   scale=0.0 if abs(s - 1.0) < 1e-9 else s, diagonal=np.diag(M),
+        return cls(orientation=orientation, offsets=np.asarray(o, dtype=np.float64), scale=s, diagonal=np.diag(M),
                    offdiagonal=np.array([M[0, 1], M[0, 2], M[1, 2]]),
                    motor=np.zeros(3) if motor_type is None else np.asarray(m, dtype=np.float64), motor_type=motor_type)
 
@@ -462,7 +468,7 @@ class PX4Magnetometer(FirmwareCompass):
 
     @classmethod
     def from_algebra(cls, A: ArrayLike, o: ArrayLike, m: ArrayLike, *, orientation: int,
-                     motor_type: str | None) -> PX4Magnetometer:
+                     motor_type: str | None, scale: float | None = None) -> PX4Magnetometer:
         A = np.asarray(A, dtype=np.float64)
         f = cls.current_factor if motor_type == "current" else 1.0
         comp = np.zeros(3) if motor_type is None else np.linalg.solve(A, np.asarray(m, dtype=np.float64)) / f
@@ -477,3 +483,87 @@ def firmware_class(target: str) -> type[FirmwareCompass]:
     if target not in classes:
         raise TrimagInputError(f"unknown firmware target {target!r}; choose one of {', '.join(FIRMWARE_TARGETS)}")
     return classes[target]
+
+
+def _polar_rotation(G: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation ``Q`` of ``G = P Q`` (which is also that of ``G = Q P``: ``U S V^T = (U S U^T)(U V^T) =
+    (U V^T)(V S V^T)``), shape (3, 3)."""
+    U, _, Vt = np.linalg.svd(G)
+    Q = U @ Vt
+    if np.linalg.det(Q) < 0:
+        raise TrimagInputError("the calibration matrix reflects the axes (det < 0): no firmware can load it")
+    return np.asarray(Q, dtype=np.float64)
+
+
+def _angle_deg(R: NDArray[np.float64]) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def nearest_rotation(target: str, matrix: ArrayLike) -> tuple[int, float]:
+    """The standard rotation of ``target``'s enum nearest to a rotation matrix, and the angle (degrees) between."""
+    Q = np.asarray(matrix, dtype=np.float64)
+    best = min((_angle_deg(Q @ rotation_matrix(target, k).T), k) for k in firmware_class(target).rotations)
+    return best[1], best[0]
+
+
+def compass_from_affine(
+    target: str, matrix: ArrayLike, offset: ArrayLike, *, motor: tuple[ArrayLike, str] | None = None,
+    input_orientation: int | None = None, rotation_determined: bool = False,
+    tolerance_deg: float = ORIENTATION_TOLERANCE_DEG,
+) -> tuple[FirmwareCompass, list[str]]:
+    """The firmware parameters of a general calibration ``B = W (v - b) + m x`` (raw ``v`` in the frame of the
+    rotation ``input_orientation`` already applied; None: the sensor's own frame), in the firmware's unit.
+
+    ``rotation_determined`` (a fit against attitudes): ``W``'s rotation is the sensor's orientation: the nearest
+    standard rotation is written and what remains is left to the symmetric matrix up to ``tolerance_deg`` (refused
+    beyond, naming the angle). Otherwise (a magnitude-only fit) the rotation is arbitrary: the orientation in force
+    is kept and the output frame is rotated so that the matrix is symmetric (the polar factor: the same corrected
+    magnitude).
+
+    Returns
+    -------
+    compass, notes
+    """
+    klass = firmware_class(target)
+    W = np.asarray(matrix, dtype=np.float64)
+    b = np.asarray(offset, dtype=np.float64)
+    R0 = np.eye(3) if input_orientation is None else rotation_matrix(target, input_orientation)
+    Q = _polar_rotation(W @ R0)
+    notes: list[str] = []
+    if rotation_determined:
+        G = np.eye(3)
+        value, angle = nearest_rotation(target, Q)
+        if angle > tolerance_deg:
+            raise TrimagInputError(
+                f"this calibration (fitted with attitudes) rotates the sensor's axes {angle:.1f} deg from the nearest "
+                f"standard orientation {klass(orientation=value).rotation_name} ({value}); {target}'s symmetric "
+                f"matrix can hold at most {tolerance_deg:g} deg of it (dropping the rest would change the heading): "
+                "export it to c-header, json, ros-yaml or matlab, which keep the full matrix"
+            )
+        if angle > 1e-6:
+            notes.append(f"orientation {klass(orientation=value).rotation_name} ({value}); the remaining "
+                         f"{angle:.2f} deg rotation is approximated by the symmetric matrix")
+    else:
+        G = R0 @ Q.T  # rotates the output so that the matrix is symmetric: R0 P R0^T (ArduPilot), P (PX4)
+        value = 0 if input_orientation is None else int(input_orientation)
+        angle = _angle_deg(Q)
+        if angle > 1e-9:
+            notes.append(f"the matrix is not symmetric: exported its symmetric polar factor (same corrected magnitude; "
+                         f"drops a {angle:.3f} deg rotation that a magnitude calibration does not determine)")
+    R = rotation_matrix(target, value)
+    GW = G @ W
+    if target == "ardupilot":
+        P_u, P_h = R @ R0.T, np.eye(3)
+        A_raw = GW @ P_u.T  # G W = A P_u
+    else:
+        P_u, P_h = R0.T, R.T
+        A_raw = R.T @ GW @ R0  # G W = R A R0^T
+    A = (A_raw + A_raw.T) / 2.0
+    o = -P_u @ b
+    kind = None
+    m = np.zeros(3)
+    if motor is not None:
+        m_body, kind = np.asarray(motor[0], dtype=np.float64), motor[1]
+        m = P_h @ (G @ m_body)
+    scale = 1.0 if target == "ardupilot" else None  # COMPASS_SCALE 1: the matrix is all in DIA/ODI (as before)
+    return klass.from_algebra(A, o, m, orientation=value, motor_type=kind, scale=scale), notes

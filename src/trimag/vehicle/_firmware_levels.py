@@ -74,11 +74,14 @@ class LevelProblem:
         The body-frame field (vector residual) or its magnitude.
     A_held, o_held : ndarray
         The values held by the lower levels.
+    fixed : ndarray, shape (N, 3), optional
+        A term added to ``B~`` as it is (the firmware's own motor term, held when the level does not fit one).
     """
 
     def __init__(self, u: NDArray[np.float64], level: str, motor: NDArray[np.float64] | None,
-                 target: NDArray[np.float64], A_held: NDArray[np.float64], o_held: NDArray[np.float64]) -> None:
-        self.u, self.level, self.x, self.target = u, level, motor, target
+                 target: NDArray[np.float64], A_held: NDArray[np.float64], o_held: NDArray[np.float64],
+                 fixed: NDArray[np.float64] | None = None) -> None:
+        self.u, self.level, self.x, self.target, self.fixed = u, level, motor, target, fixed
         self.vector = target.ndim == 2
         self.A_held, self.o_held = np.asarray(A_held, dtype=np.float64), np.asarray(o_held, dtype=np.float64)
         self.off_held = self.A_held - np.diag(np.diag(self.A_held))
@@ -127,6 +130,8 @@ class LevelProblem:
         B = (self.u[rows] + o) @ A.T
         if self.x is not None:
             B = B + self.x[rows][:, None] * m
+        if self.fixed is not None:
+            B = B + self.fixed[rows]
         return np.asarray(B, dtype=np.float64)
 
     def residual(self, theta: NDArray[np.float64], rows: Any = slice(None)) -> NDArray[np.float64]:
@@ -176,7 +181,7 @@ class LevelProblem:
         k = self.n_A
         design = self._field_jacobian(np.zeros(self.n_params), rows)  # the A columns depend on u only (o = 0)
         design[:, :, k:k + 3] = np.eye(3)  # c = A o, one column per axis
-        rhs = h.copy()
+        rhs = h.copy() if self.fixed is None else h - self.fixed[rows]
         if self.level == "offsets":
             rhs = rhs - u @ self.A_held.T
         elif self.level == "diagonal":

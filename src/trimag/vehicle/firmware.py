@@ -36,9 +36,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..calibration import Calibration, jsonable, make_uncertainty
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..models.firmware import FirmwareCompass, firmware_class, rotation_matrix
+from ..models.firmware import ORIENTATION_TOLERANCE_DEG, FirmwareCompass, firmware_class, rotation_matrix
 from ..quality.honesty import correlation_time, count_repeated_rows
+from ..units import convert
 from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
 
 __all__ = [
@@ -48,13 +50,11 @@ __all__ = [
     "N_FOLDS",
     "ORIENTATION_TOLERANCE_DEG",
     "FirmwareFit",
+    "firmware_calibration",
     "fit_firmware",
     "level_table",
 ]
 
-#: The largest rotation (degrees) left after the nearest standard rotation that the fit leaves to the symmetric
-#: matrix (which cannot hold it: it stays as a heading error of about this size).
-ORIENTATION_TOLERANCE_DEG = 5.0
 #: Another orientation replaces the log's only when it fits the field this many times better (RMS).
 SWITCH_RATIO = 2.0
 #: Contiguous folds of the held-out RMS.
@@ -120,6 +120,7 @@ class FirmwareFit:
     motor_mean: float
     inflation: dict[str, Any]
     noise_std: float
+    n_samples: int = 0
     messages: list[str] = field(default_factory=list)
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -317,6 +318,7 @@ class _Candidate:
     violations: list[str]
     at_limit: list[str]
     heldout_rms: float
+    held_motor: bool = False
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -341,12 +343,15 @@ def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: flo
 
 
 def _compass(klass: type[FirmwareCompass], sol: LevelSolution, level: str, orientation: int, motor: str | None,
-             held: FirmwareCompass | None) -> FirmwareCompass:
-    """The firmware parameters of a solution; the lower levels keep the held values exactly."""
+             held: FirmwareCompass | None, held_motor: bool = False) -> FirmwareCompass:
+    """The firmware parameters of a solution; the lower levels keep the held values exactly, and ``held_motor``
+    keeps the firmware's own motor term."""
     if held is not None and level in ("offsets", "scale") and held.orientation == orientation:
         A, o, m = sol.A, sol.o, sol.m
         base = klass.from_algebra(A, o, m, orientation=orientation, motor_type=motor)
-        changes: dict[str, Any] = {"offsets": base.offsets, "motor": base.motor, "motor_type": motor}
+        changes: dict[str, Any] = {"offsets": base.offsets}
+        if not held_motor:
+            changes.update(motor=base.motor, motor_type=motor)
         if level == "scale":
             A_held = held.algebra()[0]
             ratio = float(np.sum(A * A_held) / np.sum(A_held * A_held))
@@ -359,7 +364,10 @@ def _compass(klass: type[FirmwareCompass], sol: LevelSolution, level: str, orien
                 changes["diagonal"] = held.diagonal * ratio
                 changes["offdiagonal"] = held.offdiagonal * ratio
         return dataclasses.replace(held, **changes)
-    return klass.from_algebra(sol.A, sol.o, sol.m, orientation=orientation, motor_type=motor)
+    out = klass.from_algebra(sol.A, sol.o, sol.m, orientation=orientation, motor_type=motor)
+    if held_motor and held is not None:
+        out = dataclasses.replace(out, motor=held.motor, motor_type=held.motor_type)
+    return out
 
 
 def _folds(n: int) -> list[NDArray[np.int64]]:
@@ -392,7 +400,11 @@ def _fit_level(
     offsets_max: float, raw: NDArray[np.float64], held_same_frame: bool,
 ) -> _Candidate:
     x = None if motor is None else motor_values[motor]
-    problem = LevelProblem(u, level, x, target, A_held, o_held)
+    fixed = None
+    if motor is None and held.motor_type in motor_values and np.any(held.motor):
+        # the firmware's own motor term is held (PX4's COMP with the held scale matrix: COMP acts inside S)
+        fixed = motor_values[str(held.motor_type)][:, None] * held.algebra()[2]
+    problem = LevelProblem(u, level, x, target, A_held, o_held, fixed)
     if problem.vector:
         p0 = problem.linear_start()
     elif start is not None:
@@ -401,13 +413,15 @@ def _fit_level(
         p0 = problem.sphere_start()
     sol = problem.solve(p0)
     held_for_params = held if held_same_frame else None
-    compass = _compass(klass, sol, level, orientation, motor, held_for_params)
+    if fixed is not None:  # the fit kept the firmware's motor term: so do the parameters
+        held_for_params = held
+    compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
     bounds = None
     if compass.violations(offsets_max=offsets_max):
         bounds = _bounds(problem, klass, held.effective_scale if klass.target == "ardupilot" else 1.0,  # type: ignore[attr-defined]
                          offsets_max)
         sol = problem.solve(sol.theta, bounds=bounds)
-        compass = _compass(klass, sol, level, orientation, motor, held_for_params)
+        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
     inflation = _inflation(sol.residual, problem.vector, raw)
     cov, noise = _covariance(sol, inflation["total"])
     F = float(np.median(np.linalg.norm(target, axis=1) if problem.vector else target))
@@ -417,7 +431,7 @@ def _fit_level(
     names = problem.names()
     return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, identified, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
-                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds))
+                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None)
 
 
 # ------------------------------------------------------------------ the fit
@@ -585,7 +599,8 @@ def _run_levels(
             candidates.append(cand)
             sol = cand.solution
             rms = float(np.sqrt(np.mean(sol.residual.reshape(len(u), -1) ** 2) * (3 if target.ndim == 2 else 1)))
-            table.append({"level": lv, "motor": mk, "n_params": cand.problem.n_params, "rms": rms,
+            held_motor = "held" if cand.held_motor else None
+            table.append({"level": lv, "motor": mk or held_motor, "n_params": cand.problem.n_params, "rms": rms,
                           "heldout_rms": cand.heldout_rms, "identified": cand.identified,
                           "not_identified": cand.weak, "within_limits": not cand.violations,
                           "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False})
@@ -621,23 +636,17 @@ def _choose(level: str, candidates: list[_Candidate]) -> _Candidate:
     return usable[0]
 
 
-def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass, motor: str | None) -> dict[str, float]:
+def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass, motor: str | None,
+                held_motor: bool) -> dict[str, float]:
+    """The parameters the level held at the firmware's values (name at instance 0 -> value)."""
     params = held.parameters(0)
-    keep: list[str] = []
-    if klass.target == "ardupilot":
-        if level == "offsets":
-            keep = ["SCALE", "DIA", "ODI"]
-        elif level == "scale":
-            keep = ["DIA", "ODI"]
-        elif level == "diagonal":
-            keep = ["ODI"]
-    else:
-        if level in ("offsets", "scale"):
-            keep = ["SCALE", "ODIAG"]
-        elif level == "diagonal":
-            keep = ["ODIAG"]
+    keep = {"offsets": ["SCALE", "DIA", "ODI"], "scale": ["DIA", "ODI"], "diagonal": ["ODI"], "full": []}[level]
+    if klass.target == "px4":
+        keep = {"offsets": ["SCALE", "ODIAG"], "scale": ["ODIAG"], "diagonal": ["ODIAG"], "full": []}[level]
     out = {k: v for k, v in params.items() if any(t in k for t in keep) and "_MOT" not in k and not k.endswith("COMP")}
-    if motor is None:
+    if held_motor:
+        out.update({k: v for k, v in params.items() if "_MOT" in k or k.endswith(("COMP", "COMP_TYP"))})
+    elif motor is None:
         out["motor term"] = 0.0
     return out
 
@@ -652,7 +661,7 @@ def _param_covariance(cand: _Candidate, klass: type[FirmwareCompass], orientatio
     def values(t: NDArray[np.float64]) -> dict[str, float]:
         A, o, m = problem.unpack(t)
         sol = dataclasses.replace(cand.solution, A=A, o=o, m=m, theta=t)
-        return _compass(klass, sol, cand.level, orientation, cand.motor, held).parameters(0)
+        return _compass(klass, sol, cand.level, orientation, cand.motor, held, cand.held_motor).parameters(0)
 
     base = values(theta)
     names = [k for k in base if not k.endswith("ORIENT") and not k.endswith("_ROT") and k not in
@@ -675,18 +684,21 @@ def _result(
     target: NDArray[np.float64],
     motors: Mapping[str, NDArray[np.float64]], messages: list[str], same_frame: bool,
 ) -> FirmwareFit:
-    names, cov = _param_covariance(chosen, klass, fr.orientation, held if same_frame else None)
+    names, cov = _param_covariance(chosen, klass, fr.orientation,
+                                   held if same_frame or chosen.held_motor else None)
     std = dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True))
     rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * (3 if vector else 1)))
     rms_before = _rms_before(held, raw, target, held_frame, vector, motors)
-    x = motors.get(chosen.motor) if chosen.motor else None
-    held_values = _held_names(klass, chosen.level, held, chosen.motor)
+    kind = chosen.compass.motor_type
+    x = motors.get(kind) if kind else None
+    held_values = _held_names(klass, chosen.level, held, chosen.motor, chosen.held_motor)
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
     return FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
                        "vector" if vector else "magnitude", rms_before, rms_after, fr.P_u, fr.P_h,
-                       float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, messages)
+                       float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
+                       messages)
 
 
 def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[np.float64], hf: _Frame,
@@ -713,3 +725,50 @@ def level_table(table: list[dict[str, Any]], unit: str) -> str:
         lines.append(f"{row['level']:<10}{row['motor'] or '-':<10}{row['n_params']:>7}{row['rms']:>11.4g}"
                      f"{row['heldout_rms']:>11.4g}  {ident:<11}{limits:<9}{'<--' if row['chosen'] else ''}")
     return "\n".join(lines)
+
+
+def firmware_calibration(
+    fit: FirmwareFit, *, units: str, motor_channel: str | None = None, reference: Mapping[str, Any] | None = None,
+    input_orientation: int | None = None, diagnostics: Mapping[str, Any] | None = None,
+) -> Calibration:
+    """The :class:`~trimag.calibration.Calibration` of a firmware fit, in the data's ``units``.
+
+    ``apply`` gives the firmware's corrected field (converted to ``units``): ``W (v - b - k (x - mean))`` with the
+    motor term as a regressor named ``motor_channel`` (the logged column: ``current_A``, ``throttle``). The exact
+    parameters are in ``diagnostics["firmware"]`` (what ``trimag export`` writes), with the level table, what was
+    held, the orientation decision and ``input_orientation`` (the rotation already applied to the raw input).
+    """
+    compass = fit.compass
+    factor = convert(1.0, compass.unit, units)
+    W, b, m_body = fit.affine()
+    regressors = None
+    b_data = b * factor
+    if compass.motor_type is not None:
+        k = -np.linalg.solve(W, m_body) * factor  # W (v - b) + m x = W (v - b - k x)
+        regressors = {"names": [motor_channel or compass.motor_type], "means": [fit.motor_mean],
+                      "coefficients": [k.tolist()],
+                      "units": ["A" if compass.motor_type == "current" else "throttle 0..1"],
+                      "note": f"the firmware's motor term ({compass.motor_type})"}
+        b_data = b_data + k * fit.motor_mean
+    names = list(fit.param_std)
+    uncertainty = make_uncertainty(
+        names, covariance=fit.covariance, basis=f"s^2 (J^T J)^-1 of the {fit.level} level's parameters, propagated "
+        "to the firmware's (instance 0 names, firmware unit)", noise_std=fit.noise_std * factor,
+        inflation=fit.inflation, unit=compass.unit,
+    )
+    firmware = {**compass.as_dict(), "level": fit.level, "levels": fit.table, "held": fit.held,
+                "orientation_decision": fit.orientation, "residual": fit.residual_kind,
+                "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
+                "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after}
+    warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
+    diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
+    if warnings:
+        diag["warnings"] = list(diag.get("warnings", [])) + warnings
+    stats = {"n_samples": int(fit.n_samples), "n_used": int(fit.n_samples), "iterations": 1, "converged": True,
+             "rms_before": fit.rms_before * factor, "rms_after": fit.rms_after * factor,
+             "residual": fit.residual_kind}
+    return Calibration.from_matrix_offset(
+        W, b_data, units=units, model="affine", method=f"firmware-{compass.target}", params=compass.parameters(0),
+        reference=None if reference is None else dict(reference), stats=stats, uncertainty=uncertainty,
+        diagnostics=diag, regressors=regressors,
+    )
