@@ -114,6 +114,10 @@ class VehicleLog:
     gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
     parameters: dict[str, float] = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
+    #: the firmware and vehicle that wrote the log, where it says (``"ArduCopter V4.3.6"``, ``"PX4 v1.12.3"``)
+    vehicle: str | None = None
+    #: other yaw sources than the attitude's (``"XKY0.YC"``: EKF-GSF yaw; ``"GPS.Yaw"``: a GPS heading), degrees
+    yaw_sources: dict[str, Channel] = field(default_factory=dict)
 
     def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
         """The magnetometer named by ``sensor`` (instance number, name or device id), or the best one.
