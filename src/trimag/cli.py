@@ -164,6 +164,15 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                    help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
                         "only its offset, e.g. from a few headings at level (needs the field magnitude; "
                         "docs/vehicle.md)")
+    p.add_argument("--target", choices=["ardupilot", "px4"],
+                   help="fit exactly the parameters this autopilot loads, within its limits: orientation, offsets, "
+                        "scale and symmetric matrix, motor term (docs/autopilot.md)")
+    p.add_argument("--level", choices=["auto", "offsets", "scale", "diagonal", "full"],
+                   help="--target's level: offsets < + one scale < + diagonal < + off-diagonal (full); auto (default) "
+                        "takes the simplest the data identify, by held-out RMS")
+    p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
+                   help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
+                        "(default) fits it when it improves the held-out RMS")
     p.add_argument("--accel-columns", metavar="AX,AY,AZ",
                    help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
                         "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
@@ -373,7 +382,7 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          args)
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
-    if cal.regressors is not None:
+    if cal.regressors is not None and "regressors" in cal.diagnostics:
         from .vehicle.regressors import ranking_table
 
         _say(ranking_table(cal.diagnostics["regressors"]["ranking"], cal.units), args)

@@ -117,7 +117,7 @@ def test_what_the_firmware_cannot_load_is_refused_naming_parameter_and_limit(tmp
     temp = Calibration.from_matrix_offset(np.eye(3), [1.0, 2.0, 3.0], units="mG",
                                           regressors={"names": ["temperature_C"], "means": [20.0],
                                                       "coefficients": [[0.1, 0.0, 0.0]]})
-    with pytest.raises(TrimagInputError, match=r"temperature_C.*no such term"):
+    with pytest.raises(TrimagInputError, match=r"no temperature_C term"):
         export_calibration(temp, "ardupilot")
     cal_path = wrong.to_file(tmp_path / "cal.json")
     out = tmp_path / "compass.param"

@@ -117,6 +117,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
+    req = _target_of(req, samples)
     req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
     prior = None
     if req.prior is not None:
@@ -129,6 +130,8 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
     messages += unit_messages + _reading_messages(samples)
+    if req.target is not None:  # a firmware-space fit (app/_firmware.py)
+        return _fit_target(req, samples, unit, messages, limits)
     sync = None
     if req.attitude.attitude_file is not None:
         samples, req, sync, sync_messages = attach_attitude_file(req, samples, unit, sync_options, estimator)
@@ -147,6 +150,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
                                                                                    regressor_names, eddy_terms)
         messages += fit_messages
+        cal = _input_orientation(cal, samples)
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
                                             prior is not None)
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
@@ -209,7 +213,7 @@ def _finish(
         if igrf_spec is not None:
             messages.append(dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
     if (not quick and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
-            and req.model == "ellipsoid"):
+            and req.model == "ellipsoid" and req.target is None):
         messages.append(_heading_message(cal, igrf_spec, summary))
     return cal, summary, messages
 
@@ -318,11 +322,15 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
         given = dataclasses.replace(given, igrf_spec=igrf_spec)
         messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
-    if estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
+    if req.target is not None and att.attitude_columns is None and att.quaternion_columns is None:
+        if log_info.get("has_attitude"):
+            att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
+    elif estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None and req.prior is None:  # a quick recalibration is made for logs that barely tilt
+    if src.columns is None and req.prior is None and req.target is None:  # a quick recalibration, a firmware fit
+        # (its levels say what the log identifies) are made for logs that barely tilt
         refuse_static_log(samples, log_info)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
@@ -399,3 +407,49 @@ def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) 
     return (f"predicted heading error of a level sensor here (inclination {heading['inclination_deg']:.1f} deg): "
             f"{heading['rms_deg']:.3g} deg RMS over headings, {heading['max_deg']:.3g} deg at worst (1 sigma)")
 
+
+
+def _target_of(req: FitRequest, samples: Samples) -> FitRequest:
+    """``level``/``motor`` without ``target``: the log's own firmware (refused for other data)."""
+    if req.target is not None or (req.level is None and req.motor is None):
+        return req
+    from ._firmware import _log_firmware
+
+    target = _log_firmware(samples.log_info)
+    if target is None:
+        raise TrimagInputError("`level` and `motor` belong to a firmware fit: give `target=ardupilot` or `target=px4`")
+    return dataclasses.replace(req, target=target)
+
+
+def _fit_target(req: FitRequest, samples: Samples, unit: str, messages: list[str],
+                limits: dict[str, float] | None) -> FitResult:
+    """``fit --target``: the firmware-space fit (:mod:`trimag.app._firmware`), checked and written as any fit."""
+    from ._firmware import fit_target
+
+    for name in ("prior", "regressors", "accel_columns"):
+        if getattr(req, name) is not None:
+            raise TrimagInputError(f"`{name}` does not combine with a firmware fit (`target`): drop one of them")
+    if req.attitude.attitude_file is not None:
+        raise TrimagInputError("a firmware fit takes the attitudes of the data or the log; drop `attitude_file`")
+    samples, cal, regressor_values, target_messages = fit_target(req, samples, unit)
+    messages += target_messages
+    ref = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "firmware fit", unit)
+    warn_texts = list(cal.diagnostics.get("warnings", []))
+    cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, [], limits, None, False)
+    summary["warnings"] = warn_texts
+    summary["firmware"] = cal.diagnostics["firmware"]
+    cal, written = write_fit_outputs(cal, samples, req, regressor_values)
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
+                     written)
+
+
+def _input_orientation(cal: Calibration, samples: Samples) -> Calibration:
+    """An autopilot log's fit records the sensor rotation its readings carry (what ``export`` writes from)."""
+    from ._firmware import _held, _log_firmware
+
+    target = _log_firmware(samples.log_info)
+    if target is None:
+        return cal
+    _, applied, _, _, _ = _held(target, samples.log_info)
+    return cal.with_diagnostics(input_orientation={"target": target, "value": applied})

@@ -107,6 +107,12 @@ class FitRequest:
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.vehicle.prior`)
     prior: str | Path | None = None
     accel_columns: str | None = None
+    #: a firmware-space fit (``"ardupilot"``, ``"px4"``): exactly the parameters it loads, at ``level`` (``"auto"``,
+    #: ``"offsets"``, ``"scale"``, ``"diagonal"``, ``"full"``) with the ``motor`` term (``"auto"``, ``"none"``,
+    #: ``"current"``, ``"throttle"``; :mod:`trimag.vehicle.firmware`)
+    target: str | None = None
+    level: str | None = None
+    motor: str | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:

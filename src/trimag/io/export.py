@@ -129,15 +129,15 @@ def _motor_term(cal: Calibration, target: str, factor: float) -> tuple[NDArray[n
         return b * factor, None
     names = list(terms["names"])
     units = list(terms.get("units") or [""] * len(names))
-    kinds = []
-    for name in names:
-        kind = "current" if _CURRENT.search(name) else ("throttle" if _THROTTLE.search(name) else None)
-        if kind is None or (terms.get("eddy") and name in terms["eddy"].get("names", [])):
-            raise TrimagInputError(
-                f"this calibration has the regressor term {name!r}: {target} has no such term (it holds one motor "
-                "term, on the battery current or the throttle); export a fit without it"
-            )
-        kinds.append(kind)
+    eddy = set((terms.get("eddy") or {}).get("names", []))
+    kinds = ["current" if _CURRENT.search(n) else ("throttle" if _THROTTLE.search(n) else None) for n in names]
+    other = [n for n, k in zip(names, kinds, strict=True) if k is None or n in eddy]
+    if other:
+        fix = "`option eddy`" if set(other) & eddy else "`regressors`"
+        raise TrimagInputError(
+            f"this calibration has regressor terms ({', '.join(names)}) that {target} cannot hold (one motor term on "
+            f"the battery current or the throttle, no {', '.join(other)} term); export a fit without {fix}"
+        )
     if len(names) > 1:
         raise TrimagInputError(f"this calibration has {len(names)} motor terms ({', '.join(names)}); {target} holds "
                                "one (COMPASS_MOTCT / CAL_MAG_COMP_TYP picks current or throttle): fit with one")

@@ -9,8 +9,9 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    is tried with one scale and the offsets; the log's own orientation is kept unless another fits the field at least
    :data:`SWITCH_RATIO` times better. The rotation the standard one leaves (the rotation of the unconstrained affine
    fit's polar factor: left for ArduPilot, whose matrix acts after the rotation; right for PX4, whose rotation acts
-   last) is left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond, the fit is refused
-   naming the angle. An internal compass (ArduPilot ``COMPASS_EXTERNALn`` = 0, PX4 ``CAL_MAGn_ROT`` = -1) follows
+   last) is left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two
+   of its standard deviations, the fit is refused naming the angle. An internal compass (ArduPilot
+   ``COMPASS_EXTERNALn`` = 0, PX4 ``CAL_MAGn_ROT`` = -1) follows
    the board's rotation: its orientation is kept and a better one is only reported.
 2. **Levels** (:data:`~trimag.vehicle.firmware_levels.LEVELS`, each with and without the motor term): each is fitted
    on all samples and on :data:`N_FOLDS` contiguous folds (fitted on the others, evaluated on the one left out); a
@@ -213,7 +214,10 @@ def _choose_orientation(
     info["value"] = chosen
     angle, sigma = _remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors)
     info["remaining_angle_deg"], info["remaining_angle_sigma_deg"] = angle, sigma
-    if angle is not None and angle > tolerance_deg:
+    if angle is not None and sigma is not None:
+        messages.append(f"orientation: the nearest standard rotation leaves {angle:.1f} +- {sigma:.1f} deg, left to "
+                        "the symmetric matrix (it stays as a heading error of about that size)")
+    if angle is not None and sigma is not None and angle - 2.0 * sigma > tolerance_deg:
         chosen_name = type(held)(orientation=chosen).rotation_name
         raise TrimagInputError(
             f"the compass is rotated {angle:.1f} deg from the nearest standard orientation {chosen_name} ({chosen}); "
