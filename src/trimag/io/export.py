@@ -154,7 +154,7 @@ def _motor_term(cal: Calibration, target: str, factor: float) -> tuple[NDArray[n
                 "throttle runs 0..1; refit with a 0..1 throttle column"
             )
     b_zero = b - k * mean  # W (v - b - k (x - mean)) = W (v - b_zero) - W k x
-    return b_zero * factor, (-(W @ k) * factor * per_unit, kinds[0])
+    return b_zero * factor, (-(W @ k) * factor * per_unit, str(kinds[0]))
 
 
 def _input_orientation(cal: Calibration, target: str) -> int | None:
