@@ -108,8 +108,8 @@ def _keep(samples: Samples, ok: NDArray[np.bool_]) -> Samples:
                                n_dropped=samples.n_dropped + int((~ok).sum()))
 
 
-def _circularity(target: str, info: dict[str, Any]) -> str:
-    """What the log's EKF yaw owes to this compass, in one line."""
+def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
+    """Whether the log's EKF yaw used this compass, and what that means, in one line."""
     params = info.get("parameters") or {}
     source = info.get("attitude_source") or "the log's attitude"
     if target == "ardupilot":
@@ -117,16 +117,16 @@ def _circularity(target: str, info: dict[str, Any]) -> str:
         use = params.get("COMPASS_USE" if instance == 0 else f"COMPASS_USE{instance + 1}", 1.0)
         yaw_src = params.get("EK3_SRC1_YAW")
         if not use or yaw_src in (2.0, 8.0):
-            return (f"attitude: {source} (the EKF's yaw did not use this compass: COMPASS_USE = {use:g}, "
-                    f"EK3_SRC1_YAW = {yaw_src if yaw_src is not None else 'n/a'})")
-        return (f"attitude: {source}; its yaw is the EKF's, which fused this compass (COMPASS_USE = {use:g}"
-                + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "") + "): the fit partly sees its own "
-                "heading, so the orientation about the vertical and the horizontal soft iron lean toward the "
-                "calibration in the log. Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly with a GPS heading to "
-                "break the circle")
-    return (f"attitude: {source}; its yaw is EKF2's, which fuses the magnetometers (unless EKF2_MAG_TYPE = none): "
-            "the fit partly sees its own heading, so the orientation about the vertical and the horizontal soft "
-            "iron lean toward the calibration in the log")
+            return False, (f"attitude: {source} (the EKF's yaw did not use this compass: COMPASS_USE = {use:g}, "
+                           f"EK3_SRC1_YAW = {yaw_src if yaw_src is not None else 'n/a'})")
+        why = f"COMPASS_USE = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
+    else:
+        why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none"
+    return True, (f"attitude: {source}; its yaw is the EKF's, which fused this compass ({why}): a fit to it would "
+                  "partly see its own heading, so the levels are fitted heading-free (the field's horizontal and "
+                  "vertical components under the logged roll and pitch, MAGFit's cost as least squares) and the "
+                  "orientation only among the standard rotations. Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly "
+                  "with a GPS heading to fit the full vector")
 
 
 def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None) -> tuple[dict[str, Any],
@@ -150,8 +150,9 @@ def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None) 
 
 
 def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: str
-                     ) -> tuple[Samples, Any, Any, dict[str, Any], list[str]]:
-    """``(samples, field_body or None, magnitude or None, reference info, messages)`` in the firmware's unit."""
+                     ) -> tuple[Samples, Any, Any, Any, dict[str, Any], list[str]]:
+    """``(samples, field_body or None, magnitude or None, heading-free tilts or None, reference info, messages)`` in
+    the firmware's unit: a log whose only yaw is an EKF's that fused this compass is fitted heading-free."""
     given = req.reference
     messages: list[str] = []
     ned = None
@@ -170,37 +171,55 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
     if ned is not None and has_attitude:
         info = samples.log_info or {}
         yaw_column = None
+        circular = False
         if info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg":
             samples, yaw_column, yaw_name, messages = _yaw_source(samples)
             if yaw_name is None:
-                messages.append(_circularity(target, info))
-        samples, rotation = _attitudes(samples, att, yaw_column)
+                circular, line = _circularity(target, info)
+                messages.append(line)
+        samples, rotation, trim_note = _attitudes(samples, att, yaw_column)
+        messages += trim_note
+        tilt = None
+        if circular:
+            euler = rotation.as_euler("ZYX", degrees=True)
+            tilt = from_euler(np.zeros(len(euler)), euler[:, 1], euler[:, 2]).as_matrix()
         reference = {"value": float(np.linalg.norm(ned)), "source": f"{what}: vector NED {np.round(ned, 4).tolist()} "
                      f"{unit_fw}, rotated into the body frame", "unit": unit_fw}
-        return samples, body_field(rotation, ned), None, reference, messages
+        return samples, body_field(rotation, ned), None, tilt, reference, messages
     if ned is not None:
         F = float(np.linalg.norm(ned))
         messages.append(f"no attitudes: the fit uses the field's magnitude {F:.6g} {unit_fw} ({what}) and keeps the "
                         "orientation (a magnitude cannot see it)")
-        return samples, None, F, {"value": F, "source": what, "unit": unit_fw}, messages
+        return samples, None, F, None, {"value": F, "source": what, "unit": unit_fw}, messages
     if given.reference is not None and str(given.reference).strip().lower() != "mean":
         F = float(given.reference) * convert(1.0, normalise_unit(req.input.units), unit_fw)
-        return samples, None, F, {"value": F, "source": "reference", "unit": unit_fw}, messages
+        return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages
     raise TrimagInputError(
         f"a {target} fit needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` (with "
         "attitudes: the vector, rotated into the body frame) or `reference=F` (the magnitude, in the data's unit)"
     )
 
 
-def _attitudes(samples: Samples, att: Any, yaw_column: str | None) -> tuple[Samples, Any]:
+def _attitudes(samples: Samples, att: Any, yaw_column: str | None) -> tuple[Samples, Any, list[str]]:
+    """The attitude of every kept row (yaw from ``yaw_column``) and a note; an ArduPilot log's ``ATT`` is given back
+    the board trim ``AHRS_TRIM_X/Y/Z`` (as ``magfit_WMM.py`` does): the compass is rotated into the IMU's frame, the
+    one the EKF works in, and ``ATT`` is the vehicle's, the trim removed (``AP_AHRS``)."""
     from ._inputs import drop_rows_without_attitude
 
     samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
-    if yaw_column is None or yaw_column == "yaw_deg":
-        return samples, attitudes_of(samples, att)
+    info = samples.log_info or {}
+    params = info.get("parameters") or {}
+    from_log = bool(info) and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg"
+    if not from_log:
+        return samples, attitudes_of(samples, att), []
+    trim = np.degrees([params.get("AHRS_TRIM_Z", 0.0), params.get("AHRS_TRIM_Y", 0.0), params.get("AHRS_TRIM_X", 0.0)])
     t = samples.table
-    return samples, from_euler(t[yaw_column].to_numpy(dtype=float), t["pitch_deg"].to_numpy(dtype=float),
-                               t["roll_deg"].to_numpy(dtype=float))
+    yaw = t[yaw_column or "yaw_deg"].to_numpy(dtype=float)
+    rotation = from_euler(yaw + trim[0], t["pitch_deg"].to_numpy(dtype=float) + trim[1],
+                          t["roll_deg"].to_numpy(dtype=float) + trim[2])
+    note = ([f"attitude: the board trim AHRS_TRIM (roll {trim[2]:.2f}, pitch {trim[1]:.2f}, yaw {trim[0]:.2f} deg) "
+             "added back to ATT: the compass is in the IMU's frame"] if np.any(trim) else [])
+    return samples, rotation, note
 
 
 def fit_target(req: FitRequest, samples: Samples, unit: str
@@ -215,7 +234,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
         raise TrimagInputError(f"a {target} fit needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
-    samples, field_body, magnitude, reference, more = _field_reference(req, samples, klass.unit, target)
+    samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
     messages += more
     motors, columns, more = _motor_channels(target, samples, info)
     messages += more
@@ -223,7 +242,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
                        level=req.level or "auto", motor=req.motor or "auto",
-                       offsets_max=offsets_max)
+                       offsets_max=offsets_max, heading_free=tilt)
     messages += [m for m in fit.messages if not m.startswith("warning:")]
     kind = fit.compass.motor_type
     channel = columns.get(kind) if kind else None

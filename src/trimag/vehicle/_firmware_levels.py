@@ -4,8 +4,11 @@ The fit works in the algebra both firmwares share (:mod:`trimag.models.firmware`
 
     B~_i = A (u_i + o) + m x_i          A symmetric (3, 3), o (3,), m (3,), x_i the logged current or throttle
 
-against a body-frame field vector ``h_i`` (vector residual ``B~_i - h_i``, 3 per sample: a flight with attitudes)
-or a field magnitude ``F_i`` (``|B~_i| - F_i``: a tumble without attitudes). The levels free, in this order (each
+against a body-frame field vector ``h_i`` (vector residual ``B~_i - h_i``, 3 per sample: a flight with attitudes),
+the field's horizontal and vertical components in the level frame (heading-free residual, 2 per sample:
+``|(T_i B~_i)_xy| - H`` and ``(T_i B~_i)_z - Z``, ``T_i`` the roll and pitch of sample ``i``; the heading does not
+enter: MAGFit's cost, as least squares) or a field magnitude ``F_i`` (``|B~_i| - F_i``: a tumble without
+attitudes). The levels free, in this order (each
 nested in the next), the parameters the firmware loads; the others are *held* at the values the firmware had
 (``A_held``, from the log's parameters; the identity where none are known)::
 
@@ -57,6 +60,10 @@ class LevelSolution:
     converged: bool
     iterations: int
     at_bound: list[int]
+    #: the directions fitted (columns, in parameters over ``scales``) when the others are held at ``theta_ref``
+    basis: NDArray[np.float64] | None = None
+    theta_ref: NDArray[np.float64] | None = None
+    scales: NDArray[np.float64] | None = None
 
 
 class LevelProblem:
@@ -76,13 +83,18 @@ class LevelProblem:
         The values held by the lower levels.
     fixed : ndarray, shape (N, 3), optional
         A term added to ``B~`` as it is (the firmware's own motor term, held when the level does not fit one).
+    tilt : ndarray, shape (N, 3, 3), optional
+        The heading-free residual: each sample's roll-and-pitch rotation (fit frame -> level frame); ``target`` is
+        then (N, 2): the horizontal and vertical field.
     """
 
     def __init__(self, u: NDArray[np.float64], level: str, motor: NDArray[np.float64] | None,
                  target: NDArray[np.float64], A_held: NDArray[np.float64], o_held: NDArray[np.float64],
-                 fixed: NDArray[np.float64] | None = None) -> None:
-        self.u, self.level, self.x, self.target, self.fixed = u, level, motor, target, fixed
-        self.vector = target.ndim == 2
+                 fixed: NDArray[np.float64] | None = None, tilt: NDArray[np.float64] | None = None) -> None:
+        self.u, self.level, self.x, self.target, self.fixed, self.tilt = u, level, motor, target, fixed, tilt
+        self.vector = target.ndim == 2 and tilt is None
+        #: residuals per sample: 3 (vector), 2 (heading-free), 1 (magnitude)
+        self.width = 3 if self.vector else (2 if tilt is not None else 1)
         self.A_held, self.o_held = np.asarray(A_held, dtype=np.float64), np.asarray(o_held, dtype=np.float64)
         self.off_held = self.A_held - np.diag(np.diag(self.A_held))
         self.n_A = {"offsets": 0, "scale": 1, "diagonal": 3, "full": 6}[level]
@@ -135,10 +147,14 @@ class LevelProblem:
         return np.asarray(B, dtype=np.float64)
 
     def residual(self, theta: NDArray[np.float64], rows: Any = slice(None)) -> NDArray[np.float64]:
-        """Vector residuals (3 n,) or magnitude residuals (n,) of the rows."""
+        """Vector residuals (3 n,), heading-free residuals (2 n,) or magnitude residuals (n,) of the rows."""
         B = self.predict(theta, rows)
         if self.vector:
             return np.asarray((B - self.target[rows]).ravel(), dtype=np.float64)
+        if self.tilt is not None:
+            L = np.einsum("nij,nj->ni", self.tilt[rows], B)
+            out = np.column_stack([np.hypot(L[:, 0], L[:, 1]), L[:, 2]]) - self.target[rows]
+            return np.asarray(out.ravel(), dtype=np.float64)
         return np.asarray(np.linalg.norm(B, axis=1) - self.target[rows], dtype=np.float64)
 
     def _field_jacobian(self, theta: NDArray[np.float64], rows: Any) -> NDArray[np.float64]:
@@ -170,6 +186,15 @@ class LevelProblem:
         if self.vector:
             return J.reshape(-1, self.n_params)
         B = self.predict(theta, rows)
+        if self.tilt is not None:
+            T = self.tilt[rows]
+            L = np.einsum("nij,nj->ni", T, B)
+            JL = np.einsum("nij,njp->nip", T, J)
+            horizontal = np.hypot(L[:, 0], L[:, 1])[:, None]
+            out = np.empty((len(B), 2, self.n_params))
+            out[:, 0] = (L[:, 0:1] * JL[:, 0] + L[:, 1:2] * JL[:, 1]) / horizontal
+            out[:, 1] = JL[:, 2]
+            return out.reshape(-1, self.n_params)
         unit = B / np.linalg.norm(B, axis=1, keepdims=True)
         return np.asarray(np.einsum("nj,njp->np", unit, J), dtype=np.float64)
 
@@ -201,7 +226,7 @@ class LevelProblem:
     def sphere_start(self, rows: Any = slice(None)) -> NDArray[np.float64]:
         """An algebraic start of the magnitude residual: the centre of the sphere ``|A_held (u + o)| = F``."""
         y = self.u[rows] @ self.A_held.T
-        F = self.target[rows]
+        F = self.target[rows] if self.target.ndim == 1 else np.linalg.norm(self.target[rows], axis=1)
         design = np.column_stack([2.0 * y, np.ones(len(y))])
         X, *_ = np.linalg.lstsq(design, F**2 - np.sum(y * y, axis=1), rcond=None)
         centre = -X[:3]  # |y - centre|^2 = F^2
@@ -220,10 +245,11 @@ class LevelProblem:
                                  self.jacobian(theta, rows), True, 1, [])
         if bounds is not None:
             lo, hi = bounds
-            p0 = np.clip(p0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+            margin = np.where(np.isfinite(hi - lo), 1e-9 * (hi - lo), 0.0)
+            p0 = np.clip(p0, lo + margin, hi - margin)
             res = levenberg_marquardt(lambda p: self.residual(p, rows), p0, jac=lambda p: self.jacobian(p, rows),
                                       method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
-            span = np.maximum(hi - lo, 1e-12)
+            span = np.where(np.isfinite(hi - lo), np.maximum(hi - lo, 1e-12), 1.0)
             at = [k for k in range(len(p0)) if min(res.x[k] - lo[k], hi[k] - res.x[k]) < 1e-6 * span[k]]
         else:
             res = levenberg_marquardt(lambda p: self.residual(p, rows), p0, jac=lambda p: self.jacobian(p, rows),
@@ -233,3 +259,30 @@ class LevelProblem:
         A, o, m = self.unpack(theta)
         return LevelSolution(A, o.copy(), m.copy(), theta, self.residual(theta, rows), self.jacobian(theta, rows),
                              bool(res.success), int(res.nfev), at)
+
+    def solve_in(self, theta_ref: NDArray[np.float64], basis: NDArray[np.float64], scales: NDArray[np.float64],
+                 rows: Any = slice(None), max_steps: int = 50) -> LevelSolution:
+        """The least-squares solution within ``theta_ref + scales * (basis @ c)``: the directions not in ``basis``
+        (the ones the data do not identify) are held at ``theta_ref``. Gauss-Newton on ``c`` with step halving."""
+        theta = np.asarray(theta_ref, dtype=np.float64).copy()
+        r = self.residual(theta, rows)
+        cost = float(r @ r)
+        steps = 0
+        for steps in range(1, max_steps + 1):  # noqa: B007
+            Jc = (self.jacobian(theta, rows) * scales) @ basis
+            dc, *_ = np.linalg.lstsq(Jc, -r, rcond=None)
+            step = scales * (basis @ dc)
+            for _ in range(20):
+                trial = theta + step
+                r_trial = self.residual(trial, rows)
+                if float(r_trial @ r_trial) <= cost:
+                    break
+                step = step / 2.0
+            else:
+                break
+            theta, r, cost_old, cost = trial, r_trial, cost, float(r_trial @ r_trial)
+            if np.linalg.norm(dc) < 1e-10 * (1.0 + np.linalg.norm(theta / scales)) or cost_old - cost < 1e-14 * cost:
+                break
+        A, o, m = self.unpack(theta)
+        return LevelSolution(A, o.copy(), m.copy(), theta, r, self.jacobian(theta, rows), True, steps, [], basis,
+                             np.asarray(theta_ref, dtype=np.float64), scales)

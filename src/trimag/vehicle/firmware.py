@@ -5,19 +5,26 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
 ``AP_Compass_Backend::correct_field``, PX4 ``Magnetometer::Correct``); the levels and their residuals are
 :mod:`trimag.vehicle._firmware_levels`. The fit:
 
-1. **Orientation** (vector residual only: a magnitude cannot see it). Every standard rotation of the target's enum
-   is tried with one scale and the offsets; the log's own orientation is kept unless another fits the field at least
-   :data:`SWITCH_RATIO` times better. The rotation the standard one leaves (the rotation of the unconstrained affine
-   fit's polar factor: left for ArduPilot, whose matrix acts after the rotation; right for PX4, whose rotation acts
-   last) is left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two
-   of its standard deviations, the fit is refused naming the angle. An internal compass (ArduPilot
-   ``COMPASS_EXTERNALn`` = 0, PX4 ``CAL_MAGn_ROT`` = -1) follows
-   the board's rotation: its orientation is kept and a better one is only reported.
-2. **Levels** (:data:`~trimag.vehicle.firmware_levels.LEVELS`, each with and without the motor term): each is fitted
-   on all samples and on :data:`N_FOLDS` contiguous folds (fitted on the others, evaluated on the one left out); a
-   level is *identified* when its parameters' standard deviations are within :data:`IDENTIFIED` (of the field for
-   offsets and motor terms over the logged range, absolute for the matrix); ``level="auto"`` picks the simplest
-   identified level within the firmware's limits whose held-out RMS is within :data:`AUTO_TOLERANCE` of the best.
+0. **Residual**: the vector one (``B - h``, the field rotated into the body frame by each sample's attitude) when
+   the attitudes are trusted; with ``heading_free`` (an attitude whose yaw an EKF estimated with this very compass)
+   the field's horizontal and vertical components under the logged roll and pitch (MAGFit's cost, as least
+   squares), falling back to the vector one when that identifies nothing (a log that never changed heading);
+   the magnitude without attitudes.
+1. **Orientation** (attitudes only: a magnitude cannot see it). Every standard rotation of the target's enum is
+   tried with one scale and the offsets (vector residual: 45-degree steps are robust to a few degrees of yaw
+   error); the log's own orientation is kept unless another fits the field at least :data:`SWITCH_RATIO` times
+   better. The rotation the standard one leaves (the rotation of the unconstrained affine fit's polar factor) is
+   left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two of its
+   standard deviations (inflated by the residuals' correlation time), the fit is refused naming the angle
+   (vector residual; heading-free it is only reported). An internal compass (ArduPilot ``COMPASS_EXTERNALn`` = 0,
+   PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation is kept and a better one reported.
+2. **Levels** (:data:`~trimag.vehicle._firmware_levels.LEVELS`, nested, each without and with each logged motor
+   channel): the directions of a level's parameters that the data do not identify (one standard deviation moving
+   the field by more than :data:`IDENTIFIED` allows) are held at the level below's solution (the log's values for
+   the first) and the others fitted; each level is judged by its RMS on :data:`N_FOLDS` contiguous folds, each
+   fitted on the others (held-out RMS); ``level="auto"`` picks the simplest level within the firmware's limits whose
+   held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says what it held; a level asked for must be
+   identified whole.
 3. **Limits**: a level whose unconstrained solution the firmware cannot load is refitted with bounds (trust-region
    least squares): the parameters at a bound are named; a calibration still outside the limits is refused naming
    the parameter and the limit (:meth:`~trimag.models.firmware.FirmwareCompass.violations`). A scale more than
@@ -51,6 +58,7 @@ __all__ = [
     "N_FOLDS",
     "ORIENTATION_TOLERANCE_DEG",
     "FirmwareFit",
+    "KeepTheLogs",
     "firmware_calibration",
     "fit_firmware",
     "level_table",
@@ -58,14 +66,18 @@ __all__ = [
 
 #: Another orientation replaces the log's only when it fits the field this many times better (RMS).
 SWITCH_RATIO = 2.0
+#: The orientation is only chosen when the field directions spread over more than this (degrees from their mean).
+MIN_CONE_DEG = 20.0
+#: A chosen level whose held-out RMS exceeds this fraction of the field is refused: nothing was identified.
+MAX_UNEXPLAINED = 0.2
 #: Contiguous folds of the held-out RMS.
 N_FOLDS = 5
 #: auto: the simplest level whose held-out RMS is within this fraction of the best.
 AUTO_TOLERANCE = 0.02
-#: A level is identified when one standard deviation of each parameter moves the corrected field by less than the
-#: residual noise per axis (or ``fraction`` of the field, if larger), and the column-scaled condition number of its
-#: Jacobian is below ``condition`` (:func:`_identified`).
-IDENTIFIED = {"fraction": 0.005, "condition": 1e7}
+#: A direction of a level's parameters is identified when one standard deviation along it moves the corrected field
+#: by less than ``noise_factor`` times the residual noise per axis (or ``fraction`` of the field, if larger)
+#: (:func:`_identified`).
+IDENTIFIED = {"fraction": 0.005, "noise_factor": 2.0}
 #: A fitted scale beyond this factor (either way) of the reference contradicts it: refused before any limit.
 SCALE_CONTRADICTION = 2.0
 _MOTOR_KINDS = ("current", "throttle")
@@ -192,7 +204,10 @@ def _choose_orientation(
         results.append((rms if scales[value] > 0 else np.inf, value))
     results.sort()
     best_rms, best = results[0]
-    _refuse_contradicted_scale(scales[best], float(np.median(np.linalg.norm(h, axis=1))), type(held))
+    F = float(np.median(np.linalg.norm(h, axis=1)))
+    own = F / float(np.median(np.linalg.norm(raw, axis=1)))  # with the regression's scale: a poorly turned log
+    _refuse_contradicted_scale(scales[best] if abs(np.log(abs(own))) > np.log(SCALE_CONTRADICTION) else own, F,
+                               type(held))  # attenuates the regression's (errors in u), so both must disagree
     current = int(held.orientation)
     current_rms = next(r for r, v in results if v == current)
     name = type(held)(orientation=best).rotation_name
@@ -200,7 +215,15 @@ def _choose_orientation(
     info: dict[str, Any] = {"log_value": current, "best_value": best, "best_rms": best_rms,
                             "log_rms": current_rms, "external": external}
     chosen = current
-    if best != current and current_rms > SWITCH_RATIO * best_rms:
+    directions = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    mean = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
+    cone = float(np.degrees(np.arccos(np.clip(directions @ mean, -1.0, 1.0))).max())
+    info["cone_deg"] = cone
+    if cone < MIN_CONE_DEG:
+        messages.append(f"orientation: kept (the field direction stayed within {cone:.0f} deg: too little turning to "
+                        "tell the sensor's orientation)")
+        best = current
+    elif best != current and np.isfinite(best_rms) and current_rms > SWITCH_RATIO * best_rms:
         if external:
             chosen = best
             messages.append(f"orientation: {name} ({best}) fits the field {current_rms / best_rms:.3g}x better than "
@@ -235,7 +258,8 @@ def _remaining_angle(u: NDArray[np.float64], h: NDArray[np.float64],
     design = np.column_stack([u, np.ones(len(u)), *motors.values()])
     X, *_ = np.linalg.lstsq(design, h, rcond=None)
     r = h - design @ X
-    s2 = float(np.sum(r**2)) / max(3 * (len(u) - design.shape[1]), 1)
+    tau = max(correlation_time(r[:, k]) for k in range(3))  # correlated residuals carry less information
+    s2 = float(np.sum(r**2)) / max(3 * (len(u) - design.shape[1]), 1) * tau
     try:
         var = np.diag(np.linalg.inv(design.T @ design))[:3] * s2
     except np.linalg.LinAlgError:
@@ -248,9 +272,10 @@ def _remaining_angle(u: NDArray[np.float64], h: NDArray[np.float64],
 
 
 # ------------------------------------------------------------------ the uncertainty of one level
-def _inflation(residual: NDArray[np.float64], vector: bool, raw: NDArray[np.float64]) -> dict[str, Any]:
-    """The honest inflation (:mod:`trimag.quality.honesty`) of a level's covariance."""
-    series = residual.reshape(-1, 3).T if vector else residual[None, :]
+def _inflation(residual: NDArray[np.float64], width: int, raw: NDArray[np.float64]) -> dict[str, Any]:
+    """The honest inflation (:mod:`trimag.quality.honesty`) of a level's covariance (``width`` residuals per
+    sample)."""
+    series = residual.reshape(-1, width).T
     n = series.shape[1]
     window = slice(max(0, (n - 4096) // 2), max(0, (n - 4096) // 2) + 4096)
     tau = max(correlation_time(s[window]) for s in series)
@@ -273,37 +298,41 @@ def _covariance(sol: LevelSolution, total: float) -> tuple[NDArray[np.float64], 
     return cov, float(np.sqrt(s2))
 
 
-def _condition(J: NDArray[np.float64]) -> float:
-    norms = np.linalg.norm(J, axis=0)
-    if np.any(norms == 0):
-        return float("inf")
-    s = np.linalg.svd(J / norms, compute_uv=False)
-    return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+def _effect_scales(problem: LevelProblem, F: float, x_range: float) -> NDArray[np.float64]:
+    """How much one unit of each parameter moves the corrected field: offsets 1, matrix entries ``F``, a motor term
+    half the logged range ``x_range``."""
+    return np.array([1.0 if n.startswith("o_") else (x_range / 2.0 if n.startswith("m_") else F)
+                     for n in problem.names()])
 
 
-def _identified(problem: LevelProblem, sol: LevelSolution, cov: NDArray[np.float64], F: float, x_range: float,
-                noise: float) -> tuple[bool, list[str]]:
-    """Whether the level's parameters are identified (:data:`IDENTIFIED`), and the names of those that are not.
+def _identified(problem: LevelProblem, cov: NDArray[np.float64], scales: NDArray[np.float64], F: float,
+                noise: float, change: NDArray[np.float64]) -> tuple[NDArray[np.float64], list[str]]:
+    """The directions of the level's parameters that the data identify, and the names of those they do not.
 
-    A parameter is identified when one standard deviation of it moves the corrected field by less than the fit's
-    own residual noise per axis ``noise`` (or ``IDENTIFIED["fraction"]`` of the field ``F``, if larger): an offset
-    by its sigma, a matrix entry by sigma x F, a motor term by sigma x half the logged range ``x_range``.
+    Parameters are compared by their effect on the corrected field (:func:`_effect_scales`). A direction (an
+    eigenvector of the scaled covariance) is identified when one standard deviation along it moves the field by
+    less than ``IDENTIFIED["noise_factor"]`` times the fit's residual noise ``noise`` (or ``IDENTIFIED["fraction"]``
+    of the field ``F``, if larger). ``change`` (the solution minus the held values) is not used.
+
+    Returns
+    -------
+    basis : ndarray, shape (p, k)
+        The identified directions (columns, in parameters over ``scales``).
+    weak : list of str
+        For each direction not identified, the parameter that dominates it (a parameter named once).
     """
-    std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    weak = []
-    if _condition(sol.jacobian) > IDENTIFIED["condition"]:
-        weak.append("condition")
     limit = max(noise, IDENTIFIED["fraction"] * F)
-    for name, s in zip(problem.names(), std, strict=True):
-        if name.startswith("o_"):
-            moved = s
-        elif name.startswith("m_"):
-            moved = s * x_range / 2.0
-        else:
-            moved = s * F
-        if not moved <= limit:
+    scaled = cov / np.outer(scales, scales)
+    eigval, eigvec = np.linalg.eigh((scaled + scaled.T) / 2.0)
+    good = np.sqrt(np.clip(eigval, 0, None)) <= IDENTIFIED["noise_factor"] * limit
+    del change
+    names = problem.names()
+    weak: list[str] = []
+    for k in np.flatnonzero(~good):
+        name = names[int(np.argmax(np.abs(eigvec[:, k])))]
+        if name not in weak:
             weak.append(name)
-    return not weak, weak
+    return eigvec[:, good], weak
 
 
 # ------------------------------------------------------------------ one level: fit, limits, held-out RMS
@@ -323,6 +352,7 @@ class _Candidate:
     at_limit: list[str]
     heldout_rms: float
     held_motor: bool = False
+    n_identified: int = 0
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -380,7 +410,8 @@ def _folds(n: int) -> list[NDArray[np.int64]]:
 
 
 def _heldout(problem: LevelProblem, sol: LevelSolution, bounds: Any) -> float:
-    """RMS over every sample of the residual (vector length or magnitude) predicted by the fit on the other folds."""
+    """RMS over every sample of the residual (vector length, heading-free or magnitude) predicted by the fit on the
+    other folds."""
     n = len(problem.u)
     if n < 5 * N_FOLDS:
         return float("nan")
@@ -388,11 +419,14 @@ def _heldout(problem: LevelProblem, sol: LevelSolution, bounds: Any) -> float:
     for fold in _folds(n):
         train = np.setdiff1d(np.arange(n), fold)
         try:
-            part = problem.solve(sol.theta, rows=train, bounds=bounds)
+            if sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
+                part = problem.solve_in(sol.theta_ref, sol.basis, sol.scales, rows=train)
+            else:
+                part = problem.solve(sol.theta, rows=train, bounds=bounds)
         except (np.linalg.LinAlgError, ValueError):
             return float("inf")
         r = problem.residual(part.theta, rows=fold)
-        errors.append(r.reshape(-1, 3) if problem.vector else r[:, None])
+        errors.append(r.reshape(-1, problem.width))
     e = np.concatenate(errors)
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
@@ -401,14 +435,14 @@ def _fit_level(
     level: str, motor: str | None, u: NDArray[np.float64], target: NDArray[np.float64],
     motor_values: Mapping[str, NDArray[np.float64]], klass: type[FirmwareCompass], held: FirmwareCompass,
     A_held: NDArray[np.float64], o_held: NDArray[np.float64], start: NDArray[np.float64] | None, orientation: int,
-    offsets_max: float, raw: NDArray[np.float64], held_same_frame: bool,
+    offsets_max: float, raw: NDArray[np.float64], held_same_frame: bool, tilt: NDArray[np.float64] | None = None,
 ) -> _Candidate:
     x = None if motor is None else motor_values[motor]
     fixed = None
     if motor is None and held.motor_type in motor_values and np.any(held.motor):
         # the firmware's own motor term is held (PX4's COMP with the held scale matrix: COMP acts inside S)
         fixed = motor_values[str(held.motor_type)][:, None] * held.algebra()[2]
-    problem = LevelProblem(u, level, x, target, A_held, o_held, fixed)
+    problem = LevelProblem(u, level, x, target, A_held, o_held, fixed, tilt)
     if problem.vector:
         p0 = problem.linear_start()
     elif start is not None:
@@ -426,16 +460,27 @@ def _fit_level(
                          offsets_max)
         sol = problem.solve(sol.theta, bounds=bounds)
         compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
-    inflation = _inflation(sol.residual, problem.vector, raw)
+    inflation = _inflation(sol.residual, problem.width, raw)
     cov, noise = _covariance(sol, inflation["total"])
-    F = float(np.median(np.linalg.norm(target, axis=1) if problem.vector else target))
+    F = float(np.median(np.linalg.norm(target, axis=1) if target.ndim == 2 else target))
     x_range = float(np.ptp(x)) if x is not None else 1.0
-    per_axis = noise if not problem.vector else float(np.sqrt(np.mean(sol.residual**2)))
-    identified, weak = _identified(problem, sol, cov, F, x_range, per_axis)
+    scales = _effect_scales(problem, F, x_range)
+    m_held = held.algebra()[2] if fixed is None and held.motor_type == motor else np.zeros(3)
+    reference = problem.pack(*start) if isinstance(start, tuple) else problem.pack(A_held, o_held, m_held)
+    basis, weak = _identified(problem, cov, scales, F, float(np.sqrt(np.mean(sol.residual**2))),
+                              sol.theta - reference)
+    if weak and basis.shape[1] and bounds is None:  # fit what is identified; hold the rest at the log's values
+        sol = problem.solve_in(reference, basis, scales)
+        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
+        J = (sol.jacobian * scales) @ basis
+        s2 = float(sol.residual @ sol.residual) / max(len(sol.residual) - basis.shape[1], 1)
+        cov = (scales[:, None] * basis) @ np.linalg.pinv(J.T @ J) @ (scales[:, None] * basis).T * s2 \
+            * inflation["total"]
     names = problem.names()
-    return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, identified, weak,
+    return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
-                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None)
+                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
+                      basis.shape[1])
 
 
 # ------------------------------------------------------------------ the fit
@@ -488,6 +533,7 @@ def fit_firmware(
     motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,
     applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
     tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
+    heading_free: ArrayLike | None = None,
 ) -> FirmwareFit:
     """Fit ``target``'s parameters (see the module docstring).
 
@@ -513,6 +559,12 @@ def fit_firmware(
         :data:`ORIENTATION_TOLERANCE_DEG`.
     offsets_max : float, optional
         ArduPilot's ``COMPASS_OFFS_MAX`` (default 1800).
+    heading_free : array_like, shape (N, 3, 3), optional
+        With ``field_body``: each sample's roll-and-pitch rotation (body -> level frame). The levels are then fitted
+        to the heading-free residual (the field's horizontal and vertical components: the heading does not enter),
+        for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
+        chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
+        reported.
 
     Raises
     ------
@@ -535,9 +587,12 @@ def fit_firmware(
     omax = float(offsets_max) if offsets_max else float(getattr(klass, "OFFSETS_MAX", np.inf))
     vector = h.ndim == 2
     messages: list[str] = []
+    tilt = None if heading_free is None else np.asarray(heading_free, dtype=np.float64)
+    if tilt is not None and (not vector or tilt.shape != (len(v), 3, 3)):
+        raise TrimagInputError(f"`heading_free` needs `field_body` and one 3x3 rotation per sample ({len(v)}, 3, 3)")
     if vector:
-        fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external, tolerance_deg,
-                                                    motors)
+        fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external,
+                                                    np.inf if tilt is not None else tolerance_deg, motors)
         messages += more
     else:
         fr = _frame(target, int(held.orientation), applied_orientation)
@@ -552,13 +607,47 @@ def fit_firmware(
     F = float(np.median(np.linalg.norm(hh, axis=1) if vector else hh))
     if not vector:
         _refuse_contradicted_scale(_sphere_scale(u, F), F, klass)
-    table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation, omax, v,
-                                    same_frame)
-    chosen = _choose(level, candidates)
+    held_frame = _frame(target, int(held.orientation), applied_orientation)
+    try:
+        table, candidates, chosen, tilt = _levels(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr,
+                                                  held_frame, omax, same_frame, tilt, vector, F, messages)
+    except IdentifiabilityError as exc:  # what the orientation step found explains many a refusal
+        said = [m[len("warning: "):] for m in messages if m.startswith("warning: the field fits")]
+        if said:
+            raise type(exc)(f"{exc}; {said[0]}") from None
+        raise
     for row, cand in zip(table, candidates, strict=True):
         row["chosen"] = cand is chosen
-    held_frame = _frame(target, int(held.orientation), applied_orientation)
-    return _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame)
+    return _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
+                   tilt)
+
+
+def _levels(
+    level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
+    hh: NDArray[np.float64], h: NDArray[np.float64], v: NDArray[np.float64], klass: type[FirmwareCompass],
+    held: FirmwareCompass, A_held: NDArray[np.float64], o_held: NDArray[np.float64], fr: _Frame, held_frame: _Frame,
+    omax: float, same_frame: bool, tilt: NDArray[np.float64] | None, vector: bool, F: float, messages: list[str],
+) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
+    """The levels' table and candidates and the one chosen, heading-free first where asked (module docstring)."""
+    if tilt is not None:  # heading-free first; the vector (the untrusted yaw) only where it identifies nothing
+        level_field = np.einsum("nij,nj->ni", tilt, h)
+        hz = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
+        table, candidates = _run_levels(level, motor, motors, u, hz, klass, held, A_held, o_held, fr.orientation,
+                                        omax, v, same_frame, tilt @ fr.P_h)
+        try:
+            chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, tilt), F)
+        except KeepTheLogs:
+            raise
+        except IdentifiabilityError as exc:
+            messages.append(f"warning: heading-free, {exc}; fitted to the vector with the attitude's own yaw instead "
+                            "(which used this compass: the orientation about the vertical and the horizontal soft "
+                            "iron lean toward the calibration in the log)")
+            tilt = None
+    if tilt is None:
+        table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation,
+                                        omax, v, same_frame)
+        chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, None), F)
+    return table, candidates, chosen, tilt
 
 
 def _refuse_contradicted_scale(scale: float, F: float, klass: type[FirmwareCompass]) -> None:
@@ -586,52 +675,85 @@ def _run_levels(
     level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
     target: NDArray[np.float64], klass: type[FirmwareCompass], held: FirmwareCompass, A_held: NDArray[np.float64],
     o_held: NDArray[np.float64], orientation: int, omax: float, raw: NDArray[np.float64], same_frame: bool,
+    tilt: NDArray[np.float64] | None = None,
 ) -> tuple[list[dict[str, Any]], list[_Candidate]]:
     levels = LEVELS if level == "auto" else (level,)
     table: list[dict[str, Any]] = []
     candidates: list[_Candidate] = []
-    start: Any = None
-    for lv in levels:
+    previous: dict[str | None, Any] = {}  # each motor choice's solution of the level below: its start and what
+    for lv in levels:                      # the next level holds where the data do not identify it (nested levels)
         for mk in _motor_choices(motor, motors):
             try:
-                cand = _fit_level(lv, mk, u, target, motors, klass, held, A_held, o_held,
-                                  start if mk is None else None, orientation, omax, raw, same_frame)
+                cand = _fit_level(lv, mk, u, target, motors, klass, held, A_held, o_held, previous.get(mk),
+                                  orientation, omax, raw, same_frame, tilt)
             except (IdentifiabilityError, np.linalg.LinAlgError):
                 continue
-            if mk is None:
-                start = (cand.solution.A, cand.solution.o, cand.solution.m)
+            previous[mk] = (cand.solution.A, cand.solution.o, cand.solution.m)
             candidates.append(cand)
             sol = cand.solution
-            rms = float(np.sqrt(np.mean(sol.residual.reshape(len(u), -1) ** 2) * (3 if target.ndim == 2 else 1)))
+            rms = float(np.sqrt(np.mean(sol.residual**2) * cand.problem.width))
             held_motor = "held" if cand.held_motor else None
             table.append({"level": lv, "motor": mk or held_motor, "n_params": cand.problem.n_params, "rms": rms,
                           "heldout_rms": cand.heldout_rms, "identified": cand.identified,
+                          "n_identified": cand.n_identified,
                           "not_identified": cand.weak, "within_limits": not cand.violations,
                           "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False})
     return table, candidates
 
 
-def _choose(level: str, candidates: list[_Candidate]) -> _Candidate:
-    """The level chosen (module docstring, step 2), or the refusal."""
-    usable = [c for c in candidates if c.identified and not c.violations]
+class KeepTheLogs(IdentifiabilityError):
+    """The calibration in the log fits the data better than any level fitted to them (exit 3: nothing to change)."""
+
+
+def _choose(level: str, candidates: list[_Candidate], before: float | None = None, F: float | None = None
+            ) -> _Candidate:
+    """The level chosen (module docstring, step 2), or the refusal; ``before``: the RMS of the calibration in the
+    log on these data (it was not fitted to them: a level whose held-out RMS does not beat it is no improvement)."""
+    if level != "auto":  # a level asked for must be identified whole
+        whole = [c for c in candidates if c.identified]
+        if not whole:
+            weak = ", ".join(candidates[0].weak) if candidates else "its parameters"
+            raise IdentifiabilityError(
+                f"the {level} level asked for is not identified ({weak}); `level=auto` fits what the data identify "
+                "and holds the rest at the log's values"
+            )
+        candidates = whole
+    usable = [c for c in candidates if c.n_identified and not c.violations]
+    inside = [c for c in usable if not c.at_limit]  # a level the limits hold back is only taken if it is all there is
+    if level == "auto" and usable and not inside:
+        c = min(usable, key=lambda c: c.heldout_rms)
+        raise TrimagInputError(
+            f"the data push {', '.join(c.at_limit)} of the {c.level} level to the firmware's limit: what they ask for "
+            "cannot be loaded (a reference or unit off, iron near the compass, or a log that barely turned); check "
+            "the reference and record a calibration turning through all headings, pitched and rolled"
+        )
+    usable = inside if level == "auto" else usable
     if not usable:
-        outside = [c for c in candidates if c.identified and c.violations]
+        outside = [c for c in candidates if c.n_identified and c.violations]
         if outside:
             raise TrimagInputError(
                 f"the firmware cannot load this calibration: {outside[0].violations[0]} (level {outside[0].level}); "
                 "move the compass away from iron or magnets, or check the reference"
             )
-        weakest = candidates[0] if candidates else None
-        what = ("" if weakest is None else
-                f" (level {weakest.level}: {', '.join(weakest.weak)} not identified)")
-        asked = "" if level == "auto" else f"the {level} level asked for is not identified; `level=auto` fits " \
-                                           "what the data identify. "
         raise IdentifiabilityError(
-            f"{asked}this log identifies no firmware calibration{what}: record the vehicle turning through all "
-            "headings, and for the matrix also pitched and rolled; for the offsets alone a few headings at level "
+            "this log identifies no firmware calibration, not even the offsets: record the vehicle turning through "
+            "all headings, and for the matrix also pitched and rolled; for the offsets alone a few headings at level "
             "with the attitude and a GPS fix logged"
         )
     best = min(c.heldout_rms if np.isfinite(c.heldout_rms) else np.inf for c in usable)
+    if F is not None and np.isfinite(best) and best > MAX_UNEXPLAINED * F:
+        raise IdentifiabilityError(
+            f"the best level leaves {best:.4g} of the field {F:.4g} unexplained (held-out RMS, "
+            f"{100 * best / F:.0f}%): these data cannot identify a calibration (a log that barely turned, readings "
+            "the log's own processing changed, or a field disturbed by the vehicle); record a calibration turning "
+            "through all headings, pitched and rolled, with the raw magnetometer logged"
+        )
+    if level == "auto" and before is not None and np.isfinite(best) and best >= before:
+        raise KeepTheLogs(
+            f"the calibration in the log fits these data (RMS {before:.4g}) better than any level fitted to them "
+            f"(best held-out RMS {best:.4g}): keep it; to improve on it, record the vehicle turning through all "
+            "headings, pitched and rolled"
+        )
     if not np.isfinite(best):
         return min(usable, key=lambda c: c.problem.n_params)
     for c in sorted(usable, key=lambda c: c.problem.n_params):
@@ -653,6 +775,18 @@ def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass,
     elif motor is None:
         out["motor term"] = 0.0
     return out
+
+
+def _firmware_name(klass: type[FirmwareCompass], name: str) -> str:
+    """The firmware's parameter (instance 0) behind an algebra name (``o_x``, ``d_y``, ``A_xz``, ``l``, ``m_z``)."""
+    axis = {"x": "X", "y": "Y", "z": "Z", "xx": "X", "yy": "Y", "zz": "Z", "xy": "X", "xz": "Y", "yz": "Z"}
+    kind, _, which = name.partition("_")
+    a = axis.get(which, "")
+    if klass.target == "ardupilot":
+        return {"o": f"COMPASS_OFS_{a}", "m": f"COMPASS_MOT_{a}", "l": "COMPASS_SCALE", "d": f"COMPASS_DIA_{a}",
+                "A": f"COMPASS_{'DIA' if which in ('xx', 'yy', 'zz') else 'ODI'}_{a}"}[kind]
+    return {"o": f"CAL_MAG0_{a}OFF", "m": f"CAL_MAG0_{a}COMP", "l": "CAL_MAG0_XSCALE", "d": f"CAL_MAG0_{a}SCALE",
+            "A": f"CAL_MAG0_{a}{'SCALE' if which in ('xx', 'yy', 'zz') else 'ODIAG'}"}[kind]
 
 
 def _param_covariance(cand: _Candidate, klass: type[FirmwareCompass], orientation: int,
@@ -687,31 +821,43 @@ def _result(
     fr: _Frame, held_frame: _Frame, orientation: dict[str, Any], vector: bool, raw: NDArray[np.float64],
     target: NDArray[np.float64],
     motors: Mapping[str, NDArray[np.float64]], messages: list[str], same_frame: bool,
+    tilt: NDArray[np.float64] | None = None,
 ) -> FirmwareFit:
     names, cov = _param_covariance(chosen, klass, fr.orientation,
                                    held if same_frame or chosen.held_motor else None)
     std = dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True))
-    rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * (3 if vector else 1)))
-    rms_before = _rms_before(held, raw, target, held_frame, vector, motors)
+    rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * chosen.problem.width))
+    rms_before = _rms_before(held, raw, target, held_frame, vector, motors, tilt)
     kind = chosen.compass.motor_type
     x = motors.get(kind) if kind else None
     held_values = _held_names(klass, chosen.level, held, chosen.motor, chosen.held_motor)
+    fitted = chosen.compass.parameters(0)
+    for name in chosen.weak:  # the directions the data do not identify, held at the level below's values
+        fw = _firmware_name(klass, name)
+        held_values[f"{fw} (not identified)"] = float(fitted.get(fw, 0.0))
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
     return FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
-                       "vector" if vector else "magnitude", rms_before, rms_after, fr.P_u, fr.P_h,
+                       ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
+                       rms_after, fr.P_u, fr.P_h,
                        float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
                        messages)
 
 
 def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[np.float64], hf: _Frame,
-                vector: bool, motors: Mapping[str, NDArray[np.float64]]) -> float:
+                vector: bool, motors: Mapping[str, NDArray[np.float64]], tilt: NDArray[np.float64] | None) -> float:
     """RMS of the residual of the firmware's calibration in the log (in its own orientation ``hf``), firmware
-    unit; ``field`` the body-frame field (N, 3) or its magnitude (N,)."""
+    unit; ``field`` the body-frame field (N, 3) or its magnitude (N,); ``tilt`` (body -> level, roll and pitch) for
+    the heading-free residual."""
     A, o, m = held.algebra()
     x = motors.get(held.motor_type or "", np.zeros(len(raw)))
     B = (raw @ hf.P_u.T + o) @ A.T + x[:, None] * m
+    if tilt is not None:
+        L = np.einsum("nij,nj->ni", tilt, B @ hf.P_h)  # B~ -> body -> level
+        H = np.einsum("nij,nj->ni", tilt, field)
+        d = np.column_stack([np.hypot(L[:, 0], L[:, 1]) - np.hypot(H[:, 0], H[:, 1]), L[:, 2] - H[:, 2]])
+        return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
     if vector:
         return float(np.sqrt(np.mean(np.sum((B - field @ hf.P_h.T) ** 2, axis=1))))
     return float(np.sqrt(np.mean((np.linalg.norm(B, axis=1) - field) ** 2)))
@@ -722,7 +868,8 @@ def level_table(table: list[dict[str, Any]], unit: str) -> str:
     lines = [f"{'level':<10}{'motor':<10}{'params':>7}{'rms':>11}{'held-out':>11}  {'identified':<11}"
              f"{'limits':<9}chosen   [{unit}]"]
     for row in table:
-        ident = "yes" if row["identified"] else "no"
+        ident = "all" if row["identified"] else (f"{row['n_identified']} of {row['n_params']}" if row.get(
+            "n_identified") else "none")
         limits = "ok" if row["within_limits"] else "outside"
         if row["at_limit"]:
             limits = "at limit"
