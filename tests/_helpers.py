@@ -100,3 +100,54 @@ def restore_sigint() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+#: The site of the simulated boats (Berlin, 2026-06-01): IGRF-14 gives 500.77 mG, inclination 68.06 deg,
+#: declination 5.12 deg (docs/autopilot.md, "Large vehicles").
+BOAT_SITE = "52.5,13.3,40,2026-06-01"
+#: The boat's compass: the symmetric correction (the firmware's DIA/ODI; its vertical scale equal to the horizontal
+#: ones' mean, as a level turn holds it) and the hard iron, mG.
+BOAT_MATRIX = np.array([[1.05, 0.02, -0.01], [0.02, 0.97, 0.015], [-0.01, 0.015, 1.01]])
+BOAT_OFFSET = np.array([120.0, -80.0, 60.0])
+
+
+def simulate_boat(
+    seed: int = 0, n: int = 720, *, turns: float = 2.0, tilt_deg: float = 0.0, yaw_deg: np.ndarray | None = None,
+    noise_mG: float = 2.0, matrix: np.ndarray | None = None, offset: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """A vehicle's compass (mG, body frame) turning level through ``turns`` circles (or at the true headings
+    ``yaw_deg``), rolling and pitching by ``tilt_deg`` (amplitude, a wave's periods of 37 and 23 samples), with the
+    errors :data:`BOAT_MATRIX` and :data:`BOAT_OFFSET` and ``noise_mG`` of white noise per axis, at :data:`BOAT_SITE`.
+
+    Returns ``raw`` (N, 3), ``ypr`` (N, 3: true heading, pitch, roll in degrees), ``field_ned`` (3,, mG),
+    ``matrix`` and ``offset``."""
+    from scipy.spatial.transform import Rotation
+
+    from trimag.fields.reference import igrf, parse_igrf_spec
+    from trimag.simulate import body_field
+
+    rng = np.random.default_rng(seed)
+    M = BOAT_MATRIX if matrix is None else matrix
+    b = BOAT_OFFSET if offset is None else offset
+    ned = np.asarray(igrf(*parse_igrf_spec(BOAT_SITE)).ned_nT) / 100.0
+    yaw = (np.linspace(0.0, 360.0 * turns, n, endpoint=False) + rng.normal(0, 1.0, n)) if yaw_deg is None else \
+        np.broadcast_to(np.asarray(yaw_deg, dtype=float), (n,))
+    t = np.arange(n)
+    roll = tilt_deg * np.sin(2 * np.pi * t / 37.0)
+    pitch = 0.6 * tilt_deg * np.sin(2 * np.pi * t / 23.0 + 1.0)
+    ypr = np.column_stack([np.mod(yaw, 360.0), pitch, roll])
+    h = body_field(Rotation.from_euler("ZYX", ypr, degrees=True), ned)
+    raw = h @ np.linalg.inv(M).T + b + rng.normal(0, noise_mG, (n, 3))
+    return {"raw": raw, "ypr": ypr, "field_ned": ned, "matrix": M, "offset": b}
+
+
+def heading_rms_deg(field: np.ndarray, ypr: np.ndarray, declination_deg: float) -> float:
+    """RMS (degrees) of the tilt-compensated true heading of a body-frame ``field`` against the true heading of
+    ``ypr`` (yaw, pitch, roll), the down direction from the true pitch and roll."""
+    from scipy.spatial.transform import Rotation
+
+    from trimag.vehicle.heading import heading_difference, tilt_compensated_heading
+
+    down = Rotation.from_euler("ZYX", ypr, degrees=True).inv().apply([0.0, 0.0, 1.0])
+    heading = tilt_compensated_heading(field, -down, declination_deg=declination_deg)
+    return float(np.sqrt(np.mean(heading_difference(heading, ypr[:, 0]) ** 2)))

@@ -93,3 +93,18 @@ def test_apply_keeps_every_row_with_nan_and_inf_anywhere(tmp_path: Path, capsys,
     _assert_clean(code, err, out)
     if code == 0:
         assert len(out.read_text().splitlines()) == len(lines)
+
+
+@_SETTINGS
+@given(data=st.binary(max_size=4000), head=st.sampled_from([b"", b"\xa3\x95", b"\xa3\x95\x80", b"FMT, "]))
+def test_random_dataflash_bin(tmp_path: Path, capfd, data: bytes, head: bytes) -> None:
+    """A random ``.bin`` (issue 32, item 6): one line on stderr, nothing printed by pymavlink."""
+    path = tmp_path / "fuzz.bin"
+    path.write_bytes(head + data)
+    out = tmp_path / "cal.json"
+    out.unlink(missing_ok=True)
+    code = main(["fit", str(path), "-o", str(out), "-q"])
+    captured = capfd.readouterr()
+    _assert_clean(code, captured.err, out)
+    assert code != 0 and len(captured.err.strip().splitlines()) == 1, captured.err[:2000]
+    assert captured.out == ""

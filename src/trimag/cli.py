@@ -76,8 +76,8 @@ def _err(msg: str) -> None:
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
-    """Human-readable progress/info goes to stderr when --json reserves stdout for the JSON object."""
-    stream = sys.stderr if getattr(args, "json", False) else sys.stdout
+    """Human-readable progress/info goes to stderr when --json (or ``-o -``) reserves stdout for the output."""
+    stream = sys.stderr if getattr(args, "json", False) or getattr(args, "out", None) == "-" else sys.stdout
     if not getattr(args, "quiet", False):
         stream.write(_as_flags(msg) + "\n")
 
@@ -89,8 +89,9 @@ def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> 
                             "rosbag", "phone"],
                    help="file format (default: from the extension; .bin/.tlog/.ulg/.px4log are autopilot logs)")
     g.add_argument("--sensor", metavar="N|NAME",
-                   help="autopilot logs: which magnetometer (instance number, name or device id; default: the one "
-                        "with the most samples)")
+                   help="autopilot logs: which magnetometer: its number from 1, as the firmware's parameters count "
+                        "(COMPASS_OFS = 1, COMPASS_OFS2 = 2; CAL_MAG0 = 1), its name or device id; fit: `all` fits "
+                        "every one (default: the one with the most samples)")
     g.add_argument("--columns", help="x,y,z columns: header names or 0-based indices (default: recognised)")
     g.add_argument("--var", help="variable name inside an NPZ or MAT file")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (recorded in every output)")
@@ -134,6 +135,10 @@ def _add_attitude_options(p: argparse.ArgumentParser, *, fit: bool = True) -> No
                         "calibration's lag is applied (docs/vehicle.md)")
     g.add_argument("--attitude-time-column", metavar="NAME",
                    help="time column (s) of --attitude-file (default: the same name as --time-column)")
+    g.add_argument("--position-columns", metavar="X,Y,Z",
+                   help="the sensor's positions (m, the attitudes' frame; in the data or in --attitude-file): fit: "
+                        "the background's gradient across the room (5 terms); evaluate: default the fitted columns "
+                        "(docs/vehicle.md)")
 
 
 def _add_tolles_lawson_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
@@ -173,10 +178,36 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
                    help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
                         "(default) fits it when it improves the held-out RMS")
+    g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
+    g.add_argument("--level-turn", action="store_true",
+                   help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
+                        "the vertical offset from the field's magnitude and inclination (--igrf, or the log's GPS), "
+                        "the vertical scale held")
+    g.add_argument("--heading", type=float, metavar="DEG",
+                   help="the vehicle's true heading while it stood still (degrees from true north): the offsets from "
+                        "the field's vector at that attitude, as ArduPilot's MAG_CAL_YAW (needs --igrf or the log's "
+                        "GPS; roll and pitch from the log's attitude or --attitude-columns, else level)")
+    g.add_argument("--heading-column", metavar="NAME",
+                   help="as --heading, with the true heading of each sample from this column (a survey, a GPS "
+                        "course)")
     p.add_argument("--accel-columns", metavar="AX,AY,AZ",
                    help="accelerometer columns (specific force, at rest or moving slowly): also estimate the rotation "
                         "from the corrected magnetometer to the accelerometer frame and the dip, with uncertainties, "
                         "and the nearest autopilot board rotation (docs/vehicle.md)")
+
+
+def _add_gyro_options(p: argparse.ArgumentParser) -> None:
+    """The gyroscope of the gyro-aided fit (``--method gyro``, docs/method-gyro.md)."""
+    g = p.add_argument_group("gyroscope (the gyro-aided fit of the ellipsoid; docs/method-gyro.md)")
+    g.add_argument("--gyro-columns", metavar="GX,GY,GZ",
+                   help="angular rate columns: in the same rows (with --time-column or --rate), or in --gyro-file "
+                        "(default x,y,z there); implies --method gyro")
+    g.add_argument("--gyro-unit", choices=["rad/s", "deg/s"],
+                   help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
+    g.add_argument("--gyro-file", metavar="FILE",
+                   help="the gyroscope in a file of its own, with its own clock: the lag between the two is fitted "
+                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0)")
+    g.add_argument("--gyro-time-column", metavar="NAME", help="time column (s) of --gyro-file (default: --time-column)")
 
 
 def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
@@ -209,6 +240,15 @@ def _add_fit(sub: Any) -> None:
     _add_attitude_options(p)
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
+    g = p.add_argument_group("all compasses of a log (--sensor all; docs/autopilot.md)")
+    g.add_argument("--export-to", choices=["ardupilot", "px4"],
+                   help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
+                        "this firmware")
+    g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
+    p.add_argument("--deviation-card", metavar="CARD.png",
+                   help="with --level-turn or --heading: write the deviation card (heading error against heading, "
+                        "before and after) as a figure; its table is printed")
+    _add_gyro_options(p)
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
@@ -221,7 +261,8 @@ def _add_apply(sub: Any) -> None:
                        description="Correct every row of a log; all input columns are kept and x/y/z_cal appended.")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("data", metavar="DATA")
-    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output file (.csv, .parquet or .npz)")
+    p.add_argument("-o", "--out", required=True, metavar="OUT",
+                   help="output file (.csv, .parquet or .npz; - for CSV on standard output)")
     _add_data_options(p, selection=False)
     _add_chunk_rows(p)
     p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
@@ -237,7 +278,7 @@ def _add_export(sub: Any) -> None:
                    choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
     p.add_argument("--instance", type=int, default=1,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
-    p.add_argument("-o", "--out", required=True, metavar="FILE")
+    p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
     _add_output_options(p)
 
 
@@ -434,11 +475,21 @@ def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _where(out: str) -> str:
+    return "standard output" if out == "-" else out
+
+
+def _check_stdout(args: argparse.Namespace) -> None:
+    """``-o -`` writes the output to standard output, where ``--json`` would write its object too: refused."""
+    if args.out == "-" and getattr(args, "json", False):
+        raise TrimagInputError("`-o -` and `--json` both write to standard output; drop one of them")
+
+
 def _check_writable(path: str | None, *, suffixes: tuple[str, ...] | None = None) -> None:
     """Refuse an output path that cannot be written (or has the wrong extension), before any work is done."""
     import os
 
-    if path is None:
+    if path is None or path == "-":  # "-": standard output
         return
     target = Path(path)
     if target.is_dir():
@@ -488,6 +539,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     _check_writable(args.out)
     _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
+    _check_writable(args.deviation_card, suffixes=(".png",))
     if args.model == "tolles-lawson":
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
@@ -496,8 +548,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     from .app.requests import FitRequest
 
-    result = fit_file(_request(FitRequest, args, args.data, options=parse_options(args.option),
-                               regressors=_regressor_flag(args.regressors), rate_hz=args.rate))
+    request = _request(FitRequest, args, args.data, options=parse_options(args.option),
+                       regressors=_regressor_flag(args.regressors), rate_hz=args.rate)
+    if (args.sensor or "").strip().lower() == "all":
+        return _cmd_fit_all(request, args)
+    result = fit_file(request)
     _print_fit(result, args)
     verdict = result.summary.get("acceptance")
     if verdict is not None:
@@ -509,6 +564,29 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
             return EXIT_POLICY
     return EXIT_OK
+
+
+def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
+    """``trimag fit LOG --sensor all``: every compass fitted, compared, and written (docs/autopilot.md)."""
+    from .app.fit_all import comparison_lines, fit_all_sensors
+
+    _check_writable(args.export_out)
+    result = fit_all_sensors(request)
+    if args.json:
+        print(json.dumps(result.summary, allow_nan=False))
+    else:
+        first = result.fits[min(result.fits)]
+        for msg in first.messages:  # the log's summary (its compasses, its reference)
+            if not msg.startswith("warning:"):
+                _say(msg, args)
+        _say(f"compasses fitted: {', '.join(map(str, result.fits))}", args)
+        for line in comparison_lines(result, first.calibration.units):
+            _say(line, args)
+    for msg in result.messages:
+        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    for what, path in result.written.items():
+        _say(f"wrote {what}: {path}", args)
+    return EXIT_POLICY if result.rejected else EXIT_OK
 
 
 def _with_progress(args: argparse.Namespace, work: Callable[..., dict[str, Any]], request: Any) -> dict[str, Any]:
@@ -534,9 +612,12 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     from .app.tolles_lawson import apply_compensation_file, is_compensation_file
 
     _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
+    _check_stdout(args)
     req = _request(ApplyRequest, args, args.data)
     src = req.input
     if is_compensation_file(req.calibration):
+        if args.out == "-":
+            raise TrimagInputError("a Tolles-Lawson compensation is applied to a file: give `-o OUT.csv`")
         _refuse_unused(args, ("strict", "sensor"), "a Tolles-Lawson compensation file")
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
@@ -569,7 +650,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
         print(json.dumps(r))
     else:
         _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
-             f"{', '.join(r['output_columns'])}; wrote {r['out']}", args)
+             f"{', '.join(r['output_columns'])}; wrote {_where(r['out'])}", args)
     return EXIT_OK
 
 
@@ -620,6 +701,8 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
         what = " or ".join(["x/y/z"] + (["regressor values"] if r.get("regressors") else [])
                            + ([f"reference ({column})"] if column else []))
         _err(f"skipped {r['n_dropped']} of {r['n_samples']} rows with missing or non-numeric {what}")
+    for warning in r["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(r, allow_nan=False))
         return EXIT_OK
@@ -641,6 +724,8 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .app import evaluate_vector_file
 
     v = evaluate_vector_file(req)
+    for warning in v["warnings"]:
+        _err(f"warning: {warning}")
     if args.json:
         print(json.dumps(v, allow_nan=False))
         return EXIT_OK
@@ -685,6 +770,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .app.requests import ExportRequest
 
     _check_writable(args.out)
+    _check_stdout(args)
     r = export_to_file(_request(ExportRequest, args))
     for note in r["notes"]:
         _say(f"note: {note}", args)
@@ -693,7 +779,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(r))
     else:
-        _say(f"wrote {args.target} parameters: {r['out']}", args)
+        _say(f"wrote {args.target} parameters: {_where(r['out'])}", args)
     return EXIT_OK
 
 
@@ -704,6 +790,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_writable(args.out)
     _check_writable(args.truth)
     r = simulate_to_file(_request(SimulateRequest, args, params_path=args.params))
+    if r["defaulted"]:
+        _say(f"parameters not given (defaults: no error, identity and zero): {', '.join(r['defaulted'])}", args)
     for what, path in r["outputs"].items():
         _say(f"wrote {what}: {path}", args)
     return EXIT_OK
@@ -783,18 +871,18 @@ def _cmd_live(args: argparse.Namespace) -> int:
     st = result.status
     if args.json:
         print(json.dumps({**st, "written": result.written, "reason": result.reason}, allow_nan=False))
-        return EXIT_OK
+    else:
+        def num(value: Any) -> str:
+            return "-" if value is None else f"{value:.4g}"
 
-    def num(value: Any) -> str:
-        return "-" if value is None else f"{value:.4g}"
-
-    _say(f"{st['n_samples']} samples ({st['n_garbage']} lines not understood); coverage "
-         f"{num(st['coverage_fraction'])}, RMS before {num(st['rms_before'])}, after {num(st['rms_after'])} "
-         f"{st['units']}; {'good enough' if st['good_enough'] else 'NOT good enough'}", args)
-    if not st["good_enough"]:
-        _say(f"next: {st['next_orientations']}", args)
-    if "calibration" not in result.written:
-        _err(f"no calibration written: {st.get('fit_message') or 'too few samples'}")
+        _say(f"{st['n_samples']} samples ({st['n_garbage']} lines not understood); coverage "
+             f"{num(st['coverage_fraction'])}, RMS before {num(st['rms_before'])}, after {num(st['rms_after'])} "
+             f"{st['units']}; {'good enough' if st['good_enough'] else 'NOT good enough'}", args)
+        if not st["good_enough"]:
+            _say(f"next: {st['next_orientations']}", args)
+    if "calibration" not in result.written:  # the same exit code with --json
+        failed = st["source_message"] if st["source_message"].startswith("the source failed") else ""
+        _err(f"no calibration written: {failed or st.get('fit_message') or 'too few samples'}")
         return EXIT_IDENTIFIABILITY if st["n_samples"] else EXIT_INPUT
     return EXIT_OK
 

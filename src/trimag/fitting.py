@@ -41,8 +41,9 @@ def fit(
         For ``interference12``: the background field vector (3,) in the navigation frame (NED).
     units : str
         Unit of ``samples``: ``nT``, ``uT``, ``G``, ``mG``, ``counts`` (recorded in the result).
-    attitude : scipy.spatial.transform.Rotation, optional
-        Per-sample attitudes, for vector methods (``interference12``).
+    attitude : scipy.spatial.transform.Rotation or trimag.fields.gyro.AngularRate, optional
+        Per-sample attitudes, for vector methods (``interference12``); the gyroscope for ``method="gyro"``
+        (docs/method-gyro.md).
     regressors : mapping str -> array_like, shape (N,), optional
         Channels the offset depends on linearly (motor current, throttle, temperature, ...), in their own units:
         ``b(t) = b0 + sum_j k_j (u_j(t) - mean_j)``, fitted jointly with the model (``ellipsoid`` and

@@ -438,3 +438,233 @@ def simulate_vehicle(
 
 
 __all__ += ["GRAVITY", "VehicleSimulation", "simulate_vehicle"]
+
+
+@dataclass(frozen=True)
+class GyroSimulation:
+    """A simulated magnetometer beside a gyroscope (:func:`simulate_gyro`), with the truth.
+
+    Attributes
+    ----------
+    time_s : ndarray, shape (N,)
+        Sample times, s (both sensors sample together).
+    raw : ndarray, shape (N, 3)
+        Magnetometer output: ``inv(W) R^T h + b + noise``.
+    rate : ndarray, shape (M, 3)
+        Gyroscope output, rad/s: the body's angular rate + ``gyro_bias`` + white noise, at ``gyro_time_s``.
+    gyro_time_s : ndarray, shape (M,)
+        The gyroscope's time stamps on its own clock (``time_s`` itself when the two sample together).
+    lag_s : float
+        Gyroscope clock - magnetometer clock: the gyroscope sample stamped ``t + lag_s`` is the one taken with the
+        magnetometer's sample stamped ``t``.
+    attitude : Rotation
+        True attitude, body (= gyroscope frame) -> navigation frame.
+    field_body : ndarray, shape (N, 3)
+        True field in the gyroscope's frame.
+    matrix, offset : ndarray
+        True correction ``W`` (upper triangular) and hard iron ``b``: ``W (raw - b)`` is the field in the corrected
+        magnetometer frame.
+    alignment : ndarray, shape (3, 3)
+        True rotation, corrected magnetometer frame -> gyroscope frame.
+    gyro_bias : ndarray, shape (3,)
+        rad/s.
+    field_nav : ndarray, shape (3,)
+    positions : ndarray, shape (N, 3)
+        The sensor's position, m (the path of :func:`simulate_gyro`'s ``path_m``; zeros when still).
+    """
+
+    time_s: NDArray[np.float64]
+    raw: NDArray[np.float64]
+    rate: NDArray[np.float64]
+    gyro_time_s: NDArray[np.float64]
+    lag_s: float
+    attitude: Rotation
+    field_body: NDArray[np.float64]
+    matrix: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    alignment: NDArray[np.float64]
+    gyro_bias: NDArray[np.float64]
+    field_nav: NDArray[np.float64]
+    positions: NDArray[np.float64]
+
+    def angular_rate(self) -> Any:
+        """The gyroscope as the gyro-aided fit takes it (:class:`trimag.fields.gyro.AngularRate`)."""
+        from .fields.gyro import AngularRate
+
+        if self.gyro_time_s is self.time_s:
+            return AngularRate.same_rows(self.time_s, self.rate, source="simulated gyroscope")
+        return AngularRate(self.time_s, self.gyro_time_s, self.rate, 0.0, True, "simulated gyroscope, own clock")
+
+    @property
+    def soft_iron(self) -> NDArray[np.float64]:
+        """``M = inv(R W)``: raw = ``M h + b`` with ``h`` in the gyroscope's frame."""
+        return np.asarray(np.linalg.inv(self.alignment @ self.matrix), dtype=np.float64)
+
+
+def smooth_attitudes(t: ArrayLike, *, motion: str = "tumble", cone_deg: float = 90.0, speed: float = 1.0,
+                     axis: ArrayLike = (0.0, 0.0, 1.0), seed: int | np.random.Generator | None = 0) -> Rotation:
+    """Smooth attitudes (body -> navigation) at times ``t`` (s): sums of sinusoids with random phases.
+
+    ``motion="tumble"``: the rotation vector wanders over all attitudes (rates about ``speed`` rad/s RMS).
+    ``motion="cone"``: turns freely about the navigation-frame ``axis`` (e.g. the field's direction) and tilts away
+    from it by at most ``cone_deg / 2``: a body-frame vector along ``axis`` stays within a cone of full aperture
+    ``cone_deg`` (a partial rotation: what a vehicle that cannot tumble records).
+    """
+    rng = np.random.default_rng(seed)
+    tt = np.asarray(t, dtype=np.float64)
+    freqs = speed * rng.uniform(0.15, 0.6, (3, 3))
+    phases = rng.uniform(0, 2 * np.pi, (3, 3))
+    waves = np.stack([np.sum(np.sin(freqs[a][:, None] * tt + phases[a][:, None]), axis=0) for a in range(3)], axis=1)
+    if motion == "tumble":
+        return Rotation.from_rotvec(1.2 * waves)
+    if motion != "cone":
+        raise TrimagInputError(f"motion must be 'tumble' or 'cone'; got {motion!r}")
+    z = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    a = np.eye(3)[int(np.argmin(np.abs(z)))]
+    e1 = np.cross(z, a) / np.linalg.norm(np.cross(z, a))
+    e2 = np.cross(z, e1)
+    half = np.radians(cone_deg / 2.0)
+    # a tilt perpendicular to the axis: its size sweeps 0..half, its azimuth turns (both smoothly)
+    size = half * (0.5 - 0.5 * np.cos(0.35 * speed * tt + phases[0, 0]))
+    azimuth = 0.8 * speed * tt + waves[:, 0]
+    tilt = size[:, None] * (np.cos(azimuth)[:, None] * e1 + np.sin(azimuth)[:, None] * e2)
+    spin = 2.0 * speed * tt + 1.5 * waves[:, 2]
+    return Rotation.from_rotvec(spin[:, None] * z) * Rotation.from_rotvec(tilt)
+
+
+def body_rate(attitude_at: Any, t: ArrayLike, h: float = 1e-5) -> NDArray[np.float64]:
+    """The body's angular rate (rad/s, body frame) of ``attitude_at(t)`` (a function of time returning a Rotation),
+    by a central difference of the rotation: ``log(R(t - h)^T R(t + h)) / 2h`` (error ``O(h^2)``)."""
+    tt = np.asarray(t, dtype=np.float64)
+    return np.asarray((attitude_at(tt - h).inv() * attitude_at(tt + h)).as_rotvec() / (2 * h), dtype=np.float64)
+
+
+def simulate_gyro(
+    n: int,
+    seed: int | np.random.Generator | None = 0,
+    *,
+    rate_hz: float = 100.0,
+    motion: str = "tumble",
+    cone_deg: float = 90.0,
+    speed: float = 1.0,
+    matrix: ArrayLike | None = None,
+    offset: ArrayLike = (12.0, -30.0, 7.0),
+    alignment: ArrayLike | Rotation | None = None,
+    gyro_bias: ArrayLike = (0.01, -0.02, 0.015),
+    gyro_noise: float = 0.002,
+    mag_noise: float = 0.3,
+    field_nav: ArrayLike = (20.0, 1.0, 45.0),
+    gyro_rate_hz: float | None = None,
+    lag_s: float = 0.0,
+) -> GyroSimulation:
+    """A magnetometer and a gyroscope sampled together at ``rate_hz`` while the sensor turns smoothly
+    (:func:`smooth_attitudes`; issue 31). Defaults: a phone-like sensor in uT (field 49.3 uT, hard iron (12, -30, 7)
+    uT, a mild soft iron, 0.3 uT noise per axis), a gyroscope with a bias of (0.01, -0.02, 0.015) rad/s and 0.002
+    rad/s of white noise, the magnetometer turned by 2 degrees about (1, -1, 2) from the gyroscope's axes.
+
+    ``motion="cone"`` keeps the field's body-frame direction within a cone of full aperture ``cone_deg`` (the sensor
+    turns about the field and tilts away from it by at most half of it). With ``gyro_rate_hz`` or ``lag_s`` the
+    gyroscope has its own clock: it samples at ``gyro_rate_hz`` (default ``rate_hz``) from 1 s before the
+    magnetometer's first sample to 1 s after its last, its stamps ``lag_s`` ahead of the magnetometer's.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / float(rate_hz)
+    H = np.asarray(field_nav, dtype=np.float64)
+    motion_seed = int(rng.integers(0, 2**31))
+
+    def att(tt: NDArray[np.float64]) -> Rotation:
+        return smooth_attitudes(tt, motion=motion, cone_deg=cone_deg, speed=speed, axis=H, seed=motion_seed)
+
+    R_true = att(t)
+    rate_true = body_rate(att, t)
+    if alignment is None:
+        R_al = Rotation.from_rotvec(np.radians(2.0) * np.array([1.0, -1.0, 2.0]) / np.sqrt(6.0)).as_matrix()
+    elif isinstance(alignment, Rotation):
+        R_al = alignment.as_matrix()
+    else:
+        R_al = np.asarray(alignment, dtype=np.float64)
+    W = (np.array([[1.05, 0.03, -0.02], [0.0, 0.96, 0.04], [0.0, 0.0, 1.01]]) if matrix is None
+         else np.asarray(matrix, dtype=np.float64))
+    b = np.asarray(offset, dtype=np.float64)
+    bias = np.asarray(gyro_bias, dtype=np.float64)
+    h_body = body_field(R_true, H)
+    raw = np.linalg.solve(W, (h_body @ R_al).T).T + b + rng.normal(0.0, mag_noise, (n, 3))
+    t_gyro = t
+    if gyro_rate_hz is not None or lag_s != 0.0:  # its own clock: stamps lag_s ahead of the magnetometer's
+        t_gyro = np.arange(-1.0, t[-1] + 1.0, 1.0 / float(gyro_rate_hz or rate_hz)) + lag_s
+        rate_true = body_rate(att, t_gyro - lag_s)
+    rate = rate_true + bias + rng.normal(0.0, gyro_noise, rate_true.shape)
+    return GyroSimulation(t, raw, rate, t_gyro, float(lag_s), R_true, h_body, W, b, R_al, bias, H, np.zeros((n, 3)))
+
+
+__all__ += ["GyroSimulation", "body_rate", "simulate_gyro", "smooth_attitudes"]
+
+
+@dataclass(frozen=True)
+class RoomSimulation:
+    """A sensor carried through a room whose background changes with position (:func:`simulate_room`).
+
+    ``raw = K C^T (H_0 + G p) + c + noise``: ``time_s`` (N,), ``raw`` (N, 3), ``attitude`` (body -> the room's
+    frame), ``positions`` (N, 3) m, ``K`` (3, 3), ``c`` (3,), ``background`` ``H_0`` (3,) at the room's origin (every
+    recording of :func:`simulate_room` is in the same room), and the gradient ``G`` (3, 3), unit per metre
+    (symmetric and traceless)."""
+
+    time_s: NDArray[np.float64]
+    raw: NDArray[np.float64]
+    attitude: Rotation
+    positions: NDArray[np.float64]
+    K: NDArray[np.float64]
+    c: NDArray[np.float64]
+    background: NDArray[np.float64]
+    gradient: NDArray[np.float64]
+
+
+def simulate_room(
+    n: int,
+    seed: int | np.random.Generator | None = 0,
+    *,
+    rate_hz: float = 50.0,
+    background: ArrayLike = (12_000.0, -30_000.0, 38_000.0),
+    gradient_terms: ArrayLike = (4000.0, -1500.0, 2500.0, -2000.0, 1000.0),
+    K: ArrayLike | None = None,
+    c: ArrayLike = (250.0, -120.0, 80.0),
+    noise: float = 20.0,
+    reach_m: float = 0.4,
+    centre_m: ArrayLike = (0.0, 0.0, 0.0),
+    dipole_at_m: ArrayLike | None = None,
+    dipole_moment_Am2: ArrayLike = (0.0, 0.0, 0.0),
+) -> RoomSimulation:
+    """A lab recording (issue 31, item 4): the sensor tumbles (:func:`smooth_attitudes`) while a hand carries it
+    within ``reach_m`` of ``centre_m``, in a background with a gradient (nT per metre: the five terms ``g_xx, g_xy,
+    g_xz, g_yy, g_yz`` of a symmetric, traceless tensor; the default changes the field by a few thousand nT over the
+    reach, as indoors near steel), paper C's ``K`` and ``c``, white noise per axis (unit nT). With ``dipole_at_m``
+    a point source (moment in A m^2) adds a field that is not linear in position: ``100 (3 (m . r^) r^ - m) / r^3``
+    nT (``mu_0 / 4 pi = 100 nT m^3 / (A m^2)``), which a gradient only approximates near where it was fitted;
+    ``gradient`` is then the linear part alone."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / float(rate_hz)
+    att = smooth_attitudes(t, seed=int(rng.integers(0, 2**31)))
+    freqs = rng.uniform(0.05, 0.25, (3, 2))
+    phases = rng.uniform(0, 2 * np.pi, (3, 2))
+    walk = np.column_stack([np.sin(freqs[a, 0] * 2 * np.pi * t + phases[a, 0])
+                            + 0.5 * np.sin(freqs[a, 1] * 2 * np.pi * t + phases[a, 1]) for a in range(3)])
+    positions = np.asarray(centre_m, dtype=np.float64) + reach_m * walk / 1.5
+    g = np.asarray(gradient_terms, dtype=np.float64)
+    G = np.array([[g[0], g[1], g[2]], [g[1], g[3], g[4]], [g[2], g[4], -g[0] - g[3]]])
+    H0 = np.asarray(background, dtype=np.float64)
+    Hn = H0 + positions @ G.T
+    if dipole_at_m is not None:
+        r = positions - np.asarray(dipole_at_m, dtype=np.float64)
+        dist = np.linalg.norm(r, axis=1, keepdims=True)
+        u = r / dist
+        m = np.asarray(dipole_moment_Am2, dtype=np.float64)
+        Hn = Hn + 100.0 * (3.0 * (u @ m)[:, None] * u - m) / dist**3
+    K_m = (np.array([[1.02, 0.01, -0.02], [0.015, 0.98, 0.01], [-0.01, 0.02, 1.01]]) if K is None
+           else np.asarray(K, dtype=np.float64))
+    c_v = np.asarray(c, dtype=np.float64)
+    Hb = np.einsum("nji,nj->ni", att.as_matrix(), Hn)
+    raw = Hb @ K_m.T + c_v + rng.normal(0.0, noise, (n, 3))
+    return RoomSimulation(t, raw, att, positions, K_m, c_v, H0, G)
+
+
+__all__ += ["RoomSimulation", "simulate_room"]

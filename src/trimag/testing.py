@@ -12,7 +12,8 @@ Simulated data: the estimator's own first model (``cls.models[0]``) with every p
 default by a fixed small pattern, 600 noise-free samples in uniformly random attitudes (:func:`trimag.simulate
 .simulate`), field magnitude 50 (arbitrary unit). Scalar methods get the magnitude as reference (``None`` for
 reference-free methods, ``reference_kind == "none"``); vector methods (``reference_kind == "vector"``) get the
-background vector and the attitudes.
+background vector and the attitudes; gyro-aided methods (``reference_kind == "gyro"``) get the magnitude and the
+angular rate of a smooth tumble sampled at 100 Hz (:func:`trimag.simulate.simulate_gyro`).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from .calibration import Calibration
 from .errors import NotFittedError, TrimagInputError
 from .estimators.base import Estimator
 from .models import get_model
-from .simulate import Simulation, simulate
+from .simulate import Simulation, simulate, simulate_gyro
 
 __all__ = ["check_estimator", "estimator_checks", "simulated_problem"]
 
@@ -48,6 +49,12 @@ def simulated_problem(cls: type[Estimator], *, n: int = 600, seed: int = 0) -> S
     names = model_cls.param_names()
     step = np.array([2.0 if model_cls.kind_of(nm) == "offset" else 0.03 for nm in names])
     truth = model_cls.from_vector(base + pattern * step * scale)
+    if cls.reference_kind == "gyro":  # a smooth tumble at 100 Hz with a noise-free gyroscope (its bias fitted)
+        W, b = truth.correction()
+        g = simulate_gyro(n, seed, matrix=W, offset=b, alignment=np.eye(3), mag_noise=0.0, gyro_noise=0.0,
+                          field_nav=_FIELD)
+        settings = {"n": n, "noise": 0.0, "field_nav": _FIELD.tolist(), "angular_rate": g.angular_rate()}
+        return Simulation(g.raw, g.field_body, g.attitude, truth, settings)
     return simulate(truth, n=n, field_nav=_FIELD, noise=0.0, attitudes="random", seed=seed)
 
 
@@ -59,6 +66,8 @@ def _fit(est: Estimator, sim: Simulation, raw: NDArray[np.float64] | None = None
             return est.fit(X, np.asarray(sim.settings["field_nav"]), attitude=sim.attitude)
         if est.reference_kind == "none":
             return est.fit(X, None)
+        if est.reference_kind == "gyro":
+            return est.fit(X, float(np.linalg.norm(_FIELD)), attitude=sim.settings["angular_rate"])
         return est.fit(X, float(np.linalg.norm(_FIELD)))
 
 

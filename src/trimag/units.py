@@ -95,9 +95,16 @@ EARTH_RAW_RANGE_NT = (5_000.0, 300_000.0)
 
 
 
-def plausible_units(median_norm: float) -> list[str]:
-    """Physical units in which a raw magnitude of ``median_norm`` is a plausible Earth-field reading."""
-    lo, hi = EARTH_RAW_RANGE_NT
+#: magnitudes of the Earth's field itself (what a calibration's fitted F must be), nT: ArduPilot's onboard calibrator
+#: accepts a fitted radius of 150-950 mGauss (``FIELD_RADIUS_MIN``/``MAX``, libraries/AP_Compass/CompassCalibrator.h,
+#: ``fit_acceptable``); the main field is 22-67 uT at the surface (IGRF-14), the rest is room for scale errors
+EARTH_FIELD_RANGE_NT = (15_000.0, 95_000.0)
+
+
+def plausible_units(median_norm: float, *, field: bool = False) -> list[str]:
+    """Physical units in which a raw magnitude of ``median_norm`` is a plausible Earth-field reading
+    (:data:`EARTH_RAW_RANGE_NT`), or with ``field`` a plausible Earth field itself (:data:`EARTH_FIELD_RANGE_NT`)."""
+    lo, hi = EARTH_FIELD_RANGE_NT if field else EARTH_RAW_RANGE_NT
     return [u for u, f in UNITS.items() if f is not None and u != "1e4nT" and lo <= median_norm * f <= hi]
 
 
@@ -116,4 +123,4 @@ def header_unit(names: list[str]) -> str | None:
     return found.pop() if len(found) == 1 else None
 
 
-__all__ += ["EARTH_RAW_RANGE_NT", "header_unit", "plausible_units"]
+__all__ += ["EARTH_FIELD_RANGE_NT", "EARTH_RAW_RANGE_NT", "header_unit", "plausible_units"]

@@ -138,6 +138,27 @@ def test_joint_background_estimate_noise_free():
     np.testing.assert_allclose(cal.diagnostics["background_ned"], H_N, atol=1e-6)
 
 
+def test_joint_background_scale_gauges():
+    """Issue 31, item 3: without a reference the scale is ``det K = 1`` (|H_n| = the mean corrected magnitude),
+    with a number it is that magnitude; a number without ``estimate_background`` is refused."""
+    truth = _truth(7)
+    R = _attitudes(30, seed=8)
+    H_m = truth.distort(body_field(R, H_N))
+    cal = trimag.fit(H_m, model="interference12", attitude=R, units="nT", estimate_background=True)
+    K = np.linalg.inv(cal.matrix)
+    s = np.cbrt(np.linalg.det(truth.K))
+    assert np.linalg.det(K) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(K, truth.K / s, atol=1e-9)
+    np.testing.assert_allclose(cal.diagnostics["background_ned"], H_N * s, atol=1e-6)
+    np.testing.assert_allclose(cal.offset, truth.c, atol=1e-6)
+    assert cal.diagnostics["background_fitted"] and "det(K) = 1" in cal.diagnostics["background_scale"]
+    cal = trimag.fit(H_m, model="interference12", reference=50000.0, attitude=R, units="nT",
+                     estimate_background=True)
+    assert np.linalg.norm(cal.diagnostics["background_ned"]) == pytest.approx(50000.0, rel=1e-12)
+    with pytest.raises(TrimagInputError, match="not a magnitude"):
+        trimag.fit(H_m, model="interference12", reference=50000.0, attitude=R, units="nT")
+
+
 def test_joint_background_needs_rotations_about_several_axes():
     R = from_euler(np.arange(0, 360, 20), 0, 0)
     H_m = _truth().distort(body_field(R, H_N))

@@ -35,7 +35,7 @@ def test_px4log_undone_reading_recalibrates_to_the_logged_one():
         assert np.abs(recal - mag.logged).max() <= 1e-6  # the log stores float32 gauss
         assert mag.unit == "G" and 80 < mag.rate_hz < 90
     assert not np.allclose(log.magnetometers[0].field, log.magnetometers[0].logged)
-    df, _ = log.table("1")
+    df, _ = log.table("2")  # the second magnetometer (compasses count from 1)
     assert {"current_A", "yaw_deg", "pitch_deg", "roll_deg"} <= set(df.columns)
     corr = np.corrcoef(np.linalg.norm(df[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1), df["current_A"])[0, 1]
     assert corr > 0.5  # the second magnetometer sees the motor current (flight-logs/README.md)
@@ -56,7 +56,7 @@ def test_ulog_slow_magnetometer_is_warned_and_vehicle_magnetometer_undone():
 def test_dataflash_offsets_undone_and_instances_listed():
     log = read_log(LOGS / "ardusub_small.BIN")
     assert [m.name for m in log.magnetometers] == ["MAG[0]", "MAG[1]"]
-    mag = log.choose("1")
+    mag = log.choose("2")  # COMPASS_OFS2: compasses count from 1
     ofs, M, s = onboard_matrix(log.parameters, 1)
     np.testing.assert_allclose(M @ ((mag.field + ofs) * s).T, mag.logged.T, atol=1e-9)
     assert "COMPASS_OFS2" in mag.undone[0]
@@ -68,7 +68,7 @@ def test_dataflash_offsets_undone_and_instances_listed():
 @requires_flight_logs
 def test_dataflash_soft_iron_matrix_is_undone():
     log = read_log(FLIGHT / "pymavlink_test.BIN")
-    mag = log.choose("0")
+    mag = log.choose("1")
     ofs, M, s = onboard_matrix(log.parameters, 0)
     assert not np.allclose(M, np.eye(3))
     # AP_Compass_Backend::correct_field: mag += offsets; mag = mat * mag
@@ -212,3 +212,68 @@ def test_ros2_bag_magnetic_field_in_tesla_and_imu_attitude(tmp_path: Path):
     df, _ = log.table()
     np.testing.assert_allclose(df["yaw_deg"].to_numpy(), 90.0, atol=1e-6)
     np.testing.assert_allclose(df[["pitch_deg", "roll_deg"]].to_numpy(), 0.0, atol=1e-6)
+
+
+def test_gps_course_channel_is_empty_when_still_and_unwrapped():
+    """A DataFlash log's GPS course becomes the channel ``gps_course_deg`` for ``fit --heading-column`` (issue 30,
+    item 5b): empty without a 3-D fix or below 1 m/s (a course while still is noise), unwrapped so that the
+    channel's interpolation crosses north the short way."""
+    from trimag.io.logs.ardupilot import gps_course
+
+    course = np.array([350.0, 355.0, 2.0, 8.0, 8.0, 10.0])
+    speed = np.array([3.0, 3.0, 3.0, 3.0, 0.2, 3.0])
+    fixed = np.array([True, True, True, True, True, False])
+    out = gps_course(course, speed, fixed)
+    np.testing.assert_allclose(out[:4], [350.0, 355.0, 362.0, 368.0])
+    assert np.isnan(out[4]) and np.isnan(out[5])
+    log = read_log(LOGS / "ardusub_small.BIN")  # a submarine: no GPS fix, no course
+    assert "gps_course_deg" not in log.channels
+
+
+def test_random_bin_file_is_one_line_not_a_dataflash_log(tmp_path: Path):
+    """Finding (issue 32, item 6): a random .bin printed ~4 500 "bad header" lines from pymavlink before the error."""
+    pytest.importorskip("pymavlink")
+    path = tmp_path / "random.bin"
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+    r = run_trimag("fit", path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "not an ArduPilot DataFlash log" in r.stderr
+    assert r.stdout == ""
+
+
+def test_a_phone_export_with_a_large_hard_iron_is_not_called_static(tmp_path: Path):
+    """Finding (unseen real logs, simorxb-phone): a hand-turned phone was refused "the field direction stayed within
+    7 deg of its mean: the vehicle barely turned": the raw vectors were dominated by a ~585 uT hard iron. About the
+    fitted centre its directions span the sphere; it fits."""
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(1500, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    field = 46.0 * u + [220.0, 65.0, -540.0] + rng.normal(scale=0.12, size=u.shape)
+    t = np.arange(len(field)) * 0.01
+    path = tmp_path / "MagnetometerUncalibrated.csv"
+    np.savetxt(path, np.column_stack([1.7e18 + t * 1e9, t, field[:, 2], field[:, 1], field[:, 0]]), delimiter=",",
+               header="time,seconds_elapsed,z,y,x", comments="", fmt="%.9g")
+    r = run_trimag("fit", path, "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    np.testing.assert_allclose(json.loads(r.stdout)["offset"], [220.0, 65.0, -540.0], atol=0.2)
+
+
+def test_a_plain_table_named_magnetometer_csv_is_read_as_a_table(tmp_path: Path):
+    """Finding (unseen real logs, ybabs-9axis, oak-phone): any file named magnetometer.csv was forced into the Sensor
+    Logger reader: a 9-column table without a header failed "expected sensor-logger columns", with no hint."""
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(800, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    path = tmp_path / "magnetometer.csv"
+    table = np.column_stack([rng.normal(size=(800, 6)) * [50, 50, 50, 1e3, 1e3, 1.6e4], 6000 * u + [300, -200, 100]])
+    np.savetxt(path, table, delimiter=",", fmt="%.3f")
+    r = run_trimag("fit", path, "--columns", "6,7,8")
+    assert r.returncode == 0, r.stderr
+    semi = tmp_path / "sub" / "magnetometer.csv"
+    semi.parent.mkdir()
+    semi.write_text("timestamp;x (in microteslas);y (in microteslas);z (in microteslas)\n" + "\n".join(
+        f"{k};{a:.4f};{b:.4f};{c:.4f}" for k, (a, b, c) in enumerate(46 * u + [20, 10, -30])) + "\n")
+    r = run_trimag("fit", semi, "--columns", "1,2,3", "--units", "uT")
+    assert r.returncode == 0, r.stderr

@@ -73,12 +73,37 @@ def test_level_turn_recovers_the_horizontal_offset(prior, tilt) -> None:
     assert not z["identified_by_data"]
     assert z["std"] > 10 * max(comp["offset_x"]["std"], comp["offset_y"]["std"])  # large, and said to be
     assert abs(z["value"] - HARD_AFTER[2]) < 3 * z["std"]
-    assert cal.diagnostics["prior"]["unidentified"] == ["offset_z"]
+    # not by the data alone: by the known field magnitude (issue 30, item 5c; before: "unidentified")
+    assert z["identified_by"] == "the field's magnitude" and cal.diagnostics["prior"]["unidentified"] == []
     # the shape is kept exactly, the provenance recorded
     np.testing.assert_array_equal(cal.matrix, prior.matrix)
     assert cal.method == "prior-offset" and cal.model == prior.model
     assert cal.diagnostics["prior"]["refitted"] == ["offset"]
     assert cal.stats["std_norm_after"] < 1.2 * NOISE
+
+
+def test_the_known_magnitude_identifies_the_vertical_with_the_references_sigma(prior) -> None:
+    """Issue 30, item 5c: at level the vertical offset is fixed by the known field magnitude; it was reported as
+    "NOT identified" although its value is right within a sigma that is the reference's own uncertainty (0.5 % of
+    F). It is now estimated from the magnitude, with that uncertainty in its sigma and said so."""
+    raw, _ = _level()
+    cal = refit_offset(prior, raw, F)
+    d = cal.diagnostics["prior"]
+    z = d["components"]["offset_z"]
+    assert z["identified"] and z["identified_by"] == "the field's magnitude"
+    assert d["unidentified"] == []
+    assert abs(z["value"] - HARD_AFTER[2]) < 3 * z["std"]
+    # its sigma is the reference's: V * scale_sigma (V ~ F sin 68.6 deg, over the matrix's vertical gain)
+    assert z["std_from_reference"] == pytest.approx(0.005 * F * np.sin(np.radians(INCLINATION)), rel=0.15)
+    assert z["std"] == pytest.approx(np.sqrt(z["std_from_reference"] ** 2 + z["std_from_data"] ** 2
+                                             + z["std_from_prior_matrix"] ** 2), rel=1e-6)
+    for axis in "xy":
+        c = d["components"][f"offset_{axis}"]
+        assert c["identified"] and c["identified_by"] == "data"
+    assert z["std_from_reference"] > 0.9 * z["std"]
+    # a reference known better shrinks it
+    sharp = refit_offset(prior, raw, F, scale_sigma=0.0005)
+    assert sharp.diagnostics["prior"]["components"]["offset_z"]["std"] < 0.2 * z["std"]
 
 
 def test_tilt_identifies_the_vertical(prior) -> None:
@@ -94,13 +119,15 @@ def test_tilt_identifies_the_vertical(prior) -> None:
 
 
 def test_inclination_at_level_does_not_identify_the_vertical(prior) -> None:
-    """At level the vertical component ties the vertical offset to the inclination's accuracy (0.2 deg here):
-    still unidentified, with a sigma from the priors, and the truth within it."""
+    """At level the vertical component ties the vertical offset to the inclination's accuracy (0.2 deg here): not
+    identified by the data, but by the reference's magnitude and inclination, with their sigma, and the truth within
+    it."""
     raw, euler = _level()
     R = Rotation.from_euler("ZYX", euler, degrees=True)
     cal = refit_offset(prior, raw, F, attitude=R, inclination_deg=INCLINATION)
     comp = _components(cal)
-    assert cal.diagnostics["prior"]["unidentified"] == ["offset_z"]
+    assert not comp["offset_z"]["identified_by_data"]
+    assert comp["offset_z"]["identified_by"] == "the field's magnitude and inclination"
     assert abs(comp["offset_z"]["value"] - HARD_AFTER[2]) < 3 * comp["offset_z"]["std"]
     incl = cal.diagnostics["prior"]["inclination"]
     assert abs(incl["value_deg"] - INCLINATION) < 3 * incl["std_deg"]
@@ -171,8 +198,10 @@ def test_cli_quick_recalibration(files) -> None:
     proc = run_trimag("fit", files["level"], "--reference", str(F), "--prior", files["cal"], "-o", out, "--json")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
-    assert "offset_z" in summary["prior"]["unidentified"]
-    assert "unidentified: offset_z" in proc.stderr and "tilt the vehicle" in proc.stderr
+    assert summary["prior"]["unidentified"] == []
+    assert summary["prior"]["components"]["offset_z"]["identified_by"] == "the field's magnitude"
+    assert "offset_z" in proc.stderr and "from the field's magnitude" in proc.stderr and "--option scale_sigma" in \
+        proc.stderr and "tilt the vehicle" in proc.stderr
     cal = Calibration.from_file(out)
     prov = cal.diagnostics["prior"]
     assert prov["path"] == str(files["cal"])
@@ -258,3 +287,36 @@ def test_uncertainty_has_the_fields_of_every_estimator(prior) -> None:
     raw, _ = _level(tilt=10.0)
     cal = refit_offset(prior, raw, F)
     assert set(UNCERTAINTY_FIELDS) <= set(cal.uncertainty)
+
+
+def test_a_level_turn_prior_s_held_vertical_scale_reaches_the_new_vertical_offset() -> None:
+    """Review of issue 30 item 5c: a level turn holds its vertical scale ``m33`` (1 % sigma), which is most of its
+    vertical offset's sigma. A quick recalibration with it as ``--prior`` dropped that matrix covariance (its names
+    are the symmetric ``m11 .. m33``; only ``w11 .. w33`` were read): a boat whose m33 is 2 % off the held value got
+    its new vertical offset 9 mG off with a sigma of 2.3 mG (z = -3.9; the level turn itself: the same error, sigma
+    6.5). The symmetric matrix's covariance is now propagated too (an off-diagonal entry moves both of its
+    places)."""
+    from scipy.spatial.transform import Rotation
+
+    from trimag.fields.reference import igrf, parse_igrf_spec
+    from trimag.vehicle.level_turn import fit_level_turn
+
+    from _helpers import BOAT_MATRIX, BOAT_SITE, simulate_boat
+
+    ned = np.asarray(igrf(*parse_igrf_spec(BOAT_SITE)).ned_nT) / 100.0
+    F_mG = float(np.linalg.norm(ned))
+    incl = float(np.degrees(np.arctan2(ned[2], np.hypot(ned[0], ned[1]))))
+    M = BOAT_MATRIX.copy()
+    M[2, 2] = (M[0, 0] + M[1, 1]) / 2 + 0.02  # two sigmas of the held vertical scale off
+    turn = simulate_boat(seed=4, matrix=M)
+    level = fit_level_turn(turn["raw"], F_mG, inclination_deg=incl, units="mG")
+    later_offset = np.array([150.0, -40.0, 20.0])
+    later = simulate_boat(seed=104, n=360, matrix=M, offset=later_offset)
+    cal = refit_offset(level, later["raw"], F_mG, attitude=Rotation.from_euler("ZYX", later["ypr"], degrees=True),
+                       inclination_deg=incl)
+    sigma_level = level.uncertainty["param_std"]["hard_iron_z"]
+    sigma = cal.uncertainty["param_std"]["hard_iron_z"]
+    assert sigma > 0.8 * sigma_level, (sigma, sigma_level)
+    assert abs(cal.offset[2] - later_offset[2]) < 2.5 * sigma
+    # the horizontal offsets, which the turn identifies, keep sigmas near the data's
+    assert cal.uncertainty["param_std"]["hard_iron_x"] < 2.0

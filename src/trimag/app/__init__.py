@@ -21,16 +21,19 @@ if TYPE_CHECKING:
     from .evaluate_vector import evaluate_vector_file
     from .export import export_to_file
     from .fit import FitResult, fit_file, fit_summary
+    from .fit_all import AllSensorsResult, fit_all_sensors
     from .simulate import simulate_to_file
 
 __all__ = [
     "DEMO_DATA",
+    "AllSensorsResult",
     "FitResult",
     "apply_to_file",
     "evaluate_file",
     "evaluate_heading_file",
     "evaluate_vector_file",
     "export_to_file",
+    "fit_all_sensors",
     "fit_file",
     "fit_summary",
     "parse_options",
@@ -42,7 +45,8 @@ _HOME = {
     "parse_options": "_inputs", "apply_to_file": "apply", "DEMO_DATA": "demo", "run_demo": "demo",
     "evaluate_file": "evaluate", "evaluate_heading_file": "evaluate_heading",
     "evaluate_vector_file": "evaluate_vector", "export_to_file": "export", "FitResult": "fit", "fit_file": "fit",
-    "fit_summary": "fit", "simulate_to_file": "simulate",
+    "fit_summary": "fit", "simulate_to_file": "simulate", "AllSensorsResult": "fit_all",
+    "fit_all_sensors": "fit_all",
 }
 
 

@@ -19,13 +19,11 @@ from ..units import normalise_unit
 def check_unit(
     samples: Samples, units: str | None, reference: str | float | None, igrf_spec: str | None
 ) -> tuple[str | None, list[str]]:
-    """The data's unit, checked against the column headers, Earth-field ranges and the reference (issue 22).
-
-    A unit in the headers that contradicts ``units`` is refused (exit 2); without ``units`` it is used. A median
-    magnitude that is not a plausible Earth field in the declared unit is a warning naming the likely unit, and
-    an error when a reference (a number or IGRF) makes the contradiction certain.
-    """
-    from ..units import EARTH_RAW_RANGE_NT, header_unit, nT_per_unit, plausible_units
+    """The data's unit, checked against the column headers (issue 22): a unit in the headers that contradicts
+    ``units`` is refused (exit 2); without ``units`` it is used. Whether the unit is plausible is judged after the
+    fit, on the fitted field (:func:`check_fitted_field`): the raw magnitudes include the hard iron (a phone's is
+    ~10 x the Earth's field), so they cannot tell a unit (issue 32)."""
+    from ..units import header_unit
 
     messages: list[str] = []
     in_header = header_unit(list(samples.columns))
@@ -38,35 +36,71 @@ def check_unit(
         if units is None:
             units = in_header
             messages.append(f"unit {in_header} (from the column headers)")
-    unit = normalise_unit(units)
-    if unit in ("unknown", "counts") or not len(samples.field):
-        return units, messages
-    median = float(np.median(np.linalg.norm(samples.field, axis=1)))
-    lo, hi = (v / nT_per_unit(unit) for v in EARTH_RAW_RANGE_NT)
-    if lo <= median <= hi:
-        return units, messages
-    likely = plausible_units(median)
-    guess = f"; the numbers look like {' or '.join(likely)}" if likely else ""
-    F_nT: float | None = None
-    if igrf_spec is not None:
-        F_nT = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT)
-    elif reference is not None and str(reference).strip().lower() != "mean":
-        try:
-            F_nT = float(reference) * nT_per_unit(unit)
-        except ValueError:
-            F_nT = None
-    if F_nT is not None:
-        ratio = median * nT_per_unit(unit) / F_nT
-        if not 0.2 <= ratio <= 5.0:
-            raise TrimagInputError(
-                f"the data's median |B| is {median:.6g} {unit}, {ratio:.3g}x the reference field "
-                f"({F_nT / nT_per_unit(unit):.6g} {unit}): the data are not in {unit}{guess}; give the right unit"
-            )
-    messages.append(
-        f"warning: the data's median |B| = {median:.6g} {unit} is not a plausible Earth field in {unit} "
-        f"({lo:.3g}-{hi:.3g}){guess}; check the unit"
-    )
     return units, messages
+
+
+def check_log_unit(units: str | None, log_info: dict[str, Any] | None, columns: Any) -> str | None:
+    """The unit of a vehicle log's magnetometer, which the log states: a different ``units`` is refused (exit 2)
+    unless ``columns`` picks other columns."""
+    if log_info is None or columns is not None:
+        return units
+    if units is not None and normalise_unit(units) != log_info["unit"]:
+        raise TrimagInputError(
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
+        )
+    return units or str(log_info["unit"])
+
+
+def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = False) -> list[str]:
+    """Is the fit's field an Earth field in the data's unit? (issue 32, items 1 and 4)
+
+    With the magnitude fitted (no reference), ``F`` must lie in :data:`~trimag.units.EARTH_FIELD_RANGE_NT` (the
+    range ArduPilot's onboard calibrator accepts). Outside it: a warning naming the unit in which it would be one
+    (the unit is wrong); else a refusal (exit 3) when the fit is poorly identified or comes from an autopilot log (the
+    fit is wrong: the firmware would refuse it too), a warning otherwise. With a known reference, the correction's
+    gain ``|det K|^(1/3)`` gives the field's size in the data's numbers: more than 5 x off the reference is refused
+    (exit 2, naming the likely unit). Returns the warning lines.
+    """
+    from ..errors import IdentifiabilityError
+    from ..estimators._finish import COVERAGE_WARN
+    from ..units import EARTH_FIELD_RANGE_NT, nT_per_unit, plausible_units
+
+    ref = cal.reference or {}
+    value = ref.get("value")
+    if unit in ("unknown", "counts") or value is None or not np.isfinite(value) or value <= 0:
+        return []
+    if ref.get("source") != "mean":  # a known reference: the gain of the correction says the data's scale
+        gain = float(abs(np.linalg.det(np.asarray(cal.matrix)))) ** (1.0 / 3.0)
+        raw_field = float(value) / gain if gain > 0 else float("inf")
+        ratio = raw_field / float(value)
+        if not 0.2 <= ratio <= 5.0:
+            likely = plausible_units(raw_field, field=True)
+            guess = f"; the numbers look like {' or '.join(likely)}" if likely else ""
+            raise TrimagInputError(
+                f"the field in the data is {raw_field:.6g} {unit} (the correction's gain is {gain:.3g}), {ratio:.3g}x "
+                f"the reference field ({float(value):.6g} {unit}): the data are not in {unit}{guess}; give the right "
+                "unit"
+            )
+        return []
+    F = float(value)
+    lo, hi = (v / nT_per_unit(unit) for v in EARTH_FIELD_RANGE_NT)
+    if lo <= F <= hi:
+        return []
+    text = f"the fitted field magnitude F = {F:.4g} {unit} is not a plausible Earth field in {unit} ({lo:.3g}-{hi:.3g})"
+    likely = [u for u in plausible_units(F, field=True) if u != unit]
+    coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
+    weak = (cal.diagnostics.get("identifiability") or {}).get("warning") is not None or (
+        coverage is not None and coverage < COVERAGE_WARN)
+    if likely and not weak:  # a well identified fit: its F is right, the unit is not
+        return [f"warning: {text}; the numbers look like {' or '.join(likely)}; check the unit"]
+    if weak or autopilot_log:  # a poorly identified fit's F says nothing of the unit: the fit is wrong
+        seen = f" (the field directions cover {100 * coverage:.0f}% of the sphere)" if coverage is not None else ""
+        unit_too = f" (if the data are in {' or '.join(likely)}, give that unit)" if likely else ""
+        raise IdentifiabilityError(
+            f"{text}: the fit cannot be right; the rotations recorded do not identify the model{seen}{unit_too}. "
+            "Record the sensor turning through all attitudes, or give the field's magnitude (`reference`, `igrf`)"
+        )
+    return [f"warning: {text}: check the unit and the sensor's scale, or give the field's magnitude (`reference`)"]
 
 
 def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
@@ -162,6 +196,21 @@ def refuse_impossible_vector_fit(
     )
 
 
+def _field_directions(B: Any) -> Any:
+    """Unit field directions (N, 3) of raw samples: about the centre of the sphere they lie on when they do lie on one
+    (its residuals below 10 % of its radius: a phone's ~10 x hard iron would otherwise hide a whole tumble in a few
+    degrees, issue 32), else the raw vectors themselves (a static or barely turned sensor)."""
+    from ..quality.diagnostics import sphere_centre
+
+    centre = sphere_centre(B)
+    if centre is not None:
+        d = B - centre
+        radius = np.linalg.norm(d, axis=1)
+        if np.all(radius > 0) and float(np.std(radius)) < 0.1 * float(np.mean(radius)):
+            return d / radius[:, None]
+    return B / np.linalg.norm(B, axis=1, keepdims=True)
+
+
 def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
     """Refuse (exit 3) a log whose magnetometer barely turned, saying what to fly or log instead."""
     from ..errors import IdentifiabilityError
@@ -174,7 +223,7 @@ def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
             f"{name} has only {n} samples in this log: too few to calibrate. Log the magnetometer faster or longer "
             "and turn the vehicle through all headings and attitudes"
         )
-    u = B / np.linalg.norm(B, axis=1, keepdims=True)
+    u = _field_directions(B)
     mean = u.mean(axis=0)
     mean /= np.linalg.norm(mean)
     cone = float(np.degrees(np.arccos(np.clip(u @ mean, -1.0, 1.0))).max())
@@ -186,20 +235,27 @@ def refuse_static_log(samples: Samples, log_info: dict[str, Any]) -> None:
         )
 
 
-def refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[str, Any]) -> None:
-    """Refuse (exit 3) a fit of an autopilot log that the rotation recorded cannot identify.
+def refuse_unidentified_log(cal: Calibration | None, samples: Samples, log_info: dict[str, Any]) -> None:
+    """Refuse (exit 3) an autopilot log that the rotation recorded cannot identify.
 
     A vehicle that turns about its vertical axis with little tilt (a rover, a boat, a level flight) leaves the
     field directions in a narrow band: the full 3-D calibration is then not identified, and an autopilot would be
-    given parameters that are wrong in the unseen directions.
+    given parameters that are wrong in the unseen directions. The verdict is the data's, taken before the fit with
+    ``cal`` None (issue 32): the covered share of the sphere of directions
+    (:func:`~trimag.quality.diagnostics.data_coverage`) below :data:`~trimag.estimators._finish.COVERAGE_WARN`, so
+    that a log and the parts of it are judged alike, in the same words whatever the method. After the fit (``cal``),
+    a fit that did not converge is refused the same way.
     """
     from ..errors import IdentifiabilityError
+    from ..estimators._finish import COVERAGE_WARN
+    from ..quality.diagnostics import data_coverage
 
-    ident = cal.diagnostics.get("identifiability") or {}
-    inflation = ident.get("std_inflation_vs_full_sphere")
-    coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
-    converged = cal.stats.get("converged", True)
-    if converged and (inflation is None or inflation <= 100.0):
+    if cal is None:
+        coverage, converged = data_coverage(samples.field)["fraction"], True
+    else:
+        coverage = (cal.diagnostics.get("coverage") or {}).get("fraction")
+        converged = cal.stats.get("converged", True)
+    if converged and (coverage is None or coverage >= COVERAGE_WARN):
         return
     B = samples.field
     u = B / np.linalg.norm(B, axis=1, keepdims=True)
@@ -209,8 +265,7 @@ def refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[s
     detail = [f"the field directions cover {100 * coverage:.0f}% of the sphere" if coverage is not None else "",
               f"they stay {angle.min():.0f}..{angle.max():.0f} deg from their mean direction "
               f"{np.round(axis, 2).tolist()} (body frame)",
-              "the fit did not converge" if not converged else
-              f"its parameters would be {inflation:.3g}x less certain than from a full tumble"]
+              "the fit did not converge" if not converged else ""]
     raise IdentifiabilityError(
         f"{log_info['sensor']}: this log turned the vehicle mostly about one axis "
         f"({'; '.join(d for d in detail if d)}): "
@@ -218,4 +273,3 @@ def refuse_unidentified_log(cal: Calibration, samples: Samples, log_info: dict[s
         "nose up and down and rolled on each side; a vehicle that cannot tilt needs an earlier full calibration "
         "whose offsets are refitted"
     )
-

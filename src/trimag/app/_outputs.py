@@ -30,6 +30,13 @@ def write_fit_outputs(
                 field_ = samples.field - cal.regressor_shift(regressor_values, samples.field.shape)
                 shown = dataclasses.replace(cal, regressors=None)
             written["report"] = str(save_figure(fit_report(field_, shown, title=title, notes=notes), req.report))
+        card = cal.diagnostics.get("deviation_card")
+        if req.deviation_card is not None and card is not None:  # a large vehicle's fit (trimag.app._large)
+            from ..quality.report import deviation_figure, save_figure
+
+            figure = deviation_figure(card, title=f"deviation card of {Path(path).name} ({cal.method})",
+                                      before=f"before ({card['before_label']})")
+            written["deviation_card"] = str(save_figure(figure, req.deviation_card))
         if req.out is not None:
             cal = cal.with_stats(source=str(path), columns=list(samples.columns))
             written["calibration"] = str(cal.to_file(req.out))

@@ -23,15 +23,17 @@ from ._inputs import (
 from .requests import FitRequest
 
 
-def prior_units(req: FitRequest, prior: Calibration) -> tuple[FitRequest, list[str]]:
-    """The data's unit against the prior calibration's: a clash is refused, an unstated unit is the prior's."""
+def prior_units(req: FitRequest, prior: Calibration, log_unit: bool = False) -> tuple[FitRequest, list[str]]:
+    """The data's unit against the prior calibration's: a clash is refused, an unstated unit is the prior's
+    (``log_unit``: the unit is the one an autopilot log records)."""
     given = req.input.units
     if given is not None:
         unit = normalise_unit(given)
         if "unknown" not in (unit, prior.units) and unit != prior.units:
+            data = f"the log records {unit}" if log_unit else f"`units={given}`"
             raise TrimagInputError(
-                f"the prior calibration {req.prior} is for data in {prior.units}, but `units={given}`: a quick "
-                "recalibration keeps the prior's matrix, so the data must be in its unit"
+                f"the prior calibration {req.prior} is for data in {prior.units}, but {data}: its matrix is kept, so "
+                "the data must be in its unit (fit the prior from data in the same unit)"
             )
         return req, []
     if prior.units == "unknown":
@@ -104,14 +106,28 @@ def refit_prior(
     cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
                                               "prior", "unit": unit})
     d = cal.diagnostics["prior"]
+    by_reference = []
     for name, c in d["components"].items():
-        state = ("identified" if c["identified_by_data"] else
-                 "NOT identified by these data (value and sigma from the priors)")
+        if c["identified_by_data"]:
+            state = "identified"
+        elif c["identified"]:
+            by_reference.append(name)
+            matrix = c.get("std_from_prior_matrix") or 0.0
+            state = (f"from {c['identified_by']} (sigma from the reference {c['std_from_reference']:.3g}, "
+                     + (f"from the prior's matrix {matrix:.3g}, " if matrix >= 0.05 * c["std"] else "")
+                     + f"from the data {c['std_from_data']:.3g})")
+        else:
+            state = "NOT identified by these data (value and sigma from the priors)"
         messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit} (prior {c['prior_value']:.6g}): "
                         f"{state}")
+    if by_reference:
+        scale = d["field_scale"]["prior_std"]
+        messages.append(f"{', '.join(by_reference)}: the data alone cannot tell it from the field's magnitude (the "
+                        f"vehicle barely tilted); the known magnitude fixes it, to the reference's {100 * scale:.2g} % "
+                        "(`option scale_sigma`): tilt the vehicle while it turns, or give a better reference, to "
+                        "shrink its sigma")
     if d["unidentified"]:
-        messages.append(f"unidentified: {', '.join(d['unidentified'])}: a level turn cannot tell a vertical offset "
-                        "from the field's magnitude and inclination: tilt the vehicle (roll and pitch it while it "
-                        "turns) to fit it, or keep the prior's value")
+        messages.append(f"unidentified: {', '.join(d['unidentified'])}: these data do not fix it beyond the prior "
+                        "(turn the vehicle through more headings and tilt it), or keep the prior's value")
     return samples, cal, regressor_values, messages
 

@@ -44,9 +44,29 @@ def apply_to_file(
         def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
             return cal.apply(xyz, regressors=u[0] if u else None)
 
-    result = apply_file(
-        calibrate, src.path, req.out, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
-        progress=progress, regressor_columns=names, sensor=src.sensor, strict=src.strict,
-    )
+    def write(out: str | Path) -> dict[str, Any]:
+        return apply_file(calibrate, src.path, out, fmt=src.fmt, columns=src.columns, var=src.var,
+                          chunk_rows=req.chunk_rows, progress=progress, regressor_columns=names, sensor=src.sensor,
+                          strict=src.strict)
+
+    result = _to_standard_output(write) if str(req.out) == "-" else write(req.out)
     result["units"] = cal.units
+    return result
+
+
+def _to_standard_output(write: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
+    """``write`` to a CSV file in a temporary folder, then copied to standard output (``out="-"``): nothing is
+    printed when the correction fails half-way, as with a file."""
+    import shutil
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="trimag-") as folder:
+        path = Path(folder) / "corrected.csv"
+        result = write(path)
+        sys.stdout.flush()
+        with path.open("rb") as fh:
+            shutil.copyfileobj(fh, sys.stdout.buffer)
+        sys.stdout.buffer.flush()
+    result["out"] = "-"
     return result

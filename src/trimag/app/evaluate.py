@@ -81,6 +81,10 @@ def evaluate_file(
     F_used = F if F is not None else (None if given.reference_column else stats_after["mean_norm"])
     stats_before = before.result(F_used)
     selection = (f"rows {src.rows}" if src.rows else "", f"where {src.where}" if src.where else "")
+    # worse than raw: like with like. Against the corrected data's own mean (no reference) the raw |B| is judged
+    # about its own mean too (its spread), not against a magnitude it was never meant to have
+    judged = ("rms", "RMS of |B| - F") if F is not None or given.reference_column else ("std_norm", "spread of |B|")
+    worse = bool(stats_after[judged[0]] > stats_before[judged[0]])
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
         "units": cal.units, "columns": list(columns.columns), "n_samples": n_rows, "n_used": after.n,
@@ -91,7 +95,17 @@ def evaluate_file(
         "p2p_before": stats_before["peak_to_peak"], "p2p_after": stats_after["peak_to_peak"],
         "mean_norm_before": stats_before["mean_norm"], "mean_norm_after": stats_after["mean_norm"],
         "std_norm_before": stats_before["std_norm"], "std_norm_after": stats_after["std_norm"],
+        "worse_than_raw": worse,
+        "warnings": [worse_than_raw_warning(judged[1], stats_after[judged[0]], stats_before[judged[0]], cal.units)]
+        if worse else [],
     }
+
+
+def worse_than_raw_warning(what: str, after: float, before: float, unit: str) -> str:
+    """The warning of an evaluation in which the calibration makes the data worse than the raw data (issue 32)."""
+    return (f"the calibration makes these data worse than the raw data ({what} {after:.4g} {unit} after against "
+            f"{before:.4g} before): it does not hold for this log (fitted on too little rotation, on another sensor "
+            "or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
 
 
 def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str]:

@@ -30,8 +30,38 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     if not 1 <= req.instance <= 8:  # the request's instance counts from 1, as the firmware's parameter names do
         raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
                                f"{req.instance}")
-    cal = Calibration.from_file(req.calibration)
+    cal = _read_calibration(req.calibration, req.target)
     exp = export_calibration(cal, req.target, instance=req.instance - 1)
-    path = write_export(exp, req.out)
+    if str(req.out) == "-":  # standard output
+        import sys
+
+        sys.stdout.write(exp.text)
+        sys.stdout.flush()
+        path: Any = "-"
+    else:
+        path = write_export(exp, req.out)
     return {"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
             "violations": exp.violations}
+
+
+def _read_calibration(path: Any, target: str) -> Calibration:
+    """The calibration file ``path``; a log or a data file given instead is refused saying which command makes a
+    calibration (a newcomer's ``trimag export flight.bin`` said "not UTF-8 text")."""
+    from pathlib import Path
+
+    from ..io.logs import log_format
+
+    make = (f"make one with `trimag fit {path} -o cal.json`, then `trimag export cal.json --to {target} -o FILE`")
+    if Path(path).exists() and log_format(path) is not None:
+        raise TrimagInputError(f"{path} is an autopilot log, not a calibration: export writes the parameters of a "
+                               f"calibration file (JSON); {make}")
+    try:
+        return Calibration.from_file(path)
+    except UnicodeDecodeError:
+        raise TrimagInputError(f"{path} is not a calibration file (it is not JSON text): export takes the JSON "
+                               f"calibration that `trimag fit` writes; {make}") from None
+    except TrimagInputError as exc:
+        if "JSON" in str(exc) or "not a trimag calibration" in str(exc):
+            raise TrimagInputError(f"{path} is not a calibration file ({exc}): export takes the JSON calibration that "
+                                   f"`trimag fit` writes; {make}") from None
+        raise

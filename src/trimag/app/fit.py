@@ -13,13 +13,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import TrimagInputError, TrimagWarning
+from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
 from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
+    check_log_unit,
+    check_fitted_field,
     check_unit,
     policy_verdict,
     refuse_impossible_vector_fit,
@@ -27,6 +29,7 @@ from ._checks import (
     refuse_unidentified_log,
     worse_than_raw,
 )
+from ._gyro import angular_rate, gyro_lines, gyro_requested, log_has_gyro
 from ._inputs import (
     accel_values,
     attitudes_of,
@@ -36,7 +39,10 @@ from ._inputs import (
     magnitude_reference,
     parse_regressor_names,
     regressor_columns,
+    truthy,
 )
+from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, large_mode
+from ._log_advice import log_refusal
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
 from ._timesync import attach_attitude_file
@@ -100,6 +106,12 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     ``summary["acceptance"]`` and in the written file (a rejected calibration is still written, marked so).
     """
     req = as_request(FitRequest, request, (), arguments)
+    if str(req.input.sensor).strip().lower() == "all":
+        raise TrimagInputError("`sensor=all` fits every compass of a log: call trimag.app.fit_all_sensors (on the "
+                               "command line, trimag fit LOG --sensor all)")
+    if req.export_to is not None or req.export_out is not None:
+        raise TrimagInputError("`export_to` and `export_out` write every compass of a log to one file: give "
+                               "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
     limits = read_policy(req.policy) if req.policy is not None else None
@@ -111,21 +123,43 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             raise TrimagInputError(
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
-    options, sync_options, prior_options = _split_options(req)
+    mode = large_mode(req)
+    options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
-    estimator = make_estimator(req.model, req.method, options)
+    # (a phone export's gyroscope is known once it is read: its gyro fit's own options wait till then)
+    estimator = make_estimator(req.model, req.method, {k: v for k, v in options.items()
+                                                       if not (_phone_export(req) and k in _GYRO_OPTIONS)})
     src = req.input
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=src.sensor)
+    estimator, gyro_messages = _gyro_estimator(req, samples, estimator, options)
+    try:
+        return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
+                            prior_options, mode, gyro_messages)
+    except IdentifiabilityError as exc:  # a log: its compasses and the modes that would help (issue 30, item 7)
+        if samples.log_info is None or mode is not None or req.prior is not None:
+            raise
+        raise log_refusal(exc, samples.log_info, samples.field) from None
+
+
+def _fit_samples(
+    req: FitRequest, samples: Samples, estimator: Any, limits: dict[str, float] | None,
+    regressor_names: tuple[str, ...] | None, eddy_terms: int | None, sync_options: dict[str, Any],
+    prior_options: dict[str, Any], mode: str | None, gyro_messages: list[str] | None = None,
+) -> FitResult:
+    """:func:`fit_file` after reading the samples (``gyro_messages``: the choice of the gyro-aided fit)."""
     req = _target_of(req, samples)
-    req, messages = _log_defaults(req, samples, estimator)  # a vehicle log states its unit, site and attitudes
+    src = req.input
+    log_unit = samples.log_info is not None and src.units is None
+    req, log_messages = _log_defaults(req, samples, estimator, mode)  # a vehicle log states its unit, site, attitudes
+    messages = list(gyro_messages or []) + log_messages
     prior = None
     if req.prior is not None:
         if regressor_names is not None:
             raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
                                    "prior's regressor terms and refits only the offset; drop `regressors`")
         prior = Calibration.from_file(req.prior)
-        req, prior_messages = prior_units(req, prior)
+        req, prior_messages = prior_units(req, prior, log_unit)
         messages += prior_messages
     units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
@@ -141,31 +175,54 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
 
         # before the fit: a level log cannot give the alignment (exit 3, saying what to record)
         check_tilt_variation(accel_values(samples, req.accel_columns, src.path))
-    if prior is not None:
+    warn_texts: list[str] = []
+    ref: Any
+    regressor_values: dict[str, NDArray[np.float64]] | None
+    if mode == "level_turn":
+        samples, cal, ref, mode_messages = fit_level_turn_file(req, samples, unit, prior_options)
+        messages += mode_messages
+        regressor_values = None
+    elif mode == "heading":
+        samples, cal, ref, mode_messages = fit_fixed_heading_file(req, samples, unit, prior, prior_options)
+        messages += mode_messages
+        regressor_values = None
+    elif prior is not None:
         samples, cal, regressor_values, prior_messages = refit_prior(req, samples, unit, prior, prior_options)
-        ref: Any = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
+        ref = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "prior", unit)
         messages += prior_messages
-        warn_texts: list[str] = []
     else:
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
                                                                                    regressor_names, eddy_terms)
         messages += fit_messages
         cal = _input_orientation(cal, samples)
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
-                                            prior is not None)
+                                            prior is not None and mode is None)
+    if samples.log_info is not None:
+        summary["log"] = {"compass": samples.log_info.get("compass"), "name": samples.log_info.get("sensor"),
+                          "format": samples.log_info.get("format")}
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
                      written)
 
 
-def _split_options(req: FitRequest) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     """The request's options split into the estimator's, the time synchronisation's (``estimate_lag``,
-    ``max_lag``) and the quick recalibration's; an option of a step the request does not take is refused."""
+    ``max_lag``) and the quick recalibration's (or a large vehicle's ``mode``'s); an option of a step the request
+    does not take is refused."""
     options = dict(req.options)
-    sync_options: dict[str, Any] = {k: options.pop(k) for k in ("estimate_lag", "max_lag") if k in options}
+    # the gyro-aided fit's own lag options (a phone export with a gyroscope is fitted so by default)
+    gyro = (gyro_requested(req) or _phone_export(req)) and req.attitude.attitude_file is None
+    sync_options: dict[str, Any] = {} if gyro else {k: options.pop(k) for k in ("estimate_lag", "max_lag")
+                                                    if k in options}
     prior_options: dict[str, Any] = {k: options.pop(k) for k in ("prior_offset_sigma", "scale_sigma", "inclination_deg",
-                                                                 "inclination_sigma_deg") if k in options}
+                                                                 "inclination_sigma_deg", *MODE_OPTIONS)
+                                     if k in options}
+    if mode is not None:
+        return options, sync_options, prior_options
+    if set(prior_options) & set(MODE_OPTIONS):
+        key = next(k for k in prior_options if k in MODE_OPTIONS)
+        raise TrimagInputError(f"`option {key}` belongs to a large vehicle's fit; give `level_turn` or `heading`")
     if prior_options and req.prior is None:
         raise TrimagInputError(f"`option {next(iter(prior_options))}` belongs to a quick recalibration; give `prior`")
     if sync_options and req.attitude.attitude_file is None:
@@ -185,6 +242,9 @@ def _finish(
     messages: list[str] = []
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
+    if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
+        cal, lines = gyro_lines(cal)
+        messages += lines
     alignment_messages: list[str] = []
     if req.accel_columns is not None:
         from ..vehicle.alignment import fit_alignment
@@ -256,6 +316,8 @@ def _fit_model(
     cal = estimator.calibration_
     if samples.log_info is not None and src.columns is None:
         refuse_unidentified_log(cal, samples, samples.log_info)
+    if estimator.reference_kind != "vector":
+        messages += check_fitted_field(cal, unit, autopilot_log=samples.log_info is not None)
     if estimator.reference_kind == "vector":
         att = req.attitude
         refuse_impossible_vector_fit(cal, samples, ref, unit, req.model, req.method, dict(req.options),
@@ -277,11 +339,44 @@ def _fit_model(
         from ..vehicle.regressors import fit_regressors
 
         cal = fit_regressors(cal, samples.field, regressor_values, ref, attitude=attitude, free=free, record=record)
+    if req.position_columns is not None:
+        cal, gradient_message = _background_gradient(req, cal, samples, attitude, regressor_values)
+        messages.append(gradient_message)
     if estimator.reference_kind == "vector" and req.reference.reference_column is not None:
         cal, joint_message = _joint_scalar(req, cal, samples, ref, attitude, regressor_values, unit)
         messages.append(joint_message)
     warn_texts = [str(w.message) for w in caught if issubclass(w.category, TrimagWarning)]
+    # what the fit's honesty checks found (halves that disagree, too few samples) is said too (issue 32)
+    warn_texts += [w for w in estimator.calibration_.diagnostics.get("warnings", []) if w not in warn_texts]
     return samples, cal, ref, regressor_values, warn_texts, messages
+
+
+def _background_gradient(
+    req: FitRequest, cal: Calibration, samples: Samples, attitude: Any,
+    regressor_values: dict[str, NDArray[np.float64]] | None,
+) -> tuple[Calibration, str]:
+    """``position_columns``: the background's gradient across the room (:mod:`trimag.vehicle.gradient`), and its
+    line."""
+    from ..vehicle.gradient import fit_background_gradient
+
+    if req.model != "interference12" or attitude is None:
+        raise TrimagInputError("`position_columns` fits the background's gradient of the model interference12 (with "
+                               "attitudes); drop it, or give `model=interference12`")
+    if regressor_values is not None or req.reference.reference_column is not None:
+        raise TrimagInputError("`position_columns` cannot be combined with `regressors`, eddy terms or "
+                               "`reference_column`: fit the background's gradient alone")
+    assert req.position_columns is not None
+    names = [c.strip() for c in req.position_columns.split(",") if c.strip()]
+    positions = regressor_columns(samples, tuple(names), req.input.path, "named by `position_columns`")
+    if len(names) != 3:
+        raise TrimagInputError(f"`position_columns` needs three columns X,Y,Z; got {req.position_columns!r}")
+    cal = fit_background_gradient(cal, samples.field, attitude, np.column_stack([positions[n] for n in names]),
+                                  position_columns=",".join(names))
+    g = cal.diagnostics["background_gradient"]
+    terms = ", ".join(f"{k} {v:.4g} +- {g['terms_std'][k]:.2g}" for k, v in g["terms"].items())
+    return cal, (f"background gradient ({g['unit']}): {terms}; vector RMS {g['vector_rms_without']:.4g} -> "
+                 f"{g['vector_rms_with']:.4g} {cal.units} over positions spanning "
+                 f"{np.round(g['position_span_m'], 3).tolist()} m")
 
 
 def _joint_scalar(
@@ -303,7 +398,8 @@ def _joint_scalar(
                  f"{joint['vector_rms_axis_after']:.4g}, magnitude RMS {joint['scalar_rms_after']:.4g} {unit}")
 
 
-def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[FitRequest, list[str]]:
+def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str | None = None
+                  ) -> tuple[FitRequest, list[str]]:
     """What a vehicle log states itself (unit, the IGRF site of its GPS fix, its attitude columns) filled into the
     request, the log reader's messages, and the refusal of a log that cannot be fitted (static, too short)."""
     log_info = samples.log_info
@@ -312,11 +408,7 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
     messages = [m for m in log_info["messages"] if not m.startswith("warning:")]
     messages += [m for m in log_info["messages"] if m.startswith("warning:")]
     src, given, att = req.input, req.reference, req.attitude
-    if src.units is not None and normalise_unit(src.units) != log_info["unit"] and src.columns is None:
-        raise TrimagInputError(
-            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={src.units!r} (it is known)"
-        )
-    src = dataclasses.replace(src, units=src.units or log_info["unit"])
+    src = dataclasses.replace(src, units=check_log_unit(src.units, log_info, src.columns) or log_info["unit"])
     gps = log_info.get("gps")
     if not given.given and gps and gps.get("date"):
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
@@ -329,9 +421,12 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any) -> tuple[Fi
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None and req.prior is None and req.target is None:  # a quick recalibration, a firmware fit
-        # (its levels say what the log identifies) are made for logs that barely tilt
+    if src.columns is None and req.prior is None and mode is None and req.target is None \
+            and estimator.reference_kind != "gyro":
+        # (a quick recalibration, a large vehicle's mode and a firmware fit, whose levels say what the log identifies,
+        # are made for logs that barely tilt; the gyroscope says itself whether the sensor turned)
         refuse_static_log(samples, log_info)
+        refuse_unidentified_log(None, samples, log_info)  # the data's coverage, before any method (issue 32)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
 
@@ -361,6 +456,11 @@ def _fit_reference(
     otherwise): ``(samples without the rows that lack an attitude, reference, attitude or None, messages)``."""
     given, att, src = req.reference, req.attitude, req.input
     messages: list[str] = []
+    gyro = None
+    if estimator.reference_kind == "gyro":
+        lag = estimator.estimate_lag
+        samples, gyro, messages = angular_rate(req, samples, float(estimator.max_lag),
+                                               lag is None or truthy(lag))
     if estimator.reference_kind != "vector":
         ref = magnitude_reference(samples, given, unit)
         if ref.source.startswith("igrf"):
@@ -371,7 +471,7 @@ def _fit_reference(
                 f"method {estimator.name!r} needs a known field magnitude: give `reference=F`, "
                 "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME`"
             )
-        return samples, ref, None, messages
+        return samples, ref, gyro, messages
 
     samples, n_no_attitude = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns,
                                                         strict=src.strict)
@@ -383,7 +483,17 @@ def _fit_reference(
                                                             strict=src.strict)
     if n_no_background:
         messages.append(f"dropped {n_no_background} rows whose background is missing or non-numeric")
+    if req.position_columns is not None:
+        samples, n_no_position = drop_rows_without_attitude(samples, req.position_columns, None, strict=src.strict,
+                                                            what="position")
+        if n_no_position:
+            messages.append(f"dropped {n_no_position} rows whose position is missing or non-numeric")
     attitude = attitudes_of(samples, att)
+    if _fits_background(estimator) and not _names_background(given):
+        scale = _background_scale(given)  # a magnitude, or None: det(K) = 1
+        messages.append("background field: fitted (`estimate_background`), |H_n| " + (
+            f"= {scale:.6g} {unit} (given)" if scale is not None else "from det(K) = 1 (the mean corrected magnitude)"))
+        return samples, scale, attitude, messages
     background, source = background_field(
         given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
         **({"attitude": attitude, "attitude_columns": att.attitude_columns,
@@ -395,6 +505,65 @@ def _fit_reference(
     else:
         messages.append(f"background field {source}")
     return samples, background, attitude, messages
+
+
+#: Options of the gyro-aided fit alone (a phone export's default fit takes them once its gyroscope is found).
+_GYRO_OPTIONS = ("estimate_lag", "max_lag", "segment_s", "estimate_bias")
+
+
+def _phone_export(req: FitRequest) -> bool:
+    """Whether the input is a phone's sensor-logger export (whose gyroscope the fit takes by default)."""
+    from ..io.logs import log_format
+
+    return req.method is None and log_format(req.input.path, req.input.fmt) == "phone"
+
+
+def _gyro_estimator(
+    req: FitRequest, samples: Samples, estimator: Any, options: dict[str, Any]
+) -> tuple[Any, list[str]]:
+    """The gyro-aided estimator when the request names a gyroscope, or a phone export has one and no method is
+    named (the ellipsoid model); a gyroscope given to another method is refused."""
+    if estimator.name == "gyro":
+        return estimator, []
+    named = req.gyro_columns is not None or req.gyro_file is not None
+    if named and (req.method is not None or req.model != "ellipsoid"):
+        raise TrimagInputError(f"`gyro_columns` / `gyro_file` are for the gyro-aided fit of the ellipsoid model "
+                               f"(`method=gyro`); model {req.model!r}, method {req.method!r} does not use a gyroscope")
+    phone = bool(samples.log_info and samples.log_info.get("format") == "phone sensor logger" and log_has_gyro(samples))
+    if not (named or (phone and req.method is None)) or req.model != "ellipsoid":
+        if any(k in options for k in _GYRO_OPTIONS) and estimator.name != "gyro":
+            make_estimator(req.model, req.method, options)  # refuses the gyro fit's options, naming the method's
+        return estimator, []
+    note = [] if named else [f"the export has a gyroscope ({samples.log_info['gyro']}): gyro-aided fit "  # type: ignore[index]
+                             "(`method=ml` fits the magnitude alone; docs/method-gyro.md)"]
+    return make_estimator(req.model, "gyro", options), note
+
+
+def _fits_background(estimator: Any) -> bool:
+    """Whether the estimator fits the background vector itself (``linear-vector`` with ``estimate_background``)."""
+    return truthy(getattr(estimator, "estimate_background", False))
+
+
+def _names_background(given: Any) -> bool:
+    """Whether the request names a background vector (or an iron-free run, or a per-sample background)."""
+    return any(getattr(given, name) is not None for name in
+               ("background_ned", "igrf_spec", "background_run", "background_columns", "igrf_columns"))
+
+
+def _background_scale(given: Any) -> float | None:
+    """The magnitude ``reference=F`` gives a fitted background (None: not given, or ``"mean"``)."""
+    if given.reference_column is not None:
+        raise TrimagInputError("`reference_column` is a per-sample magnitude; a fitted background takes one "
+                               "magnitude (`reference=F`) or none")
+    if given.reference is None or str(given.reference).strip().lower() == "mean":
+        return None
+    try:
+        value = float(given.reference)
+    except ValueError:
+        raise TrimagInputError(f"`reference` takes a number or 'mean'; got {given.reference!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {given.reference!r}")
+    return value
 
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:

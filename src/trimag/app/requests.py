@@ -113,6 +113,29 @@ class FitRequest:
     target: str | None = None
     level: str | None = None
     motor: str | None = None
+    #: a vehicle that turns but cannot tilt: :func:`trimag.vehicle.level_turn.fit_level_turn` (docs/autopilot.md)
+    level_turn: bool = False
+    #: the vehicle's known true heading (degrees), or a column of it: the offsets from the field's vector
+    #: (:func:`trimag.vehicle.fixed_yaw.fit_fixed_heading`, as ArduPilot's MAG_CAL_YAW)
+    heading: float | None = None
+    heading_column: str | None = None
+    #: the deviation card's figure (PNG) of a ``level_turn`` or ``heading`` fit
+    deviation_card: str | Path | None = None
+    #: with ``input.sensor="all"`` (:func:`trimag.app.fit_all_sensors`): one parameter file (``export_out``) of
+    #: ``export_to`` (``"ardupilot"`` or ``"px4"``) with every compass fitted
+    export_to: str | None = None
+    export_out: str | Path | None = None
+    #: the gyro-aided fit (``method=gyro``, docs/method-gyro.md): the gyroscope's columns ``"GX,GY,GZ"`` in the same
+    #: rows (with ``attitude.time_column`` or ``rate_hz``) or in ``gyro_file`` (its own clock: ``gyro_time_column``,
+    #: default ``attitude.time_column``), in ``gyro_unit`` (``"rad/s"``, ``"deg/s"``; default from the column names,
+    #: else rad/s)
+    gyro_columns: str | None = None
+    gyro_unit: str | None = None
+    gyro_file: str | Path | None = None
+    gyro_time_column: str | None = None
+    #: the sensor's positions ``"X,Y,Z"`` (m, the attitudes' frame; in the data or in ``attitude.attitude_file``):
+    #: ``interference12`` fits the background's gradient across the room (:mod:`trimag.vehicle.gradient`)
+    position_columns: str | None = None
 
     @classmethod
     def of(cls, path: str | Path, **arguments: Any) -> FitRequest:
@@ -179,6 +202,9 @@ class EvaluateRequest:
     #: sample rate (Hz) of the data for a calibration's eddy-current terms when there is no ``attitude.time_column``
     #: (checked against the calibration's)
     rate_hz: float | None = None
+    #: the sensor's positions ``"X,Y,Z"`` (m) for a calibration with a background gradient (default: the columns it
+    #: was fitted with)
+    position_columns: str | None = None
 
     @classmethod
     def of(cls, calibration: str | Path, data: str | Path, **arguments: Any) -> EvaluateRequest:
@@ -249,7 +275,9 @@ class LiveRequest:
     ``rate`` samples/s, ``stdin`` lines, a ``serial`` port at ``baud``, or a ``mavlink`` URL), fitted with ``model``
     (and ``method``, ``options``, the field magnitude ``reference`` in ``units`` when known), served on ``port``
     (127.0.0.1 only; 0 picks a free port), saved to ``out`` (calibration JSON) and ``samples_out`` (CSV; default
-    beside ``out``) on the page's save button, on SIGINT, and (``exit_at_end``) when the source ends."""
+    beside ``out``) on the page's save button, on SIGINT or SIGTERM, and (``exit_at_end``) when the source ends;
+    what cannot work (a non-finite ``rate``, ``interval`` or ``reference``, a ``port`` outside 0-65535, an unknown
+    unit, an output that cannot be written or would replace the replayed log) is refused before it starts."""
 
     replay: str | Path | None = None
     rate: float | None = 2000.0

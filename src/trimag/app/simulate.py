@@ -45,6 +45,9 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
     if noise < 0 or not np.isfinite(noise):
         raise TrimagInputError(f"`noise` must be a non-negative standard deviation; got {noise}")
     unit = normalise_unit(units)  # before anything is written
+    if not isinstance(params, dict):
+        raise TrimagInputError(f"{p}: expected a JSON object {{name: value}} of model parameters")
+    params, defaulted = _with_identity_defaults(get_model(model), params)
     truth_model = get_model(model).from_dict(params)
     sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes, seed=seed)
     q = sim.attitude.as_quat(scalar_first=True)
@@ -67,5 +70,18 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
             "units": unit,
         }
         written["truth"] = str(atomic_write_text(req.truth, json.dumps(doc, indent=2) + "\n"))
-    return {"n": len(sim.raw), "outputs": written}
+    return {"n": len(sim.raw), "outputs": written, "defaulted": defaulted}
+
+
+def _with_identity_defaults(cls: Any, params: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """``params`` completed with the model's values for no error (identity matrix, zero offset) and the names so
+    completed; a name the model does not have is refused."""
+    known = cls.param_names()
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise TrimagInputError(f"model {cls.name!r} has no parameter {', '.join(map(repr, unknown))}; its parameters "
+                               f"are {', '.join(known)} (those not given default to no error: identity, zero)")
+    identity = cls.from_matrix_offset(np.eye(3), np.zeros(3)).as_dict()
+    defaulted = [name for name in known if name not in params]
+    return {**identity, **params}, defaulted
 

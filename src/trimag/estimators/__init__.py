@@ -27,6 +27,8 @@ METHODS: dict[str, str] = {
     # general hard + soft iron (foundation, issue 7)
     "ellipsoid-fit": "trimag.estimators.ellipsoid_fit:EllipsoidFit",
     "ml": "trimag.estimators.ml:MaximumLikelihood",
+    # the ellipsoid with the gyroscope beside the magnetometer (issue 31)
+    "gyro": "trimag.estimators.gyro:GyroAided",
     "twostep": "trimag.estimators.twostep:TwoStep",
     "als": "trimag.estimators.als:AdjustedLeastSquares",
     # paper A

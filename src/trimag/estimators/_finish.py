@@ -31,9 +31,9 @@ from ..quality.diagnostics import (
     CONDITION_ERROR,
     CONDITION_WARN,
     check_not_planar_within_noise,
+    data_coverage,
     describe_directions,
     diagnostic_subsample,
-    sphere_coverage,
 )
 from ._common import unpack
 from ._quadric import diagnostics_entries
@@ -303,20 +303,17 @@ def ellipsoid_result(
         offset = column_means(B)
         diag["balanced_offset"] = {"balanced": None, "applied": True, "sample_mean": offset.tolist(),
                                    "note": "forced by balance='always'; not tested (no noise estimate)"}
-    offset_moved = bool(diag.get("balanced_offset", {}).get("applied"))
-    coverage = sphere_coverage((B_sub - offset) @ W.T if offset_moved else geometry.normal.T)
+    coverage = data_coverage(B_sub)  # a property of the data, not of this fit (issue 32)
     if cov is not None and J is not None:
         Fm = float(np.mean(ref.values)) if ref.values is not None else float(target_sub)
         uncertainty = _ellipsoid_uncertainty(
             J, cov, W, offset, Fm, sigma, known, len(B), names, coverage, plane_ratio, uncertainty_note, diag
         )
     W_out = to_symmetric(W) if form == "symmetric" else W
-    upper = form == "upper"  # then the corrected directions and their coverage are those computed above
     return build_calibration(
         B, W_out, offset, model=model, method=method, units=units, reference=ref,
         params=Ellipsoid.from_matrix_offset(W_out, offset).as_dict(), iterations=iterations,
-        converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag,
-        coverage=coverage if upper else None,
+        converged=converged, fitted_magnitude=F_hat, uncertainty=uncertainty, diagnostics=diag, coverage=coverage,
     )
 
 

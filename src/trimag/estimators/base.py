@@ -20,7 +20,7 @@ from ..calibration import Calibration
 from ..errors import NotFittedError, TrimagInputError
 from ..fields.reference import ScalarReference
 from ..models import get_model
-from ..quality.diagnostics import diagnostic_subsample, sphere_coverage
+from ..quality.diagnostics import data_coverage
 from ..quality.honesty import honest_uncertainty
 from ..quality.metrics import before_after_stats, row_norms
 from ..units import normalise_unit
@@ -58,7 +58,7 @@ class Estimator:
         Models this method can identify; the first is the default.
     reference_kind : str
         ``"scalar"`` (magnitude optional or required, see ``requires_reference``), ``"none"`` (reference-free),
-        or ``"vector"`` (background vector + attitudes, paper C).
+        ``"vector"`` (background vector + attitudes, paper C) or ``"gyro"`` (magnitude optional + the gyroscope).
     requires_reference : bool
         True when a known magnitude (or background vector) is mandatory.
     """
@@ -123,10 +123,11 @@ class Estimator:
             the background field vector in the navigation frame, shape (3,).
         units : str
             Unit of ``B`` (and of a numeric reference); recorded in the Calibration.
-        attitude : scipy.spatial.transform.Rotation, optional
+        attitude : scipy.spatial.transform.Rotation or AngularRate, optional
             Per-sample attitude: N rotations body -> navigation frame (NED), so that a navigation-frame
             field is seen in the body frame as ``attitude.inv().apply(H_n)`` (docs/conventions.md); only for
-            methods with ``reference_kind == "vector"``.
+            methods with ``reference_kind == "vector"``. For ``reference_kind == "gyro"`` the gyroscope
+            (:class:`trimag.fields.gyro.AngularRate`: the samples' time stamps and the angular rate).
 
         Returns
         -------
@@ -211,8 +212,8 @@ def build_calibration(
     magnitude: ``rms_* = RMS(|B_i| - F)``, ``max_abs_*`` = max ``||B_i| - F|``. ``fitted_magnitude`` (the radius
     implied by the method's scale gauge, e.g. det(W) = 1) is recorded as ``reference["fitted_radius"]``.
     The statistics take one pass over the samples in blocks (:func:`~trimag.quality.metrics.before_after_stats`);
-    ``coverage`` (the :func:`~trimag.quality.diagnostics.sphere_coverage` of the corrected samples) may be passed when
-    the caller has it already, otherwise it is computed on :func:`~trimag.quality.diagnostics.diagnostic_subsample`.
+    ``coverage`` (:func:`~trimag.quality.diagnostics.data_coverage` of ``B``: a property of the data, the same
+    whatever the method) may be passed when the caller has it already, otherwise it is computed here.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     offset = np.asarray(offset, dtype=np.float64)
@@ -242,7 +243,7 @@ def build_calibration(
     }
     stats.update(extra_stats or {})
     if coverage is None:
-        coverage = sphere_coverage((B[diagnostic_subsample(len(B))] - offset) @ matrix.T)
+        coverage = data_coverage(B)
     cov = coverage
     diag = {"coverage": {k: v for k, v in cov.items() if k != "cell_counts"}}
     diag.update(diagnostics or {})

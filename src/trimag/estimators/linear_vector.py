@@ -16,7 +16,8 @@ Background field ``H_n`` (NED, the data's unit) comes from the caller (``--backg
 the mean of an iron-free run, :func:`trimag.io.background.background_from_run`). With
 ``estimate_background=True`` it is fitted jointly (:func:`fit_with_background`): ``K`` and ``H_n`` are then
 identified only up to a common scale (``K s``, ``H_n / s``), fixed here by ``|H_n|`` = the magnitude of the
-given background (or the mean measured magnitude when none is given), and the sign by ``det(K) > 0``.
+given background or the given magnitude (or, when neither is given, by ``det(K) = 1``: ``|H_n|`` is then the mean
+corrected magnitude), and the sign by ``det(K) > 0``.
 """
 
 from __future__ import annotations
@@ -390,6 +391,32 @@ def _background_start(R: NDArray[np.float64]) -> tuple[NDArray[np.float64], floa
     return h0, cond_lin
 
 
+def _background_magnitude(reference: Any, estimate_background: bool) -> float | None:
+    """``|H_n|`` a joint background fit is scaled to: a given magnitude (a number or a constant
+    :class:`ScalarReference`), the magnitude of a given background vector, or None (the gauge ``det K = 1``).
+    A magnitude without ``estimate_background`` is refused: the fit needs the background's direction."""
+    if isinstance(reference, ScalarReference) or (reference is not None and np.ndim(reference) == 0):
+        if not estimate_background:
+            raise TrimagInputError("linear-vector needs a background VECTOR (N, E, D), not a magnitude (or "
+                                   "`option estimate_background=true`, which takes a magnitude as the scale)")
+        values = reference.values if isinstance(reference, ScalarReference) else np.array([float(reference)])
+        if values is None:
+            return None
+        if not (np.all(np.isfinite(values)) and np.ptp(values) <= 1e-9 * np.abs(values).max() and values[0] > 0):
+            raise TrimagInputError("`estimate_background` takes one positive field magnitude as its scale; got "
+                                   "a per-sample or non-positive magnitude")
+        return float(values[0])
+    if reference is None or np.ndim(reference) == 2:
+        return None
+    return float(np.linalg.norm(as_vector(reference)))
+
+
+def _raw_scale(B: NDArray[np.float64]) -> float:
+    """A provisional ``|H_n|`` for the joint fit before its ``det K = 1`` scaling: the RMS distance of the samples
+    from their mean (any positive number would do; this one keeps ``K`` near unit size)."""
+    return float(np.sqrt(np.mean(np.sum((B - B.mean(axis=0)) ** 2, axis=1)))) or 1.0
+
+
 class LinearVector(Estimator):
     """Paper C's 12-coefficient compensation from attitudes and a background field vector.
 
@@ -403,9 +430,10 @@ class LinearVector(Estimator):
     model : str
         ``"interference12"``.
     estimate_background : bool
-        Fit ``H_n`` jointly (only its direction; ``|H_n|`` is fixed to the given background's magnitude,
-        or to the mean measured magnitude when ``reference`` is None). Use when no iron-free run or
-        trustworthy vector exists and the attitudes cover all three axes.
+        Fit ``H_n`` jointly. ``K`` and ``H_n`` share one scale: ``|H_n|`` is the given magnitude (``reference``
+        a number), the magnitude of a given background vector (its direction is not used), or, when
+        ``reference`` is None, set by the gauge ``det K = 1`` (``|H_n|`` is then the mean corrected magnitude).
+        Use when no iron-free run or trustworthy vector exists and the attitudes cover all three axes.
     max_iter : int
         Iteration limit of the joint fit.
     """
@@ -438,24 +466,29 @@ class LinearVector(Estimator):
                 "`background_ned=N,E,D`, `igrf_spec=LAT,LON,ALT_M,DATE`, or `background_run=FILE` "
                 "(or `option estimate_background=true`)"
             )
-        if isinstance(reference, ScalarReference):
-            raise TrimagInputError("linear-vector needs a background VECTOR (N, E, D), not a magnitude")
-        diag: dict[str, Any] = {}
+        magnitude = _background_magnitude(reference, self.estimate_background)
+        diag: dict[str, Any] = {"background_fitted": bool(self.estimate_background)}
         if self.estimate_background and reference is not None and np.ndim(reference) == 2:
             raise TrimagInputError(
                 "`estimate_background` fits one background vector; a per-sample background is used as given: "
                 "drop the option, or give one vector"
             )
         if self.estimate_background:
-            if reference is None:
-                magnitude = float(np.mean(np.linalg.norm(B, axis=1)))
-                scale_src = "mean measured magnitude"
+            K, c, H_n, info = fit_with_background(B, att, magnitude or _raw_scale(B), max_iter=self.max_iter)
+            if magnitude is None:  # the scale gauge det(K) = 1: |H_n| is then the mean corrected magnitude
+                s = float(np.cbrt(np.linalg.det(K)))
+                K, H_n = K / s, H_n * s
+                D = np.concatenate([np.full(9, 1.0 / s), np.ones(3)])  # K / s; c unchanged
+                info = {**info, "covariance": info["covariance"] * np.outer(D, D)}
+                scale_src = "det(K) = 1: |H_n| is the mean corrected magnitude"
+            elif np.ndim(reference) == 0 or isinstance(reference, ScalarReference):
+                scale_src = "the given magnitude"
             else:
-                magnitude = float(np.linalg.norm(as_vector(reference)))
-                scale_src = "magnitude of the given background"
-            K, c, H_n, info = fit_with_background(B, att, magnitude, max_iter=self.max_iter)
-            source = f"fitted background NED {np.round(H_n, 6).tolist()} (|H_n| fixed: {scale_src})"
-            diag["background_given"] = None if reference is None else as_vector(reference).tolist()
+                scale_src = "the magnitude of the given background; its direction is not used"
+            source = f"fitted background NED {np.round(H_n, 6).tolist()} (|H_n| {np.linalg.norm(H_n):.6g}: {scale_src})"
+            diag["background_given"] = (None if reference is None or np.ndim(reference) == 0
+                                        or isinstance(reference, ScalarReference) else as_vector(reference).tolist())
+            diag["background_scale"] = scale_src
             H_b = body_field(att, H_n)
         else:
             H_n = as_background(reference, len(B))

@@ -47,9 +47,11 @@ from ..quality.crlb import (
     UPPER_NAMES,
 )
 from ..quality.diagnostics import (
+    CONDITION_WARN,
     DIAGNOSTIC_SAMPLES,
     check_condition,
     check_not_degenerate,
+    coverage_advice,
     design_condition,
     diagnostic_subsample,
     gram_condition,
@@ -480,8 +482,14 @@ class MaximumLikelihood(Estimator):
         else:
             sum_sq = float(np.sum(res.fun**2))
             cond, s, vt, at_p = _jacobian_condition(res)
+        # an ill-conditioned fit is described by what the samples saw (the same words as the other refusals of a
+        # single-axis turn: a log and its parts are refused alike, issue 32); computed only when it is said
+        hint = "record the sensor turning about all three axes"
+        if not np.isfinite(cond) or cond > CONDITION_WARN:
+            hint = coverage_advice(B, float(np.mean(ref.values)) if ref.values is not None else None,
+                                   what="the ellipsoid model")
         check_condition(
-            cond, what="the ellipsoid model", hint="record the sensor turning about all three axes",
+            cond, what="the ellipsoid model", hint=hint,
             weak=weak_directions(vt, s, _NAMES, threshold=1e4) if np.isfinite(cond) else [],
         )
         sigma2_u = sum_sq / max(n_samples - 9, 1)

@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import io as _stdio
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,14 +92,37 @@ class Samples:
 
 
 def detect_format(path: str | Path, fmt: str | None = None) -> str:
-    """:func:`guess_format`, and a text file whose first record starts with ``/`` is Geosoft XYZ."""
+    """:func:`guess_format`, and a text file whose first record starts with ``/`` is Geosoft XYZ; a trimag
+    calibration or compensation file given as a log is refused, naming the commands that take it."""
     kind = guess_format(path, fmt)
+    if kind in ("csv", "txt"):
+        refuse_calibration_file(path)
     if kind in ("csv", "txt") and fmt is None:
         from .geosoft import is_geosoft_xyz
 
         if is_geosoft_xyz(path):
             return "xyz"
     return kind
+
+
+_CALIBRATION_FILE = re.compile(rb'"format"\s*:\s*"trimag-(calibration|compensation)"')
+
+
+def refuse_calibration_file(path: str | Path) -> None:
+    """Refuse a trimag calibration (or Tolles–Lawson compensation) file given where a log is expected: its
+    ``"format"`` entry is on one of its first lines (:meth:`trimag.Calibration.to_json`)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+    except OSError:
+        return  # the reader says what is wrong with the path
+    found = _CALIBRATION_FILE.search(head)
+    if found is not None:
+        kind = found.group(1).decode()
+        raise TrimagInputError(
+            f"{path}: this is a {kind} file, not a log of x, y, z samples: give it to `trimag apply`, `trimag "
+            f"evaluate` or `trimag export` (e.g. `trimag apply {Path(path).name} LOG.csv -o OUT.csv`)"
+        )
 
 
 def guess_format(path: str | Path, fmt: str | None = None) -> str:
@@ -390,7 +414,9 @@ def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
     import scipy.io
 
     try:
-        data = scipy.io.loadmat(path)
+        with warnings.catch_warnings():  # "Duplicate variable name": scipy keeps the last one, as MATLAB does
+            warnings.simplefilter("ignore", scipy.io.matlab.MatReadWarning)
+            data = scipy.io.loadmat(path)
         candidates = {k: v for k, v in data.items() if not k.startswith("__")}
         structs = {k: v for k, v in candidates.items() if getattr(np.asarray(v).dtype, "names", None)}
         if structs and (var in structs or (var is None and len(structs) == len(candidates) == 1)):
@@ -446,6 +472,8 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
         "unit": mag.unit,
         "sensor": mag.name,
         "instance": mag.instance,
+        "compass": mag.number,  # as the user numbers it (`sensor`, export's instance): from 1
+        "compasses": [{"number": m.number, "name": m.name, "n_samples": len(m.time_s)} for m in log.magnetometers],
         "device_id": mag.device_id,
         "gps": log.gps,
         "messages": log.summary_lines(sensor) + messages,
@@ -455,6 +483,8 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
         "vehicle": log.vehicle,
         "parameters": dict(log.parameters),
         "yaw_sources": [c for c in ("yaw_gps_deg", "yaw_gsf_deg") if c in df.columns],
+        # the gyroscope (read again for the gyro-aided fit: a DataFlash log's IMU only then, docs/method-gyro.md)
+        "gyro": log.gyro.source if log.gyro is not None else ("IMU (read on request)" if kind == "dataflash" else None),
     }
     return df
 

@@ -2,11 +2,19 @@
 from the internet), ``GET /status`` (the session's state as JSON) and ``POST /save``.
 
 Standard library only (:mod:`http.server` on its own threads); bound to 127.0.0.1, so only this machine sees it.
+No page on the web can drive it (docs/recording.md, "Who may drive the server"): every request must name the
+server itself as its ``Host`` (``127.0.0.1:PORT`` or ``localhost:PORT``; a DNS-rebinding page names its own
+host), and a request that changes anything (``POST``) must also come from the page's own ``Origin`` and carry the
+per-session token the page holds (header ``X-Trimag-Token``), which no other origin can read. The page may not be
+framed by another.
 """
 
 from __future__ import annotations
 
+import hmac
 import json
+import secrets
+import sys
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -20,12 +28,39 @@ __all__ = ["HOST", "LiveServer"]
 
 #: The only address the server listens on.
 HOST = "127.0.0.1"
+#: The request header that carries the session's token (the page reads it from its ``trimag-token`` meta tag).
+TOKEN_HEADER = "X-Trimag-Token"
+#: Seconds a connection may stay silent (a half-sent request, a client that stopped reading) before it is dropped.
+IDLE_SECONDS = 5.0
+_TOKEN_PLACEHOLDER = b"__TRIMAG_TOKEN__"
+#: Sent with every answer: no framing by another page, no sniffing, no reading from another origin.
+_SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; style-src 'self' 'unsafe-inline'; frame-ancestors 'none'; "
+                               "base-uri 'none'; form-action 'none'",
+    "X-Frame-Options": "DENY",
+    "X-Content-Type-Options": "nosniff",
+    "Cross-Origin-Resource-Policy": "same-origin",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-store",
+}
 _STATIC = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("index.html", "text/html; charset=utf-8"),
            "/live.js": ("live.js", "text/javascript; charset=utf-8")}
 
 
 def _static(name: str) -> bytes:
     return (resources.files("trimag.live") / "static" / name).read_bytes()
+
+
+class _Server(ThreadingHTTPServer):
+    """A thread per connection; a client that drops its connection is not an error worth a line."""
+
+    daemon_threads = True
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):  # the client went away: nothing to say
+            return
+        sys.stderr.write(f"trimag live: internal error while answering a request: {type(exc).__name__}: {exc}\n")
 
 
 class LiveServer:
@@ -44,13 +79,15 @@ class LiveServer:
                  save: Callable[[], dict[str, str]] | None = None) -> None:
         self.session = session
         self._save = save
+        #: The per-session token a state-changing request must carry (in the page; never in a URL).
+        self.token = secrets.token_urlsafe(32)
+        check_port(port)
         handler = self._handler()
         try:
-            self.httpd = ThreadingHTTPServer((HOST, port), handler)
+            self.httpd = _Server((HOST, port), handler)
         except OSError as exc:
             raise TrimagInputError(f"cannot listen on {HOST}:{port} ({exc.strerror or exc}); give another `port` "
                                    "(0 picks a free one)") from None
-        self.httpd.daemon_threads = True
         self._thread: threading.Thread | None = None
 
     @property
@@ -62,6 +99,33 @@ class LiveServer:
     def url(self) -> str:
         """The page's address."""
         return f"http://{HOST}:{self.port}/"
+
+    @property
+    def origins(self) -> tuple[str, ...]:
+        """The page's own origins: the only ``Origin`` a state-changing request may come from."""
+        return f"http://{HOST}:{self.port}", f"http://localhost:{self.port}"
+
+    def refusal(self, method: str, headers: Any) -> str | None:
+        """Why a request with these ``headers`` is refused (None when it is the page's own): a ``Host`` other than
+        the server itself (DNS rebinding); for ``POST``, a cross-site fetch, an ``Origin`` other than the page's,
+        a missing or wrong token."""
+        host = headers.get("Host")
+        if host is None or host.strip().lower() not in {o.removeprefix("http://") for o in self.origins}:
+            return (f"this server answers as {HOST}:{self.port} or localhost:{self.port} only (Host {host!r}); open "
+                    f"{self.url}")
+        if method in ("GET", "HEAD"):
+            return None
+        if headers.get("Sec-Fetch-Site", "same-origin") not in ("same-origin", "none"):
+            return "a request from another site cannot change anything here"
+        origin = headers.get("Origin")
+        if origin not in self.origins:
+            return (f"only the page itself ({self.url}) can {method} here (Origin: {origin or 'none'}); a script "
+                    f"sends the header Origin: {self.origins[0]}")
+        token = str(headers.get(TOKEN_HEADER) or "").encode("utf-8", "replace")
+        if not hmac.compare_digest(token, self.token.encode()):
+            return (f"the session's token is missing or wrong (header {TOKEN_HEADER}; the page holds it in its "
+                    "trimag-token meta tag)")
+        return None
 
     def start(self) -> LiveServer:
         """Serve on a daemon thread; returns self."""
@@ -81,32 +145,50 @@ class LiveServer:
         server = self
 
         class Handler(BaseHTTPRequestHandler):
+            timeout = IDLE_SECONDS
+
             def log_message(self, format: str, *args: Any) -> None:  # quiet: the terminal shows the session
                 return
+
+            def end_headers(self) -> None:  # every answer, the errors of http.server included
+                for key, value in _SECURITY_HEADERS.items():
+                    self.send_header(key, value)
+                super().end_headers()
 
             def _send(self, code: int, body: bytes, kind: str) -> None:
                 self.send_response(code)
                 self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(body)))
-                self.send_header("Cache-Control", "no-store")
                 self.end_headers()
                 self.wfile.write(body)
 
             def _json(self, code: int, data: Any) -> None:
                 self._send(code, json.dumps(data, allow_nan=False).encode(), "application/json")
 
+            def _refused(self) -> bool:
+                why = server.refusal(self.command, self.headers)
+                if why is not None:
+                    self.close_connection = True
+                    self._json(403, {"error": why})
+                return why is not None
+
             def do_GET(self) -> None:
+                if self._refused():
+                    return
                 path = self.path.split("?", 1)[0]
                 if path == "/status":
                     points = "points=0" not in self.path
                     self._json(200, server.session.status(points=points))
                 elif path in _STATIC:
                     name, kind = _STATIC[path]
-                    self._send(200, _static(name), kind)
+                    body = _static(name)
+                    self._send(200, body.replace(_TOKEN_PLACEHOLDER, server.token.encode()), kind)
                 else:
                     self._json(404, {"error": f"no page {path}"})
 
             def do_POST(self) -> None:
+                if self._refused():
+                    return
                 if self.path.split("?", 1)[0] != "/save":
                     self._json(404, {"error": f"no action {self.path}"})
                     return
@@ -121,3 +203,9 @@ class LiveServer:
                 self._json(200, {"written": written})
 
         return Handler
+
+
+def check_port(port: int) -> None:
+    """Refuse a TCP port outside 0-65535 (0: a free one)."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise TrimagInputError(f"`port` must be a TCP port, 0-65535 (0 picks a free one); got {port!r}")

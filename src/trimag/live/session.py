@@ -21,17 +21,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import IdentifiabilityError, TrimagError, TrimagWarning
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, TrimagWarning
 from ..fitting import fit
 from ..io.atomic import atomic_write_text
 from ..quality.diagnostics import (
     _axis_name,
     coverage_advice,
+    data_coverage,
     describe_directions,
     fibonacci_sphere,
     raw_direction_geometry,
-    sphere_coverage,
 )
+from ..units import normalise_unit
 from ..vehicle.policy import DEFAULT_LIMITS, check_policy
 from .sources import Batch
 
@@ -127,10 +128,16 @@ class LiveSession:
         self._fit_state: dict[str, Any] = {}
         self._fitted_n = 0
         self._history: list[list[float | None]] = []
-        self.calibration: Calibration | None = None
-        self._calibration_n = 0
+        self._latest: tuple[Calibration | None, int] = (None, 0)  # the last calibration and its number of samples
+        self._save_lock = threading.Lock()
+        self._after_stop = 0
         self._threads: list[threading.Thread] = []
         self._n_fits = 0
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """The latest calibration fitted (None before the first)."""
+        return self._latest[0]
 
     # -- input -------------------------------------------------------------------------------------------------
     def add(self, batch: Batch) -> None:
@@ -138,8 +145,11 @@ class LiveSession:
         x = np.asarray(batch.samples, dtype=np.float64).reshape(-1, 3)
         good = np.isfinite(x).all(axis=1)
         with self._lock:
-            if self.units is None and batch.units is not None:
-                self.units = batch.units
+            if self._stop.is_set():  # the recording has stopped: what arrives now is not part of it
+                self._after_stop += len(x)
+                return
+            if batch.units is not None:
+                self._check_units(batch.units, batch.units_stated_by)
             self._garbage += int(batch.n_garbage) + int((~good).sum())
             x = x[good]
             need = self._n + len(x)
@@ -154,10 +164,22 @@ class LiveSession:
         if len(x):
             self._new_data.set()
 
+    def _check_units(self, stated: str, by: str) -> None:
+        """The unit a source states (a header, a MAVLink message) is the samples' unit: taken when none was given;
+        a different one given is refused as ``trimag fit`` refuses it, which ends the source."""
+        if self.units is None:
+            self.units = stated
+        elif normalise_unit(self.units) != normalise_unit(stated):
+            raise TrimagInputError(f"{by} {stated} but units={self.units!r}; give the data's real unit")
+
     def samples(self) -> NDArray[np.float64]:
         """A copy of every sample received so far, shape (N, 3)."""
+        return self._snapshot()[0]
+
+    def _snapshot(self) -> tuple[NDArray[np.float64], int, str]:
+        """One consistent snapshot: every sample so far (a copy, (N, 3)), the lines not understood, the unit."""
         with self._lock:
-            return self._buffer[: self._n].copy()
+            return self._buffer[: self._n].copy(), self._garbage, self.units or "unknown"
 
     def end(self, message: str = "the source ended") -> None:
         """Mark the source as ended (no more samples will come)."""
@@ -171,10 +193,12 @@ class LiveSession:
         the source's message), never the session."""
         try:
             for batch in batches:
-                self.add(batch)
                 if self._stop.is_set():
-                    self.end("stopped")
-                    return
+                    break
+                self.add(batch)
+            if self._stop.is_set():
+                self.end("stopped")
+                return
         except TrimagError as exc:
             self.end(f"the source failed: {exc}")
         except Exception as exc:  # a serial port unplugged, a socket closed: shown, not fatal
@@ -192,8 +216,10 @@ class LiveSession:
         fitter.start()
 
     def stop(self) -> None:
-        """Stop the fit thread (the reader stops at its next batch)."""
-        self._stop.set()
+        """Stop the recording: no sample is added after this (the reader stops at its next batch, the samples it
+        still brings are counted as ``samples_after_stop``), and the fit thread ends."""
+        with self._lock:
+            self._stop.set()
         self._new_data.set()
         for t in self._threads:
             if t.name == "trimag-live-fit":
@@ -224,21 +250,27 @@ class LiveSession:
             self._stop.wait(self.interval)
 
     # -- the fit -----------------------------------------------------------------------------------------------
-    def refit(self) -> Calibration | None:
-        """Fit every sample received so far now (on the calling thread) and update the state; returns the
-        calibration (None when the samples cannot identify the model yet)."""
+    def refit(self, B: NDArray[np.float64] | None = None) -> Calibration | None:
+        """Fit ``B`` (every sample received so far when None) now, on the calling thread, and show it (unless the
+        page already shows a fit of more samples); returns the calibration of exactly ``B`` (None when ``B`` cannot
+        identify the model yet)."""
         with self._fit_lock:
-            B = self.samples()
+            if B is None:
+                B = self.samples()
             t0 = time.monotonic()
             state = self._fit(B)
             state["fit_seconds"] = time.monotonic() - t0
+            cal = state.pop("calibration", None)
             with self._lock:
-                self._fit_state = state
-                self._fitted_n = len(B)
+                if cal is not None and len(B) >= self._latest[1]:
+                    self._latest = (cal, len(B))
+                if len(B) >= self._fitted_n:  # samples only grow: a smaller snapshot is an older one
+                    self._fit_state = state
+                    self._fitted_n = len(B)
+                    self._history.append([len(B), state.get("coverage_fraction"), state.get("rms_after")])
+                    del self._history[:-HISTORY]
                 self._n_fits += 1
-                self._history.append([len(B), state.get("coverage_fraction"), state.get("rms_after")])
-                del self._history[:-HISTORY]
-            return self.calibration if state.get("fitted") else None
+            return cal
 
     def _fit(self, B: NDArray[np.float64]) -> dict[str, Any]:
         units = self.units or "unknown"
@@ -266,7 +298,6 @@ class LiveSession:
             state["fit_message"] = f"no fit yet: {type(exc).__name__}: {exc}"
             state.update(self._raw_guidance(B, what))
             return state
-        self.calibration, self._calibration_n = cal, len(B)
         stats, diag = cal.stats, cal.diagnostics
         coverage = diag.get("coverage") or {}
         ident = diag.get("identifiability") or {}
@@ -293,10 +324,11 @@ class LiveSession:
         if not converged:
             reasons.append("the fit did not converge")
         corrected = cal.apply(B[self._page_index(len(B))])
-        # the fit keeps the coverage's figures, not its cells: the map counts the corrected directions again
-        coverage = {**coverage, "cell_counts": sphere_coverage(cal.apply(B))["cell_counts"]}
+        # the fit keeps the coverage's figures, not its cells: the map counts them again, as the fit did (the data's
+        # directions, trimag.quality.diagnostics.data_coverage: the same cells as the number)
+        coverage = {**coverage, "cell_counts": data_coverage(B)["cell_counts"]}
         state.update({
-            "fitted": True, "identifiable": identifiable, "converged": converged,
+            "fitted": True, "calibration": cal, "identifiable": identifiable, "converged": converged,
             "rms_before": stats.get("rms_before"), "rms_after": stats.get("rms_after"),
             "coverage_fraction": coverage.get("fraction"), "coverage": coverage,
             "coverage_description": describe_directions(coverage) if coverage.get("cone_axis") else "",
@@ -341,6 +373,7 @@ class LiveSession:
                 "source": self.source, "source_state": self._source_state, "source_message": self._source_message,
                 "elapsed_s": time.monotonic() - self._started, "n_fits": self._n_fits,
                 "fit_lag_samples": n - self._fitted_n, "history": [list(h) for h in self._history],
+                "samples_after_stop": self._after_stop,
             }
         coverage = state.pop("coverage", None) or {}
         corrected = state.pop("points_corrected", None)
@@ -365,21 +398,31 @@ class LiveSession:
         return _finite(out)
 
     def save(self, out: str | Path, samples_out: str | Path | None = None) -> dict[str, str]:
-        """Write the recorded samples (CSV ``x,y,z``) and the calibration of all of them (JSON), each atomically;
-        the fit is redone first when samples came after the last one. Returns what was written (the calibration
-        is missing when the samples cannot identify the model)."""
+        """Write one snapshot of the recorded samples (CSV ``x,y,z``) and the calibration fitted to exactly that
+        snapshot (JSON), each atomically, the samples first; the fit is redone on the snapshot unless the latest
+        one used the same samples. Saves run one at a time. Returns what was written (the calibration is missing
+        when the samples cannot identify the model)."""
         out = Path(out)
-        samples_path = Path(samples_out) if samples_out is not None else out.with_name(out.stem + "-samples.csv")
-        B = self.samples()
-        written: dict[str, str] = {}
-        text = io.StringIO()
-        text.write(f"# trimag live recording ({self.source}); unit {self.units or 'unknown'}\nx,y,z\n")
-        np.savetxt(text, B, delimiter=",", fmt="%.17g")
-        written["samples"] = str(atomic_write_text(samples_path, text.getvalue()))
-        with self._fit_lock:
-            fresh = self._fitted_n == len(B)
-        cal = self.calibration if fresh else self.refit()
-        if cal is not None and self._calibration_n == len(B):
-            cal = cal.with_stats(n_samples=len(B), n_dropped=self._garbage)
-            written["calibration"] = str(cal.to_file(out))
-        return written
+        target = samples_path(out, samples_out)
+        with self._save_lock:
+            B, garbage, units = self._snapshot()
+            text = io.StringIO()
+            text.write(f"# trimag live recording ({self.source}); unit {units}\nx,y,z\n")
+            np.savetxt(text, B, delimiter=",", fmt="%.17g")
+            written = {"samples": str(atomic_write_text(target, text.getvalue()))}
+            with self._lock:
+                cal, n = self._latest
+            if cal is None or n != len(B):  # samples only grow: the same count is the same samples
+                cal = self.refit(B)
+            if cal is not None:
+                cal = cal.with_stats(n_samples=len(B), n_dropped=garbage)
+                written["calibration"] = str(cal.to_file(out))
+            return written
+
+
+def samples_path(out: str | Path, samples_out: str | Path | None = None) -> Path:
+    """Where the samples are saved: ``samples_out``, else ``CAL-samples.csv`` beside the calibration ``out``."""
+    if samples_out is not None:
+        return Path(samples_out)
+    out = Path(out)
+    return out.with_name(out.stem + "-samples.csv")

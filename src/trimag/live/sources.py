@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from .._core.extras import require
 from ..errors import TrimagInputError
+from ..units import header_unit
 
 __all__ = ["Batch", "LineParser", "line_source", "mavlink_source", "replay_source", "serial_source"]
 
@@ -35,6 +36,8 @@ class Batch:
     n_garbage: int = 0
     #: the unit the source states (a MAVLink message type, a log's header), None when it does not say
     units: str | None = None
+    #: who states ``units``, for a message ("the column headers say", "the MAVLink message SCALED_IMU says")
+    units_stated_by: str = "the source says"
 
 
 def _number(token: str) -> float | None:
@@ -78,6 +81,8 @@ class LineParser:
             raise TrimagInputError(f"`columns` needs three names (x, y, z); got {len(self.columns)}")
         self.indices: tuple[int, int, int] | None = None
         self.header: list[str] | None = None
+        #: the unit the header's x, y, z names state (``x_uT``, ``Bx (nT)``), None when they state none
+        self.units: str | None = None
 
     def parse(self, line: str) -> tuple[float, float, float] | bool | None:
         """The sample on ``line``; True when the line was a header (taken), None when it is garbage; blank lines
@@ -89,18 +94,13 @@ class LineParser:
         values = [_number(t) for t in tokens]
         if self.indices is None and all(v is None for v in values):
             names = [t.strip().strip('"').lower() for t in tokens]
-            if self.columns is not None:
-                if all(c in names for c in self.columns):
-                    self.indices = (names.index(self.columns[0]), names.index(self.columns[1]),
-                                    names.index(self.columns[2]))
-                    self.header = names
-                    return True
+            found = (_xyz_indices(names) if self.columns is None else
+                     tuple(names.index(c) for c in self.columns) if all(c in names for c in self.columns) else None)
+            if found is None:
                 return None
-            found = _xyz_indices(names)
-            if found is not None:
-                self.indices, self.header = found, names
-                return True
-            return None
+            self.indices, self.header = (found[0], found[1], found[2]), names
+            self.units = header_unit([tokens[k].strip().strip('"') for k in found])
+            return True
         if self.indices is not None:
             if len(values) <= max(self.indices):
                 return None
@@ -130,7 +130,7 @@ def line_source(lines: Iterable[str | bytes], *, columns: Sequence[str] | None =
         if got is None:
             yield Batch(n_garbage=1)
         elif got is not True and got is not False:
-            yield Batch(np.array([got], dtype=np.float64))
+            yield Batch(np.array([got], dtype=np.float64), units=parser.units, units_stated_by="the column headers say")
 
 
 def replay_source(path: str | Path, *, rate: float | None = 2000.0, sleep: Callable[[float], Any] = time.sleep,
@@ -139,7 +139,6 @@ def replay_source(path: str | Path, *, rate: float | None = 2000.0, sleep: Calla
     ``columns``, ``sensor``...) played back at ``rate`` samples per second (as fast as they are taken when None).
     The first batch states the log's unit when the log does (a vehicle log, a unit in the column headers)."""
     from ..io import read_samples
-    from ..units import header_unit
 
     if rate is not None and not rate > 0:
         raise TrimagInputError(f"`rate` must be a positive number of samples per second; got {rate}")
@@ -217,7 +216,8 @@ def _mavlink_readings(conn: Any, from_file: bool, message: str | None, timeout: 
         now = time.monotonic()
         if msg is None:
             if rows:
-                yield Batch(np.array(rows, dtype=np.float64), 0, MAVLINK_MESSAGES.get(chosen or ""))
+                yield Batch(np.array(rows, dtype=np.float64), 0, MAVLINK_MESSAGES.get(chosen or ""),
+                            f"the MAVLink message {chosen} says")
                 rows = []
             if from_file or now - last > timeout:  # a log file has no message left
                 return
@@ -229,5 +229,6 @@ def _mavlink_readings(conn: Any, from_file: bool, message: str | None, timeout: 
         last = now
         rows.append((float(msg.xmag), float(msg.ymag), float(msg.zmag)))
         if len(rows) >= 256:
-            yield Batch(np.array(rows, dtype=np.float64), 0, MAVLINK_MESSAGES.get(kind))
+            yield Batch(np.array(rows, dtype=np.float64), 0, MAVLINK_MESSAGES.get(kind),
+                        f"the MAVLink message {kind} says")
             rows = []

@@ -23,10 +23,12 @@ __all__ = [
     "CONDITION_ERROR",
     "CONDITION_WARN",
     "DIAGNOSTIC_SAMPLES",
+    "FLAT_RATIO",
     "PLANE_NOISE_RATIO",
     "check_not_degenerate",
     "check_not_planar_within_noise",
     "coverage_advice",
+    "data_coverage",
     "describe_directions",
     "design_condition",
     "diagnostic_subsample",
@@ -35,7 +37,9 @@ __all__ = [
     "gram_condition",
     "principal_std",
     "raw_direction_geometry",
+    "sample_noise_std",
     "single_axis_turn",
+    "sphere_centre",
     "sphere_coverage",
     "turn_about_axis",
     "weak_directions",
@@ -51,6 +55,10 @@ CONDITION_ERROR = 1e9
 #: Measured (docs/method-ml.md, "Identifiability"): 1.0-1.9 for single-axis turns at sigma/F = 4e-4 to 5e-2;
 #: 5.7 for one hemisphere at sigma/F = 5e-2; 6.3-98 on five real logs.
 PLANE_NOISE_RATIO = 3.0
+#: Samples whose spread across their flattest direction is below this share of the next spread, and within the fit's
+#: residual level, are described as a turn about one axis (a hand-held sensor's wobble adds a little spread across
+#: its plane); above it, as samples that do leave the plane but that the ellipsoid does not fit.
+FLAT_RATIO = 0.25
 #: Diagnostics that summarise the whole log (sphere coverage, degeneracy, and the noise level and Fisher
 #: information of the ellipsoid methods) use at most this many evenly spread samples: sums over samples scaled up.
 DIAGNOSTIC_SAMPLES = 20_000
@@ -120,6 +128,81 @@ def sphere_coverage(
         **direction_geometry(u, counts >= min_count, centres_t.T, mean=mean_vector, scatter=scatter),
         "cell_counts": counts.tolist(),
     }
+
+
+def sphere_centre(B: ArrayLike) -> NDArray[np.float64] | None:
+    """Centre (3,) of the sphere of free radius that fits the samples ``B`` (N, 3) best (linear least squares,
+    ``|x|^2 = 2 c.x + d``), on an evenly spread subsample of at most :data:`DIAGNOSTIC_SAMPLES`; None when the
+    samples do not determine a sphere (fewer than 4, or in one plane or on one line: condition number above 1e6)."""
+    x = np.asarray(B, dtype=np.float64)
+    x = x[diagnostic_subsample(len(x))] if len(x) > DIAGNOSTIC_SAMPLES else x
+    if len(x) < 4:
+        return None
+    centroid = x.mean(axis=0)
+    scale = float(np.abs(x - centroid).max()) or 1.0
+    xc = (x - centroid) / scale
+    A = np.column_stack([2.0 * xc, np.ones(len(xc))])
+    cond, _, _ = design_condition(A)
+    if not np.isfinite(cond) or cond > 1e6:
+        return None
+    sol = np.linalg.lstsq(A, row_dot(xc, xc), rcond=None)[0]
+    centre = centroid + scale * sol[:3]
+    return centre if np.all(np.isfinite(centre)) else None
+
+
+def data_coverage(B: ArrayLike) -> dict[str, Any]:
+    """The sphere coverage of the field directions a log saw: one number computed from the data alone, the same
+    whatever the method fitted to it (and used by the refusals of the application layer).
+
+    The directions are those of the raw samples about the centre of the sphere that fits them best
+    (:func:`sphere_centre`; the soft iron is ignored, so the angles are approximate: a few degrees for a few per
+    cent of soft iron); samples in one plane are taken about the centre of the circle they lie on. A fitted
+    calibration would give other directions, and a badly wrong fit (a small sphere through a narrow cap of
+    samples) directions spread over much of the sphere: the coverage is not taken from the fit.
+
+    Returns
+    -------
+    dict
+        :func:`sphere_coverage` of those directions (on at most :data:`DIAGNOSTIC_SAMPLES` evenly spread samples),
+        with ``centre`` (3,) and ``basis`` (how the directions were formed).
+    """
+    x = np.asarray(B, dtype=np.float64)
+    x = x[diagnostic_subsample(len(x))] if len(x) > DIAGNOSTIC_SAMPLES else x
+    centre = sphere_centre(x)
+    basis = "raw samples about the centre of the best-fitting sphere (soft iron ignored)"
+    if centre is None and len(x) >= 3:
+        mean = x.mean(axis=0)
+        vecs = np.linalg.eigh((x - mean).T @ (x - mean))[1]
+        p = (x - mean) @ vecs[:, 1:]
+        sol = np.linalg.lstsq(np.column_stack([2.0 * p, np.ones(len(p))]), row_dot(p, p), rcond=None)[0]
+        centre = mean + vecs[:, 1:] @ sol[:2]
+        basis = "raw samples about the centre of the circle they lie on (one plane)"
+    if centre is None or not np.all(np.isfinite(centre)):
+        centre = x.mean(axis=0) if len(x) else np.zeros(3)
+        basis = "raw samples about their mean"
+    return {**sphere_coverage(x - centre), "centre": np.asarray(centre, dtype=np.float64).tolist(), "basis": basis}
+
+
+#: Consecutive samples :func:`sample_noise_std` reads (in the middle of a longer log).
+_NOISE_WINDOW = 65_536
+
+
+def sample_noise_std(B: ArrayLike) -> float | None:
+    """The sample-to-sample noise per axis of a log (its unit): ``sqrt(mean(d2^2) / 6)`` of the second differences
+    ``d2 = x[i+1] - 2 x[i] + x[i-1]`` of consecutive distinct samples (white noise of standard deviation s gives
+    ``var(d2) = 6 s^2``), over at most 65 536 consecutive samples in the middle of the log. Motion between samples
+    adds to it (a slowly turned sensor adds little): an upper bound of the noise. None for fewer than 10 samples.
+    """
+    x = np.asarray(B, dtype=np.float64)
+    if len(x) > _NOISE_WINDOW:
+        start = (len(x) - _NOISE_WINDOW) // 2
+        x = x[start:start + _NOISE_WINDOW]
+    if len(x) > 1:
+        x = x[np.concatenate([[True], np.any(x[1:] != x[:-1], axis=1)])]  # a logger's repeated rows
+    if len(x) < 10:
+        return None
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return float(np.sqrt(np.mean(d2 * d2) / 6.0))
 
 
 #: Share of the samples inside the reported cone (the rest, e.g. a few stray samples, are left out).
@@ -231,7 +314,8 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
     """:func:`sphere_coverage` (with its cone and never-seen direction) of raw samples before any calibration.
 
     The offset is that of the sphere that fits the samples best: of radius ``field`` (the reference magnitude,
-    data unit) when given, else of free radius. The soft iron is ignored, so the angles are approximate (a few
+    data unit) when given, else of free radius (then it is :func:`data_coverage`, the one coverage of the data,
+    issue 32). The soft iron is ignored, so the angles are approximate (a few
     degrees for a few per cent of soft iron). None when no sphere is determined (a free radius on samples in one
     plane: describe them with :func:`turn_about_axis` instead).
 
@@ -242,29 +326,23 @@ def raw_direction_geometry(B: NDArray[np.float64], field: float | None = None) -
     field : float, optional
         The field magnitude in the samples' unit.
     """
+    if field is None or not np.isfinite(field) or field <= 0:  # the data's own coverage (one number, issue 32)
+        return data_coverage(B) if sphere_centre(B) is not None else None
     x = np.asarray(B, dtype=np.float64)[:: max(1, len(B) // _GEOMETRY_SAMPLES)]
     centroid = x.mean(axis=0)
     xc = x - centroid
     if len(x) < 4:
         return None
-    if field is None or not np.isfinite(field) or field <= 0:
-        A = np.column_stack([2.0 * xc, np.ones(len(xc))])
-        cond, _, _ = design_condition(A)
-        if not np.isfinite(cond) or cond > 1e6:
-            return None
-        sol = np.linalg.lstsq(A, row_dot(xc, xc), rcond=None)[0]
-        centre = centroid + sol[:3]
-    else:
-        normal = np.linalg.eigh(xc.T @ xc)[1][:, 0]
-        depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
-        best = None
-        for sign in (1.0, -1.0):
-            res = levenberg_marquardt(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal,
-                                      method="trf")
-            if best is None or res.cost < best.cost:
-                best = res
-        assert best is not None
-        centre = centroid + best.x
+    normal = np.linalg.eigh(xc.T @ xc)[1][:, 0]
+    depth = float(np.sqrt(max(field**2 - float(np.mean(row_dot(xc, xc))), 0.0)))
+    best = None
+    for sign in (1.0, -1.0):
+        res = levenberg_marquardt(lambda c: np.sqrt(row_dot(xc - c, xc - c)) - field, sign * depth * normal,
+                                  method="trf")
+        if best is None or res.cost < best.cost:
+            best = res
+    assert best is not None
+    centre = centroid + best.x
     d = x - centre
     if not np.all(np.isfinite(d)):
         return None
@@ -415,13 +493,16 @@ def check_not_degenerate(B: NDArray[np.float64]) -> NDArray[np.float64]:
 def check_not_planar_within_noise(
     B: NDArray[np.float64], sigma: float, *, std: NDArray[np.float64] | None = None
 ) -> float:
-    """Refuse a log that lies in one plane within the noise; returns the ratio it was judged by.
+    """Refuse a log whose spread across its flattest direction is within the fit's residual level; returns the
+    ratio it was judged by.
 
-    ``B`` (N, 3): raw samples (:func:`principal_std` takes an evenly spread subsample); ``sigma``: the noise
-    standard deviation per axis in their unit, from the fit. The RMS distance of the samples from their
-    best-fitting plane (the smallest principal standard deviation) divided by ``sigma`` is 1-2 when the sensor
-    turned about a single axis: the spread out of that plane is noise, so the ellipsoid's extent across it is
-    fitted to noise.
+    ``B`` (N, 3): raw samples (:func:`principal_std` takes an evenly spread subsample); ``sigma``: the standard
+    deviation per axis of the fit's residuals in their unit. The RMS distance of the samples from their best-fitting
+    plane (the smallest principal standard deviation) divided by ``sigma`` is 1-2 when the sensor turned about a
+    single axis: the spread out of that plane is noise, so the ellipsoid's extent across it is fitted to noise.
+    The same ratio is small when the samples do leave the plane but the residuals are large (the field around the
+    sensor changed during the log): the message then says so, measured against the sample-to-sample noise
+    (:func:`sample_noise_std`), and does not claim a plane.
     :func:`check_not_degenerate` only catches exact planes (noise-free data); ``std``, the principal standard
     deviations it returned for the same ``B``, saves computing them again.
 
@@ -432,19 +513,44 @@ def check_not_planar_within_noise(
     """
     if not sigma > 0:
         return float("inf")
-    ratio = float((principal_std(B)[0] if std is None else std)[2] / sigma)
-    if ratio < PLANE_NOISE_RATIO:
-        st = principal_std(B)[0] if std is None else std
+    st = principal_std(B)[0] if std is None else std
+    ratio = float(st[2] / sigma)
+    if ratio >= PLANE_NOISE_RATIO:
+        return ratio
+    noise = sample_noise_std(B)
+    spreads = f"principal spreads {st[0]:.4g}, {st[1]:.4g}, {st[2]:.4g}"
+    residuals = f"the fit's residuals ({sigma:.3g} per axis)"
+    if noise is not None and noise > 0:
+        versus_noise = (f"{st[2] / noise:.3g} x the sample-to-sample noise ({noise:.3g} per axis, from second "
+                        "differences)")
+    else:
+        versus_noise = ""
+    within_noise = not versus_noise or st[2] < PLANE_NOISE_RATIO * noise  # type: ignore[operator]
+    if within_noise or st[2] < FLAT_RATIO * st[1]:
         turn = turn_about_axis(B)
+        if within_noise:  # the sample-to-sample variation is named when it is the tighter bound of the noise
+            tighter = versus_noise and noise < sigma  # type: ignore[operator]
+            head, measured = "all samples lie in one plane within the noise", (
+                f"{versus_noise + ' and ' if tighter else ''}{ratio:.2g} x {residuals}")
+            tail = ""
+        else:
+            head, measured = "the samples lie close to one plane, within the fit's residuals", (
+                f"{versus_noise} but only {ratio:.2g} x {residuals}")
+            tail = ("; if the sensor did turn about several axes, the field around it changed during the log (nearby "
+                    "or moving iron): record again away from it")
         raise IdentifiabilityError(
-            f"all samples lie in one plane within the noise: they turned through {turn['turned_deg']:.0f} deg about "
-            f"the sensor's {_axis_name(turn['axis'])}, and across that plane they spread only {ratio:.2g} x the "
-            f"noise level (spread along the three principal axes {st[0]:.4g}, {st[1]:.4g}, {st[2]:.4g}): either "
-            "the sensor turned about that single axis (or not at all), so the field across the plane is never seen: "
-            "record rotations about at least two more axes; or, if it did turn about several axes, the field "
-            "around it changed during the log (nearby or moving iron): record again away from it"
+            f"{head}: they turned through {turn['turned_deg']:.0f} deg about the sensor's {_axis_name(turn['axis'])}, "
+            f"and across that plane they spread {st[2]:.4g} RMS ({spreads}): {measured}, too little to fit the "
+            f"ellipsoid's shape across it: record rotations about at least two more axes{tail}"
         )
-    return ratio
+    normal = np.linalg.eigh(np.cov(B[diagnostic_subsample(len(B))].T))[1][:, 0]
+    raise IdentifiabilityError(
+        f"the ellipsoid cannot be identified: the samples do leave the plane of their two widest spreads (across it, "
+        f"along the sensor's {_axis_name(normal)}, they spread {st[2]:.4g} RMS, {versus_noise}; {spreads}), but "
+        f"{residuals} are as large as that spread ({ratio:.2g} x them): the field around the sensor changed during "
+        "the log (nearby or moving iron, the vehicle's own field) or the sensor is not linear, so its shape across "
+        "that direction is lost in the misfit; record again away from iron, turning the sensor through all attitudes"
+    )
 
 
 def coverage_advice(B: NDArray[np.float64], field: float | None = None, *, what: str) -> str:

@@ -142,7 +142,7 @@ def fit_report(
     axes = fig.subplots(2, 3)
     _magnitude_panel(axes[0, 0], n_before, n_after, F, sub, cal.units)
     _error_panel(axes[0, 1], n_before - F, n_after - F, cal)
-    _coverage_panel(fig, axes[0, 2], corrected / np.maximum(n_after[:, None], 1e-300), cal)
+    _coverage_panel(axes[0, 2], B)
     _cloud_panels(axes[1], B, corrected, sub, cal.units)
     head = title or f"trimag fit: model {cal.model}, method {cal.method}"
     sub_title = "; ".join([f"N = {cal.stats.get('n_used', len(B))}", *notes])
@@ -175,22 +175,32 @@ def _error_panel(ax: Any, err_b: NDArray[np.float64], err_a: NDArray[np.float64]
     ax.legend(fontsize=8)
 
 
-def _coverage_panel(fig: Figure, ax: Any, u: NDArray[np.float64], cal: Calibration) -> None:
-    """Where the corrected field's directions ``u`` ((N, 3), unit vectors) fall: azimuth against sin(elevation)."""
-    from matplotlib.colors import LogNorm
+#: Colours of the coverage panel's cells: covered (as on the live page) and not.
+_COVERED, _EMPTY = "#1b7f3b", "#d9d9d9"
 
-    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
-    sin_el = np.clip(u[:, 2], -1, 1)
-    h = ax.hist2d(az, sin_el, bins=(36, 18), range=((-180, 180), (-1, 1)), cmap="viridis", cmin=1, norm=LogNorm())
-    fig.colorbar(h[3], ax=ax, label="samples per cell (log scale; grey = none)")
-    cov = (cal.diagnostics or {}).get("coverage", {})
-    ax.set(
-        xlabel="azimuth of corrected field [deg]",
-        ylabel="sin(elevation)",
-        title=f"sphere coverage: {100 * cov.get('fraction', np.nan):.0f}% of cells, "
-        f"isotropy {cov.get('isotropy', np.nan):.2f}",
-    )
-    ax.set_facecolor("#eeeeee")
+
+def _coverage_panel(ax: Any, raw: NDArray[np.float64]) -> None:
+    """The coverage of the sphere of field directions, drawn as the number is counted
+    (:func:`~trimag.quality.diagnostics.data_coverage`): the equal-area cells, filled when they hold enough samples,
+    and the directions themselves, in azimuth against sin(elevation) (an equal-area map)."""
+    from .._core.sphere import fibonacci_sphere
+    from .diagnostics import data_coverage
+
+    cov = data_coverage(raw)
+    centre = np.asarray(cov["centre"])
+    sub = raw[:: max(1, len(raw) // _MAX_POINTS)] - centre
+    u = sub / np.maximum(np.linalg.norm(sub, axis=1, keepdims=True), 1e-300)
+    cells = fibonacci_sphere(int(cov["n_cells"]))
+    covered = np.asarray(cov["cell_counts"]) >= int(cov["min_count"])
+    ax.scatter(np.degrees(np.arctan2(u[:, 1], u[:, 0])), u[:, 2], s=1, color="tab:blue", alpha=0.3, zorder=1)
+    ax.scatter(np.degrees(np.arctan2(cells[:, 1], cells[:, 0])), cells[:, 2], s=90,
+               c=[_COVERED if k else _EMPTY for k in covered], edgecolors="#555555", linewidths=0.4, alpha=0.75,
+               zorder=2)
+    ax.set(xlim=(-190, 190), ylim=(-1.08, 1.08), xlabel="azimuth of the field seen [deg]", ylabel="sin(elevation)",
+           title=f"sphere coverage: {100 * float(np.mean(covered)):.0f}% of the {len(cells)} equal-area cells\n"
+                 f"hold >= {cov['min_count']} samples (green)")
+    ax.text(0.01, 0.01, "raw samples about the best-fitting sphere's centre (a property of the data, not of the fit)",
+            transform=ax.transAxes, fontsize=7, color="#555555")
 
 
 def _cloud_panels(axes: Any, B: NDArray[np.float64], corrected: NDArray[np.float64], sub: NDArray[np.intp],
@@ -204,3 +214,35 @@ def _cloud_panels(axes: Any, B: NDArray[np.float64], corrected: NDArray[np.float
         ax.set(xlabel=f"{name[0]} [{unit}]", ylabel=f"{name[2]} [{unit}]", title=f"point cloud, {name} plane")
         if k == 0:
             ax.legend(fontsize=8, markerscale=6)
+
+
+def deviation_figure(card: dict[str, Any], *, title: str = "deviation card", before: str = "before",
+                     after: str = "after") -> Figure:
+    """The deviation card of :func:`trimag.vehicle.heading.deviation_card` as a figure: the heading error against
+    the heading, before (``before`` names it) and after (or the error the calibration predicts, 1 sigma, as a
+    band around zero)."""
+    fig = _figure((8.0, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    h = np.asarray(card["headings_deg"], dtype=np.float64)
+    n = np.asarray(card["n"])
+    has = n > 0
+
+    def values(key: str) -> NDArray[np.float64]:
+        return np.array([np.nan if v is None else v for v in card[key]], dtype=np.float64)
+
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.plot(h[has], values("before_mean_deg")[has], "o-", color="tab:red", label=f"{before}: mean error")
+    if card.get("after"):
+        ax.errorbar(h[has], values("after_mean_deg")[has], yerr=values("after_rms_deg")[has], fmt="s-",
+                    color="tab:blue", capsize=2, label=f"{after}: mean error (bars: RMS)")
+    if card.get("after_sigma_deg"):
+        sigma = np.asarray(card["after_sigma_deg"], dtype=np.float64)
+        ax.fill_between(h, -sigma, sigma, color="tab:blue", alpha=0.25, label=f"{after}: predicted 1 sigma")
+    ax.set(xlabel="heading [deg]", ylabel="heading error [deg]", title=title, xlim=(-5, 360))
+    ax.set_xticks(np.arange(0, 361, 45))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    return fig
+
+
+__all__ += ["deviation_figure"]

@@ -28,12 +28,16 @@ field, plus a gain drift) the field scale's. The covariance of the estimate is t
 information ``J^T J`` (data rows times the residuals' autocorrelation time,
 :func:`trimag.quality.honesty.correlation_time`), plus the prior matrix's own covariance propagated through the
 estimate (``G C_W G^T``, ``G = -cov J^T J_W`` the sensitivity of the estimate to the matrix entries; ellipsoid
-priors, whose covariance holds ``w11 .. w33``).
+priors, whose covariance holds ``w11 .. w33``, and level turns', the symmetric ``m11 .. m33``).
 
 An offset component counts as **identified by the data** when, with the field scale left free, its posterior
-standard deviation is below half its prior one and within 10x the best component's; the others are reported as
-unidentified, with the sigma the data and the priors give them. No component below half its prior sigma:
-:class:`~trimag.errors.IdentifiabilityError` (exit 3).
+standard deviation is below half its prior one and within 10x the best component's. A component the data alone
+cannot fix but the known field magnitude does (the vertical offset of a level turn: ``|c| = s F`` with ``s`` known
+to ``scale_sigma``) is **identified by the field's magnitude** when its posterior standard deviation, which then
+holds the reference's own uncertainty, is below half its prior one (issue 30, item 5c); each sigma is split into the
+data's, the reference's and the prior matrix's parts (``std_from_data``, ``std_from_reference``,
+``std_from_prior_matrix``). The others are reported as unidentified, with the sigma the priors give them. No
+component that the data inform beyond the prior: :class:`~trimag.errors.IdentifiabilityError` (exit 3).
 """
 
 from __future__ import annotations
@@ -59,6 +63,8 @@ DEFAULT_SCALE_SIGMA = 0.005
 DEFAULT_CHANGE_FRACTION = 0.1
 #: The ``option`` keys a quick recalibration takes.
 OPTIONS = ("prior_offset_sigma", "scale_sigma", "inclination_deg", "inclination_sigma_deg")
+#: The standard deviation (relative, and radians) of a reference taken as exact, to split a sigma into its parts.
+REFERENCE_EXACT = 1e-7
 #: A component is identified when the data shrink its prior standard deviation below this fraction.
 IDENTIFIED_RATIO = 0.5
 #: ... and when its standard deviation (field scale free) is within this factor of the best component's.
@@ -74,21 +80,28 @@ def file_digest(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _prior_matrix_cov(prior: Calibration) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]] | None:
-    """The covariance (6, 6) of an ellipsoid prior's upper-triangular matrix entries ``w11 .. w33`` and their row
-    and column indices; None when the prior has none."""
+def _prior_matrix_cov(
+    prior: Calibration,
+) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], bool] | None:
+    """The covariance (6, 6) of an ellipsoid prior's matrix entries, their row and column indices (upper triangle)
+    and whether the matrix is symmetric: the upper-triangular ``w11 .. w33`` of the ellipsoid estimators, or the
+    symmetric ``m11 .. m33`` of a level turn (:mod:`trimag.vehicle.level_turn`; ``m12`` is both ``M[0, 1]`` and
+    ``M[1, 0]``); None when the prior has neither."""
     unc = prior.uncertainty or {}
     order = list(unc.get("covariance_order") or [])
     cov = unc.get("covariance")
-    names = ("w11", "w12", "w13", "w22", "w23", "w33")
-    if prior.model != "ellipsoid" or cov is None or not all(n in order for n in names):
+    if prior.model != "ellipsoid" or cov is None:
         return None
-    idx = [order.index(n) for n in names]
-    C = np.asarray(cov, dtype=np.float64)[np.ix_(idx, idx)]
-    if not np.isfinite(C).all():
-        return None
-    rows, cols = np.triu_indices(3)
-    return 0.5 * (C + C.T), rows.astype(np.intp), cols.astype(np.intp)
+    for prefix, symmetric in (("w", False), ("m", True)):
+        names = tuple(f"{prefix}{i}{j}" for i, j in ((1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)))
+        if all(n in order for n in names):
+            idx = [order.index(n) for n in names]
+            C = np.asarray(cov, dtype=np.float64)[np.ix_(idx, idx)]
+            if not np.isfinite(C).all():
+                return None
+            rows, cols = np.triu_indices(3)
+            return 0.5 * (C + C.T), rows.astype(np.intp), cols.astype(np.intp), symmetric
+    return None
 
 
 def _prior_offset_cov(prior: Calibration) -> NDArray[np.float64]:
@@ -234,9 +247,17 @@ def refit_offset(
             f"the sigmas stay {np.round(std_free, 3).tolist()} against the prior's {np.round(prior_std, 3).tolist()} "
             f"{prior.units}): turn the vehicle through several headings (at least three, spread over the circle)"
         )
+    # the reference's own uncertainty in each sigma: the posterior with the magnitude (and inclination) exact
+    exact_sigmas = (REFERENCE_EXACT if down is not None else incl_sigma, REFERENCE_EXACT)
+    exact = np.diag(_posterior(problem, prior, q, *exact_sigmas)[0])[:3]
+    data_only = np.diag(_posterior(problem, prior, q, *exact_sigmas, with_matrix=False)[0])[:3]
+    std_reference = np.sqrt(np.clip(np.diag(cov)[:3] - exact, 0.0, None))
+    parts = {"data": np.sqrt(np.clip(data_only, 0.0, None)), "reference": std_reference,
+             "prior_matrix": np.sqrt(np.clip(exact - data_only, 0.0, None)),
+             "by_reference": std[:3] < IDENTIFIED_RATIO * prior_std}
     return _assemble(prior, X, F, q, r, sigma, tau, cov, std, std_free, prior_std, identified, axes, nfev,
                      converged, change, scale_sigma, down is not None, inclination_deg, inclination_sigma_deg,
-                     prior_source)
+                     prior_source, parts)
 
 
 def _checked_samples(
@@ -284,20 +305,24 @@ def _down_directions(
 
 
 def _posterior(
-    problem: _Problem, prior: Calibration, q: NDArray[np.float64], incl_sigma: float, scale_sigma: float
+    problem: _Problem, prior: Calibration, q: NDArray[np.float64], incl_sigma: float, scale_sigma: float,
+    with_matrix: bool = True,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The covariance (5, 5) of ``q`` (with the prior matrix's own covariance propagated when it has one), the
-    data's information ``J^T J`` and the priors' information (scale prior excluded)."""
+    """The covariance (5, 5) of ``q`` (with the prior matrix's own covariance propagated when it has one and
+    ``with_matrix``), the data's information ``J^T J`` and the priors' information (scale prior excluded)."""
     J_data = problem.weight * problem.data(q)[1]
     info = J_data.T @ J_data
     prior_info = np.zeros((5, 5))
     prior_info[:3, :3] = problem.L_inv.T @ problem.L_inv
     prior_info[4, 4] = 1.0 / incl_sigma**2
     cov = np.asarray(np.linalg.inv(info + prior_info + np.diag([0, 0, 0, 1.0 / scale_sigma**2, 0])), dtype=np.float64)
-    matrix_cov = _prior_matrix_cov(prior)
+    matrix_cov = _prior_matrix_cov(prior) if with_matrix else None
     if matrix_cov is not None:  # the prior's matrix is uncertain too: its covariance propagated to the estimate
-        C_w, rows, cols = matrix_cov
-        G = -cov @ (J_data.T @ (problem.weight * problem.matrix_jacobian(q, rows, cols)))
+        C_w, rows, cols, symmetric = matrix_cov
+        J_w = problem.matrix_jacobian(q, rows, cols)
+        if symmetric:  # an off-diagonal entry of a symmetric matrix is in two places
+            J_w = J_w + np.where(rows != cols, problem.matrix_jacobian(q, cols, rows), 0.0)
+        G = -cov @ (J_data.T @ (problem.weight * J_w))
         cov = cov + G @ C_w @ G.T
     return cov, info, prior_info
 
@@ -344,8 +369,10 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
               std_free: NDArray[np.float64], prior_std: NDArray[np.float64], identified: NDArray[np.bool_],
               axes: tuple[str, ...], nfev: int, converged: bool, change: float, scale_sigma: float,
               vertical: bool, inclination_deg: float | None, inclination_sigma_deg: float,
-              prior_source: Mapping[str, Any] | None) -> Calibration:
-    """The Calibration of a quick recalibration: the prior's shape, the new offset, what was identified."""
+              prior_source: Mapping[str, Any] | None, parts: Mapping[str, NDArray[Any]]) -> Calibration:
+    """The Calibration of a quick recalibration: the prior's shape, the new offset, what was identified (by the
+    data, or by the data and the reference's magnitude), the sigmas' parts (``parts``: ``data``, ``reference``,
+    ``by_reference``)."""
     from ..models import get_model
 
     M = np.asarray(prior.matrix, dtype=np.float64)
@@ -358,7 +385,9 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
         params = get_model(prior.model).from_matrix_offset(M, b).as_dict()
     except Exception:  # an 'affine' prior, or a model whose parameters do not hold this matrix exactly
         params = dict(prior.params)
-    unidentified = [f"offset_{a}" for a, ok in zip(axes, identified, strict=True) if not ok]
+    by = [("data" if identified[k] else ("the field's magnitude" + (" and inclination" if vertical else ""))
+           if parts["by_reference"][k] else None) for k in range(3)]
+    unidentified = [f"offset_{a}" for a, how in zip(axes, by, strict=True) if how is None]
     k_par = 5 if vertical else 4  # the inclination is a parameter only with the vertical component's residuals
     names, cov, std = list(_NAMES[:k_par]), cov[:k_par, :k_par], std[:k_par]
     components = {
@@ -366,6 +395,9 @@ def _assemble(prior: Calibration, X: NDArray[np.float64], F: NDArray[np.float64]
             "value": float(b[k]), "std": float(std[k]), "prior_value": float(prior.offset[k]),
             "prior_std": float(prior_std[k]), "std_with_free_scale": float(std_free[k]),
             "identified_by_data": bool(identified[k]),
+            "identified": by[k] is not None, "identified_by": by[k],
+            "std_from_data": float(parts["data"][k]), "std_from_reference": float(parts["reference"][k]),
+            "std_from_prior_matrix": float(parts["prior_matrix"][k]),
         }
         for k, a in enumerate(axes)
     }

@@ -50,7 +50,7 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
         return "rosbag" if (p / "metadata.yaml").exists() else None
     from .phone import PHONE_NAME
 
-    if PHONE_NAME.match(p.name):
+    if PHONE_NAME.match(p.name) and _sensor_logger_header(p):
         return "phone"
     suffix = p.suffix.lower()
     if suffix in (".bag", ".mcap"):
@@ -68,8 +68,38 @@ def log_format(path: str | Path, fmt: str | None = None) -> str | None:
     return kind
 
 
-def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
-    """Read an autopilot log (format from ``fmt`` or the extension)."""
+def _sensor_logger_header(path: Path) -> bool:
+    """Whether a file named like a phone's sensor-logger export has its header (``x``, ``y``, ``z`` among the
+    comma-separated names of its first line): a plain table of the same name is read as a table (issue 32)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            names = {n.strip().strip('"').lower() for n in fh.readline().split(",")}
+    except OSError:
+        return True  # the reader says what is wrong with the path
+    return {"x", "y", "z"} <= names
+
+
+def _check_dataflash_head(path: Path) -> None:
+    """Refuse a file that is not a DataFlash log before pymavlink reads it byte by byte (it prints a "bad header"
+    line for each byte it skips): a binary log (``.bin``; pymavlink reads any ``.bin`` as binary) starts with a
+    message header ``0xA3 0x95``, a text log (``.log``) with ``FMT`` (``AP_Logger`` writes the ``FMT`` messages
+    first)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(3)
+    except OSError as exc:
+        raise TrimagInputError(f"{path}: cannot read the log ({exc.strerror or exc})") from None
+    binary = head[:2] == b"\xa3\x95"
+    if not binary and (path.suffix.lower() == ".bin" or not head.startswith(b"FMT")):
+        raise TrimagInputError(
+            f"{path}: not an ArduPilot DataFlash log (a binary log starts with the message header 0xA3 0x95, a "
+            "text .log with FMT lines); if it is a table of x, y, z values, give `--format` (csv, npy, mat, ...)"
+        )
+
+
+def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False) -> VehicleLog:
+    """Read an autopilot log (format from ``fmt`` or the extension). ``gyro``: also read a DataFlash log's ``IMU``
+    messages (the gyroscope, ``VehicleLog.gyro``; the other formats always give theirs, at no extra cost)."""
     p = Path(path)
     kind = log_format(p, fmt)
     if not p.exists():
@@ -87,7 +117,9 @@ def read_log(path: str | Path, fmt: str | None = None) -> VehicleLog:
     if kind in ("dataflash", "tlog"):
         from .ardupilot import read_ardupilot
 
-        return read_ardupilot(p, kind)
+        if kind == "dataflash":
+            _check_dataflash_head(p)
+        return read_ardupilot(p, kind, gyro=gyro)
     if kind == "ulog":
         from .px4 import read_ulog
 

@@ -94,10 +94,10 @@ Columns = dict[str, dict[str, NDArray[Any]]]
 Meta = dict[str, dict[str, Any]]
 
 
-def _collect(path: Path, kind: str) -> tuple[Columns, dict[str, float], Meta]:
+def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[str, float], Meta]:
     """Every wanted message type as columns, the parameters (first value of each) and each type's field formats
-    and units."""
-    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES
+    and units; ``gyro``: also ``IMU``."""
+    types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES + (["IMU"] if gyro else [])
     if kind == "dataflash":
         with path.open("rb") as fh:
             binary = fh.read(2) == b"\xa3\x95"
@@ -196,6 +196,12 @@ def _dataflash(path: Path, rows: Columns, params: dict[str, float], meta: Meta) 
     log.gps = _dataflash_gps(rows.get("GPS"))
     log.vehicle = _vehicle(rows.get("MSG"))
     log.yaw_sources = _yaw_sources(rows, meta)
+    gps = rows.get("GPS")
+    if _n(gps) and gps is not None and {"GCrs", "Spd", "Status"} <= set(gps):
+        course = gps_course(_array(gps, ["GCrs"])[:, 0], _array(gps, ["Spd"])[:, 0],
+                            np.asarray(gps["Status"]) >= 3)
+        if np.isfinite(course).any():
+            log.channels["gps_course_deg"] = Channel(_time_s(gps), course, "deg", "GPS.GCrs")
     return log
 
 
@@ -230,6 +236,23 @@ def _yaw_sources(rows: Columns, meta: Meta) -> dict[str, Channel]:
     gps = rows.get("GPS")
     if _n(gps) and gps is not None and "Yaw" in gps and np.any(np.asarray(gps["Yaw"]) != 0):
         out["GPS.Yaw"] = Channel(_time_s(gps), np.asarray(gps["Yaw"], dtype=np.float64), "deg", "GPS.Yaw")
+    return out
+
+
+#: Below this ground speed (m/s) a GPS course says nothing of the heading.
+MIN_COURSE_SPEED_MPS = 1.0
+
+
+def gps_course(course_deg: NDArray[np.float64], speed_mps: NDArray[np.float64], fixed: NDArray[np.bool_]
+               ) -> NDArray[np.float64]:
+    """The GPS course over ground (degrees), empty (NaN) without a 3-D fix or below :data:`MIN_COURSE_SPEED_MPS`,
+    unwrapped over the valid samples (so that the channel's linear interpolation never crosses 360 -> 0 the long
+    way; a heading column is read modulo 360). A course is the heading only when the vehicle moves straight ahead:
+    leeway, a current or a side slip make them differ (docs/autopilot.md, "Fixed heading")."""
+    out = np.full(len(course_deg), np.nan)
+    ok = fixed & (speed_mps >= MIN_COURSE_SPEED_MPS) & np.isfinite(course_deg)
+    if ok.any():
+        out[ok] = np.degrees(np.unwrap(np.radians(course_deg[ok])))
     return out
 
 
@@ -358,10 +381,16 @@ def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     return log
 
 
-def read_ardupilot(path: Path, kind: str = "dataflash") -> VehicleLog:
-    """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log."""
-    rows, params, meta = _collect(path, kind)
+def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False) -> VehicleLog:
+    """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log; ``gyro``: also the first
+    IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked)."""
+    rows, params, meta = _collect(path, kind, gyro)
     log = _dataflash(path, rows, params, meta) if kind == "dataflash" else _tlog(path, rows, params)
+    imu = rows.get("IMU")
+    if gyro and _n(imu) and imu is not None and "GyrX" in imu:
+        if "I" in imu:
+            imu = _take(imu, np.asarray(imu["I"]).astype(int) == 0)
+        log.gyro = Channel(_time_s(imu), _array(imu, ["GyrX", "GyrY", "GyrZ"]), "rad/s", "IMU.GyrX..Z (instance 0)")
     if not log.magnetometers:
         raise TrimagInputError(
             f"{path}: the log has no magnetometer messages ({'MAG' if kind == 'dataflash' else 'RAW_IMU/SCALED_IMU'}); "

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,26 +26,35 @@ def require(module: str) -> Any:
 
 
 def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
-    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error."""
+    """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error.
+
+    pymavlink prints a line for each damaged byte it skips ("bad header ..."): its output goes to a buffer while
+    the log is read, so the callers (which collect the messages and print nothing) run with it redirected too.
+    """
     mavutil = require("pymavlink.mavutil")
-    try:
-        conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
-            mavutil.mavlink_connection(str(path))
-    except Exception as exc:  # pymavlink raises many kinds on a damaged file
-        raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
-    try:
-        while True:
-            try:
-                msg = conn.recv_match(type=types)
-            except Exception as exc:
-                raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
-            if msg is None:
-                return
-            yield msg
-    finally:  # the file pymavlink opened (an unclosed file otherwise: ResourceWarning)
-        close = getattr(conn, "close", None)
-        if callable(close):
-            close()
+    quiet = io.StringIO()
+    with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+        try:
+            conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
+                mavutil.mavlink_connection(str(path))
+        except Exception as exc:  # pymavlink raises many kinds on a damaged file
+            raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
+        try:
+            while True:
+                try:
+                    msg = conn.recv_match(type=types)
+                except Exception as exc:
+                    raise TrimagInputError(f"{path}: the log is damaged ({type(exc).__name__}: {exc})") from None
+                if msg is None:
+                    return
+                if quiet.tell() > 1 << 16:  # a long damaged stretch: the buffer is not kept
+                    quiet.seek(0)
+                    quiet.truncate()
+                yield msg
+        finally:  # the file pymavlink opened (an unclosed file otherwise: ResourceWarning)
+            close = getattr(conn, "close", None)
+            if callable(close):
+                close()
 
 
 @dataclass
@@ -90,6 +101,12 @@ class MagnetometerStream:
     onboard: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
+    def number(self) -> int:
+        """The compass number the user gives (``sensor``, ``export --instance``): ``instance + 1``, as the firmware's
+        parameter names count (``COMPASS_OFS`` = 1, ``COMPASS_OFS2`` = 2; PX4 ``CAL_MAG0`` = 1)."""
+        return self.instance + 1
+
+    @property
     def rate_hz(self) -> float:
         """Median sample rate, Hz (0 for fewer than 2 samples)."""
         dt = np.diff(self.time_s)
@@ -110,6 +127,7 @@ class VehicleLog:
     format: str
     magnetometers: list[MagnetometerStream]
     attitude: Channel | None = None  # yaw, pitch, roll in degrees (Z-Y-X, body -> NED)
+    gyro: Channel | None = None  # angular rate (N, 3), rad/s, in the IMU's own frame (the gyro-aided fit)
     channels: dict[str, Channel] = field(default_factory=dict)  # current_A, throttle, temperature_C, ...
     gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
     parameters: dict[str, float] = field(default_factory=dict)
@@ -120,9 +138,12 @@ class VehicleLog:
     yaw_sources: dict[str, Channel] = field(default_factory=dict)
 
     def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
-        """The magnetometer named by ``sensor`` (instance number, name or device id), or the best one.
+        """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.
 
-        Without ``sensor``: the magnetometer with the most samples (the first on a tie).
+        Compasses are numbered from 1, as the firmware's parameter names count them (ArduPilot ``COMPASS_OFS``,
+        ``COMPASS_OFS2``, ``COMPASS_OFS3`` = 1, 2, 3; PX4 ``CAL_MAG0`` = 1) and as ``export --instance`` does:
+        :attr:`MagnetometerStream.number`. Without ``sensor``: the magnetometer with the most samples (the first on
+        a tie).
         """
         if not self.magnetometers:
             raise TrimagInputError(f"{self.path}: the log has no magnetometer readings")
@@ -130,10 +151,20 @@ class VehicleLog:
             return max(self.magnetometers, key=lambda m: len(m.time_s))
         text = str(sensor).strip()
         for m in self.magnetometers:
-            if text in (str(m.instance), m.name, str(m.device_id)):
+            if text in (str(m.number), m.name, str(m.device_id)):
                 return m
-        names = ", ".join(f"{m.instance} ({m.name})" for m in self.magnetometers)
-        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {names} (choose with `sensor`)")
+        if text == "0":
+            raise TrimagInputError(
+                f"{self.path}: compasses are numbered from 1, as the firmware's parameters (COMPASS_OFS = 1, "
+                f"COMPASS_OFS2 = 2; CAL_MAG0 = 1): `sensor=1` is {self.magnetometers[0].name}; the log has "
+                f"{self.compass_list()}"
+            )
+        raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {self.compass_list()} (choose "
+                               "with `sensor`)")
+
+    def compass_list(self) -> str:
+        """The compasses as the user numbers them: ``"1 (MAG[0]), 2 (MAG[1])"``."""
+        return ", ".join(f"{m.number} ({m.name})" for m in self.magnetometers)
 
     def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
         """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
@@ -199,12 +230,15 @@ class VehicleLog:
         """What the user should know: the magnetometers, what was undone, what else the log offers."""
         chosen = self.choose(sensor)
         lines = [f"{self.format} log with {len(self.magnetometers)} magnetometer(s): "
-                 + "; ".join(("* " if m is chosen else "") + m.describe() for m in self.magnetometers)
-                 + " (* = used; choose another with sensor)"]
+                 + "; ".join(("* " if m is chosen else "") + f"{m.number}: {m.describe()}" for m in self.magnetometers)
+                 + " (* = used; choose another with `sensor`)"]
         lines += [f"{chosen.name}: {u}" for u in chosen.undone]
         offered = list(self.channels)
         if offered:
             lines.append(f"channels for regressors: {', '.join(offered)}")
+        if self.gyro is not None:
+            lines.append(f"gyroscope: {self.gyro.source}, {len(self.gyro.time_s)} samples (the gyro-aided fit, "
+                         "docs/method-gyro.md)")
         lines += self.messages
         return lines
 

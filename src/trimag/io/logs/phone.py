@@ -3,7 +3,8 @@
 The Sensor Logger app writes one CSV per sensor with columns ``time`` (ns since the epoch), ``seconds_elapsed``
 and ``z, y, x`` in uT. ``Magnetometer.csv`` is the phone's own calibrated field; ``MagnetometerUncalibrated.csv``
 the raw one, which is what a calibration should be fitted to: the reader says which it read. An
-``Accelerometer.csv`` in the same folder is aligned as channels.
+``Accelerometer.csv`` in the same folder is aligned as channels; a ``GyroscopeUncalibrated.csv`` (or
+``Gyroscope.csv``, rad/s) is the log's gyroscope, for the gyro-aided fit (docs/method-gyro.md).
 """
 
 from __future__ import annotations
@@ -55,4 +56,18 @@ def read_phone(path: Path) -> VehicleLog:
             for axis in "xyz":
                 log.channels[f"accel_{axis}"] = Channel(_time(acc), acc[axis].to_numpy(dtype=np.float64), "m/s2",
                                                         f"Accelerometer.csv {axis}")
+    log.gyro = _gyroscope(path, raw)
     return log
+
+
+def _gyroscope(path: Path, raw: bool) -> Channel | None:
+    """The gyroscope export beside the magnetometer's (``GyroscopeUncalibrated.csv`` for a raw magnetometer,
+    else ``Gyroscope.csv``; the other when only it is there): rad/s, its own time stamps."""
+    names = ("GyroscopeUncalibrated.csv", "Gyroscope.csv") if raw else ("Gyroscope.csv", "GyroscopeUncalibrated.csv")
+    for name in names:
+        gyro_path = path.with_name(name)
+        if gyro_path.exists():
+            df = _read(gyro_path)
+            if all(c in df.columns for c in ("x", "y", "z")):
+                return Channel(_time(df), df[["x", "y", "z"]].to_numpy(dtype=np.float64), "rad/s", name)
+    return None

@@ -79,6 +79,11 @@ def read_ulog(path: Path) -> VehicleLog:
     log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
     _ulog_channels(log, data)
     log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)))
+    imu = data.get(("sensor_combined", 0))
+    if imu is not None and "gyro_rad[0]" in imu:
+        log.gyro = Channel(imu["timestamp"].astype(np.float64) * 1e-6,
+                           np.column_stack([imu[f"gyro_rad[{i}]"] for i in range(3)]).astype(np.float64), "rad/s",
+                           "sensor_combined.gyro_rad")
     log.messages = [w for w in (_slow_warning(m) for m in mags) if w]
     if not mags:
         raise TrimagInputError(f"{path}: the log has no sensor_mag or vehicle_magnetometer messages")
@@ -216,6 +221,9 @@ def read_px4log(path: Path) -> VehicleLog:
         if rs and "tM" in rs[0]:
             log.channels[f"temperature_C_mag{slot}"] = Channel(arr(rs, ["_t"])[:, 0], arr(rs, ["tM"])[:, 0], "degC",
                                                                f"{name}.tM")
+    imu = rows.get("IMU", [])
+    if imu and "GyroX" in imu[0]:
+        log.gyro = Channel(arr(imu, ["_t"])[:, 0], arr(imu, ["GyroX", "GyroY", "GyroZ"]), "rad/s", "IMU.GyroX..Z")
     if rows.get("ATT"):
         att = rows["ATT"]
         log.attitude = Channel(arr(att, ["_t"])[:, 0], np.degrees(arr(att, ["Yaw", "Pitch", "Roll"])), "deg", "ATT")

@@ -44,11 +44,12 @@ def read_ros(path: Path) -> VehicleLog:
                     m["t"].append(t)
                     m["v"].append((f.x, f.y, f.z))
                 else:
-                    d = imus.setdefault(conn.topic, {"t": [], "q": [], "a": []})
-                    q, a = msg.orientation, msg.linear_acceleration
+                    d = imus.setdefault(conn.topic, {"t": [], "q": [], "a": [], "w": []})
+                    q, a, w = msg.orientation, msg.linear_acceleration, msg.angular_velocity
                     d["t"].append(t)
                     d["q"].append((q.x, q.y, q.z, q.w))
                     d["a"].append((a.x, a.y, a.z))
+                    d["w"].append((w.x, w.y, w.z))
     except Exception as exc:  # rosbags raises its own error types for damaged or unknown files
         if isinstance(exc, TrimagInputError):
             raise
@@ -71,6 +72,8 @@ def read_ros(path: Path) -> VehicleLog:
             R_ned_frd = _NED_FROM_ENU @ R_enu_flu @ _FLU_FROM_FRD
             ypr = Rotation.from_matrix(R_ned_frd).as_euler("ZYX", degrees=True)
             log.attitude = Channel(np.asarray(d["t"])[ok], ypr, "deg", f"{topic} orientation")
+        log.gyro = Channel(np.asarray(d["t"]), np.asarray(d["w"], dtype=np.float64), "rad/s",
+                           f"{topic} angular_velocity")
         acc = np.asarray(d["a"], dtype=np.float64)
         for k, axis in enumerate("xyz"):
             log.channels[f"accel_{axis}_mps2"] = Channel(np.asarray(d["t"]), acc[:, k], "m/s2",

@@ -218,7 +218,9 @@ async function poll() {
 $("save").addEventListener("click", async () => {
   $("saved").textContent = "saving…";
   try {
-    const r = await fetch("save", { method: "POST" }), body = await r.json();
+    // the session's token, which the server put into this page (no other page can read it): POST needs it
+    const token = document.querySelector('meta[name="trimag-token"]').content;
+    const r = await fetch("save", { method: "POST", headers: { "X-Trimag-Token": token } }), body = await r.json();
     $("saved").textContent = r.ok ? "saved " + Object.values(body.written).join(", ") : "not saved: " + body.error;
   } catch (e) {
     $("saved").textContent = "not saved: the server has stopped";

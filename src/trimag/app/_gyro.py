@@ -1,0 +1,195 @@
+"""The gyroscope of a gyro-aided fit (``method=gyro``, docs/method-gyro.md): from columns of the magnetometer's own
+rows (``gyro_columns``), from a second file with its own clock (``gyro_file``), or from a vehicle log's own
+gyroscope (a phone export's ``Gyroscope*.csv``, an autopilot's IMU); and the lines the fit prints about it."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+from ..fields.gyro import AngularRate, rate_in_rad_s
+from ..io import Samples
+from .requests import FitRequest
+
+#: RMS rate (rad/s) above which rates said to be in rad/s are flagged as probably deg/s (a hand turns a phone at
+#: 1-5 rad/s; 20 rad/s is over 3 turns a second, sustained).
+IMPLAUSIBLE_RAD_S = 20.0
+
+
+def gyro_requested(req: FitRequest) -> bool:
+    """Whether the request names a gyroscope (``gyro_columns`` or ``gyro_file``) or the gyro-aided method."""
+    return req.gyro_columns is not None or req.gyro_file is not None or req.method == "gyro"
+
+
+def log_has_gyro(samples: Samples) -> bool:
+    """Whether a vehicle log offers a gyroscope (a phone export's is read with it; an autopilot's on request)."""
+    return bool(samples.log_info and samples.log_info.get("gyro"))
+
+
+def _names(spec: str, option: str) -> list[str]:
+    from ..fields.attitude import parse_columns
+
+    names = parse_columns(spec, 3, option=f"`{option}`")
+    assert names is not None
+    return names
+
+
+def _values(table: pd.DataFrame, names: list[str], path: Any, option: str) -> np.ndarray:
+    missing = [n for n in names if n not in table.columns]
+    if missing:
+        raise TrimagInputError(f"{path}: no column {missing[0]!r} (named by `{option}`); the columns are "
+                               f"{', '.join(map(str, table.columns))}")
+    return np.column_stack([pd.to_numeric(table[n], errors="coerce").to_numpy(dtype=float) for n in names])
+
+
+def _unit(req: FitRequest, names: list[str], messages: list[str]) -> str:
+    """The rate's unit: ``gyro_unit``, else deg/s when the column names say so (``deg``, ``dps``), else rad/s."""
+    if req.gyro_unit is not None:
+        return req.gyro_unit
+    if any("deg" in n.lower() or "dps" in n.lower() for n in names):
+        messages.append(f"gyroscope columns {', '.join(names)} in deg/s (from their names)")
+        return "deg/s"
+    messages.append("gyroscope rate taken as rad/s (give `gyro_unit=deg/s` if it is not)")
+    return "rad/s"
+
+
+def _times(req: FitRequest, samples: Samples) -> np.ndarray:
+    """The magnetometer's time stamps (s) of the kept rows: ``time_column`` (a vehicle log's ``time_s``), or the
+    row number over ``rate_hz``."""
+    column = req.attitude.time_column or ("time_s" if "time_s" in samples.table.columns else None)
+    if column is not None:
+        from ..vehicle.timesync import time_values
+
+        return time_values(samples.table, column, str(req.input.path))
+    if req.rate_hz is None:
+        raise TrimagInputError("the gyro-aided fit needs the samples' time: give `time_column=T` (seconds) or "
+                               "`rate_hz=HZ`")
+    return np.asarray(samples.table.index, dtype=np.float64) / float(req.rate_hz)
+
+
+def _keep(samples: Samples, ok: np.ndarray) -> Samples:
+    return dataclasses.replace(samples, field=samples.field[ok], table=samples.table[ok],
+                               n_dropped=samples.n_dropped + int((~ok).sum()))
+
+
+def angular_rate(
+    req: FitRequest, samples: Samples, max_lag: float, estimate_lag: bool
+) -> tuple[Samples, AngularRate, list[str]]:
+    """The samples (rows without a gyroscope value or time dropped, counted; with a gyroscope of its own clock,
+    those outside its span less the lag search's ``max_lag`` when ``estimate_lag``) and their gyroscope."""
+    messages: list[str] = []
+    own = req.gyro_file is not None or (req.gyro_columns is None and log_has_gyro(samples))
+    if not own and req.gyro_columns is None:
+        raise TrimagInputError("method gyro needs the gyroscope: `gyro_columns=GX,GY,GZ` (the same rows), "
+                               "`gyro_file=FILE` (its own clock) or a log with a gyroscope")
+    t = _times(req, samples)
+    if own:
+        tg, rate, source = _own_stream(req, samples, messages)
+        margin = max_lag if estimate_lag else 0.0
+        ok = np.isfinite(t) & (t >= tg[0] + margin) & (t <= tg[-1] - margin)
+        if not ok.any():
+            raise TrimagInputError(f"none of the magnetometer's samples ({np.nanmin(t):.6g}..{np.nanmax(t):.6g} s) "
+                                   f"lies inside the gyroscope's span ({tg[0]:.6g}..{tg[-1]:.6g} s): check the time "
+                                   "columns")
+        if (~ok).sum():
+            messages.append(f"dropped {int((~ok).sum())} of {len(t)} magnetometer samples outside the gyroscope's "
+                            f"span ({tg[0]:.6g}..{tg[-1]:.6g} s, less the lag search's {margin:g} s)")
+        samples = _keep(samples, ok)
+        gyro = AngularRate(t[ok], tg, rate, 0.0, True, source)
+    else:
+        assert req.gyro_columns is not None
+        names = _names(req.gyro_columns, "gyro_columns")
+        unit = _unit(req, names, messages)
+        values = _values(samples.table, names, req.input.path, "gyro_columns")
+        ok = np.isfinite(values).all(axis=1) & np.isfinite(t)
+        if (~ok).sum():
+            if req.input.strict:
+                raise TrimagInputError(f"{int((~ok).sum())} rows have a missing gyroscope value or time; drop "
+                                       "`strict` to skip and count them")
+            messages.append(f"dropped {int((~ok).sum())} rows whose gyroscope value or time is missing")
+        samples = _keep(samples, ok)
+        gyro = AngularRate.same_rows(t[ok], values[ok], unit=unit, source=f"columns {', '.join(names)} ({unit})")
+    _plausible(gyro, messages)
+    return samples, gyro, messages
+
+
+def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """A gyroscope with its own time stamps: ``gyro_file`` (its time column, ``gyro_columns``) or the log's."""
+    if req.gyro_file is None:
+        from ..io.logs import read_log
+
+        log = read_log(Path(req.input.path), req.input.fmt, gyro=True)  # (read as a log already: fmt is one or None)
+        if log.gyro is None:
+            raise TrimagInputError(f"{req.input.path}: the log has no gyroscope (IMU messages); give `gyro_file`")
+        tg, rate, source = log.gyro.time_s, log.gyro.values, f"{log.gyro.source} (rad/s, the log's own)"
+    else:
+        from ..io.tables import read_table
+        from ..vehicle.timesync import time_values
+
+        table = read_table(Path(req.gyro_file))
+        column = req.gyro_time_column or req.attitude.time_column
+        if column is None:
+            raise TrimagInputError("`gyro_file` needs its time column: `gyro_time_column=NAME` (or `time_column`)")
+        names = _names(req.gyro_columns or "x,y,z", "gyro_columns")
+        unit = _unit(req, names, messages)
+        tg = time_values(table, column, f"{req.gyro_file} (`gyro_file`)")
+        rate = rate_in_rad_s(_values(table, names, req.gyro_file, "gyro_columns"), unit)
+        source = f"{req.gyro_file}: {', '.join(names)} ({unit}), time {column}"
+    ok = np.isfinite(tg) & np.isfinite(rate).all(axis=1)
+    order = np.argsort(tg[ok], kind="stable")
+    tg, rate = tg[ok][order], rate[ok][order]
+    keep = np.concatenate([[True], np.diff(tg) > 0])
+    if keep.sum() < 3:
+        raise TrimagInputError("the gyroscope has fewer than 3 samples with a finite time and rate")
+    n_bad = int((~ok).sum() + (~keep).sum())
+    messages.append(f"gyroscope: {source}, {int(keep.sum())} samples over {tg[0]:.6g}..{tg[-1]:.6g} s"
+                    + (f" ({n_bad} rows without a finite value or repeating a time stamp dropped)" if n_bad else ""))
+    return tg[keep], rate[keep], source
+
+
+def _plausible(gyro: AngularRate, messages: list[str]) -> None:
+    rms = float(np.sqrt(np.mean(np.sum(gyro.rate**2, axis=1))))
+    if rms > IMPLAUSIBLE_RAD_S:
+        messages.append(f"warning: the gyroscope's rate is {rms:.3g} rad/s RMS, more than {IMPLAUSIBLE_RAD_S:g}: the "
+                        "numbers look like deg/s (give `gyro_unit=deg/s`)")
+
+
+def gyro_lines(cal: Calibration) -> tuple[Calibration, list[str]]:
+    """After a gyro-aided fit: the nearest board rotation of the magnetometer's axes to the gyroscope's (into
+    ``diagnostics["gyro_alignment"]``) and the lines about the bias, the lag, the alignment and what the gyroscope
+    identified."""
+    from ..vehicle.alignment import nearest_board_rotation
+
+    g, align = cal.diagnostics["gyro"], dict(cal.diagnostics["gyro_alignment"])
+    std = cal.uncertainty["param_std"] if cal.uncertainty else {}
+    board = nearest_board_rotation(align["sensor_matrix"])
+    align["board_rotation"] = board
+    cal = cal.with_diagnostics(gyro_alignment=align)
+    bias_std = [std.get(f"gyro_bias_{a}") for a in "xyz"]
+    lines = [f"gyroscope bias {np.round(g['bias_rad_s'], 5).tolist()} rad/s"
+             + (f" +- {np.round(np.asarray(bias_std, dtype=float), 5).tolist()}" if None not in bias_std else "")
+             + f"; {g['n_segments']} segments of {g['segment_s']:g} s; vector RMS {g['vector_rms']:.4g} {cal.units}"]
+    if g["lag_estimated"]:
+        lines.append(f"lag between the streams (gyroscope clock - magnetometer clock): {g['lag_s']:+.5f} +- "
+                     f"{std.get('lag_s', float('nan')):.2g} s")
+    ypr, rot_std = align["euler_zyx_deg"], align["rotation_std_deg"]
+    s_ypr = align["sensor_euler_zyx_deg"]
+    lines.append(f"alignment, corrected magnetometer -> gyroscope: yaw {ypr[0]:.3f}, pitch {ypr[1]:.3f}, roll "
+                 f"{ypr[2]:.3f} deg (Z-Y-X); 1 sigma about x, y, z {', '.join(f'{v:.2g}' for v in rot_std)} deg")
+    lines.append(f"magnetometer axes -> gyroscope: yaw {s_ypr[0]:.3f}, pitch {s_ypr[1]:.3f}, roll {s_ypr[2]:.3f} deg; "
+                 f"nearest board rotation {board['name']} (COMPASS_ORIENT = {board['number']}), remaining rotation "
+                 f"{board['remaining_angle_deg']:.3g} deg")
+    ident = cal.diagnostics["identifiability"]
+    if ident["identified_by_gyro"]:
+        lines.append(f"identified with the gyroscope where the magnitude alone leaves them unidentified: "
+                     f"{', '.join(ident['identified_by_gyro'])}")
+    if ident["poorly_determined"]:
+        lines.append(f"poorly determined even with the gyroscope (>10x a full sphere's sigma): "
+                     f"{', '.join(ident['poorly_determined'])}")
+    return cal, lines

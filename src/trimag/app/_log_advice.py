@@ -1,0 +1,67 @@
+"""The refusal of an autopilot log that cannot identify a 3-D calibration, said for a newcomer (issue 30, item 7):
+which compass was used and which others the log has, what the log shows, what to record, and the modes that
+calibrate from such a log anyway (``level_turn``, ``heading``, ``prior``). No condition number: what the data leave
+undetermined is named in words."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import IdentifiabilityError
+
+#: the ellipsoid model's parameter names, as a user reads them
+_WORDS = {"w11": "the x scale", "w22": "the y scale", "w33": "the vertical (z) scale", "w12": "the x-y coupling",
+          "w13": "the x-z coupling", "w23": "the y-z coupling", "hard_iron_x": "the x offset",
+          "hard_iron_y": "the y offset", "hard_iron_z": "the vertical (z) offset"}
+_CONDITION = re.compile(r"condition number|e\+\d\d")
+_WEAK = re.compile(r"poorly determined: ([a-z0-9_, ]+)")
+#: the field direction within this cone (degrees) of its mean: the vehicle stood still
+STATIC_CONE_DEG = 5.0
+
+
+def direction_spread_deg(field: NDArray[np.float64]) -> tuple[float, float]:
+    """The smallest and largest angle (degrees) of the field directions from their mean direction."""
+    u = field / np.linalg.norm(field, axis=1, keepdims=True)
+    mean = u.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    angle = np.degrees(np.arccos(np.clip(u @ mean, -1.0, 1.0)))
+    return float(angle.min()), float(angle.max())
+
+
+def _reason(message: str, name: str, field: NDArray[np.float64]) -> str:
+    """The refusal's own text without the compass's name, or (a condition number) what the data show instead."""
+    text = message[len(name) + 2:] if message.startswith(f"{name}: ") else message
+    if not _CONDITION.search(text):
+        return text
+    weak = _WEAK.search(text)
+    names = [n.strip() for n in weak.group(1).split(",")] if weak else []
+    words = [_WORDS.get(n, n) for n in names if n]
+    lo, hi = direction_spread_deg(field)
+    return (f"the field directions stay {lo:.0f}..{hi:.0f} deg from their mean direction: the vehicle turned mostly "
+            "about one axis, so a 3-D calibration cannot be identified from this log"
+            + (f" ({', '.join(words)} undetermined)" if words else "")
+            + ". Record a calibration with the vehicle also pitched nose up and down and rolled on each side")
+
+
+def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDArray[np.float64]
+                ) -> IdentifiabilityError:
+    """``exc`` (a log's fit refused) said with the log's compasses and the modes that would help (one line)."""
+    name = str(log_info.get("sensor", ""))
+    reason = _reason(str(exc).rstrip(". "), name, field).rstrip(". ")
+    compasses = log_info.get("compasses") or []
+    listed = ", ".join(f"{c['number']} ({c['name']})" for c in compasses)
+    number = log_info.get("compass")
+    head = f"{name} (compass {number} of the log's {listed}; another with `sensor=N`)" if listed else name
+    static = len(field) and direction_spread_deg(field)[1] < STATIC_CONE_DEG
+    modes = ["`heading=DEG` takes the offsets from the vehicle's known true heading while it stood still (as "
+             "ArduPilot's MAG_CAL_YAW)",
+             "`level_turn` fits a vehicle that turns but cannot tilt (a boat, a rover): horizontal offsets and scales, "
+             "the vertical offset from the field's magnitude",
+             "`prior=CAL.json` keeps an earlier full calibration and refits its offsets"]
+    if not static:
+        modes = [modes[1], modes[0], modes[2]]
+    return IdentifiabilityError(f"{head}: {reason}. For a vehicle that cannot be tumbled: {'; '.join(modes)}")

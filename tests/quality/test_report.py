@@ -1,0 +1,31 @@
+"""The fit report's figure (issue 32, item 8)."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import numpy as np
+from matplotlib.colors import to_rgba
+from test_verdicts import flight
+
+import trimag
+from trimag.quality.report import fit_report
+
+
+def test_coverage_title_is_the_share_of_the_cells_drawn_covered():
+    """Finding: the report's coverage title ("68 % of cells") contradicted its mostly grey picture: the number was
+    counted on 100 equal-area cells, the picture on 648 azimuth x elevation bins with another threshold."""
+    B = flight(seed=0, tilts_deg=(25.0,))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = trimag.fit(B, model="ellipsoid", units="mG")
+    fig = fit_report(B, cal)
+    ax = next(a for a in fig.axes if "coverage" in a.get_title())
+    title = ax.get_title()
+    found = re.search(r"(\d+)% of the (\d+) equal-area cells", title)
+    assert found is not None, title
+    percent, n_cells = int(found.group(1)), int(found.group(2))
+    cells = next(c for c in ax.collections if len(c.get_offsets()) == n_cells)
+    covered = np.all(np.isclose(cells.get_facecolors()[:, :3], to_rgba("#1b7f3b")[:3]), axis=1)
+    assert round(100 * covered.mean()) == percent == round(100 * cal.diagnostics["coverage"]["fraction"])
