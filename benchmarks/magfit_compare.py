@@ -126,8 +126,8 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
     from trimag.models.firmware import ArduPilotCompass
 
     vlog = read_log(log)
-    mag = vlog.choose("0")
-    df, _ = vlog.table("0")
+    mag = vlog.choose("1")
+    df, _ = vlog.table("1")
     ok = np.isfinite(df[["yaw_deg", "pitch_deg", "roll_deg"]].to_numpy()).all(axis=1)
     n = len(df)
     half = n // 2
@@ -175,7 +175,7 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
             best = (name, e)
     row["magfit_best"] = best
     cal, param = work / f"{log.stem}-trimag.json", work / f"{log.stem}-trimag.param"
-    fit = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", "0", "--target", "ardupilot",
+    fit = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", "1", "--target", "ardupilot",
                           "--rows", f"0:{half}", "--json", "-o", str(cal)], capture_output=True, text=True)
     if fit.returncode != 0:
         row["trimag"] = fit.stderr.strip().splitlines()[-1]

@@ -45,7 +45,13 @@ def _flight(n: int, seed: int, tilt: float = 35.0) -> tuple[Rotation, Rotation, 
     return true, logged, amps, raw
 
 
-def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False) -> Path:
+#: a second compass (instance 1, COMPASS_OFS2): its own mounting, hard and soft iron and current term
+SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.98, diagonal=[1.01, 1.0, 0.99],
+                          offdiagonal=[-0.01, 0.0, 0.01], motor=[-1.0, 0.5, 1.5], motor_type="current")
+
+
+def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
+               second: bool = False) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -54,6 +60,12 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
     true, logged, amps, raw = _flight(n, seed, tilt)
     t_us = 10_000_000 + np.arange(n) * 100_000  # 10 Hz
     mag = np.trunc(ONBOARD.correct(raw))  # the firmware logs its corrected field as int16
+    rows = [(int(t), 0, *map(int, m), 10, 5, -3, 0, 0, 0, 1, int(t)) for t, m in zip(t_us, mag, strict=True)]
+    if second:  # compass 2 sees the same flight through its own errors; the log holds no calibration for it
+        raw2 = SECOND.uncorrect(body_field(true, NED_mG), amps) + np.random.default_rng(seed + 7).normal(0, 2.0, (n, 3))
+        rows += [(int(t) + 500, 1, *map(int, m), 0, 0, 0, 0, 0, 0, 1, int(t)) for t, m in
+                 zip(t_us, np.trunc(raw2), strict=True)]
+        rows.sort(key=lambda row: row[0])
     ypr = logged.as_euler("ZYX", degrees=True)
     params = {**ONBOARD.parameters(0), "COMPASS_EXTERNAL": 1.0, "COMPASS_DIA_X": 1.0, "COMPASS_DIA_Y": 1.0,
               "COMPASS_DIA_Z": 1.0, "COMPASS_MOTCT": 0.0, "COMPASS_USE": 1.0}
@@ -67,7 +79,7 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
         "MSG": ("QZ", "TimeUS,Message", [(1000, "ArduCopter V4.3.6 (simulated)")]),
         "PARM": ("QNf", "TimeUS,Name,Value", [(1000, k, v) for k, v in params.items()]),
         "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
-                [(int(t), 0, *map(int, m), 10, 5, -3, 0, 0, 0, 1, int(t)) for t, m in zip(t_us, mag, strict=True)]),
+                rows),
         "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF",
                 [(int(t), 0.0, r, 0.0, p, 0.0, y % 360.0, 0.0, 0.0, 3)
                  for t, (y, p, r) in zip(t_us, ypr, strict=True)]),
@@ -128,3 +140,65 @@ def test_a_flight_that_mostly_yawed_gives_offsets_and_the_current_term_instead_o
     assert "COMPASS_DIA_X" in fw["held"] or any("not identified" in k for k in fw["held"])  # and says what it held
     assert "EKF-GSF" in r.stderr and "independent of the compass" in r.stderr  # the yaw source is named
     assert run_trimag("export", cal, "--to", "ardupilot", "-o", tmp_path / "c.param").returncode == 0
+
+
+def _param_file(path: Path) -> dict[str, float]:
+    return {k: float(v) for k, v in (line.split(",") for line in path.read_text().splitlines()
+                                     if line and not line.startswith("#"))}
+
+
+def test_all_compasses_with_target_write_one_file_with_each_orientation_and_motor_term(tmp_path: Path):
+    """``--sensor all --target ardupilot --export-to``: every compass fitted in the firmware's space, one file with
+    both compasses' orientation, offsets, matrix and current terms and one COMPASS_MOTCT; each compass's exported
+    parameters reach the noise floor on a second flight. Before: exit 2, "this calibration has regressor terms"
+    (the compasses' comparison applied the calibrations without their current)."""
+    log = _write_log(tmp_path / "two.bin", n=2500, seed=1, second=True)
+    param = tmp_path / "all.param"
+    r = run_trimag("fit", log, "--sensor", "all", "--target", "ardupilot", "--export-to", "ardupilot",
+                   "--export-out", param, "-o", tmp_path / "cal.json")
+    assert r.returncode == 0, r.stderr
+    p = _param_file(param)
+    assert p["COMPASS_ORIENT"] == 6 and p["COMPASS_ORIENT2"] == 0 and p["COMPASS_MOTCT"] == 2
+    assert {"COMPASS_MOT_X", "COMPASS_MOT2_Z", "COMPASS_OFS2_X", "COMPASS_DIA2_X"} <= set(p)
+    _, logged, amps, raw = _flight(2500, seed=30)
+    h = body_field(logged, NED_mG)
+    raw2 = SECOND.uncorrect(h, amps) + np.random.default_rng(37).normal(0, 2.0, raw.shape)
+    for instance, truth, readings in ((0, TRUTH, raw), (1, SECOND, raw2)):
+        exported = ArduPilotCompass.from_parameters({**p, "COMPASS_EXTERNAL": 1.0, "COMPASS_EXTERN2": 1.0}, instance)
+        floor = np.sqrt(np.mean(np.sum((truth.correct(readings, amps) - h) ** 2, axis=1)))
+        got = np.sqrt(np.mean(np.sum((exported.correct(readings, amps) - h) ** 2, axis=1)))
+        assert got <= 1.3 * floor, (instance, got, floor)
+    assert (tmp_path / "cal-1.json").exists() and (tmp_path / "cal-2.json").exists()
+
+
+def test_target_with_a_large_vehicle_mode_is_refused_naming_why(tmp_path: Path):
+    log = _write_log(tmp_path / "flight.bin", n=300, seed=4)
+    for mode in (["--level-turn"], ["--heading", "30"]):
+        r = run_trimag("fit", log, "--target", "ardupilot", *mode, "-o", tmp_path / "cal.json")
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert mode[0] in r.stderr and "--target" in r.stderr and "trimag export" in r.stderr
+        assert not (tmp_path / "cal.json").exists()
+
+
+def test_an_ardupilot_fit_exported_to_px4_keeps_the_orientation_it_found(tmp_path: Path):
+    """A fit for one firmware exported to the other writes the orientation the fit found (the enums share 0..40),
+    and PX4's formula then gives the same field as ArduPilot's. Before: the 270 deg yaw found was dropped as "a
+    rotation that a magnitude calibration does not determine" (CAL_MAG0_ROT 0: every heading 90 deg off)."""
+    from trimag.models.firmware import PX4Magnetometer
+
+    log = _write_log(tmp_path / "flight.bin", n=1500, seed=5)
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", log, "--target", "ardupilot", "-o", cal).returncode == 0
+    outputs = {}
+    for to in ("ardupilot", "px4"):
+        out = tmp_path / f"out.{to}"
+        r = run_trimag("export", cal, "--to", to, "-o", out)
+        assert r.returncode == 0, r.stderr
+        outputs[to] = out
+    px4 = {line.split()[2]: float(line.split()[3]) for line in outputs["px4"].read_text().splitlines()
+           if line.startswith("param set")}
+    assert px4["CAL_MAG0_ROT"] == 6 and px4["CAL_MAG_COMP_TYP"] == 2
+    ap = ArduPilotCompass.from_parameters({**_param_file(outputs["ardupilot"]), "COMPASS_EXTERNAL": 1.0}, 0)
+    mag = PX4Magnetometer.from_parameters(px4, 0)
+    _, _, amps, raw = _flight(300, seed=31)
+    assert np.allclose(mag.correct(raw / 1000.0, amps) * 1000.0, ap.correct(raw, amps), atol=1e-6)

@@ -195,7 +195,7 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
         F = float(given.reference) * convert(1.0, normalise_unit(req.input.units), unit_fw)
         return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages
     raise TrimagInputError(
-        f"a {target} fit needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` (with "
+        f"`target={target}` needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` (with "
         "attitudes: the vector, rotated into the body frame) or `reference=F` (the magnitude, in the data's unit)"
     )
 
@@ -231,7 +231,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     target = str(req.target)
     klass = firmware_class(target)
     if unit in ("unknown", "counts"):
-        raise TrimagInputError(f"a {target} fit needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
+        raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
     samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)

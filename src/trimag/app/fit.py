@@ -20,8 +20,8 @@ from ..io import Samples, column_values, read_samples
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
-    check_log_unit,
     check_fitted_field,
+    check_log_unit,
     check_unit,
     policy_verdict,
     refuse_impossible_vector_fit,

@@ -42,7 +42,13 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
-from ..models.firmware import FirmwareCompass, compass_from_affine, firmware_class, rotation_matrix
+from ..models.firmware import (
+    FirmwareCompass,
+    compass_from_affine,
+    firmware_class,
+    nearest_rotation,
+    rotation_matrix,
+)
 from ..units import convert
 
 __all__ = ["EXPORT_TARGETS", "Export", "export_calibration", "export_calibrations", "firmware_compass",
@@ -158,13 +164,25 @@ def _motor_term(cal: Calibration, target: str, factor: float) -> tuple[NDArray[n
 
 
 def _input_orientation(cal: Calibration, target: str) -> int | None:
+    """The rotation the calibration's input readings carry, in ``target``'s enum: the same rotation when the log
+    was the other firmware's (the enums share 0..40 but for 38; one ``target`` lacks is refused)."""
     given = cal.diagnostics.get("input_orientation") or {}
-    if isinstance(given, dict) and given.get("target") == target and given.get("value") is not None:
-        return int(given["value"])
     fw = cal.diagnostics.get("firmware") or {}
-    if isinstance(fw, dict) and fw.get("target") == target and fw.get("input_orientation") is not None:
-        return int(fw["input_orientation"])
-    return None
+    source, value = None, None
+    if isinstance(given, dict) and given.get("value") is not None:
+        source, value = given.get("target"), int(given["value"])
+    elif isinstance(fw, dict) and fw.get("input_orientation") is not None:
+        source, value = fw.get("target"), int(fw["input_orientation"])
+    if value is None or source not in ("ardupilot", "px4"):
+        return None
+    if source == target:
+        return value
+    same, angle = nearest_rotation(target, rotation_matrix(str(source), value))
+    if angle > 1e-3:
+        raise TrimagInputError(f"the readings this calibration was fitted to carry {source}'s sensor rotation "
+                               f"{value}, which {target} has not (nearest: {same}, {angle:.2f} deg off): export it "
+                               f"--to {source}")
+    return same
 
 
 def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, list[str], bool, float | None]:
@@ -175,11 +193,15 @@ def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, li
     if isinstance(fw, dict) and fw.get("target") == target:
         compass = FirmwareCompass.from_dict(fw)
         _check_formula(cal, compass, _input_orientation(cal, target), factor)
-        return compass, [f"the {fw.get('level')} level of a {target} fit, written as fitted"], True, \
+        return compass, [f"the {fw.get('level')} level of the {target} fit (fit --target), written as fitted"], True, \
             fw.get("offsets_max")
     b, motor = _motor_term(cal, target, factor)
     applied = _input_orientation(cal, target)
-    determined = cal.model == "interference12" or (isinstance(fw, dict) and fw.get("residual") == "vector")
+    # the rotation is determined by a fit with attitudes: a vector model, or the other firmware's fit whose
+    # orientation was decided against the attitudes (vector or heading-free residual)
+    determined = cal.model == "interference12" or (isinstance(fw, dict) and (
+        fw.get("residual") == "vector" or (fw.get("target") in ("ardupilot", "px4")
+                                           and fw.get("residual") in ("vector", "heading-free"))))
     compass, notes = compass_from_affine(target, cal.matrix, b, motor=motor, input_orientation=applied,
                                          rotation_determined=determined)
     if determined or applied is not None:
