@@ -276,8 +276,9 @@ def _add_export(sub: Any) -> None:
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("--to", required=True, dest="target",
                    choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
-    p.add_argument("--instance", type=int, default=1,
-                   help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
+    p.add_argument("--instance", type=int,
+                   help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
+                        "default: the compass the calibration was fitted to (fit --sensor N), else 1")
     p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
     _add_output_options(p)
 

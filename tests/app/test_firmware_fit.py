@@ -202,3 +202,19 @@ def test_an_ardupilot_fit_exported_to_px4_keeps_the_orientation_it_found(tmp_pat
     mag = PX4Magnetometer.from_parameters(px4, 0)
     _, _, amps, raw = _flight(300, seed=31)
     assert np.allclose(mag.correct(raw / 1000.0, amps) * 1000.0, ap.correct(raw, amps), atol=1e-6)
+
+
+def test_the_export_of_compass_2_writes_compass_2_s_parameters(tmp_path: Path):
+    """``fit LOG --sensor 2`` then ``export`` (no ``--instance``) writes COMPASS_OFS2.., not compass 1's COMPASS_OFS..
+    (before: compass 1's parameters were silently replaced by compass 2's calibration); an ``--instance`` that differs
+    from the compass fitted is written as asked and said."""
+    log = _write_log(tmp_path / "two.bin", n=800, seed=6, second=True)
+    cal, param = tmp_path / "cal.json", tmp_path / "c.param"
+    r = run_trimag("fit", log, "--sensor", "2", "--target", "ardupilot", "--motor", "none", "-o", cal)
+    assert r.returncode == 0, r.stderr
+    r = run_trimag("export", cal, "--to", "ardupilot", "-o", param)
+    assert r.returncode == 0, r.stderr
+    p = _param_file(param)
+    assert "COMPASS_OFS2_X" in p and "COMPASS_ORIENT2" in p and "COMPASS_OFS_X" not in p
+    r = run_trimag("export", cal, "--to", "ardupilot", "--instance", "1", "-o", param)
+    assert r.returncode == 0 and "COMPASS_OFS_X" in _param_file(param) and "compass 2" in r.stdout

@@ -240,6 +240,10 @@ def _finish(
     acceptance (``limits``) recorded in the calibration; ``(calibration, summary, messages)``. ``quick``: a quick
     recalibration (no predicted heading error)."""
     messages: list[str] = []
+    if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
+        cal = cal.with_diagnostics(log_compass={"compass": int(samples.log_info["compass"]),
+                                                "name": str(samples.log_info.get("sensor")),
+                                                "format": str(samples.log_info.get("format"))})
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:

@@ -237,13 +237,13 @@ class ApplyRequest:
 @dataclass(frozen=True)
 class ExportRequest:
     """One export (``trimag export``): the ``calibration`` (JSON) in ``target``'s convention (``"ardupilot"``,
-    ``"px4"``, ``"c-header"``, ``"json"``, ``"ros-yaml"``, ``"matlab"``) for magnetometer ``instance`` (1-based),
-    written to ``out``."""
+    ``"px4"``, ``"c-header"``, ``"json"``, ``"ros-yaml"``, ``"matlab"``) for magnetometer ``instance`` (1-based;
+    None: the compass of the log the calibration was fitted to, else 1), written to ``out``."""
 
     calibration: str | Path
     target: str
     out: str | Path
-    instance: int = 1
+    instance: int | None = None
 
 
 @dataclass(frozen=True)
