@@ -51,7 +51,7 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 
 
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
-               second: bool = False) -> Path:
+               second: bool = False, late_battery: int = 0) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -84,7 +84,8 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
                 [(int(t), 0.0, r, 0.0, p, 0.0, y % 360.0, 0.0, 0.0, 3)
                  for t, (y, p, r) in zip(t_us, ypr, strict=True)]),
         "BAT": ("QBfffffcfB", "TimeUS,Instance,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res,RemPct",
-                [(int(t), 0, 16.0, 16.0, float(a), 0.0, 0.0, 25.0, 0.0, 80) for t, a in zip(t_us, amps, strict=True)]),
+                [(int(t), 0, 16.0, 16.0, float(a), 0.0, 0.0, 25.0, 0.0, 80)
+                 for t, a in zip(t_us, amps, strict=True)][late_battery:]),
         "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
                 [(int(t), 0, 3, MS, WEEK, 12, 0.8, LAT, LON, ALT, 0.0, 0.0, 0.0, 0.0, 1) for t in t_us[::10]]),
     })
@@ -218,3 +219,16 @@ def test_the_export_of_compass_2_writes_compass_2_s_parameters(tmp_path: Path):
     assert "COMPASS_OFS2_X" in p and "COMPASS_ORIENT2" in p and "COMPASS_OFS_X" not in p
     r = run_trimag("export", cal, "--to", "ardupilot", "--instance", "1", "-o", param)
     assert r.returncode == 0 and "COMPASS_OFS_X" in _param_file(param) and "compass 2" in r.stdout
+
+
+def test_a_current_logged_from_the_second_sample_still_gives_the_current_term(tmp_path: Path):
+    """The battery's first message after the compass's first (as in the real UoB logs: one MAG sample before BAT
+    starts): the rows without a current are dropped and counted, the current term is fitted. Before: the channel
+    was left out whole for one empty row, and the fit offered no current term."""
+    import json
+
+    log = _write_log(tmp_path / "late.bin", n=1500, seed=7, late_battery=3)
+    r = run_trimag("fit", log, "--target", "ardupilot", "--json", "-o", tmp_path / "cal.json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["firmware"]["motor_type"] == "current"
+    assert "without a current_A value dropped" in r.stderr

@@ -129,24 +129,37 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
                   "with a GPS heading to fit the full vector")
 
 
-def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None) -> tuple[dict[str, Any],
-                                                                                        dict[str, str], list[str]]:
-    """``({"current": values, "throttle": values}, {kind: column}, messages)`` from the logged channels."""
+#: A motor channel empty on at most this share of the rows (a battery logged from a little after the compass) is
+#: kept and those rows dropped (counted); emptier, the channel is not used.
+MOTOR_MAX_EMPTY = 0.05
+
+
+def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None
+                    ) -> tuple[Samples, dict[str, Any], dict[str, str], list[str]]:
+    """``(samples, {"current": values, "throttle": values}, {kind: column}, messages)`` from the logged channels;
+    the rows a used channel leaves empty are dropped and counted."""
     table = samples.table
-    values: dict[str, Any] = {}
     columns: dict[str, str] = {}
     messages: list[str] = []
+    keep = np.ones(len(table), dtype=bool)
     for kind, column in (("current", "current_A"), ("throttle", "throttle")):
         if column in table.columns:
             v = table[column].to_numpy(dtype=float)
-            if np.isfinite(v).all() and np.ptp(v) > 0:
-                values[kind], columns[kind] = v, column
+            finite = np.isfinite(v)
+            if finite.mean() >= 1.0 - MOTOR_MAX_EMPTY and finite.any() and np.ptp(v[finite]) > 0:
+                columns[kind] = column
+                if not finite.all():
+                    messages.append(f"{int((keep & ~finite).sum())} samples without a {column} value dropped (the "
+                                    "channel's log starts later or ends earlier than the compass's)")
+                keep &= finite
+    samples = _keep(samples, keep)
+    values: dict[str, Any] = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
     vehicle = str((info or {}).get("vehicle") or "")
     if target == "ardupilot" and "throttle" in values and any(k in vehicle for k in ("Plane", "Rover")):
         del values["throttle"], columns["throttle"]
         messages.append(f"{vehicle} never gives the compass a throttle (only Copter and Sub do): no throttle term "
                         "(COMPASS_MOTCT = 1 would multiply by 0)")
-    return values, columns, messages
+    return samples, values, columns, messages
 
 
 def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: str
@@ -234,10 +247,11 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
         raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
+    samples, _, columns, more = _motor_channels(target, samples, info)  # first: the rows a channel leaves empty
+    messages += more
     samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
     messages += more
-    motors, columns, more = _motor_channels(target, samples, info)
-    messages += more
+    motors = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
     factor = convert(1.0, unit, klass.unit)
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
