@@ -158,3 +158,15 @@ def test_a_log_whose_own_calibration_is_right_is_told_to_keep_it():
     with pytest.raises(IdentifiabilityError, match="calibration in the log fits these data"):
         fit_firmware("ardupilot", logged, field_body=h, motor_values={"current": x}, held=AP_TRUTH,
                      applied_orientation=6)
+
+
+def test_a_log_orientation_that_reverses_the_field_is_said_so_not_infinitely_worse():
+    """An internal compass mounted ROTATION_YAW_180 on a board that says 0: the log's orientation sees the field
+    reversed (a negative scale); the message says so. Before: 'fits ROTATION_YAW_180 (4) infx better'."""
+    import dataclasses
+
+    raw, h, x = simulate(dataclasses.replace(AP_TRUTH, orientation=4), 1500, seed=6)
+    with pytest.raises(IdentifiabilityError) as info:
+        fit_firmware("ardupilot", raw, field_body=h, motor_values={"current": x}, external=False, tolerance_deg=360.0)
+    text = str(info.value)
+    assert "inf" not in text and "ROTATION_YAW_180 (4)" in text and "reversed" in text

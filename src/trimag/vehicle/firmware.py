@@ -224,14 +224,15 @@ def _choose_orientation(
                         "tell the sensor's orientation)")
         best = current
     elif best != current and np.isfinite(best_rms) and current_rms > SWITCH_RATIO * best_rms:
+        better = (f"{current_rms / best_rms:.3g}x better than the log's {current}" if np.isfinite(current_rms) else
+                  f"while the log's {current} sees the field reversed (a negative scale)")
         if external:
             chosen = best
-            messages.append(f"orientation: {name} ({best}) fits the field {current_rms / best_rms:.3g}x better than "
-                            f"the log's {current}: chosen")
+            messages.append(f"orientation: {name} ({best}) fits the field {better}: chosen")
         else:
-            messages.append(f"warning: the field fits {name} ({best}) {current_rms / best_rms:.3g}x better than the "
-                            f"log's {current}, but this compass is internal: its orientation follows the board's "
-                            "(AHRS_ORIENTATION / SENS_BOARD_ROT); check the board's orientation")
+            messages.append(f"warning: the field fits {name} ({best}) {better}, but this compass is internal: its "
+                            "orientation follows the board's (AHRS_ORIENTATION / SENS_BOARD_ROT); check the board's "
+                            "orientation")
     info["decision"] = "chosen" if chosen != current else "kept"
     fr = _frame(target, chosen, applied)
     info["value"] = chosen
