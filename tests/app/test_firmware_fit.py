@@ -232,3 +232,16 @@ def test_a_current_logged_from_the_second_sample_still_gives_the_current_term(tm
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["firmware"]["motor_type"] == "current"
     assert "without a current_A value dropped" in r.stderr
+
+
+def test_a_regressor_fit_exports_its_current_term_as_the_motor_term(tmp_path: Path):
+    """``fit LOG --model interference12 --regressors current_A`` (a tumbled vehicle) then ``export --to ardupilot``:
+    the orientation the attitudes determine and the current term as COMPASS_MOT with COMPASS_MOTCT 2."""
+    log = _write_log(tmp_path / "tumble.bin", n=2500, seed=8, tilt=170.0)
+    cal, param = tmp_path / "cal.json", tmp_path / "c.param"
+    r = run_trimag("fit", log, "--model", "interference12", "--regressors", "current_A", "-o", cal)
+    assert r.returncode == 0, r.stderr
+    assert run_trimag("export", cal, "--to", "ardupilot", "-o", param).returncode == 0
+    p = _param_file(param)
+    assert p["COMPASS_ORIENT"] == 6 and p["COMPASS_MOTCT"] == 2
+    assert np.allclose([p["COMPASS_MOT_X"], p["COMPASS_MOT_Y"], p["COMPASS_MOT_Z"]], TRUTH.motor, atol=0.3)
