@@ -220,7 +220,7 @@ LAYERS: dict[str, set[str]] = {
     "_core": {"errors"},
     "models": {"_core", "errors"},
     "calibration": FOUNDATION | {"_core", "models", "io"},
-    "io": FOUNDATION | {"_core", "calibration", "fields"},
+    "io": FOUNDATION | {"_core", "models", "calibration", "fields"},
     "fields": FOUNDATION | {"_core"},
     "quality": FOUNDATION | {"_core", "models", "calibration", "io", "fields"},
     "aircraft": FOUNDATION | {"_core", "models", "calibration", "io", "_moved"},

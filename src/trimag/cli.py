@@ -173,6 +173,15 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                    help="quick recalibration: keep this earlier calibration's matrix (and regressor terms) and refit "
                         "only its offset, e.g. from a few headings at level (needs the field magnitude; "
                         "docs/vehicle.md)")
+    p.add_argument("--target", choices=["ardupilot", "px4"],
+                   help="fit exactly the parameters this autopilot loads, within its limits: orientation, offsets, "
+                        "scale and symmetric matrix, motor term (docs/autopilot.md)")
+    p.add_argument("--level", choices=["auto", "offsets", "scale", "diagonal", "full"],
+                   help="--target's level: offsets < + one scale < + diagonal < + off-diagonal (full); auto (default) "
+                        "takes the simplest the data identify, by held-out RMS")
+    p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
+                   help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
+                        "(default) fits it when it improves the held-out RMS")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
@@ -271,8 +280,9 @@ def _add_export(sub: Any) -> None:
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("--to", required=True, dest="target",
                    choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
-    p.add_argument("--instance", type=int, default=1,
-                   help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..)")
+    p.add_argument("--instance", type=int,
+                   help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
+                        "default: the compass the calibration was fitted to (fit --sensor N), else 1")
     p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
     _add_output_options(p)
 
@@ -418,7 +428,7 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          args)
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
-    if cal.regressors is not None:
+    if cal.regressors is not None and "regressors" in cal.diagnostics:
         from .vehicle.regressors import ranking_table
 
         _say(ranking_table(cal.diagnostics["regressors"]["ranking"], cal.units), args)

@@ -111,10 +111,10 @@ def test_json_c_header_ros_yaml_carry_full_matrix_and_offset():
     assert "offset: [12, -7, 20]" in yaml_text
 
 
-def test_limits_are_reported_and_counts_refused():
+def test_limits_are_refused_and_counts_refused():
     big = Calibration.from_matrix_offset(np.eye(3), [300.0, 0.0, 0.0], units="uT")
-    exp = export_calibration(big, "ardupilot")
-    assert any("COMPASS_OFFS_MAX" in v for v in exp.violations)
+    with pytest.raises(TrimagInputError, match="COMPASS_OFFS_MAX"):  # issue 30: refused, no longer a warning
+        export_calibration(big, "ardupilot")
     with pytest.raises(TrimagInputError, match="unit"):
         export_calibration(Calibration.from_matrix_offset(np.eye(3), [1, 2, 3], units="counts"), "ardupilot")
 

@@ -39,6 +39,11 @@ def large_mode(req: FitRequest) -> str | None:
         raise TrimagInputError("`prior` already refits an earlier calibration's offset from a level turn; drop "
                                "`level_turn`")
     mode = "level_turn" if req.level_turn else ("heading" if heading else None)
+    if mode is not None and (req.target is not None or req.level is not None or req.motor is not None):
+        raise TrimagInputError(f"`{mode}` does not combine with a firmware fit (`target`, `level`, `motor`: they "
+                               "choose the orientation and levels from a log that tilts); its offsets and symmetric "
+                               "matrix are already the firmware's form: drop `target` and write the calibration with "
+                               "trimag export CAL.json --to ardupilot|px4")
     if req.deviation_card is not None and mode is None:
         raise TrimagInputError("`deviation_card` is drawn by a large vehicle's fit: give `level_turn` or `heading`")
     if mode is not None and req.model != "ellipsoid":

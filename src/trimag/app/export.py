@@ -27,11 +27,13 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     req = request if request is not None else ExportRequest(**arguments)
     if request is not None and arguments:
         raise TrimagInputError("give either an ExportRequest or its arguments, not both")
-    if not 1 <= req.instance <= 8:  # the request's instance counts from 1, as the firmware's parameter names do
+    if req.instance is not None and not 1 <= req.instance <= 8:  # counted from 1, as the firmware's names do
         raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
                                f"{req.instance}")
     cal = _read_calibration(req.calibration, req.target)
-    exp = export_calibration(cal, req.target, instance=req.instance - 1)
+    instance, note = _instance(cal, req.instance)
+    exp = export_calibration(cal, req.target, instance=instance - 1)
+    exp.notes[:0] = note
     if str(req.out) == "-":  # standard output
         import sys
 
@@ -42,6 +44,18 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
         path = write_export(exp, req.out)
     return {"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
             "violations": exp.violations}
+
+
+def _instance(cal: Calibration, given: int | None) -> tuple[int, list[str]]:
+    """The compass number to write: ``given``, else the compass of the log the calibration was fitted to (recorded
+    by fit as ``diagnostics.log_compass``), else 1; a given number that differs from the fitted compass is said."""
+    fitted = (cal.diagnostics.get("log_compass") or {}).get("compass")
+    fitted = int(fitted) if isinstance(fitted, int | float) and 1 <= int(fitted) <= 8 else None
+    if given is None:
+        return fitted or 1, []
+    if fitted is not None and fitted != given:
+        return given, [f"fitted to compass {fitted} of its log, written as compass {given} (`instance`)"]
+    return given, []
 
 
 def _read_calibration(path: Any, target: str) -> Calibration:

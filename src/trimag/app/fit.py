@@ -152,6 +152,7 @@ def _fit_samples(
     prior_options: dict[str, Any], mode: str | None, gyro_messages: list[str] | None = None,
 ) -> FitResult:
     """:func:`fit_file` after reading the samples (``gyro_messages``: the choice of the gyro-aided fit)."""
+    req = _target_of(req, samples)
     src = req.input
     log_unit = samples.log_info is not None and src.units is None
     req, log_messages = _log_defaults(req, samples, estimator, mode)  # a vehicle log states its unit, site, attitudes
@@ -167,6 +168,8 @@ def _fit_samples(
     units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)
     unit = normalise_unit(units)
     messages += unit_messages + _reading_messages(samples)
+    if req.target is not None:  # a firmware-space fit (app/_firmware.py)
+        return _fit_target(req, samples, unit, messages, limits)
     sync = None
     if req.attitude.attitude_file is not None:
         samples, req, sync, sync_messages = attach_attitude_file(req, samples, unit, sync_options, estimator)
@@ -195,6 +198,7 @@ def _fit_samples(
         samples, cal, ref, regressor_values, warn_texts, fit_messages = _fit_model(req, samples, estimator, unit,
                                                                                    regressor_names, eddy_terms)
         messages += fit_messages
+        cal = _input_orientation(cal, samples)
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, warn_texts, limits, sync,
                                             prior is not None and mode is None)
     if samples.log_info is not None:
@@ -240,6 +244,10 @@ def _finish(
     acceptance (``limits``) recorded in the calibration; ``(calibration, summary, messages)``. ``quick``: a quick
     recalibration (no predicted heading error)."""
     messages: list[str] = []
+    if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
+        cal = cal.with_diagnostics(log_compass={"compass": int(samples.log_info["compass"]),
+                                                "name": str(samples.log_info.get("sensor")),
+                                                "format": str(samples.log_info.get("format"))})
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
@@ -273,7 +281,7 @@ def _finish(
         if igrf_spec is not None:
             messages.append(dip_check(float(cal.diagnostics["alignment"]["dip_deg"]), igrf_spec))
     if (not quick and igrf_spec is not None and (cal.uncertainty or {}).get("covariance") is not None
-            and req.model == "ellipsoid"):
+            and req.model == "ellipsoid" and req.target is None):
         messages.append(_heading_message(cal, igrf_spec, summary))
     return cal, summary, messages
 
@@ -414,13 +422,18 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
         given = dataclasses.replace(given, igrf_spec=igrf_spec)
         messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
-    if estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
+    if req.target is not None and att.attitude_columns is None and att.quaternion_columns is None:
+        if log_info.get("has_attitude"):
+            att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
+    elif estimator.reference_kind == "vector" and att.attitude_columns is None and att.quaternion_columns is None:
         if not log_info.get("has_attitude"):
             raise TrimagInputError(f"model {req.model!r} needs attitudes, and this log has none (ATT/ATTITUDE)")
         att = dataclasses.replace(att, attitude_columns="yaw_deg,pitch_deg,roll_deg")
-    if src.columns is None and req.prior is None and mode is None and estimator.reference_kind != "gyro":
-        refuse_static_log(samples, log_info)  # (those are made for logs that barely tilt; the gyroscope says itself
-        # whether the sensor turned)
+    if src.columns is None and req.prior is None and mode is None and req.target is None \
+            and estimator.reference_kind != "gyro":
+        # (a quick recalibration, a large vehicle's mode and a firmware fit, whose levels say what the log identifies,
+        # are made for logs that barely tilt; the gyroscope says itself whether the sensor turned)
+        refuse_static_log(samples, log_info)
         refuse_unidentified_log(None, samples, log_info)  # the data's coverage, before any method (issue 32)
     return dataclasses.replace(req, input=src, reference=given, attitude=att), messages
 
@@ -573,3 +586,49 @@ def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) 
     return (f"predicted heading error of a level sensor here (inclination {heading['inclination_deg']:.1f} deg): "
             f"{heading['rms_deg']:.3g} deg RMS over headings, {heading['max_deg']:.3g} deg at worst (1 sigma)")
 
+
+
+def _target_of(req: FitRequest, samples: Samples) -> FitRequest:
+    """``level``/``motor`` without ``target``: the log's own firmware (refused for other data)."""
+    if req.target is not None or (req.level is None and req.motor is None):
+        return req
+    from ._firmware import _log_firmware
+
+    target = _log_firmware(samples.log_info)
+    if target is None:
+        raise TrimagInputError("`level` and `motor` belong to a firmware fit: give `target=ardupilot` or `target=px4`")
+    return dataclasses.replace(req, target=target)
+
+
+def _fit_target(req: FitRequest, samples: Samples, unit: str, messages: list[str],
+                limits: dict[str, float] | None) -> FitResult:
+    """``fit --target``: the firmware-space fit (:mod:`trimag.app._firmware`), checked and written as any fit."""
+    from ._firmware import fit_target
+
+    for name in ("prior", "regressors", "accel_columns"):
+        if getattr(req, name) is not None:
+            raise TrimagInputError(f"`{name}` does not combine with a firmware fit (`target`): drop one of them")
+    if req.attitude.attitude_file is not None:
+        raise TrimagInputError("a firmware fit takes the attitudes of the data or the log; drop `attitude_file`")
+    samples, cal, regressor_values, target_messages = fit_target(req, samples, unit)
+    messages += target_messages
+    ref = ScalarReference(np.full(len(samples.field), float((cal.reference or {})["value"])), "firmware fit", unit)
+    warn_texts = list(cal.diagnostics.get("warnings", []))
+    cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, [], limits, None, False)
+    summary["warnings"] = warn_texts
+    summary["firmware"] = cal.diagnostics["firmware"]
+    cal, written = write_fit_outputs(cal, samples, req, regressor_values)
+    summary["outputs"] = written
+    return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
+                     written)
+
+
+def _input_orientation(cal: Calibration, samples: Samples) -> Calibration:
+    """An autopilot log's fit records the sensor rotation its readings carry (what ``export`` writes from)."""
+    from ._firmware import _held, _log_firmware
+
+    target = _log_firmware(samples.log_info)
+    if target is None:
+        return cal
+    _, applied, _, _, _ = _held(target, samples.log_info)
+    return cal.with_diagnostics(input_orientation={"target": target, "value": applied})

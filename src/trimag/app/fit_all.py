@@ -138,6 +138,13 @@ def _heading(field_: NDArray[np.float64], down: NDArray[np.float64]) -> NDArray[
     return tilt_compensated_heading(field_, -down)
 
 
+def _regressors(cal: Any, table: Any) -> dict[str, NDArray[np.float64]] | None:
+    """The logged channels a calibration's regressor (motor) terms need, from the compass's own table."""
+    if cal.regressors is None:
+        return None
+    return {name: table[name].to_numpy(dtype=np.float64) for name in cal.regressors["names"]}
+
+
 def compare_compasses(fits: dict[int, Any]) -> dict[str, Any]:
     """Each compass's offset, fitted field magnitude and RMS, and its heading difference from the first compass
     (before: the onboard calibration; after: trimag's), on the first compass's time stamps within the other's
@@ -163,7 +170,7 @@ def compare_compasses(fits: dict[int, Any]) -> dict[str, Any]:
         table = r.samples.table
         t = table["time_s"].to_numpy(dtype=np.float64)
         order = np.argsort(t)
-        after = r.calibration.apply(r.samples.field)
+        after = r.calibration.apply(r.samples.field, regressors=_regressors(r.calibration, table))
         before = table[[f"mag_logged_{a}" for a in "xyz"]].to_numpy(dtype=np.float64)
         inside = (t0 >= t[order][0]) & (t0 <= t[order][-1])
         views[n] = {name: np.column_stack([np.interp(t0, t[order], v[order, k]) for k in range(3)])

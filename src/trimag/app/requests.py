@@ -107,6 +107,12 @@ class FitRequest:
     #: an earlier calibration (JSON) whose shape is kept while its offset is refitted (:mod:`trimag.vehicle.prior`)
     prior: str | Path | None = None
     accel_columns: str | None = None
+    #: a firmware-space fit (``"ardupilot"``, ``"px4"``): exactly the parameters it loads, at ``level`` (``"auto"``,
+    #: ``"offsets"``, ``"scale"``, ``"diagonal"``, ``"full"``) with the ``motor`` term (``"auto"``, ``"none"``,
+    #: ``"current"``, ``"throttle"``; :mod:`trimag.vehicle.firmware`)
+    target: str | None = None
+    level: str | None = None
+    motor: str | None = None
     #: a vehicle that turns but cannot tilt: :func:`trimag.vehicle.level_turn.fit_level_turn` (docs/autopilot.md)
     level_turn: bool = False
     #: the vehicle's known true heading (degrees), or a column of it: the offsets from the field's vector
@@ -231,13 +237,13 @@ class ApplyRequest:
 @dataclass(frozen=True)
 class ExportRequest:
     """One export (``trimag export``): the ``calibration`` (JSON) in ``target``'s convention (``"ardupilot"``,
-    ``"px4"``, ``"c-header"``, ``"json"``, ``"ros-yaml"``, ``"matlab"``) for magnetometer ``instance`` (1-based),
-    written to ``out``."""
+    ``"px4"``, ``"c-header"``, ``"json"``, ``"ros-yaml"``, ``"matlab"``) for magnetometer ``instance`` (1-based;
+    None: the compass of the log the calibration was fitted to, else 1), written to ``out``."""
 
     calibration: str | Path
     target: str
     out: str | Path
-    instance: int = 1
+    instance: int | None = None
 
 
 @dataclass(frozen=True)

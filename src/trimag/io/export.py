@@ -1,25 +1,38 @@
 """Writers of a calibration in a firmware's or tool's own parameters (``trimag export``; docs/autopilot.md).
 
-trimag's calibration is ``c = W (r - b)`` (docs/conventions.md). Each target has its own convention:
+trimag's calibration is ``c = W (r - b - sum_j k_j (u_j - mean_j))`` (docs/conventions.md). Each target has its own
+convention:
 
-- ArduPilot (``AP_Compass_Backend::correct_field``): ``m = M (s (r + ofs))``; ``COMPASS_OFSn_* = -b`` in mGauss,
-  added; symmetric ``M`` from ``COMPASS_DIAn``/``ODIn``; ``COMPASS_SCALEn``.
-- PX4 (``sensor_calibration::Magnetometer``): ``m = R (S ((r + p c) - off))``; ``CAL_MAGn_xOFF = b`` in gauss,
-  subtracted; symmetric ``S`` from ``CAL_MAGn_xSCALE``/``xODIAG``.
-- MATLAB ``magcal``: ``C = (D - b) A`` on rows ``D``: ``A = W'``, ``b``, in the data's unit.
+- ArduPilot (``AP_Compass_Backend::rotate_field``, ``correct_field``): ``m = M (s (R r + ofs)) + MOT x``;
+  ``COMPASS_ORIENTn``, ``COMPASS_OFSn_*`` in mGauss (added), symmetric ``M`` from ``COMPASS_DIAn``/``ODIn``,
+  ``COMPASS_SCALEn``, ``COMPASS_MOTn_*`` with ``COMPASS_MOTCT`` (1 throttle, 2 current).
+- PX4 (``sensor_calibration::Magnetometer::Correct``): ``m = R (S ((r + p COMP) - off))``; ``CAL_MAGn_ROT``,
+  ``CAL_MAGn_xOFF`` in gauss (subtracted), symmetric ``S`` from ``CAL_MAGn_xSCALE``/``xODIAG``, ``CAL_MAGn_xCOMP``
+  with ``CAL_MAG_COMP_TYP`` (1 thrust, 2 current in kA).
+- MATLAB ``magcal``: ``C = (D - b) A`` on rows ``D``: ``A = W'``, ``b``, in the data's unit (a ``.m`` text, or a MAT
+  file when the output ends in ``.mat``).
 - C header, JSON, ROS YAML: ``c = W (r - b)`` as trimag, in the data's unit.
 
-Both autopilots take a *symmetric* matrix after the offset. Where ``W`` is not symmetric, its polar decomposition
-``W = R P`` (``R`` a rotation, ``P`` symmetric positive definite) gives ``P``: the same corrected magnitude, without
-the rotation ``R``. That is exact for magnitude-only (reference-free or scalar) calibrations, whose rotation is
-arbitrary; a calibration fitted with attitudes (``interference12``) aligns axes, and dropping its rotation would
-change the heading, so it is refused unless the rotation is below 0.1 degree.
+The autopilot parameters are those of :mod:`trimag.models.firmware`: a firmware-space fit (``fit --target``) is
+written exactly as fitted; any other calibration is converted (:func:`~trimag.models.firmware.compass_from_affine`):
+a calibration fitted with attitudes determines its rotation (written as the nearest standard orientation, the rest
+left to the symmetric matrix up to 5 degrees, refused beyond), a magnitude-only one does not (its symmetric polar
+factor is written: the same corrected magnitude); current and throttle regressor terms become the motor term. The
+exact writers are checked by putting their parameters through the firmware's formula against ``Calibration.apply``
+before anything is written. What the firmware cannot load (its limits, a rotation, a term or a unit it does not
+have) is refused (:class:`~trimag.errors.TrimagInputError`, exit 2), naming the parameter and the limit.
+
+Outputs carry numbers, not text from the calibration file: the provenance line is built from validated fields
+only (the registered model, a method and version of the expected form, the ISO date), so nothing in a calibration
+file can add a line, a parameter or a comment terminator to an output.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,16 +42,27 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
+from ..models.firmware import (
+    FirmwareCompass,
+    compass_from_affine,
+    firmware_class,
+    nearest_rotation,
+    rotation_matrix,
+)
 from ..units import convert
 
-__all__ = ["EXPORT_TARGETS", "Export", "export_calibration", "symmetric_polar"]
+__all__ = ["EXPORT_TARGETS", "Export", "export_calibration", "export_calibrations", "firmware_compass",
+           "symmetric_polar", "write_export"]
 
 EXPORT_TARGETS = ("ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab")
 
-#: ArduPilot's acceptance limits (libraries/AP_Compass/CompassCalibrator.cpp fit_acceptable, AP_Compass.h)
+#: ArduPilot's acceptance limits (libraries/AP_Compass/CompassCalibrator.cpp fit_acceptable, AP_Compass.h);
+#: the checks themselves are :meth:`trimag.models.firmware.ArduPilotCompass.violations`.
 ARDUPILOT_LIMITS = {"offset_max_mG": 1800.0, "diag_min": 0.2, "diag_max": 5.0, "offdiag_max": 1.0,
                     "scale_min": 1 / 1.5, "scale_max": 1.5}
-_ROTATION_TOLERANCE_DEG = 0.1
+_MAX_INSTANCE = {"ardupilot": 2, "px4": 3}  # COMPASS_OFS..OFS3; CAL_MAG0..3 (max_num_sensor_instances)
+_CURRENT = re.compile(r"(^|[^a-z])(current|curr|amps?)([^a-z]|$)", re.IGNORECASE)
+_THROTTLE = re.compile(r"(^|[^a-z])(throttle|thr|tho|thrust)([^a-z]|$)", re.IGNORECASE)
 
 
 def symmetric_polar(W: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
@@ -52,107 +76,250 @@ def symmetric_polar(W: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]
 
 @dataclass
 class Export:
-    """A rendered export: the file text, the parameters, and notes for the user (limits, what was changed)."""
+    """A rendered export: the file text, the parameters, and notes for the user (what the conversion did).
+
+    ``violations`` is kept for compatibility and is always empty: what the firmware cannot load is refused.
+    ``arrays`` holds what a binary output (a MAT file) stores.
+    """
 
     target: str
     text: str
     parameters: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     violations: list[str] = field(default_factory=list)
+    arrays: dict[str, Any] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------ numbers only (issue 33 item 3)
+_VERSION = re.compile(r"^[0-9]+(\.[0-9A-Za-z+]+){0,4}$")
+_METHOD = re.compile(r"^[A-Za-z0-9_.:+-]{1,40}( [A-Za-z0-9_.:+-]{1,40}){0,4}$")
 
 
 def _provenance(cal: Calibration) -> str:
-    return (f"trimag {cal.trimag_version} calibration: model {cal.model}, method {cal.method}, unit {cal.units}, "
-            f"created {cal.created or _dt.datetime.now(_dt.UTC).isoformat(timespec='seconds')}")
+    """One line from validated fields only (never free text of the file)."""
+    version = cal.trimag_version if _VERSION.match(cal.trimag_version or "") else "(unknown version)"
+    method = cal.method if _METHOD.match(cal.method or "") else "(not shown)"
+    try:
+        created = _dt.datetime.fromisoformat(cal.created).isoformat(timespec="seconds")
+    except (TypeError, ValueError):
+        created = "(date not shown)"
+    return (f"trimag {version} calibration: model {cal.model}, method {method}, unit {cal.units}, "
+            f"created {created}")
 
 
-def _symmetric(cal: Calibration, target: str) -> tuple[NDArray[np.float64], list[str]]:
-    W = np.asarray(cal.matrix)
-    if np.linalg.det(W) <= 0:
-        raise TrimagInputError("the calibration matrix has det <= 0 (a reflection): it cannot be exported")
-    P, angle = symmetric_polar(W)
-    notes = []
-    if angle > 1e-9:
-        if cal.model == "interference12" and angle > _ROTATION_TOLERANCE_DEG:
-            raise TrimagInputError(
-                f"{target} takes a symmetric matrix, but this {cal.model} calibration rotates the axes by "
-                f"{angle:.2f} deg (it was fitted with attitudes): dropping the rotation would change the heading. "
-                "Export it to c-header, json, ros-yaml or matlab, which keep the full matrix"
-            )
-        notes.append(f"the matrix is not symmetric: exported its symmetric polar factor (same corrected magnitude; "
-                     f"drops a {angle:.3f} deg rotation that a magnitude calibration does not determine)")
-    return P, notes
+def _comment_lines(lines: Sequence[str], mark: str) -> str:
+    """Comment lines of printable ASCII only (a stray line break, escape or comment terminator cannot get out)."""
+    out = []
+    for line in lines:
+        clean = re.sub(r"[^\x20-\x7e]", " ", line).replace("*/", "* /").replace("/*", "/ *")
+        out.append(f"{mark} {clean}".rstrip())
+    return "\n".join(out) + "\n"
 
 
-def _to_unit(cal: Calibration, value: NDArray[np.float64], unit: str) -> NDArray[np.float64]:
+# ------------------------------------------------------------------ the autopilots
+def _unit_factor(cal: Calibration, unit: str) -> float:
     if cal.units in ("unknown", "counts"):
         raise TrimagInputError(
             f"this calibration is in {cal.units!r}; the firmware needs {unit}: refit with the data's unit "
             "(units=nT, uT, G or mG)"
         )
-    return np.asarray(value, dtype=np.float64) * convert(1.0, cal.units, unit)
+    return float(convert(1.0, cal.units, unit))
+
+
+def _motor_term(cal: Calibration, target: str, factor: float) -> tuple[NDArray[np.float64], tuple[Any, str] | None]:
+    """The offset at zero motor power and the motor term ``(m_body, kind)`` of the calibration's regressors (firmware
+    unit); a regressor the firmware has no term for is refused."""
+    b = np.asarray(cal.offset, dtype=np.float64)
+    terms = cal.regressors
+    if terms is None:
+        return b * factor, None
+    names = list(terms["names"])
+    units = list(terms.get("units") or [""] * len(names))
+    eddy = set((terms.get("eddy") or {}).get("names", []))
+    kinds = ["current" if _CURRENT.search(n) else ("throttle" if _THROTTLE.search(n) else None) for n in names]
+    other = [n for n, k in zip(names, kinds, strict=True) if k is None or n in eddy]
+    if other:
+        fix = "`option eddy`" if set(other) & eddy else "`regressors`"
+        raise TrimagInputError(
+            f"this calibration has regressor terms ({', '.join(names)}) that {target} cannot hold (one motor term on "
+            f"the battery current or the throttle, no {', '.join(other)} term); export a fit without {fix}"
+        )
+    if len(names) > 1:
+        raise TrimagInputError(f"this calibration has {len(names)} motor terms ({', '.join(names)}); {target} holds "
+                               "one (COMPASS_MOTCT / CAL_MAG_COMP_TYP picks current or throttle): fit with one")
+    k = np.asarray(terms["coefficients"], dtype=np.float64)[0]
+    mean = float(terms["means"][0])
+    W = np.asarray(cal.matrix)
+    per_unit = 1.0
+    if kinds[0] == "throttle":
+        if "%" in str(units[0]):
+            per_unit = 100.0  # per percent -> per unit throttle
+        elif abs(mean) > 1.5:
+            raise TrimagInputError(
+                f"the throttle term's channel {names[0]!r} has no stated unit and a mean of {mean:.3g}: the firmware's "
+                "throttle runs 0..1; refit with a 0..1 throttle column"
+            )
+    b_zero = b - k * mean  # W (v - b - k (x - mean)) = W (v - b_zero) - W k x
+    return b_zero * factor, (-(W @ k) * factor * per_unit, str(kinds[0]))
+
+
+def _input_orientation(cal: Calibration, target: str) -> int | None:
+    """The rotation the calibration's input readings carry, in ``target``'s enum: the same rotation when the log
+    was the other firmware's (the enums share 0..40 but for 38; one ``target`` lacks is refused)."""
+    given = cal.diagnostics.get("input_orientation") or {}
+    fw = cal.diagnostics.get("firmware") or {}
+    source, value = None, None
+    if isinstance(given, dict) and given.get("value") is not None:
+        source, value = given.get("target"), int(given["value"])
+    elif isinstance(fw, dict) and fw.get("input_orientation") is not None:
+        source, value = fw.get("target"), int(fw["input_orientation"])
+    if value is None or source not in ("ardupilot", "px4"):
+        return None
+    if source == target:
+        return value
+    same, angle = nearest_rotation(target, rotation_matrix(str(source), value))
+    if angle > 1e-3:
+        raise TrimagInputError(f"the readings this calibration was fitted to carry {source}'s sensor rotation "
+                               f"{value}, which {target} has not (nearest: {same}, {angle:.2f} deg off): export it "
+                               f"--to {source}")
+    return same
+
+
+def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, list[str], bool, float | None]:
+    """The parameters ``target`` loads for ``cal``: ``(compass, notes, write_orientation, offsets_max)``."""
+    klass = firmware_class(target)
+    factor = _unit_factor(cal, klass.unit)
+    fw = cal.diagnostics.get("firmware")
+    if isinstance(fw, dict) and fw.get("target") == target:
+        compass = FirmwareCompass.from_dict(fw)
+        _check_formula(cal, compass, _input_orientation(cal, target), factor)
+        return compass, [f"the {fw.get('level')} level of the {target} fit (fit --target), written as fitted"], True, \
+            fw.get("offsets_max")
+    b, motor = _motor_term(cal, target, factor)
+    applied = _input_orientation(cal, target)
+    # the rotation is determined by a fit with attitudes: a vector model, or the other firmware's fit whose
+    # orientation was decided against the attitudes (vector or heading-free residual)
+    determined = cal.model == "interference12" or (isinstance(fw, dict) and (
+        fw.get("residual") == "vector" or (fw.get("target") in ("ardupilot", "px4")
+                                           and fw.get("residual") in ("vector", "heading-free"))))
+    compass, notes = compass_from_affine(target, cal.matrix, b, motor=motor, input_orientation=applied,
+                                         rotation_determined=determined)
+    if determined or applied is not None:
+        if not notes:
+            _check_formula(cal, compass, applied, factor)
+        return compass, notes, True, None
+    board = (cal.diagnostics.get("alignment") or {}).get("board_rotation")
+    if board is not None and target == "ardupilot":  # the alignment of fit --accel-columns: said, not written
+        notes.append(
+            f"the calibration's alignment is nearest to {board['name']} (COMPASS_ORIENT = {board['number']}) "
+            f"with {board['remaining_angle_deg']:.2f} deg remaining; COMPASS_ORIENT is not written: set it "
+            "yourself for an external compass"
+        )
+    return compass, notes, False, None
+
+
+def _check_formula(cal: Calibration, compass: FirmwareCompass, applied: int | None, factor: float) -> None:
+    """The parameters through the firmware's own formula give ``Calibration.apply`` (a writer's bug otherwise)."""
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(20, 3)) * 500.0 / factor
+    x = rng.uniform(0.0, 1.0, 20)
+    terms = {cal.regressors["names"][0]: x} if cal.regressors is not None else None
+    expected = cal.apply(v, regressors=terms) * factor
+    R0 = np.eye(3) if applied is None else rotation_matrix(compass.target, applied)
+    got = compass.correct((v * factor) @ R0, x if compass.motor_type else None)
+    if not np.allclose(got, expected, rtol=1e-6, atol=1e-6 * float(np.abs(expected).max())):
+        raise RuntimeError(f"the {compass.target} parameters do not reproduce the calibration through the firmware's "
+                           "formula: please report this bug")
+
+
+def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -> Export:
+    """One autopilot parameter file for several magnetometers: ``items`` are ``(calibration, instance)`` pairs
+    (instance 0-based). The firmware-wide motor-term type (``COMPASS_MOTCT``, ``CAL_MAG_COMP_TYP``) must agree."""
+    if target not in ("ardupilot", "px4"):
+        raise TrimagInputError(f"several magnetometers go into one file for ardupilot or px4 only; got {target!r}")
+    if not items:
+        raise TrimagInputError("give at least one calibration to export")
+    params: dict[str, float] = {}
+    notes: list[str] = []
+    header: list[str] = []
+    seen: set[int] = set()
+    global_name = "COMPASS_MOTCT" if target == "ardupilot" else "CAL_MAG_COMP_TYP"
+    for cal, instance in items:
+        if instance in seen:
+            raise TrimagInputError(f"instance {instance + 1} twice in one export: give each magnetometer once")
+        seen.add(instance)
+        if not 0 <= instance <= _MAX_INSTANCE[target]:
+            raise TrimagInputError("ArduPilot calibrates compasses 1..3 (COMPASS_OFS, OFS2, OFS3)" if target ==
+                                   "ardupilot" else "PX4 calibrates magnetometers CAL_MAG0..3 (instance 1..4)")
+        compass, more, write_orientation, offsets_max = firmware_compass(cal, target)
+        bad = compass.violations(instance=instance, offsets_max=offsets_max)
+        if bad:
+            raise TrimagInputError(f"{target} cannot load this calibration (nothing written): "
+                                   + "; ".join(str(v) for v in bad))
+        p = compass.parameters(instance)
+        if not write_orientation:
+            p = {k: v for k, v in p.items() if not k.endswith(("ORIENT", "_ROT")) and "ORIENT" not in k}
+        if global_name in p and global_name in params and params[global_name] != p[global_name]:
+            raise TrimagInputError(f"{global_name} is one for all magnetometers: these calibrations have a current "
+                                   "term and a throttle term; fit them with the same motor channel")
+        params.update(p)
+        notes += [f"instance {instance + 1}: {n}" if len(items) > 1 else n for n in more]
+        header += [_provenance(cal), _formula_line(compass, instance)]
+        if compass.motor_type is not None:
+            notes.append(f"{global_name} = {p[global_name]:g} applies to every magnetometer: the others keep their "
+                         "motor terms, now read as " + compass.motor_type)
+        elif not write_orientation:
+            notes.append("the orientation is not written (a magnitude-only calibration does not determine it): "
+                         "the firmware keeps its own")
+    text = (_param_file(params, header) if target == "ardupilot" else
+            _comment_lines(header, "#") + "".join(f"param set {k} {v:.9g}\n" for k, v in params.items()))
+    return Export(target, text, params, notes)
+
+
+def _formula_line(compass: FirmwareCompass, instance: int) -> str:
+    if compass.target == "ardupilot":
+        return (f"ArduPilot compass {instance + 1}: m = M * (SCALE * (R(ORIENT) * raw + OFS)) + MOT * x, OFS in "
+                "mGauss (AP_Compass_Backend::correct_field)")
+    return (f"PX4 magnetometer {instance}: m = R(ROT) * S * ((raw + p * COMP) - OFF), OFF in gauss "
+            f"(src/lib/sensor_calibration/Magnetometer.cpp); set CAL_MAG{instance}_ID to the sensor's device id")
 
 
 def _param_file(params: dict[str, float], header: list[str]) -> str:
-    lines = [f"# {h}" for h in header]
-    lines += [f"{name},{value:.9g}" for name, value in sorted(params.items())]  # sorted, as MAGFit's files
-    return "\n".join(lines) + "\n"
+    lines = [f"{name},{value:.9g}" for name, value in sorted(params.items())]  # sorted, as MAGFit's files
+    return _comment_lines(header, "#") + "\n".join(lines) + "\n"
 
 
-def _ardupilot(cal: Calibration, instance: int) -> Export:
-    P, notes = _symmetric(cal, "ardupilot")
-    b_mG = _to_unit(cal, cal.offset, "mG")
-    n = "" if instance == 0 else str(instance + 1)
-    scale = 1.0
-    params = {f"COMPASS_OFS{n}_{a}": float(-v) for a, v in zip("XYZ", b_mG, strict=True)}
-    params.update({f"COMPASS_DIA{n}_X": P[0, 0], f"COMPASS_DIA{n}_Y": P[1, 1], f"COMPASS_DIA{n}_Z": P[2, 2],
-                   f"COMPASS_ODI{n}_X": P[0, 1], f"COMPASS_ODI{n}_Y": P[0, 2], f"COMPASS_ODI{n}_Z": P[1, 2],
-                   f"COMPASS_SCALE{n}": scale})
-    lim = ARDUPILOT_LIMITS
-    violations = []
-    if np.abs(b_mG).max() > lim["offset_max_mG"]:
-        violations.append(f"offset {np.abs(b_mG).max():.0f} mG exceeds COMPASS_OFFS_MAX's default "
-                          f"{lim['offset_max_mG']:.0f} mG: raise COMPASS_OFFS_MAX or move the compass away from iron")
-    if np.any(np.diag(P) < lim["diag_min"]) or np.any(np.diag(P) > lim["diag_max"]):
-        violations.append(f"a diagonal entry {np.round(np.diag(P), 3).tolist()} is outside ArduPilot's "
-                          f"[{lim['diag_min']}, {lim['diag_max']}]")
-    off = np.abs([P[0, 1], P[0, 2], P[1, 2]])
-    if np.any(off >= lim["offdiag_max"]):
-        violations.append(f"an off-diagonal entry {np.round(off, 3).tolist()} is not below {lim['offdiag_max']}")
-    header = [_provenance(cal), f"ArduPilot compass {instance + 1}: m = M * (SCALE * (raw + OFS)), OFS in mGauss "
-              "(AP_Compass_Backend::correct_field)"]
-    return Export("ardupilot", _param_file(params, header), params, notes, violations)
-
-
-def _px4(cal: Calibration, instance: int) -> Export:
-    P, notes = _symmetric(cal, "px4")
-    b_G = _to_unit(cal, cal.offset, "G")
-    n = instance
-    params = {f"CAL_MAG{n}_{a}OFF": float(v) for a, v in zip("XYZ", b_G, strict=True)}
-    params.update({f"CAL_MAG{n}_XSCALE": P[0, 0], f"CAL_MAG{n}_YSCALE": P[1, 1], f"CAL_MAG{n}_ZSCALE": P[2, 2],
-                   f"CAL_MAG{n}_XODIAG": P[0, 1], f"CAL_MAG{n}_YODIAG": P[0, 2], f"CAL_MAG{n}_ZODIAG": P[1, 2]})
-    violations = []
-    if np.any(np.diag(P) <= 0):
-        violations.append("a scale is not positive")
-    header = [_provenance(cal), f"PX4 magnetometer {n}: m = S * (raw - OFF), OFF in gauss "
-              "(src/lib/sensor_calibration/Magnetometer.cpp); set CAL_MAG{n}_ID to the sensor's device id"]
-    text = "\n".join(f"# {h}" for h in header) + "\n" + "".join(
-        f"param set {k} {v:.9g}\n" for k, v in params.items())
-    return Export("px4", text, params, notes, violations)
+# ------------------------------------------------------------------ the full-matrix targets
+def _c_float(value: float) -> str:
+    """A C float literal (``12.0f``, not the invalid ``12f``)."""
+    text = f"{float(value):.12g}"
+    if not any(c in text for c in ".en"):
+        text += ".0"
+    return text + "f"
 
 
 def _matrix_c(name: str, M: NDArray[np.float64]) -> str:
-    rows = ",\n    ".join("{" + ", ".join(f"{v:.12g}f" for v in row) + "}" for row in M)
+    rows = ",\n    ".join("{" + ", ".join(_c_float(v) for v in row) + "}" for row in M)
     return f"static const float {name}[3][3] = {{\n    {rows}\n}};\n"
+
+
+def _no_regressors(cal: Calibration, target: str) -> None:
+    if cal.regressors is not None:
+        raise TrimagInputError(
+            f"this calibration has regressor terms ({', '.join(cal.regressors['names'])}) that the {target} format "
+            "cannot hold (a constant offset only); export it to ardupilot or px4 (current or throttle terms), or "
+            "fit without them"
+        )
 
 
 def _c_header(cal: Calibration) -> Export:
     b = np.asarray(cal.offset)
     text = (
-        f"/* {_provenance(cal)}\n * corrected = MAG_CAL_MATRIX * (raw - MAG_CAL_OFFSET), unit {cal.units} */\n"
+        "/* " + _provenance(cal).replace("*/", "* /") + " */\n"
+        f"/* corrected = MAG_CAL_MATRIX * (raw - MAG_CAL_OFFSET), unit {cal.units} */\n"
         "#ifndef TRIMAG_MAG_CAL_H\n#define TRIMAG_MAG_CAL_H\n"
         f"#define MAG_CAL_UNIT \"{cal.units}\"\n"
-        f"static const float MAG_CAL_OFFSET[3] = {{{', '.join(f'{v:.12g}f' for v in b)}}};\n"
+        f"static const float MAG_CAL_OFFSET[3] = {{{', '.join(_c_float(v) for v in b)}}};\n"
         + _matrix_c("MAG_CAL_MATRIX", np.asarray(cal.matrix))
         + "#endif /* TRIMAG_MAG_CAL_H */\n"
     )
@@ -173,8 +340,9 @@ def _ros_yaml(cal: Calibration) -> Export:
     d = _plain(cal)
     M = d["matrix"]
     text = (
-        f"# {d['provenance']}\n# corrected = matrix * (raw - offset); ROS sensor_msgs/MagneticField is in tesla\n"
-        "magnetometer_calibration:\n"
+        _comment_lines([d["provenance"], "corrected = matrix * (raw - offset); ROS sensor_msgs/MagneticField is in "
+                        "tesla"], "#")
+        + "magnetometer_calibration:\n"
         f"  unit: {cal.units}\n"
         f"  offset: [{', '.join(f'{v:.12g}' for v in d['offset'])}]\n"
         f"  matrix: [{', '.join(f'{v:.12g}' for row in M for v in row)}]  # row-major 3x3\n"
@@ -186,9 +354,11 @@ def _matlab(cal: Calibration) -> Export:
     A = np.asarray(cal.matrix).T
     b = np.asarray(cal.offset)
     fmt = ";\n     ".join(" ".join(f"{v:.15g}" for v in row) for row in A)
-    text = (f"% {_provenance(cal)}\n% MATLAB magcal convention: C = (D - b) * A, D an N x 3 array of rows\n"
-            f"A = [{fmt}];\nb = [{' '.join(f'{v:.15g}' for v in b)}];\n")
-    return Export("matlab", text)
+    text = (_comment_lines([_provenance(cal), "MATLAB magcal convention: C = (D - b) * A, D an N x 3 array of rows"],
+                           "%")
+            + f"A = [{fmt}];\nb = [{' '.join(f'{v:.15g}' for v in b)}];\n")
+    return Export("matlab", text, arrays={"A": A, "b": b.reshape(1, 3), "unit": cal.units,
+                                          "provenance": _provenance(cal)})
 
 
 def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> Export:
@@ -197,33 +367,22 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
         raise TrimagInputError(f"unknown export target {target!r}; choose one of {', '.join(EXPORT_TARGETS)}")
     if instance < 0 or instance > 7:
         raise TrimagInputError(f"instance must be 0..7; got {instance}")
-    if cal.regressors is not None:
-        eddy = cal.regressors.get("eddy")
-        logged = len(cal.regressors["names"]) - (len(eddy["names"]) if eddy else 0)
-        fix = " and ".join(x for x in ("`regressors`" if logged else "", "`option eddy`" if eddy else "") if x)
-        raise TrimagInputError(
-            f"this calibration has regressor terms ({', '.join(cal.regressors['names'])}) that the {target} format "
-            f"cannot hold (a constant offset only); export a fit without {fix}"
-        )
-    if target == "ardupilot":
-        if instance > 2:
-            raise TrimagInputError("ArduPilot calibrates compasses 0..2 (COMPASS_OFS, OFS2, OFS3)")
-        exp = _ardupilot(cal, instance)
-        board = (cal.diagnostics.get("alignment") or {}).get("board_rotation")
-        if board is not None:  # the alignment of fit --accel-columns: said, not written (docs/vehicle.md)
-            exp.notes.append(
-                f"the calibration's alignment is nearest to {board['name']} (COMPASS_ORIENT = {board['number']}) "
-                f"with {board['remaining_angle_deg']:.2f} deg remaining; COMPASS_ORIENT is not written: set it "
-                "yourself for an external compass"
-            )
-        return exp
-    if target == "px4":
-        return _px4(cal, instance)
+    if target in ("ardupilot", "px4"):
+        return export_calibrations([(cal, instance)], target)
+    _no_regressors(cal, target)
     return {"c-header": _c_header, "json": _json, "ros-yaml": _ros_yaml, "matlab": _matlab}[target](cal)
 
 
 def write_export(exp: Export, out: str | Path) -> Path:
-    """Write the export atomically (``.mat`` for the MATLAB target writes a MAT file with A and b)."""
-    from .atomic import atomic_write_text
+    """Write the export atomically; the MATLAB target writes a MAT file (``A``, ``b``, ``unit``, ``provenance``)
+    when ``out`` ends in ``.mat``, its ``.m`` text otherwise."""
+    from .atomic import atomic_path, atomic_write_text
 
+    if exp.target == "matlab" and Path(out).suffix.lower() == ".mat":
+        from scipy.io import savemat
+
+        with atomic_path(out) as tmp:
+            with open(tmp, "wb") as fh:
+                savemat(fh, exp.arrays)
+        return Path(out)
     return atomic_write_text(out, exp.text)

@@ -513,8 +513,12 @@ def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFr
         "device_id": mag.device_id,
         "gps": log.gps,
         "messages": log.summary_lines(sensor) + messages,
-        "channels": [c for c in df.columns if c not in ("time_s",) and not c.startswith("mag_")],
+        "channels": [c for c in df.columns if c not in ("time_s",) and not c.startswith(("mag_", "yaw_g"))],
         "has_attitude": "yaw_deg" in df.columns,
+        "attitude_source": None if log.attitude is None else log.attitude.source,
+        "vehicle": log.vehicle,
+        "parameters": dict(log.parameters),
+        "yaw_sources": [c for c in ("yaw_gps_deg", "yaw_gsf_deg") if c in df.columns],
         # the gyroscope (read again for the gyro-aided fit: a DataFlash log's IMU only then, docs/method-gyro.md)
         "gyro": log.gyro.source if log.gyro is not None else ("IMU (read on request)" if kind == "dataflash" else None),
     }

@@ -16,6 +16,7 @@ and matrix act in the rotated frame, so a calibration to be written back must be
 from __future__ import annotations
 
 import datetime as _dt
+import re
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,8 @@ __all__ = ["onboard_matrix", "read_ardupilot", "undo_ardupilot"]
 
 _SCALE_MAX = 1.5  # COMPASS_MAX_SCALE_FACTOR (AP_Compass.h)
 
-_DF_TYPES = ["MAG", "MAG2", "MAG3", "ATT", "BAT", "CURR", "RCOU", "GPS", "PARM", "CTUN"]
+_DF_TYPES = ["MAG", "MAG2", "MAG3", "ATT", "BAT", "CURR", "RCOU", "GPS", "PARM", "CTUN", "FMTU", "UNIT", "MULT", "MSG",
+             "XKY0"]
 _TLOG_TYPES = ["RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "BATTERY_STATUS", "SYS_STATUS",
                "GLOBAL_POSITION_INT", "GPS_RAW_INT", "PARAM_VALUE", "SERVO_OUTPUT_RAW", "VFR_HUD",
                "SCALED_PRESSURE"]
@@ -87,26 +89,35 @@ def _gps_date(week: float, ms: float) -> str:
 
 
 Columns = dict[str, dict[str, NDArray[Any]]]
+#: Per message type: ``"format"`` (its format characters by field) and ``"units"`` (field -> (unit, multiplier) from
+#: ``FMTU``), what the physical value of an integer field depends on (:func:`_physical`).
+Meta = dict[str, dict[str, Any]]
 
 
-def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[str, float]]:
-    """Every wanted message type as columns, and the parameters (first value of each); ``gyro``: also ``IMU``."""
+def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[str, float], Meta]:
+    """Every wanted message type as columns, the parameters (first value of each) and each type's field formats
+    and units; ``gyro``: also ``IMU``."""
     types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES + (["IMU"] if gyro else [])
     if kind == "dataflash":
         with path.open("rb") as fh:
             binary = fh.read(2) == b"\xa3\x95"
         if binary:
-            from .dataflash import read_dataflash
+            from .dataflash import field_units, read_dataflash
 
-            cols = read_dataflash(path, types)
+            formats: dict[str, tuple[int, str, list[str]]] = {}
+            cols = read_dataflash(path, types, formats)
             params: dict[str, float] = {}
             parm = cols.pop("PARM", None)
             if parm is not None:
                 for name, value in zip(parm["Name"].tolist(), parm["Value"].tolist(), strict=True):
                     params.setdefault(str(name), float(value))
-            return cols, params
+            units = field_units(cols, formats)
+            found: Meta = {name: {"format": dict(zip(c, f, strict=False)), "units": units.get(name, {})}
+                           for name, (_, f, c) in formats.items()}
+            return cols, params, found
     rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
     params = {}
+    meta: Meta = {}
     for msg in mavlink_messages(path, types, robust=kind == "tlog"):
         name = msg.get_type()
         if name == "PARM":
@@ -117,7 +128,34 @@ def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[s
             d = msg.to_dict()
             d["_timestamp"] = getattr(msg, "_timestamp", None)
             rows[name].append(d)
-    return {name: _columns(rs) for name, rs in rows.items()}, params
+            fmt = getattr(msg, "fmt", None)  # a text DataFlash message's FMT (a telemetry message has none)
+            if name not in meta and fmt is not None and hasattr(fmt, "format"):
+                meta[name] = {"format": dict(zip(fmt.columns, fmt.format, strict=False)), "units": {}}
+    return {name: _columns(rs) for name, rs in rows.items()}, params, meta
+
+
+def _physical(meta: Meta, name: str, field: str, values: NDArray[Any]) -> tuple[NDArray[np.float64], str]:
+    """A field's values in its physical unit and a note of the scaling applied: the log's ``FMTU`` multiplier, or,
+    in a log without ``FMTU``, ArduPilot's documented integer encodings (``CURR.Volt``/``Curr`` centivolts and
+    centiamps, ``Log_Write_Current`` of ArduPilot 3.x; ArduCopter 3.x ``CTUN.ThrOut`` throttle x 1000; a
+    ``%`` throttle is divided by 100)."""
+    v = np.asarray(values, dtype=np.float64)
+    info = meta.get(name, {})
+    fmt = info.get("format", {}).get(field, "f")
+    unit, mult = info.get("units", {}).get(field, ("", None))
+    if mult is not None and not (mult == 1.0 and unit == "" and field == "ThrOut"):
+        if unit == "%":
+            return v * mult / 100.0, f"{name}.{field} (% / 100)"
+        return (v * mult, f"{name}.{field} (x {mult:g}, FMTU)") if mult != 1.0 else (v, f"{name}.{field}")
+    integer = fmt in "bBhHiIqQ"
+    if integer and name == "CURR" and field in ("Volt", "Curr", "Volt2"):
+        return v * 0.01, f"{name}.{field} (x 0.01: centi-units of ArduPilot 3.x, no FMTU)"
+    if integer and field == "ThrOut":
+        cols = info.get("format", {})
+        if "ThrIn" in cols:  # ArduCopter 3.x: motors throttle 0..1000
+            return v * 0.001, f"{name}.{field} (x 0.001: ArduCopter 3.x throttle 0..1000, no FMTU)"
+        return v * 0.01, f"{name}.{field} (% / 100: ArduPlane throttle, no FMTU)"
+    return v, f"{name}.{field}"
 
 
 def _columns(rows: list[dict[str, Any]]) -> dict[str, NDArray[Any]]:
@@ -152,10 +190,12 @@ def _time_s(cols: dict[str, NDArray[Any]], *, receipt: bool = False) -> NDArray[
     return np.asarray(cols["_timestamp"], dtype=np.float64)
 
 
-def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
+def _dataflash(path: Path, rows: Columns, params: dict[str, float], meta: Meta) -> VehicleLog:
     log = VehicleLog(str(path), "ArduPilot DataFlash", _dataflash_magnetometers(rows, params), parameters=params)
-    _dataflash_channels(log, rows)
+    _dataflash_channels(log, rows, meta)
     log.gps = _dataflash_gps(rows.get("GPS"))
+    log.vehicle = _vehicle(rows.get("MSG"))
+    log.yaw_sources = _yaw_sources(rows, meta)
     gps = rows.get("GPS")
     if _n(gps) and gps is not None and {"GCrs", "Spd", "Status"} <= set(gps):
         course = gps_course(_array(gps, ["GCrs"])[:, 0], _array(gps, ["Spd"])[:, 0],
@@ -163,6 +203,40 @@ def _dataflash(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLo
         if np.isfinite(course).any():
             log.channels["gps_course_deg"] = Channel(_time_s(gps), course, "deg", "GPS.GCrs")
     return log
+
+
+_VEHICLES = re.compile(r"\b(ArduCopter|ArduPlane|ArduSub|ArduRover|Rover|Blimp|AntennaTracker|APM:\w+)\s*V?[\d.]*")
+
+
+def _vehicle(msg: Any) -> str | None:
+    """The firmware and version of the log's first ``MSG`` that names one (``"ArduCopter V4.3.6"``)."""
+    if not _n(msg) or msg is None or "Message" not in msg:
+        return None
+    for text in msg["Message"][:50]:
+        m = _VEHICLES.search(str(text))
+        if m:
+            return m.group(0).strip()
+    return None
+
+
+def _yaw_sources(rows: Columns, meta: Meta) -> dict[str, Channel]:
+    """Yaw estimates that do not use the compass: the EKF-GSF yaw (``XKY0.YC`` and its sigma ``YCS``, EKF3 core 0;
+    degrees, radians where the log's FMTU says so) and a GPS heading (``GPS.Yaw`` of a moving-baseline GPS, where it
+    is non-zero)."""
+    out: dict[str, Channel] = {}
+    gsf = rows.get("XKY0")
+    if _n(gsf) and gsf is not None and "YC" in gsf:
+        core = _take(gsf, np.asarray(gsf["C"]).astype(int) == 0) if "C" in gsf else gsf
+        if _n(core):
+            rad = str(meta.get("XKY0", {}).get("units", {}).get("YC", ("deg", None))[0]).startswith("rad")
+            to_deg = np.degrees if rad else np.asarray
+            spread = to_deg(np.asarray(core.get("YCS", np.zeros(_n(core))), dtype=np.float64))
+            values = np.column_stack([to_deg(np.asarray(core["YC"], dtype=np.float64)), spread])
+            out["XKY0.YC"] = Channel(_time_s(core), values, "deg", "XKY0.YC (EKF-GSF yaw; column 2: its sigma YCS)")
+    gps = rows.get("GPS")
+    if _n(gps) and gps is not None and "Yaw" in gps and np.any(np.asarray(gps["Yaw"]) != 0):
+        out["GPS.Yaw"] = Channel(_time_s(gps), np.asarray(gps["Yaw"], dtype=np.float64), "deg", "GPS.Yaw")
+    return out
 
 
 #: Below this ground speed (m/s) a GPS course says nothing of the heading.
@@ -216,24 +290,30 @@ def _dataflash_magnetometers(rows: Columns, params: dict[str, float]) -> list[Ma
     return mags
 
 
-def _dataflash_channels(log: VehicleLog, rows: Columns) -> None:
-    """The attitude (``ATT``), battery current and voltage, throttle and the servo outputs that move, into ``log``."""
+def _dataflash_channels(log: VehicleLog, rows: Columns, meta: Meta) -> None:
+    """The attitude (``ATT``), battery current and voltage, throttle and the servo outputs that move, into ``log``,
+    each in its physical unit (:func:`_physical`)."""
     att = rows.get("ATT")
     if _n(att):
         assert att is not None
         log.attitude = Channel(_time_s(att), _array(att, ["Yaw", "Pitch", "Roll"]), "deg", "ATT")
-    bat = rows.get("BAT") if _n(rows.get("BAT")) else rows.get("CURR")
+    bat_name = "BAT" if _n(rows.get("BAT")) else "CURR"
+    bat = rows.get(bat_name)
     if _n(bat):
         assert bat is not None
         key = "Inst" if "Inst" in bat else ("Instance" if "Instance" in bat else None)
         first = bat if key is None else _take(bat, np.asarray(bat[key]).astype(int) == 0)
-        if _n(first):
-            log.channels["current_A"] = Channel(_time_s(first), _array(first, ["Curr"])[:, 0], "A", "BAT.Curr")
+        if _n(first) and "Curr" in first:
+            amps, source = _physical(meta, bat_name, "Curr", first["Curr"])
+            log.channels["current_A"] = Channel(_time_s(first), amps, "A", source)
             if "Volt" in first:
-                log.channels["voltage_V"] = Channel(_time_s(first), _array(first, ["Volt"])[:, 0], "V", "BAT.Volt")
+                volts, source = _physical(meta, bat_name, "Volt", first["Volt"])
+                log.channels["voltage_V"] = Channel(_time_s(first), volts, "V", source)
     ctun = rows.get("CTUN")
-    if _n(ctun) and ctun is not None and "ThO" in ctun:
-        log.channels["throttle"] = Channel(_time_s(ctun), _array(ctun, ["ThO"])[:, 0], "", "CTUN.ThO")
+    throttle_key = next((k for k in ("ThO", "ThrOut") if ctun is not None and k in ctun), None)
+    if _n(ctun) and ctun is not None and throttle_key is not None:
+        thr, source = _physical(meta, "CTUN", throttle_key, ctun[throttle_key])
+        log.channels["throttle"] = Channel(_time_s(ctun), thr, "", source)
     rc = rows.get("RCOU")
     if _n(rc) and rc is not None:
         for k in range(1, 15):
@@ -306,8 +386,8 @@ def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
 def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False) -> VehicleLog:
     """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log; ``gyro``: also the first
     IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked)."""
-    rows, params = _collect(path, kind, gyro)
-    log = _dataflash(path, rows, params) if kind == "dataflash" else _tlog(path, rows, params)
+    rows, params, meta = _collect(path, kind, gyro)
+    log = _dataflash(path, rows, params, meta) if kind == "dataflash" else _tlog(path, rows, params)
     imu = rows.get("IMU")
     if gyro and _n(imu) and imu is not None and "GyrX" in imu:
         if "I" in imu:

@@ -132,6 +132,10 @@ class VehicleLog:
     gps: dict[str, Any] | None = None  # lat_deg, lon_deg, alt_m, date (YYYY-MM-DD)
     parameters: dict[str, float] = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
+    #: the firmware and vehicle that wrote the log, where it says (``"ArduCopter V4.3.6"``, ``"PX4 v1.12.3"``)
+    vehicle: str | None = None
+    #: other yaw sources than the attitude's (``"XKY0.YC"``: EKF-GSF yaw; ``"GPS.Yaw"``: a GPS heading), degrees
+    yaw_sources: dict[str, Channel] = field(default_factory=dict)
 
     def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
         """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.
@@ -201,6 +205,7 @@ class VehicleLog:
             cols["yaw_deg"], cols["pitch_deg"], cols["roll_deg"] = ypr[:, 0], ypr[:, 1], ypr[:, 2]
             if (~inside).sum():
                 outside["attitude"] = int((~inside).sum())
+        outside.update(_yaw_columns(self.yaw_sources, t, cols))
         for name, ch in self.channels.items():
             if len(ch.time_s) < 2:
                 continue
@@ -236,3 +241,32 @@ class VehicleLog:
                          "docs/method-gyro.md)")
         lines += self.messages
         return lines
+
+
+#: The table's column of each yaw source of :attr:`VehicleLog.yaw_sources` (a second value column: its sigma).
+YAW_COLUMNS = {"XKY0.YC": ("yaw_gsf_deg", "yaw_gsf_sigma_deg"), "GPS.Yaw": ("yaw_gps_deg", None)}
+
+
+def _yaw_columns(sources: dict[str, Channel], t: NDArray[np.float64],
+                 cols: dict[str, NDArray[np.float64]]) -> dict[str, int]:
+    """The yaw sources aligned to the time stamps ``t`` (the yaw unwrapped, interpolated, wrapped to 0..360) into
+    ``cols``; returns the samples outside each source's span."""
+    outside: dict[str, int] = {}
+    for name, ch in sources.items():
+        if name not in YAW_COLUMNS or len(ch.time_s) < 2:
+            continue
+        order = np.argsort(ch.time_s, kind="stable")
+        tc = ch.time_s[order]
+        values = ch.values[order].reshape(len(tc), -1)
+        inside = (t >= tc[0]) & (t <= tc[-1])
+        yaw_col, sigma_col = YAW_COLUMNS[name]
+        yaw = np.mod(np.interp(t, tc, np.degrees(np.unwrap(np.radians(values[:, 0])))), 360.0)
+        yaw[~inside] = np.nan
+        cols[yaw_col] = yaw
+        if sigma_col is not None and values.shape[1] > 1:
+            sigma = np.interp(t, tc, values[:, 1])
+            sigma[~inside] = np.nan
+            cols[sigma_col] = sigma
+        if (~inside).sum():
+            outside[yaw_col] = int((~inside).sum())
+    return outside

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
 
-__all__ = ["read_dataflash"]
+__all__ = ["field_units", "read_dataflash"]
 
 _HEAD = b"\xa3\x95"
 _FMT_TYPE = 128
@@ -40,8 +40,13 @@ def _parse_fmt(payload: bytes) -> tuple[int, int, str, str, list[str]]:
     return mtype, length, name, fmt, cols
 
 
-def read_dataflash(path: str | Path, types: list[str]) -> dict[str, dict[str, NDArray[np.generic]]]:
+def read_dataflash(
+    path: str | Path, types: list[str], formats: dict[str, tuple[int, str, list[str]]] | None = None,
+) -> dict[str, dict[str, NDArray[np.generic]]]:
     """Columns of every message of the named ``types`` in a binary DataFlash log.
+
+    ``formats``, when given, receives every message type's ``(type number, format characters, column names)`` from
+    the log's FMT messages (what the units of a field depend on: :func:`field_units`).
 
     Returns
     -------
@@ -54,14 +59,16 @@ def read_dataflash(path: str | Path, types: list[str]) -> dict[str, dict[str, ND
         data = np.memmap(p, dtype=np.uint8, mode="r")
     except (OSError, ValueError) as exc:
         raise TrimagInputError(f"{p}: cannot read the log ({exc})") from None
-    lengths, formats, starts = _scan(data, set(types))
-    if not formats:
+    lengths, found, starts = _scan(data, set(types))
+    if not found:
         raise TrimagInputError(f"{p}: not a binary DataFlash log (no FMT messages)")
+    if formats is not None:
+        formats.update({name: (mtype, fmt, cols) for mtype, (name, fmt, cols) in found.items()})
     out: dict[str, dict[str, NDArray[np.generic]]] = {}
     for mtype, positions in starts.items():
         if not positions:
             continue
-        name, fmt, cols = formats[mtype]
+        name, fmt, cols = found[mtype]
         fields = _decode(p, data, name, fmt, cols, positions, lengths[mtype])
         if fields is not None:
             out[name] = fields
@@ -129,3 +136,38 @@ def _decode(
         else:
             fields[col] = values
     return fields
+
+
+#: Format characters whose values the reader already scales (``c``/``C``/``e``/``E`` x 0.01, ``L`` x 1e-7).
+SCALED_FORMATS = frozenset("cCeEL")
+
+
+def field_units(cols: dict[str, dict[str, NDArray[np.generic]]],
+                formats: dict[str, tuple[int, str, list[str]]]) -> dict[str, dict[str, tuple[str, float | None]]]:
+    """``{type: {field: (unit label, multiplier)}}`` from a log's ``FMTU``, ``UNIT`` and ``MULT`` messages (ArduPilot
+    ``libraries/AP_Logger/LogStructure.h``: the physical value is the logged integer times the multiplier); the
+    multiplier is None where the log gives none (``-``), 1 for fields whose format the reader scales itself
+    (:data:`SCALED_FORMATS`). Empty for a log without ``FMTU`` (ArduPilot before 3.6 or so)."""
+    fmtu, unit, mult = cols.get("FMTU"), cols.get("UNIT"), cols.get("MULT")
+    if not fmtu or not mult:
+        return {}
+    def char(i: object) -> str:  # the Id fields are int8 ('b'): a character code
+        return chr(int(i)) if not isinstance(i, str) else i  # type: ignore[call-overload]
+
+    labels = {char(i): str(v) for i, v in zip(unit["Id"], unit["Label"], strict=True)} if unit else {}
+    factors = {char(i): float(v) for i, v in zip(mult["Id"], mult["Mult"], strict=True)}
+    type_names = {int(t): n for n, (t, _, _) in formats.items()}
+    out: dict[str, dict[str, tuple[str, float | None]]] = {}
+    for ftype, unit_ids, mult_ids in zip(fmtu["FmtType"], fmtu["UnitIds"], fmtu["MultIds"], strict=True):
+        name = type_names.get(int(ftype))
+        if name is None:
+            continue
+        _, fmt, columns = formats[name]
+        fields = {}
+        for k, col in enumerate(columns):
+            u = labels.get(str(unit_ids)[k:k + 1], "")
+            m = factors.get(str(mult_ids)[k:k + 1], 0.0)
+            scaled = k < len(fmt) and fmt[k] in SCALED_FORMATS
+            fields[col] = (u, 1.0 if scaled else (None if m == 0.0 else m))
+        out[name] = fields
+    return out

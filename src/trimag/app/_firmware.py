@@ -1,0 +1,289 @@
+"""``fit --target ardupilot|px4`` (issue 30): the firmware-space fit of a log or table (:mod:`trimag.vehicle.firmware`).
+
+What this layer decides from the data and the log:
+
+- the **residual**: a vector one (the IGRF vector, or ``background_ned``, rotated into the body frame by the
+  attitude of every sample) when the data have attitudes and a field vector, else a magnitude one (IGRF's total
+  field, or ``reference``);
+- the **attitude source** (named in the report): a moving-baseline GPS heading, else the EKF-GSF yaw (ArduPilot
+  ``XKY0``, where its sigma is within :data:`GSF_MAX_SIGMA_DEG`), else the log's attitude (``ATT``,
+  ``vehicle_attitude``), whose yaw the EKF estimated with this very compass when it fused it: that circularity is
+  stated;
+- the **held** values and the orientation in force (the log's parameters: ``COMPASS_*`` / ``CAL_MAGn_*``), whether
+  the compass is external, ``COMPASS_OFFS_MAX``;
+- the **motor channels**: the battery current (A) and the throttle (0..1; not on ArduPlane and Rover, which never
+  give the compass a throttle: ``Copter::update_batt_compass``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import TrimagInputError
+from ..fields.attitude import body_field, from_euler
+from ..fields.reference import igrf, parse_igrf_spec
+from ..io import Samples
+from ..models.firmware import ArduPilotCompass, FirmwareCompass, PX4Magnetometer, firmware_class
+from ..units import convert, normalise_unit
+from ._inputs import attitudes_of
+from .requests import FitRequest
+
+#: The EKF-GSF yaw is used where its own sigma (``XKY0.YCS``) is within this (ArduPilot's CompassLearn waits for 5 deg).
+GSF_MAX_SIGMA_DEG = 5.0
+#: A GSF yaw further than this from the EKF's yaw has not converged (its sigma alone does not say so in the first
+#: seconds of a flight: 90 deg apart at a sigma of 0.6 deg in a real ArduCopter 4.3 log).
+GSF_MAX_APART_DEG = 15.0
+#: The share of samples with a usable GSF yaw below which the log's attitude is used instead.
+GSF_MIN_SHARE = 0.8
+
+
+def _log_firmware(log_info: dict[str, Any] | None) -> str | None:
+    fmt = (log_info or {}).get("format", "")
+    if fmt.startswith(("ArduPilot", "MAVLink")):
+        return "ardupilot"
+    if fmt.startswith("PX4"):
+        return "px4"
+    return None
+
+
+def _held(target: str, log_info: dict[str, Any] | None) -> tuple[FirmwareCompass | None, int | None, bool,
+                                                                  float | None, list[str]]:
+    """``(held, applied orientation, external, offsets_max, messages)`` from a log of ``target``'s firmware."""
+    if log_info is None or _log_firmware(log_info) != target:
+        if log_info is not None:
+            return None, None, True, None, [f"the log is not {target}'s: nothing of its calibration is held"]
+        return None, None, True, None, []
+    params = log_info.get("parameters") or {}
+    instance = int(log_info.get("instance") or 0)
+    if target == "ardupilot":
+        held: FirmwareCompass = ArduPilotCompass.from_parameters(params, instance)
+        n = "" if instance == 0 else str(instance + 1)
+        external = bool(params.get(f"COMPASS_EXTERN{n}" if n else "COMPASS_EXTERNAL", 1.0))
+        applied: int | None = int(held.orientation)  # the log's readings are rotated by it
+        offsets_max = params.get("COMPASS_OFFS_MAX")
+        what = f"COMPASS_ORIENT{n}" if external else "AHRS_ORIENTATION (an internal compass)"
+    else:
+        held = PX4Magnetometer.from_parameters(params, instance)
+        external = params.get(f"CAL_MAG{instance}_ROT", -1.0) >= 0
+        rotated = str(log_info.get("sensor", "")).startswith("vehicle_magnetometer")
+        applied = int(held.orientation) if rotated else None
+        offsets_max = None
+        what = f"CAL_MAG{instance}_ROT" if external else "SENS_BOARD_ROT (an internal magnetometer)"
+    msg = (f"the log's calibration is held where a level does not fit it; orientation in force: {what} = "
+           f"{held.orientation} ({held.rotation_name})")
+    return held, applied, external, offsets_max, [msg]
+
+
+def _yaw_source(samples: Samples) -> tuple[Samples, str, str | None, list[str]]:
+    """The yaw column to use (``yaw_gps_deg``, ``yaw_gsf_deg`` or ``yaw_deg``), the rows kept, its name and a note."""
+    table = samples.table
+    info = samples.log_info or {}
+    source = info.get("attitude_source") or "the attitude columns"
+    if "yaw_gps_deg" in table.columns and np.isfinite(table["yaw_gps_deg"]).mean() >= GSF_MIN_SHARE:
+        ok = np.isfinite(table["yaw_gps_deg"].to_numpy(dtype=float))
+        return _keep(samples, ok), "yaw_gps_deg", "GPS.Yaw", [f"attitude: roll and pitch from {source}, yaw from the "
+                                                             "GPS heading (GPS.Yaw): independent of the compass"]
+    if "yaw_gsf_deg" in table.columns:
+        sigma = table["yaw_gsf_sigma_deg"].to_numpy(dtype=float)
+        gsf = table["yaw_gsf_deg"].to_numpy(dtype=float)
+        apart = np.abs((gsf - table["yaw_deg"].to_numpy(dtype=float) + 180.0) % 360.0 - 180.0)
+        ok = np.isfinite(gsf) & (sigma <= GSF_MAX_SIGMA_DEG) & (apart <= GSF_MAX_APART_DEG)
+        if ok.mean() >= GSF_MIN_SHARE:
+            note = (f"attitude: roll and pitch from {source}, yaw from the EKF-GSF estimator (XKY0.YC, where its sigma "
+                    f"is <= {GSF_MAX_SIGMA_DEG:g} deg and it has converged to within {GSF_MAX_APART_DEG:g} deg of the "
+                    f"EKF's yaw; {int((~ok).sum())} samples without it dropped): independent of the compass")
+            return _keep(samples, ok), "yaw_gsf_deg", "XKY0.YC", [note]
+    return samples, "yaw_deg", None, []
+
+
+def _keep(samples: Samples, ok: NDArray[np.bool_]) -> Samples:
+    if ok.all():
+        return samples
+    return dataclasses.replace(samples, field=samples.field[ok], table=samples.table[ok],
+                               n_dropped=samples.n_dropped + int((~ok).sum()))
+
+
+def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
+    """Whether the log's EKF yaw used this compass, and what that means, in one line."""
+    params = info.get("parameters") or {}
+    source = info.get("attitude_source") or "the log's attitude"
+    if target == "ardupilot":
+        instance = int(info.get("instance") or 0)
+        use = params.get("COMPASS_USE" if instance == 0 else f"COMPASS_USE{instance + 1}", 1.0)
+        yaw_src = params.get("EK3_SRC1_YAW")
+        if not use or yaw_src in (2.0, 8.0):
+            return False, (f"attitude: {source} (the EKF's yaw did not use this compass: COMPASS_USE = {use:g}, "
+                           f"EK3_SRC1_YAW = {yaw_src if yaw_src is not None else 'n/a'})")
+        why = f"COMPASS_USE = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
+    else:
+        why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none"
+    return True, (f"attitude: {source}; its yaw is the EKF's, which fused this compass ({why}): a fit to it would "
+                  "partly see its own heading, so the levels are fitted heading-free (the field's horizontal and "
+                  "vertical components under the logged roll and pitch, MAGFit's cost as least squares) and the "
+                  "orientation only among the standard rotations. Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly "
+                  "with a GPS heading to fit the full vector")
+
+
+#: A motor channel empty on at most this share of the rows (a battery logged from a little after the compass) is
+#: kept and those rows dropped (counted); emptier, the channel is not used.
+MOTOR_MAX_EMPTY = 0.05
+
+
+def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None
+                    ) -> tuple[Samples, dict[str, Any], dict[str, str], list[str]]:
+    """``(samples, {"current": values, "throttle": values}, {kind: column}, messages)`` from the logged channels;
+    the rows a used channel leaves empty are dropped and counted."""
+    table = samples.table
+    columns: dict[str, str] = {}
+    messages: list[str] = []
+    keep = np.ones(len(table), dtype=bool)
+    for kind, column in (("current", "current_A"), ("throttle", "throttle")):
+        if column in table.columns:
+            v = table[column].to_numpy(dtype=float)
+            finite = np.isfinite(v)
+            if finite.mean() >= 1.0 - MOTOR_MAX_EMPTY and finite.any() and np.ptp(v[finite]) > 0:
+                columns[kind] = column
+                if not finite.all():
+                    messages.append(f"{int((keep & ~finite).sum())} samples without a {column} value dropped (the "
+                                    "channel's log starts later or ends earlier than the compass's)")
+                keep &= finite
+    samples = _keep(samples, keep)
+    values: dict[str, Any] = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
+    vehicle = str((info or {}).get("vehicle") or "")
+    if target == "ardupilot" and "throttle" in values and any(k in vehicle for k in ("Plane", "Rover")):
+        del values["throttle"], columns["throttle"]
+        messages.append(f"{vehicle} never gives the compass a throttle (only Copter and Sub do): no throttle term "
+                        "(COMPASS_MOTCT = 1 would multiply by 0)")
+    return samples, values, columns, messages
+
+
+def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: str
+                     ) -> tuple[Samples, Any, Any, Any, dict[str, Any], list[str]]:
+    """``(samples, field_body or None, magnitude or None, heading-free tilts or None, reference info, messages)`` in
+    the firmware's unit: a log whose only yaw is an EKF's that fused this compass is fitted heading-free."""
+    given = req.reference
+    messages: list[str] = []
+    ned = None
+    if given.background_ned is not None:
+        from ._inputs import _parse_vector
+
+        data_unit = normalise_unit(req.input.units)
+        ned = _parse_vector(given.background_ned, "background_ned") * convert(1.0, data_unit, unit_fw)
+        what = f"background_ned {given.background_ned}"
+    elif given.igrf_spec is not None:
+        ned = np.asarray(igrf(*parse_igrf_spec(given.igrf_spec)).ned_nT, dtype=np.float64) * convert(1.0, "nT",
+                                                                                                     unit_fw)
+        what = f"IGRF at {given.igrf_spec}"
+    att = req.attitude
+    has_attitude = att.attitude_columns is not None or att.quaternion_columns is not None
+    if ned is not None and has_attitude:
+        info = samples.log_info or {}
+        yaw_column = None
+        circular = False
+        if info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg":
+            samples, yaw_column, yaw_name, messages = _yaw_source(samples)
+            if yaw_name is None:
+                circular, line = _circularity(target, info)
+                messages.append(line)
+        samples, rotation, trim_note = _attitudes(samples, att, yaw_column)
+        messages += trim_note
+        tilt = None
+        if circular:
+            euler = rotation.as_euler("ZYX", degrees=True)
+            tilt = from_euler(np.zeros(len(euler)), euler[:, 1], euler[:, 2]).as_matrix()
+        reference = {"value": float(np.linalg.norm(ned)), "source": f"{what}: vector NED {np.round(ned, 4).tolist()} "
+                     f"{unit_fw}, rotated into the body frame", "unit": unit_fw}
+        return samples, body_field(rotation, ned), None, tilt, reference, messages
+    if ned is not None:
+        F = float(np.linalg.norm(ned))
+        messages.append(f"no attitudes: the fit uses the field's magnitude {F:.6g} {unit_fw} ({what}) and keeps the "
+                        "orientation (a magnitude cannot see it)")
+        return samples, None, F, None, {"value": F, "source": what, "unit": unit_fw}, messages
+    if given.reference is not None and str(given.reference).strip().lower() != "mean":
+        F = float(given.reference) * convert(1.0, normalise_unit(req.input.units), unit_fw)
+        return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages
+    raise TrimagInputError(
+        f"`target={target}` needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` (with "
+        "attitudes: the vector, rotated into the body frame) or `reference=F` (the magnitude, in the data's unit)"
+    )
+
+
+def _attitudes(samples: Samples, att: Any, yaw_column: str | None) -> tuple[Samples, Any, list[str]]:
+    """The attitude of every kept row (yaw from ``yaw_column``) and a note; an ArduPilot log's ``ATT`` is given back
+    the board trim ``AHRS_TRIM_X/Y/Z`` (as ``magfit_WMM.py`` does): the compass is rotated into the IMU's frame, the
+    one the EKF works in, and ``ATT`` is the vehicle's, the trim removed (``AP_AHRS``)."""
+    from ._inputs import drop_rows_without_attitude
+
+    samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns)
+    info = samples.log_info or {}
+    params = info.get("parameters") or {}
+    from_log = bool(info) and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg"
+    if not from_log:
+        return samples, attitudes_of(samples, att), []
+    trim = np.degrees([params.get("AHRS_TRIM_Z", 0.0), params.get("AHRS_TRIM_Y", 0.0), params.get("AHRS_TRIM_X", 0.0)])
+    t = samples.table
+    yaw = t[yaw_column or "yaw_deg"].to_numpy(dtype=float)
+    rotation = from_euler(yaw + trim[0], t["pitch_deg"].to_numpy(dtype=float) + trim[1],
+                          t["roll_deg"].to_numpy(dtype=float) + trim[2])
+    note = ([f"attitude: the board trim AHRS_TRIM (roll {trim[2]:.2f}, pitch {trim[1]:.2f}, yaw {trim[0]:.2f} deg) "
+             "added back to ATT: the compass is in the IMU's frame"] if np.any(trim) else [])
+    return samples, rotation, note
+
+
+def fit_target(req: FitRequest, samples: Samples, unit: str
+               ) -> tuple[Samples, Calibration, dict[str, Any] | None, list[str]]:
+    """The firmware-space fit of ``samples`` (in ``unit``): ``(samples kept, calibration, regressor values,
+    messages)``."""
+    from ..vehicle.firmware import firmware_calibration, fit_firmware, level_table
+
+    target = str(req.target)
+    klass = firmware_class(target)
+    if unit in ("unknown", "counts"):
+        raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
+    info = samples.log_info
+    held, applied, external, offsets_max, messages = _held(target, info)
+    samples, _, columns, more = _motor_channels(target, samples, info)  # first: the rows a channel leaves empty
+    messages += more
+    samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
+    messages += more
+    motors = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
+    factor = convert(1.0, unit, klass.unit)
+    fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
+                       motor_values=motors, held=held, applied_orientation=applied, external=external,
+                       level=req.level or "auto", motor=req.motor or "auto",
+                       offsets_max=offsets_max, heading_free=tilt)
+    messages += [m for m in fit.messages if not m.startswith("warning:")]
+    kind = fit.compass.motor_type
+    channel = columns.get(kind) if kind else None
+    cal = firmware_calibration(fit, units=unit, motor_channel=channel, reference={**reference, "unit": unit,
+                                                                                    "value": reference["value"]
+                                                                                    / factor},
+                               input_orientation=applied)
+    messages.append(f"{target} levels ({fit.residual_kind} residual; held-out RMS over {5} contiguous folds):\n"
+                    + level_table(fit.table, klass.unit))
+    held_names = ", ".join(f"{k} = {v:.4g}" for k, v in fit.held.items()) or "nothing"
+    messages.append(f"level {fit.level}: held {held_names}; orientation {fit.orientation['decision']}: "
+                    f"{fit.compass.rotation_name} ({fit.compass.orientation}); field RMS {fit.rms_before:.4g} -> "
+                    f"{fit.rms_after:.4g} {klass.unit}")
+    regressor_values = {channel: motors[kind]} if channel and kind else None
+    return samples, _magnitude_stats(cal, samples, regressor_values), regressor_values, messages
+
+
+def _magnitude_stats(cal: Calibration, samples: Samples, regressors: dict[str, Any] | None) -> Calibration:
+    """The |B| statistics every calibration carries (before: the raw readings), beside the firmware fit's own field
+    RMS (``field_rms_before``, ``field_rms_after``: the vector or magnitude residual the levels were judged by)."""
+    from ..quality.metrics import norm_stats
+
+    F = float((cal.reference or {})["value"])
+    before = norm_stats(np.linalg.norm(samples.field, axis=1), F)
+    after = norm_stats(np.linalg.norm(cal.apply(samples.field, regressors=regressors), axis=1), F)
+    stats = {f"{k}_{when}": v for when, d in (("before", before), ("after", after)) for k, v in d.items()
+             if k in ("mean_norm", "std_norm", "rms", "max_abs")}
+    stats.update(p2p_before=before["peak_to_peak"], p2p_after=after["peak_to_peak"],
+                 field_rms_before=cal.stats["rms_before"], field_rms_after=cal.stats["rms_after"])
+    return cal.with_stats(**stats)

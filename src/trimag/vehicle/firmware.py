@@ -1,0 +1,926 @@
+"""Firmware-space fits (``trimag fit --target ardupilot|px4``, issue 30): exactly the parameters the autopilot loads,
+within its limits, at the level the data identify.
+
+The parameters and each firmware's formula are :mod:`trimag.models.firmware` (ArduPilot
+``AP_Compass_Backend::correct_field``, PX4 ``Magnetometer::Correct``); the levels and their residuals are
+:mod:`trimag.vehicle._firmware_levels`. The fit:
+
+0. **Residual**: the vector one (``B - h``, the field rotated into the body frame by each sample's attitude) when
+   the attitudes are trusted; with ``heading_free`` (an attitude whose yaw an EKF estimated with this very compass)
+   the field's horizontal and vertical components under the logged roll and pitch (MAGFit's cost, as least
+   squares), falling back to the vector one when that identifies nothing (a log that never changed heading);
+   the magnitude without attitudes.
+1. **Orientation** (attitudes only: a magnitude cannot see it). Every standard rotation of the target's enum is
+   tried with one scale and the offsets (vector residual: 45-degree steps are robust to a few degrees of yaw
+   error); the log's own orientation is kept unless another fits the field at least :data:`SWITCH_RATIO` times
+   better. The rotation the standard one leaves (the rotation of the unconstrained affine fit's polar factor) is
+   left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two of its
+   standard deviations (inflated by the residuals' correlation time), the fit is refused naming the angle
+   (vector residual; heading-free it is only reported). An internal compass (ArduPilot ``COMPASS_EXTERNALn`` = 0,
+   PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation is kept and a better one reported.
+2. **Levels** (:data:`~trimag.vehicle._firmware_levels.LEVELS`, nested, each without and with each logged motor
+   channel): the directions of a level's parameters that the data do not identify (one standard deviation moving
+   the field by more than :data:`IDENTIFIED` allows) are held at the level below's solution (the log's values for
+   the first) and the others fitted; each level is judged by its RMS on :data:`N_FOLDS` contiguous folds, each
+   fitted on the others (held-out RMS); ``level="auto"`` picks the simplest level within the firmware's limits whose
+   held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says what it held; a level asked for must be
+   identified whole.
+3. **Limits**: a level whose unconstrained solution the firmware cannot load is refitted with bounds (trust-region
+   least squares): the parameters at a bound are named; a calibration still outside the limits is refused naming
+   the parameter and the limit (:meth:`~trimag.models.firmware.FirmwareCompass.violations`). A scale more than
+   :data:`SCALE_CONTRADICTION` times off the reference field is refused first: the reference (or the unit) is wrong.
+4. **Uncertainty**: ``s^2 (J^T J)^-1`` of the level's parameters, inflated like every fit's
+   (:func:`trimag.quality.honesty.correlation_time` of the residuals, repeated rows), propagated to the firmware's
+   parameters and recorded with :func:`trimag.calibration.make_uncertainty`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..calibration import Calibration, jsonable, make_uncertainty
+from ..errors import IdentifiabilityError, TrimagInputError
+from ..models.firmware import ORIENTATION_TOLERANCE_DEG, FirmwareCompass, firmware_class, rotation_matrix
+from ..quality.honesty import correlation_time, count_repeated_rows
+from ..units import convert
+from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
+
+__all__ = [
+    "AUTO_TOLERANCE",
+    "IDENTIFIED",
+    "LEVELS",
+    "N_FOLDS",
+    "ORIENTATION_TOLERANCE_DEG",
+    "FirmwareFit",
+    "KeepTheLogs",
+    "firmware_calibration",
+    "fit_firmware",
+    "level_table",
+]
+
+#: Another orientation replaces the log's only when it fits the field this many times better (RMS).
+SWITCH_RATIO = 2.0
+#: The orientation is only chosen when the field directions spread over more than this (degrees from their mean).
+MIN_CONE_DEG = 20.0
+#: A chosen level whose held-out RMS exceeds this fraction of the field is refused: nothing was identified.
+MAX_UNEXPLAINED = 0.2
+#: Contiguous folds of the held-out RMS.
+N_FOLDS = 5
+#: auto: the simplest level whose held-out RMS is within this fraction of the best.
+AUTO_TOLERANCE = 0.02
+#: A direction of a level's parameters is identified when one standard deviation along it moves the corrected field
+#: by less than ``noise_factor`` times the residual noise per axis (or ``fraction`` of the field, if larger)
+#: (:func:`_identified`).
+IDENTIFIED = {"fraction": 0.005, "noise_factor": 2.0}
+#: A fitted scale beyond this factor (either way) of the reference contradicts it: refused before any limit.
+SCALE_CONTRADICTION = 2.0
+_MOTOR_KINDS = ("current", "throttle")
+
+
+@dataclass
+class FirmwareFit:
+    """The result of :func:`fit_firmware`.
+
+    Attributes
+    ----------
+    compass : FirmwareCompass
+        The parameters (:mod:`trimag.models.firmware`).
+    level : str
+        The level chosen (or asked for).
+    table : list of dict
+        One row per level tried: ``level``, ``motor``, ``n_params``, ``rms``, ``heldout_rms``, ``identified``,
+        ``within_limits``, ``at_limit`` (parameter names), ``chosen``, ``note``.
+    param_std : dict
+        Standard deviation of each fitted firmware parameter (its name at instance 0), firmware unit.
+    covariance, covariance_order
+        The fitted parameters' covariance.
+    held : dict
+        Parameters held at the firmware's values (name -> value).
+    orientation : dict
+        How the orientation was decided (``kept``/``chosen``, ``candidates``, ``remaining_angle_deg``, ...).
+    residual_kind : str
+        ``"vector"`` or ``"magnitude"``.
+    rms_before, rms_after : float
+        RMS of the residual with the firmware's calibration in the log (or none) and with the fit, firmware unit.
+    P_u, P_h : ndarray, shape (3, 3)
+        Raw input -> firmware frame, body -> fit frame (``B~ = P_h B``).
+    motor_mean : float
+        Mean of the motor channel over the samples (0 without one).
+    inflation : dict
+        The uncertainty inflation (as :func:`trimag.quality.honesty.honest_uncertainty` records it).
+    messages : list of str
+    """
+
+    compass: FirmwareCompass
+    level: str
+    table: list[dict[str, Any]]
+    param_std: dict[str, float]
+    covariance: NDArray[np.float64]
+    covariance_order: list[str]
+    held: dict[str, float]
+    orientation: dict[str, Any]
+    residual_kind: str
+    rms_before: float
+    rms_after: float
+    P_u: NDArray[np.float64]
+    P_h: NDArray[np.float64]
+    motor_mean: float
+    inflation: dict[str, Any]
+    noise_std: float
+    n_samples: int = 0
+    messages: list[str] = field(default_factory=list)
+
+    def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
+        A, o, m = self.compass.algebra()
+        W = self.P_h.T @ A @ self.P_u
+        return W, -self.P_u.T @ o, self.P_h.T @ m
+
+
+@dataclass
+class _Frame:
+    """The fit's frame for one orientation: ``u = P_u v``, target ``P_h h``."""
+
+    orientation: int
+    P_u: NDArray[np.float64]
+    P_h: NDArray[np.float64]
+
+
+def _frame(target: str, orientation: int, applied: int | None) -> _Frame:
+    R = rotation_matrix(target, orientation)
+    R0 = np.eye(3) if applied is None else rotation_matrix(target, applied)
+    if target == "ardupilot":
+        return _Frame(orientation, R @ R0.T, np.eye(3))
+    return _Frame(orientation, R0.T, R.T)
+
+
+def _unique_rotations(target: str) -> list[int]:
+    """The enum values with distinct matrices (the lower number of a repeated one)."""
+    out: list[int] = []
+    seen: list[NDArray[np.float64]] = []
+    for value in sorted(firmware_class(target).rotations):
+        R = rotation_matrix(target, value)
+        if not any(np.allclose(R, S, atol=1e-9) for S in seen):
+            out.append(value)
+            seen.append(R)
+    return out
+
+
+def _scale_rms(u: NDArray[np.float64], h: NDArray[np.float64]) -> tuple[float, float]:
+    """RMS of ``l u + c - h`` at its least-squares ``(l, c)`` (the orientation test), and ``l``."""
+    n = len(u)
+    design = np.zeros((n, 3, 4))
+    design[:, :, 0] = u
+    design[:, :, 1:] = np.eye(3)
+    X, *_ = np.linalg.lstsq(design.reshape(3 * n, 4), h.ravel(), rcond=None)
+    r = design.reshape(3 * n, 4) @ X - h.ravel()
+    return float(np.sqrt(np.mean(r**2) * 3)), float(X[0])
+
+
+def _polar_angle(G: NDArray[np.float64]) -> float:
+    """Angle (degrees) of the rotation ``Q`` of ``G = P Q`` (ArduPilot: the matrix after the rotation), which is
+    also the ``Q`` of ``G = Q P`` (PX4: the rotation last): ``U S V^T = (U S U^T)(U V^T) = (U V^T)(V S V^T)``."""
+    U, _, Vt = np.linalg.svd(G)
+    Q = U @ Vt
+    return float(np.degrees(np.arccos(np.clip((np.trace(Q) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _choose_orientation(
+    target: str, raw: NDArray[np.float64], h: NDArray[np.float64], held: FirmwareCompass, applied: int | None,
+    external: bool, tolerance_deg: float, motors: Mapping[str, NDArray[np.float64]],
+) -> tuple[_Frame, dict[str, Any], list[str]]:
+    """The orientation (step 1 of the module docstring) and what was decided."""
+    results = []
+    scales = {}
+    for value in _unique_rotations(target):
+        fr = _frame(target, value, applied)
+        rms, scales[value] = _scale_rms(raw @ fr.P_u.T, h @ fr.P_h.T)
+        results.append((rms if scales[value] > 0 else np.inf, value))
+    results.sort()
+    best_rms, best = results[0]
+    F = float(np.median(np.linalg.norm(h, axis=1)))
+    own = F / float(np.median(np.linalg.norm(raw, axis=1)))  # with the regression's scale: a poorly turned log
+    _refuse_contradicted_scale(scales[best] if abs(np.log(abs(own))) > np.log(SCALE_CONTRADICTION) else own, F,
+                               type(held))  # attenuates the regression's (errors in u), so both must disagree
+    current = int(held.orientation)
+    current_rms = next(r for r, v in results if v == current)
+    name = type(held)(orientation=best).rotation_name
+    messages: list[str] = []
+    info: dict[str, Any] = {"log_value": current, "best_value": best, "best_rms": best_rms,
+                            "log_rms": current_rms, "external": external}
+    chosen = current
+    directions = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    mean = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
+    cone = float(np.degrees(np.arccos(np.clip(directions @ mean, -1.0, 1.0))).max())
+    info["cone_deg"] = cone
+    if cone < MIN_CONE_DEG:
+        messages.append(f"orientation: kept (the field direction stayed within {cone:.0f} deg: too little turning to "
+                        "tell the sensor's orientation)")
+        best = current
+    elif best != current and np.isfinite(best_rms) and current_rms > SWITCH_RATIO * best_rms:
+        better = (f"{current_rms / best_rms:.3g}x better than the log's {current}" if np.isfinite(current_rms) else
+                  f"while the log's {current} sees the field reversed (a negative scale)")
+        if external:
+            chosen = best
+            messages.append(f"orientation: {name} ({best}) fits the field {better}: chosen")
+        else:
+            messages.append(f"warning: the field fits {name} ({best}) {better}, but this compass is internal: its "
+                            "orientation follows the board's (AHRS_ORIENTATION / SENS_BOARD_ROT); check the board's "
+                            "orientation")
+    info["decision"] = "chosen" if chosen != current else "kept"
+    fr = _frame(target, chosen, applied)
+    info["value"] = chosen
+    angle, sigma = _remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors)
+    info["remaining_angle_deg"], info["remaining_angle_sigma_deg"] = angle, sigma
+    if angle is not None and sigma is not None:
+        messages.append(f"orientation: the nearest standard rotation leaves {angle:.1f} +- {sigma:.1f} deg, left to "
+                        "the symmetric matrix (it stays as a heading error of about that size)")
+    if angle is not None and sigma is not None and angle - 2.0 * sigma > tolerance_deg:
+        chosen_name = type(held)(orientation=chosen).rotation_name
+        raise TrimagInputError(
+            f"the compass is rotated {angle:.1f} deg from the nearest standard orientation {chosen_name} ({chosen}); "
+            f"the symmetric matrix the firmware takes leaves at most {tolerance_deg:g} deg to it: mount the compass "
+            "square to the vehicle (or set a custom rotation: ArduPilot COMPASS_ORIENT 101 with CUST_ROT1_*, PX4 "
+            "CAL_MAGn_ROT 100 with CAL_MAGn_ROLL/PITCH/YAW) and record again"
+        )
+    return fr, info, messages
+
+
+def _remaining_angle(u: NDArray[np.float64], h: NDArray[np.float64],
+                     motors: Mapping[str, NDArray[np.float64]]) -> tuple[float | None, float | None]:
+    """The rotation (degrees) of the unconstrained affine fit ``h = G u + c (+ motor terms)`` and its standard
+    deviation; None when it is not measured to half of :data:`ORIENTATION_TOLERANCE_DEG`."""
+    design = np.column_stack([u, np.ones(len(u)), *motors.values()])
+    X, *_ = np.linalg.lstsq(design, h, rcond=None)
+    r = h - design @ X
+    tau = max(correlation_time(r[:, k]) for k in range(3))  # correlated residuals carry less information
+    s2 = float(np.sum(r**2)) / max(3 * (len(u) - design.shape[1]), 1) * tau
+    try:
+        var = np.diag(np.linalg.inv(design.T @ design))[:3] * s2
+    except np.linalg.LinAlgError:
+        return None, None
+    sigma = float(np.degrees(np.sqrt(np.max(var)) / max(float(np.median(np.linalg.norm(h, axis=1))), 1e-300)
+                             * np.sqrt(np.mean(np.linalg.norm(u, axis=1) ** 2))))
+    if not sigma < ORIENTATION_TOLERANCE_DEG / 2:
+        return None, sigma
+    return _polar_angle(np.asarray(X[:3].T, dtype=np.float64)), sigma
+
+
+# ------------------------------------------------------------------ the uncertainty of one level
+def _inflation(residual: NDArray[np.float64], width: int, raw: NDArray[np.float64]) -> dict[str, Any]:
+    """The honest inflation (:mod:`trimag.quality.honesty`) of a level's covariance (``width`` residuals per
+    sample)."""
+    series = residual.reshape(-1, width).T
+    n = series.shape[1]
+    window = slice(max(0, (n - 4096) // 2), max(0, (n - 4096) // 2) + 4096)
+    tau = max(correlation_time(s[window]) for s in series)
+    repeats = count_repeated_rows(raw[:20_000])
+    factors: dict[str, float] = {}
+    if tau > 1.0:
+        factors["correlated_residuals"] = tau
+    if repeats:
+        factors["repeated_rows"] = len(raw) / max(len(raw) - repeats, 1)
+    total = float(np.prod(list(factors.values()))) if factors else 1.0
+    return {"total": total, **factors, "n_distinct": len(raw) - repeats,
+            "note": "covariance x total (trimag.quality.honesty): repeated rows, correlated residuals"}
+
+
+def _covariance(sol: LevelSolution, total: float) -> tuple[NDArray[np.float64], float]:
+    J, r = sol.jacobian, sol.residual
+    dof = max(len(r) - J.shape[1], 1)
+    s2 = float(r @ r) / dof
+    cov = np.linalg.pinv(J.T @ J) * s2 * total
+    return cov, float(np.sqrt(s2))
+
+
+def _effect_scales(problem: LevelProblem, F: float, x_range: float) -> NDArray[np.float64]:
+    """How much one unit of each parameter moves the corrected field: offsets 1, matrix entries ``F``, a motor term
+    half the logged range ``x_range``."""
+    return np.array([1.0 if n.startswith("o_") else (x_range / 2.0 if n.startswith("m_") else F)
+                     for n in problem.names()])
+
+
+def _identified(problem: LevelProblem, cov: NDArray[np.float64], scales: NDArray[np.float64], F: float,
+                noise: float, change: NDArray[np.float64]) -> tuple[NDArray[np.float64], list[str]]:
+    """The directions of the level's parameters that the data identify, and the names of those they do not.
+
+    Parameters are compared by their effect on the corrected field (:func:`_effect_scales`). A direction (an
+    eigenvector of the scaled covariance) is identified when one standard deviation along it moves the field by
+    less than ``IDENTIFIED["noise_factor"]`` times the fit's residual noise ``noise`` (or ``IDENTIFIED["fraction"]``
+    of the field ``F``, if larger). ``change`` (the solution minus the held values) is not used.
+
+    Returns
+    -------
+    basis : ndarray, shape (p, k)
+        The identified directions (columns, in parameters over ``scales``).
+    weak : list of str
+        For each direction not identified, the parameter that dominates it (a parameter named once).
+    """
+    limit = max(noise, IDENTIFIED["fraction"] * F)
+    scaled = cov / np.outer(scales, scales)
+    eigval, eigvec = np.linalg.eigh((scaled + scaled.T) / 2.0)
+    good = np.sqrt(np.clip(eigval, 0, None)) <= IDENTIFIED["noise_factor"] * limit
+    del change
+    names = problem.names()
+    weak: list[str] = []
+    for k in np.flatnonzero(~good):
+        name = names[int(np.argmax(np.abs(eigvec[:, k])))]
+        if name not in weak:
+            weak.append(name)
+    return eigvec[:, good], weak
+
+
+# ------------------------------------------------------------------ one level: fit, limits, held-out RMS
+@dataclass
+class _Candidate:
+    level: str
+    motor: str | None
+    problem: LevelProblem
+    solution: LevelSolution
+    compass: FirmwareCompass
+    covariance: NDArray[np.float64]
+    noise: float
+    inflation: dict[str, Any]
+    identified: bool
+    weak: list[str]
+    violations: list[str]
+    at_limit: list[str]
+    heldout_rms: float
+    held_motor: bool = False
+    n_identified: int = 0
+
+
+def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
+            offsets_max: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Box bounds of a level's parameters that keep the firmware's limits (module docstring, step 3)."""
+    lo = np.full(problem.n_params, -np.inf)
+    hi = np.full(problem.n_params, np.inf)
+    ap = klass.target == "ardupilot"
+    diag_lo, diag_hi = (0.2 / 1.5, 5.0 * 1.5) if ap else (0.1, 3.0)
+    for k, name in enumerate(problem.names()):
+        if name == "l":
+            lo[k], hi[k] = ((1 / 1.5) / held_scale, 1.5 / held_scale) if ap else (0.1, 3.0)
+        elif name.startswith("d_") or name in ("A_xx", "A_yy", "A_zz"):
+            lo[k], hi[k] = diag_lo, diag_hi
+        elif name.startswith("A_") and ap:
+            lo[k], hi[k] = -1.5, 1.5
+        elif name.startswith("o_") and ap:
+            lo[k], hi[k] = -offsets_max, offsets_max
+        elif name.startswith("m_") and ap:
+            lo[k], hi[k] = -1000.0, 1000.0
+    return lo, hi
+
+
+def _compass(klass: type[FirmwareCompass], sol: LevelSolution, level: str, orientation: int, motor: str | None,
+             held: FirmwareCompass | None, held_motor: bool = False) -> FirmwareCompass:
+    """The firmware parameters of a solution; the lower levels keep the held values exactly, and ``held_motor``
+    keeps the firmware's own motor term."""
+    if held is not None and level in ("offsets", "scale") and held.orientation == orientation:
+        A, o, m = sol.A, sol.o, sol.m
+        base = klass.from_algebra(A, o, m, orientation=orientation, motor_type=motor)
+        changes: dict[str, Any] = {"offsets": base.offsets}
+        if not held_motor:
+            changes.update(motor=base.motor, motor_type=motor)
+        if level == "scale":
+            A_held = held.algebra()[0]
+            ratio = float(np.sum(A * A_held) / np.sum(A_held * A_held))
+            if klass.target == "ardupilot":
+                s_eff = held.effective_scale  # type: ignore[attr-defined]
+                changes["scale"] = ratio * s_eff
+                if not np.any(held.diagonal):
+                    changes["diagonal"] = np.ones(3)
+            else:
+                changes["diagonal"] = held.diagonal * ratio
+                changes["offdiagonal"] = held.offdiagonal * ratio
+        return dataclasses.replace(held, **changes)
+    out = klass.from_algebra(sol.A, sol.o, sol.m, orientation=orientation, motor_type=motor)
+    if held_motor and held is not None:
+        out = dataclasses.replace(out, motor=held.motor, motor_type=held.motor_type)
+    return out
+
+
+def _folds(n: int) -> list[NDArray[np.int64]]:
+    edges = np.linspace(0, n, N_FOLDS + 1).astype(int)
+    return [np.arange(edges[k], edges[k + 1]) for k in range(N_FOLDS)]
+
+
+def _heldout(problem: LevelProblem, sol: LevelSolution, bounds: Any) -> float:
+    """RMS over every sample of the residual (vector length, heading-free or magnitude) predicted by the fit on the
+    other folds."""
+    n = len(problem.u)
+    if n < 5 * N_FOLDS:
+        return float("nan")
+    errors = []
+    for fold in _folds(n):
+        train = np.setdiff1d(np.arange(n), fold)
+        try:
+            if sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
+                part = problem.solve_in(sol.theta_ref, sol.basis, sol.scales, rows=train)
+            else:
+                part = problem.solve(sol.theta, rows=train, bounds=bounds)
+        except (np.linalg.LinAlgError, ValueError):
+            return float("inf")
+        r = problem.residual(part.theta, rows=fold)
+        errors.append(r.reshape(-1, problem.width))
+    e = np.concatenate(errors)
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+
+def _fit_level(
+    level: str, motor: str | None, u: NDArray[np.float64], target: NDArray[np.float64],
+    motor_values: Mapping[str, NDArray[np.float64]], klass: type[FirmwareCompass], held: FirmwareCompass,
+    A_held: NDArray[np.float64], o_held: NDArray[np.float64], start: NDArray[np.float64] | None, orientation: int,
+    offsets_max: float, raw: NDArray[np.float64], held_same_frame: bool, tilt: NDArray[np.float64] | None = None,
+) -> _Candidate:
+    x = None if motor is None else motor_values[motor]
+    fixed = None
+    if motor is None and held.motor_type in motor_values and np.any(held.motor):
+        # the firmware's own motor term is held (PX4's COMP with the held scale matrix: COMP acts inside S)
+        fixed = motor_values[str(held.motor_type)][:, None] * held.algebra()[2]
+    problem = LevelProblem(u, level, x, target, A_held, o_held, fixed, tilt)
+    if problem.vector:
+        p0 = problem.linear_start()
+    elif start is not None:
+        p0 = problem.pack(*start) if isinstance(start, tuple) else start
+    else:
+        p0 = problem.sphere_start()
+    sol = problem.solve(p0)
+    held_for_params = held if held_same_frame else None
+    if fixed is not None:  # the fit kept the firmware's motor term: so do the parameters
+        held_for_params = held
+    compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
+    bounds = None
+    if compass.violations(offsets_max=offsets_max):
+        bounds = _bounds(problem, klass, held.effective_scale if klass.target == "ardupilot" else 1.0,  # type: ignore[attr-defined]
+                         offsets_max)
+        sol = problem.solve(sol.theta, bounds=bounds)
+        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
+    inflation = _inflation(sol.residual, problem.width, raw)
+    cov, noise = _covariance(sol, inflation["total"])
+    F = float(np.median(np.linalg.norm(target, axis=1) if target.ndim == 2 else target))
+    x_range = float(np.ptp(x)) if x is not None else 1.0
+    scales = _effect_scales(problem, F, x_range)
+    m_held = held.algebra()[2] if fixed is None and held.motor_type == motor else np.zeros(3)
+    reference = problem.pack(*start) if isinstance(start, tuple) else problem.pack(A_held, o_held, m_held)
+    basis, weak = _identified(problem, cov, scales, F, float(np.sqrt(np.mean(sol.residual**2))),
+                              sol.theta - reference)
+    if weak and basis.shape[1] and bounds is None:  # fit what is identified; hold the rest at the log's values
+        sol = problem.solve_in(reference, basis, scales)
+        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
+        J = (sol.jacobian * scales) @ basis
+        s2 = float(sol.residual @ sol.residual) / max(len(sol.residual) - basis.shape[1], 1)
+        cov = (scales[:, None] * basis) @ np.linalg.pinv(J.T @ J) @ (scales[:, None] * basis).T * s2 \
+            * inflation["total"]
+    names = problem.names()
+    return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
+                      [str(v) for v in compass.violations(offsets_max=offsets_max)],
+                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
+                      basis.shape[1])
+
+
+# ------------------------------------------------------------------ the fit
+def _check_inputs(raw: ArrayLike, field_body: ArrayLike | None, magnitude: ArrayLike | None,
+                  motor_values: Mapping[str, ArrayLike] | None) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                                                       dict[str, NDArray[np.float64]]]:
+    v = np.asarray(raw, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        raise TrimagInputError(f"`raw` must be finite with shape (N, 3); got {v.shape}")
+    if (field_body is None) == (magnitude is None):
+        raise TrimagInputError("give either `field_body` (N, 3: the body-frame field, a flight with attitudes) or "
+                               "`magnitude` (the field's magnitude), not both")
+    if field_body is not None:
+        target = np.asarray(field_body, dtype=np.float64)
+        shape: tuple[int, ...] = (len(v), 3)
+    else:
+        target = np.broadcast_to(np.asarray(magnitude, dtype=np.float64), (len(v),)).copy()
+        shape = (len(v),)
+    if target.shape != shape or not np.isfinite(target).all():
+        raise TrimagInputError(f"the reference must be finite with shape {shape}; got {target.shape}")
+    motors: dict[str, NDArray[np.float64]] = {}
+    for kind, values in (motor_values or {}).items():
+        if kind not in _MOTOR_KINDS:
+            raise TrimagInputError(f"motor channels are 'current' (A) or 'throttle' (0..1); got {kind!r}")
+        arr = np.asarray(values, dtype=np.float64)
+        if arr.shape != (len(v),) or not np.isfinite(arr).all():
+            raise TrimagInputError(f"the {kind} channel must be {len(v)} finite values")
+        if np.ptp(arr) > 0:
+            motors[kind] = arr
+    n_min = 12 if target.ndim == 2 else 30
+    if len(v) < n_min:
+        raise IdentifiabilityError(f"{len(v)} samples: a firmware fit needs at least {n_min}; log the magnetometer "
+                                   "longer or faster")
+    return v, target, motors
+
+
+def _motor_choices(motor: str, motors: Mapping[str, NDArray[np.float64]]) -> list[str | None]:
+    if motor == "none":
+        return [None]
+    if motor == "auto":
+        return [None, *motors]
+    if motor not in motors:
+        have = ", ".join(motors) or "none that varies"
+        raise TrimagInputError(f"`motor={motor}` needs a logged {motor} channel that varies; this log has {have}")
+    return [motor]
+
+
+def fit_firmware(
+    target: str, raw: ArrayLike, *, field_body: ArrayLike | None = None, magnitude: ArrayLike | None = None,
+    motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,
+    applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
+    tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
+    heading_free: ArrayLike | None = None,
+) -> FirmwareFit:
+    """Fit ``target``'s parameters (see the module docstring).
+
+    Parameters
+    ----------
+    target : {"ardupilot", "px4"}
+    raw : array_like, shape (N, 3)
+        Raw readings in the firmware's unit (mGauss, gauss), in the frame of the rotation ``applied_orientation``
+        (an ArduPilot log's readings are rotated by the orientation in force; None: the sensor's own frame).
+    field_body, magnitude : array_like
+        The body-frame field (N, 3) at each sample (a flight with attitudes: vector residual) or its magnitude
+        (N,) or () (magnitude residual; the orientation is then kept).
+    motor_values : mapping, optional
+        ``{"current": (N,) A, "throttle": (N,) 0..1}``: the channels a motor term may use.
+    held : FirmwareCompass, optional
+        The calibration the firmware had (from the log's parameters): the orientation and the values the lower levels
+        hold. Default: orientation ``applied_orientation`` (or 0), identity matrix.
+    external : bool
+        False for an internal compass (its orientation is the board's: kept).
+    level : {"auto", "offsets", "scale", "diagonal", "full"}
+    motor : {"auto", "none", "current", "throttle"}
+    tolerance_deg : float
+        :data:`ORIENTATION_TOLERANCE_DEG`.
+    offsets_max : float, optional
+        ArduPilot's ``COMPASS_OFFS_MAX`` (default 1800).
+    heading_free : array_like, shape (N, 3, 3), optional
+        With ``field_body``: each sample's roll-and-pitch rotation (body -> level frame). The levels are then fitted
+        to the heading-free residual (the field's horizontal and vertical components: the heading does not enter),
+        for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
+        chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
+        reported.
+
+    Raises
+    ------
+    TrimagInputError
+        Bad input, a reference the data contradict, a rotation the firmware cannot hold, or no level within the
+        firmware's limits (exit 2).
+    IdentifiabilityError
+        The data identify no level (or not the one asked for): exit 3, naming what is not identified.
+    """
+    klass = firmware_class(target)
+    if level not in ("auto", *LEVELS):
+        raise TrimagInputError(f"`level` must be auto, {', '.join(LEVELS)}; got {level!r}")
+    if motor not in ("auto", "none", *_MOTOR_KINDS):
+        raise TrimagInputError(f"`motor` must be auto, none, current or throttle; got {motor!r}")
+    v, h, motors = _check_inputs(raw, field_body, magnitude, motor_values)
+    if held is None:
+        held = klass(orientation=applied_orientation or 0)
+    if not isinstance(held, klass):
+        raise TrimagInputError(f"`held` must be a {klass.__name__}")
+    omax = float(offsets_max) if offsets_max else float(getattr(klass, "OFFSETS_MAX", np.inf))
+    vector = h.ndim == 2
+    messages: list[str] = []
+    tilt = None if heading_free is None else np.asarray(heading_free, dtype=np.float64)
+    if tilt is not None and (not vector or tilt.shape != (len(v), 3, 3)):
+        raise TrimagInputError(f"`heading_free` needs `field_body` and one 3x3 rotation per sample ({len(v)}, 3, 3)")
+    if vector:
+        fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external,
+                                                    np.inf if tilt is not None else tolerance_deg, motors)
+        messages += more
+    else:
+        fr = _frame(target, int(held.orientation), applied_orientation)
+        orientation = {"decision": "kept", "value": int(held.orientation), "log_value": int(held.orientation),
+                       "note": "a magnitude-only fit cannot see the orientation"}
+    u, hh = v @ fr.P_u.T, (h @ fr.P_h.T if vector else h)
+    same_frame = fr.orientation == int(held.orientation)
+    A_held, o_held, _ = held.algebra()
+    if not same_frame:  # the held matrix and offsets seen in the new frame (module docstring of _firmware_levels)
+        T = fr.P_u @ _frame(target, int(held.orientation), applied_orientation).P_u.T
+        A_held, o_held = T @ A_held @ T.T, T @ o_held
+    F = float(np.median(np.linalg.norm(hh, axis=1) if vector else hh))
+    if not vector:
+        _refuse_contradicted_scale(_sphere_scale(u, F), F, klass)
+    held_frame = _frame(target, int(held.orientation), applied_orientation)
+    try:
+        table, candidates, chosen, tilt = _levels(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr,
+                                                  held_frame, omax, same_frame, tilt, vector, F, messages)
+    except IdentifiabilityError as exc:  # what the orientation step found explains many a refusal
+        said = [m[len("warning: "):] for m in messages if m.startswith("warning: the field fits")]
+        if said:
+            raise type(exc)(f"{exc}; {said[0]}") from None
+        raise
+    for row, cand in zip(table, candidates, strict=True):
+        row["chosen"] = cand is chosen
+    return _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
+                   tilt)
+
+
+def _levels(
+    level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
+    hh: NDArray[np.float64], h: NDArray[np.float64], v: NDArray[np.float64], klass: type[FirmwareCompass],
+    held: FirmwareCompass, A_held: NDArray[np.float64], o_held: NDArray[np.float64], fr: _Frame, held_frame: _Frame,
+    omax: float, same_frame: bool, tilt: NDArray[np.float64] | None, vector: bool, F: float, messages: list[str],
+) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
+    """The levels' table and candidates and the one chosen, heading-free first where asked (module docstring)."""
+    if tilt is not None:  # heading-free first; the vector (the untrusted yaw) only where it identifies nothing
+        level_field = np.einsum("nij,nj->ni", tilt, h)
+        hz = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
+        table, candidates = _run_levels(level, motor, motors, u, hz, klass, held, A_held, o_held, fr.orientation,
+                                        omax, v, same_frame, tilt @ fr.P_h)
+        try:
+            chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, tilt), F)
+        except KeepTheLogs:
+            raise
+        except IdentifiabilityError as exc:
+            messages.append(f"warning: heading-free, {exc}; fitted to the vector with the attitude's own yaw instead "
+                            "(which used this compass: the orientation about the vertical and the horizontal soft "
+                            "iron lean toward the calibration in the log)")
+            tilt = None
+    if tilt is None:
+        table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation,
+                                        omax, v, same_frame)
+        chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, None), F)
+    return table, candidates, chosen, tilt
+
+
+def _refuse_contradicted_scale(scale: float, F: float, klass: type[FirmwareCompass]) -> None:
+    """Refuse a reference ``F`` the data contradict: the scale that maps the data's field onto it (the one-scale
+    fit of the best orientation, or the reference over the radius of the sphere through the readings) more than
+    :data:`SCALE_CONTRADICTION` times off 1."""
+    ratio = 1.0 / abs(scale) if scale else float("inf")
+    if not 1.0 / SCALE_CONTRADICTION <= ratio <= SCALE_CONTRADICTION:
+        raise TrimagInputError(
+            f"the data's field is {ratio:.3g}x the reference field ({F * ratio:.4g} against {F:.4g} {klass.unit}): "
+            f"{klass.target} loads a scale within [0.667, 1.5] at most; the reference or the data's unit is wrong: "
+            "give the field magnitude (`reference`) or the IGRF site, and the data, in the right unit"
+        )
+
+
+def _sphere_scale(u: NDArray[np.float64], F: float) -> float:
+    """``F`` over the radius of the sphere through the readings (algebraic fit of ``|u - c|^2 = r^2``)."""
+    design = np.column_stack([2.0 * u, np.ones(len(u))])
+    X, *_ = np.linalg.lstsq(design, np.sum(u * u, axis=1), rcond=None)
+    radius = float(np.sqrt(max(X[3] + X[:3] @ X[:3], 0.0)))  # |u|^2 = 2 u.c + (r^2 - |c|^2)
+    return F / radius if radius > 0 else float("inf")
+
+
+def _run_levels(
+    level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
+    target: NDArray[np.float64], klass: type[FirmwareCompass], held: FirmwareCompass, A_held: NDArray[np.float64],
+    o_held: NDArray[np.float64], orientation: int, omax: float, raw: NDArray[np.float64], same_frame: bool,
+    tilt: NDArray[np.float64] | None = None,
+) -> tuple[list[dict[str, Any]], list[_Candidate]]:
+    levels = LEVELS if level == "auto" else (level,)
+    table: list[dict[str, Any]] = []
+    candidates: list[_Candidate] = []
+    previous: dict[str | None, Any] = {}  # each motor choice's solution of the level below: its start and what
+    for lv in levels:                      # the next level holds where the data do not identify it (nested levels)
+        for mk in _motor_choices(motor, motors):
+            try:
+                cand = _fit_level(lv, mk, u, target, motors, klass, held, A_held, o_held, previous.get(mk),
+                                  orientation, omax, raw, same_frame, tilt)
+            except (IdentifiabilityError, np.linalg.LinAlgError):
+                continue
+            previous[mk] = (cand.solution.A, cand.solution.o, cand.solution.m)
+            candidates.append(cand)
+            sol = cand.solution
+            rms = float(np.sqrt(np.mean(sol.residual**2) * cand.problem.width))
+            held_motor = "held" if cand.held_motor else None
+            table.append({"level": lv, "motor": mk or held_motor, "n_params": cand.problem.n_params, "rms": rms,
+                          "heldout_rms": cand.heldout_rms, "identified": cand.identified,
+                          "n_identified": cand.n_identified,
+                          "not_identified": cand.weak, "within_limits": not cand.violations,
+                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False})
+    return table, candidates
+
+
+class KeepTheLogs(IdentifiabilityError):
+    """The calibration in the log fits the data better than any level fitted to them (exit 3: nothing to change)."""
+
+
+def _choose(level: str, candidates: list[_Candidate], before: float | None = None, F: float | None = None
+            ) -> _Candidate:
+    """The level chosen (module docstring, step 2), or the refusal; ``before``: the RMS of the calibration in the
+    log on these data (it was not fitted to them: a level whose held-out RMS does not beat it is no improvement)."""
+    if level != "auto":  # a level asked for must be identified whole
+        whole = [c for c in candidates if c.identified]
+        if not whole:
+            weak = ", ".join(candidates[0].weak) if candidates else "its parameters"
+            raise IdentifiabilityError(
+                f"the {level} level asked for is not identified ({weak}); `level=auto` fits what the data identify "
+                "and holds the rest at the log's values"
+            )
+        candidates = whole
+    usable = [c for c in candidates if c.n_identified and not c.violations]
+    inside = [c for c in usable if not c.at_limit]  # a level the limits hold back is only taken if it is all there is
+    if level == "auto" and usable and not inside:
+        c = min(usable, key=lambda c: c.heldout_rms)
+        raise TrimagInputError(
+            f"the data push {', '.join(c.at_limit)} of the {c.level} level to the firmware's limit: what they ask for "
+            "cannot be loaded (a reference or unit off, iron near the compass, or a log that barely turned); check "
+            "the reference and record a calibration turning through all headings, pitched and rolled"
+        )
+    usable = inside if level == "auto" else usable
+    if not usable:
+        outside = [c for c in candidates if c.n_identified and c.violations]
+        if outside:
+            raise TrimagInputError(
+                f"the firmware cannot load this calibration: {outside[0].violations[0]} (level {outside[0].level}); "
+                "move the compass away from iron or magnets, or check the reference"
+            )
+        raise IdentifiabilityError(
+            "this log identifies no firmware calibration, not even the offsets: record the vehicle turning through "
+            "all headings, and for the matrix also pitched and rolled; for the offsets alone a few headings at level "
+            "with the attitude and a GPS fix logged"
+        )
+    best = min(c.heldout_rms if np.isfinite(c.heldout_rms) else np.inf for c in usable)
+    if F is not None and np.isfinite(best) and best > MAX_UNEXPLAINED * F:
+        raise IdentifiabilityError(
+            f"the best level leaves {best:.4g} of the field {F:.4g} unexplained (held-out RMS, "
+            f"{100 * best / F:.0f}%): these data cannot identify a calibration (a log that barely turned, readings "
+            "the log's own processing changed, or a field disturbed by the vehicle); record a calibration turning "
+            "through all headings, pitched and rolled, with the raw magnetometer logged"
+        )
+    if level == "auto" and before is not None and np.isfinite(best) and best >= before:
+        raise KeepTheLogs(
+            f"the calibration in the log fits these data (RMS {before:.4g}) better than any level fitted to them "
+            f"(best held-out RMS {best:.4g}): keep it; to improve on it, record the vehicle turning through all "
+            "headings, pitched and rolled"
+        )
+    if not np.isfinite(best):
+        return min(usable, key=lambda c: c.problem.n_params)
+    for c in sorted(usable, key=lambda c: c.problem.n_params):
+        if c.heldout_rms <= best * (1.0 + AUTO_TOLERANCE):
+            return c
+    return usable[0]
+
+
+def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass, motor: str | None,
+                held_motor: bool) -> dict[str, float]:
+    """The parameters the level held at the firmware's values (name at instance 0 -> value)."""
+    params = held.parameters(0)
+    keep = {"offsets": ["SCALE", "DIA", "ODI"], "scale": ["DIA", "ODI"], "diagonal": ["ODI"], "full": []}[level]
+    if klass.target == "px4":
+        keep = {"offsets": ["SCALE", "ODIAG"], "scale": ["ODIAG"], "diagonal": ["ODIAG"], "full": []}[level]
+    out = {k: v for k, v in params.items() if any(t in k for t in keep) and "_MOT" not in k and not k.endswith("COMP")}
+    if held_motor:
+        out.update({k: v for k, v in params.items() if "_MOT" in k or k.endswith(("COMP", "COMP_TYP"))})
+    elif motor is None:
+        out["motor term"] = 0.0
+    return out
+
+
+def _firmware_name(klass: type[FirmwareCompass], name: str) -> str:
+    """The firmware's parameter (instance 0) behind an algebra name (``o_x``, ``d_y``, ``A_xz``, ``l``, ``m_z``)."""
+    axis = {"x": "X", "y": "Y", "z": "Z", "xx": "X", "yy": "Y", "zz": "Z", "xy": "X", "xz": "Y", "yz": "Z"}
+    kind, _, which = name.partition("_")
+    a = axis.get(which, "")
+    if klass.target == "ardupilot":
+        return {"o": f"COMPASS_OFS_{a}", "m": f"COMPASS_MOT_{a}", "l": "COMPASS_SCALE", "d": f"COMPASS_DIA_{a}",
+                "A": f"COMPASS_{'DIA' if which in ('xx', 'yy', 'zz') else 'ODI'}_{a}"}[kind]
+    return {"o": f"CAL_MAG0_{a}OFF", "m": f"CAL_MAG0_{a}COMP", "l": "CAL_MAG0_XSCALE", "d": f"CAL_MAG0_{a}SCALE",
+            "A": f"CAL_MAG0_{a}{'SCALE' if which in ('xx', 'yy', 'zz') else 'ODIAG'}"}[kind]
+
+
+def _param_covariance(cand: _Candidate, klass: type[FirmwareCompass], orientation: int,
+                      held: FirmwareCompass | None) -> tuple[list[str], NDArray[np.float64]]:
+    """The covariance of the firmware parameters (instance 0 names) that the level fits, by a numerical Jacobian
+    of parameters against the level's vector."""
+    theta = cand.solution.theta
+    problem = cand.problem
+
+    def values(t: NDArray[np.float64]) -> dict[str, float]:
+        A, o, m = problem.unpack(t)
+        sol = dataclasses.replace(cand.solution, A=A, o=o, m=m, theta=t)
+        return _compass(klass, sol, cand.level, orientation, cand.motor, held, cand.held_motor).parameters(0)
+
+    base = values(theta)
+    names = [k for k in base if not k.endswith("ORIENT") and not k.endswith("_ROT") and k not in
+             ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP")]
+    G = np.zeros((len(names), len(theta)))
+    for j in range(len(theta)):
+        step = 1e-6 * max(1.0, abs(theta[j]))
+        t = theta.copy()
+        t[j] += step
+        moved = values(t)
+        G[:, j] = [(moved[k] - base[k]) / step for k in names]
+    cov = G @ cand.covariance @ G.T
+    fitted = [i for i, k in enumerate(names) if np.any(G[i] != 0)]
+    return [names[i] for i in fitted], cov[np.ix_(fitted, fitted)]
+
+
+def _result(
+    chosen: _Candidate, table: list[dict[str, Any]], klass: type[FirmwareCompass], held: FirmwareCompass,
+    fr: _Frame, held_frame: _Frame, orientation: dict[str, Any], vector: bool, raw: NDArray[np.float64],
+    target: NDArray[np.float64],
+    motors: Mapping[str, NDArray[np.float64]], messages: list[str], same_frame: bool,
+    tilt: NDArray[np.float64] | None = None,
+) -> FirmwareFit:
+    names, cov = _param_covariance(chosen, klass, fr.orientation,
+                                   held if same_frame or chosen.held_motor else None)
+    std = dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True))
+    rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * chosen.problem.width))
+    rms_before = _rms_before(held, raw, target, held_frame, vector, motors, tilt)
+    kind = chosen.compass.motor_type
+    x = motors.get(kind) if kind else None
+    held_values = _held_names(klass, chosen.level, held, chosen.motor, chosen.held_motor)
+    fitted = chosen.compass.parameters(0)
+    for name in chosen.weak:  # the directions the data do not identify, held at the level below's values
+        fw = _firmware_name(klass, name)
+        held_values[f"{fw} (not identified)"] = float(fitted.get(fw, 0.0))
+    if chosen.at_limit:
+        messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
+                        "cannot represent what the data ask for there")
+    return FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
+                       ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
+                       rms_after, fr.P_u, fr.P_h,
+                       float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
+                       messages)
+
+
+def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[np.float64], hf: _Frame,
+                vector: bool, motors: Mapping[str, NDArray[np.float64]], tilt: NDArray[np.float64] | None) -> float:
+    """RMS of the residual of the firmware's calibration in the log (in its own orientation ``hf``), firmware
+    unit; ``field`` the body-frame field (N, 3) or its magnitude (N,); ``tilt`` (body -> level, roll and pitch) for
+    the heading-free residual."""
+    A, o, m = held.algebra()
+    x = motors.get(held.motor_type or "", np.zeros(len(raw)))
+    B = (raw @ hf.P_u.T + o) @ A.T + x[:, None] * m
+    if tilt is not None:
+        L = np.einsum("nij,nj->ni", tilt, B @ hf.P_h)  # B~ -> body -> level
+        H = np.einsum("nij,nj->ni", tilt, field)
+        d = np.column_stack([np.hypot(L[:, 0], L[:, 1]) - np.hypot(H[:, 0], H[:, 1]), L[:, 2] - H[:, 2]])
+        return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+    if vector:
+        return float(np.sqrt(np.mean(np.sum((B - field @ hf.P_h.T) ** 2, axis=1))))
+    return float(np.sqrt(np.mean((np.linalg.norm(B, axis=1) - field) ** 2)))
+
+
+def level_table(table: list[dict[str, Any]], unit: str) -> str:
+    """The fit report's table of levels: level, parameters, RMS, held-out RMS, identified, limits, chosen."""
+    lines = [f"{'level':<10}{'motor':<10}{'params':>7}{'rms':>11}{'held-out':>11}  {'identified':<11}"
+             f"{'limits':<9}chosen   [{unit}]"]
+    for row in table:
+        ident = "all" if row["identified"] else (f"{row['n_identified']} of {row['n_params']}" if row.get(
+            "n_identified") else "none")
+        limits = "ok" if row["within_limits"] else "outside"
+        if row["at_limit"]:
+            limits = "at limit"
+        lines.append(f"{row['level']:<10}{row['motor'] or '-':<10}{row['n_params']:>7}{row['rms']:>11.4g}"
+                     f"{row['heldout_rms']:>11.4g}  {ident:<11}{limits:<9}{'<--' if row['chosen'] else ''}")
+    return "\n".join(lines)
+
+
+def firmware_calibration(
+    fit: FirmwareFit, *, units: str, motor_channel: str | None = None, reference: Mapping[str, Any] | None = None,
+    input_orientation: int | None = None, diagnostics: Mapping[str, Any] | None = None,
+) -> Calibration:
+    """The :class:`~trimag.calibration.Calibration` of a firmware fit, in the data's ``units``.
+
+    ``apply`` gives the firmware's corrected field (converted to ``units``): ``W (v - b - k (x - mean))`` with the
+    motor term as a regressor named ``motor_channel`` (the logged column: ``current_A``, ``throttle``). The exact
+    parameters are in ``diagnostics["firmware"]`` (what ``trimag export`` writes), with the level table, what was
+    held, the orientation decision and ``input_orientation`` (the rotation already applied to the raw input).
+    """
+    compass = fit.compass
+    factor = convert(1.0, compass.unit, units)
+    W, b, m_body = fit.affine()
+    regressors = None
+    b_data = b * factor
+    if compass.motor_type is not None:
+        k = -np.linalg.solve(W, m_body) * factor  # W (v - b) + m x = W (v - b - k x)
+        regressors = {"names": [motor_channel or compass.motor_type], "means": [fit.motor_mean],
+                      "coefficients": [k.tolist()],
+                      "units": ["A" if compass.motor_type == "current" else "throttle 0..1"],
+                      "note": f"the firmware's motor term ({compass.motor_type})"}
+        b_data = b_data + k * fit.motor_mean
+    names = list(fit.param_std)
+    uncertainty = make_uncertainty(
+        names, covariance=fit.covariance, basis=f"s^2 (J^T J)^-1 of the {fit.level} level's parameters, propagated "
+        "to the firmware's (instance 0 names, firmware unit)", noise_std=fit.noise_std * factor,
+        inflation=fit.inflation, unit=compass.unit,
+    )
+    firmware = {**compass.as_dict(), "level": fit.level, "levels": fit.table, "held": fit.held,
+                "orientation_decision": fit.orientation, "residual": fit.residual_kind,
+                "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
+                "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after}
+    warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
+    diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
+    if warnings:
+        diag["warnings"] = list(diag.get("warnings", [])) + warnings
+    stats = {"n_samples": int(fit.n_samples), "n_used": int(fit.n_samples), "iterations": 1, "converged": True,
+             "rms_before": fit.rms_before * factor, "rms_after": fit.rms_after * factor,
+             "residual": fit.residual_kind}
+    return Calibration.from_matrix_offset(
+        W, b_data, units=units, model="affine", method=f"firmware-{compass.target}", params=compass.parameters(0),
+        reference=None if reference is None else dict(reference), stats=stats, uncertainty=uncertainty,
+        diagnostics=diag, regressors=regressors,
+    )
