@@ -231,3 +231,63 @@ def test_tolles_lawson_rates_gaps_and_segments_never_an_internal_error(tmp_path:
             "--rate", repr(rate), "--option", "bootstrap=0", "-o", str(out), "-q"]
     code, err = _run(argv + ([f"--segments={segments}"] if segments else []), capsys)
     _assert_clean(code, err, out)
+
+
+_EXPORT_TARGETS = ["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"]
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(created=st.text(max_size=60), method=st.text(max_size=60), source=st.text(max_size=40),
+       target=st.sampled_from(_EXPORT_TARGETS))
+def test_export_writes_numbers_whatever_text_the_calibration_holds(tmp_path: Path, capsys, created: str,
+                                                                   method: str, source: str, target: str) -> None:
+    """Issue 33 item 3, fuzzed: any text in the calibration file's string fields (newlines, comment terminators,
+    control characters, another parameter's line) gives an output whose every line is a number line or one comment
+    line of the target's syntax, or a one-line refusal (exit 2, no file)."""
+    import json
+
+    import yaml
+
+    from trimag.calibration import Calibration
+
+    data = Calibration.from_matrix_offset(np.diag([1.02, 0.98, 1.0]), [12.0, -7.0, 20.0], units="uT").as_dict()
+    data.update({"created": created, "method": method})
+    data.setdefault("reference", {})
+    if isinstance(data["reference"], dict):
+        data["reference"] = {**data["reference"], "source": source}
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps(data))
+    suffix = {"ardupilot": "param", "px4": "txt", "c-header": "h", "json": "json", "ros-yaml": "yaml",
+              "matlab": "mat"}[target]
+    out = tmp_path / f"out.{suffix}"
+    code, err = _run(["export", str(cal), "--to", target, "-o", str(out)], capsys)
+    _assert_clean(code, err, out)
+    if code != 0:
+        assert len(err.strip().splitlines()) == 1, err
+        return
+    if target == "matlab":  # a MAT file: binary, loaded by scipy with the numbers
+        from scipy.io import loadmat
+
+        assert np.allclose(loadmat(str(out))["b"].ravel(), [12.0, -7.0, 20.0])
+        return
+    text = out.read_text(encoding="utf-8")
+    assert "\r" not in text and "\x1b" not in text
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if target == "ardupilot":
+        for ln in lines:
+            assert ln.startswith("#") or (ln.count(",") == 1 and float(ln.split(",")[1]) == float(ln.split(",")[1]))
+        assert {ln.split(",")[0] for ln in lines if not ln.startswith("#")} == {
+            "COMPASS_DIA_X", "COMPASS_DIA_Y", "COMPASS_DIA_Z", "COMPASS_ODI_X", "COMPASS_ODI_Y", "COMPASS_ODI_Z",
+            "COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z", "COMPASS_SCALE", "COMPASS_ORIENT"} or all(
+            ln.split(",")[0].startswith("COMPASS_") for ln in lines if not ln.startswith("#"))
+    elif target == "px4":
+        for ln in lines:
+            assert ln.startswith("#") or (ln.split()[:2] == ["param", "set"] and len(ln.split()) == 4)
+    elif target == "c-header":
+        for ln in lines:
+            if ln.lstrip().startswith(("/*", "*")) and "*/" in ln:
+                assert ln.rstrip().endswith("*/") and ln.count("*/") == 1, ln
+    elif target == "ros-yaml":
+        assert set(yaml.safe_load(text)["magnetometer_calibration"]) == {"unit", "offset", "matrix"}
+    elif target == "json":
+        assert json.loads(text)["offset"] == [12.0, -7.0, 20.0]
