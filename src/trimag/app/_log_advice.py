@@ -1,6 +1,7 @@
 """The refusal of an autopilot log that cannot identify a 3-D calibration, said for a newcomer (issue 30, item 7):
 which compass was used and which others the log has, what the log shows, what to record, and the modes that
-calibrate from such a log anyway (``level_turn``, ``heading``, ``prior``). No condition number: what the data leave
+calibrate from such a log anyway (``target``: the firmware-space fit of an ordinary flight; ``level_turn``,
+``heading``, ``prior``). No condition number: what the data leave
 undetermined is named in words."""
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import IdentifiabilityError
+from ..io.logs.base import compass_labels
 
 #: the ellipsoid model's parameter names, as a user reads them
 _WORDS = {"w11": "the x scale", "w22": "the y scale", "w33": "the vertical (z) scale", "w12": "the x-y coupling",
@@ -53,7 +55,7 @@ def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDAr
     name = str(log_info.get("sensor", ""))
     reason = _reason(str(exc).rstrip(". "), name, field).rstrip(". ")
     compasses = log_info.get("compasses") or []
-    listed = ", ".join(f"{c['number']} ({c['name']})" for c in compasses)
+    listed = ", ".join(compass_labels([(int(c["number"]), str(c["name"])) for c in compasses]))
     number = log_info.get("compass")
     head = f"{name} (compass {number} of the log's {listed}; another with `sensor=N`)" if listed else name
     static = len(field) and direction_spread_deg(field)[1] < STATIC_CONE_DEG
@@ -64,4 +66,17 @@ def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDAr
              "`prior=CAL.json` keeps an earlier full calibration and refits its offsets"]
     if not static:
         modes = [modes[1], modes[0], modes[2]]
-    return IdentifiabilityError(f"{head}: {reason}. For a vehicle that cannot be tumbled: {'; '.join(modes)}")
+    return IdentifiabilityError(f"{head}: {reason}.{_firmware_fit(log_info)} For a vehicle that cannot be tumbled: "
+                                f"{'; '.join(modes)}")
+
+
+def _firmware_fit(log_info: dict[str, Any]) -> str:
+    """The firmware-space fit that an autopilot's ordinary flight can give (``target``, docs/autopilot.md), named
+    with the firmware of the log's format; empty for logs of no autopilot (a phone, a ROS bag)."""
+    fmt = str(log_info.get("format", ""))
+    target = "px4" if "PX4" in fmt else ("ardupilot" if ("ArduPilot" in fmt or "MAVLink" in fmt) else None)
+    if target is None:
+        return ""
+    gps = "" if log_info.get("gps") else " (this log has no GPS fix: add `igrf_spec=LAT,LON,ALT_M,YYYY-MM-DD`)"
+    return (f" From an ordinary flight, `target={target}` fits the parameters the firmware loads (the levels the "
+            f"flight identifies, against the IGRF field rotated by the logged attitude){gps}.")

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
 
-__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "mavlink_messages", "require"]
+__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "compass_labels", "mavlink_messages", "require"]
 
 
 def require(module: str) -> Any:
@@ -164,7 +164,7 @@ class VehicleLog:
 
     def compass_list(self) -> str:
         """The compasses as the user numbers them: ``"1 (MAG[0]), 2 (MAG[1])"``."""
-        return ", ".join(f"{m.number} ({m.name})" for m in self.magnetometers)
+        return ", ".join(compass_labels([(m.number, m.name) for m in self.magnetometers]))
 
     def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
         """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
@@ -270,3 +270,15 @@ def _yaw_columns(sources: dict[str, Channel], t: NDArray[np.float64],
         if (~inside).sum():
             outside[yaw_col] = int((~inside).sum())
     return outside
+
+
+def compass_labels(compasses: list[tuple[int, str]]) -> list[str]:
+    """Each compass as the user chooses it: ``"2 (MAG[1])"``; a stream whose number an earlier one has (PX4's
+    ``vehicle_magnetometer``, the prime compass's calibrated output) by its name: ``"vehicle_magnetometer (also
+    compass 2; `sensor=vehicle_magnetometer`)"``, since `sensor=2` chooses the first."""
+    seen: set[int] = set()
+    labels = []
+    for number, name in compasses:
+        labels.append(f"{name} (also compass {number}; `sensor={name}`)" if number in seen else f"{number} ({name})")
+        seen.add(number)
+    return labels
