@@ -245,3 +245,29 @@ def test_a_regressor_fit_exports_its_current_term_as_the_motor_term(tmp_path: Pa
     p = _param_file(param)
     assert p["COMPASS_ORIENT"] == 6 and p["COMPASS_MOTCT"] == 2
     assert np.allclose([p["COMPASS_MOT_X"], p["COMPASS_MOT_Y"], p["COMPASS_MOT_Z"]], TRUTH.motor, atol=0.3)
+
+
+def test_an_old_px4_log_whose_readings_carry_the_rotation_is_not_exported_as_a_new_orientation(tmp_path: Path):
+    """Review after the firmware merge: the real PX4 sdlog2 flight (px4tools, 2015) logs IMU.Mag after the drivers
+    rotated it by CAL_MAG0_ROT (and calibrated it: PX4 before v1.12 rotated first, then offsets and scales). The fit
+    took the logged readings as the sensor's own frame, said 'ROTATION_NONE (0) fits the field while the log's 6 sees
+    the field reversed: chosen', and export wrote CAL_MAG0_ROT 0 with exit 0: loaded into the vehicle, its heading
+    would turn by the 270 deg its driver no longer applies. The fit now says that the readings carry the rotation,
+    records it, and export refuses to write an orientation found relative to rotated readings (exit 2, no file)."""
+    log = TESTS_DIR / "data" / "logs" / "px4tools_01_07_59.px4log"
+    cal = tmp_path / "px4.json"
+    r = run_trimag("fit", log, "--target", "px4", "-o", cal)
+    assert r.returncode == 0, r.stderr
+    assert "v1.12" in r.stderr and "CAL_MAG0_ROT = 6" in r.stderr, r.stderr
+    out = tmp_path / "px4.params"
+    e = run_trimag("export", cal, "--to", "px4", "-o", out)
+    assert e.returncode == 2, e.stderr
+    line = e.stderr.strip()
+    assert len(line.splitlines()) == 1 and "CAL_MAG0_ROT" in line and "v1.12" in line, line
+    a = run_trimag("export", cal, "--to", "ardupilot", "-o", tmp_path / "ap.param")
+    assert a.returncode == 2 and "v1.12" in a.stderr and not (tmp_path / "ap.param").exists(), a.stderr
+    assert not out.exists()
+    r = run_trimag("fit", log, "--target", "px4", "--sensor", "all", "--export-to", "px4", "--export-out",
+                   tmp_path / "all.params", "-o", tmp_path / "all.json")
+    assert r.returncode == 2 and "v1.12" in r.stderr, r.stderr
+    assert not list(tmp_path.glob("all*")), list(tmp_path.iterdir())  # nothing of the refused run is left

@@ -271,7 +271,31 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
                     f"{fit.compass.rotation_name} ({fit.compass.orientation}); field RMS {fit.rms_before:.4g} -> "
                     f"{fit.rms_after:.4g} {klass.unit}")
     regressor_values = {channel: motors[kind]} if channel and kind else None
+    old = _old_px4_rotation(info, applied)
+    if old is not None:
+        messages.append(f"warning: {old}")
+        cal = cal.with_diagnostics(readings_rotated=old)
     return samples, _magnitude_stats(cal, samples, regressor_values), regressor_values, messages
+
+
+def _old_px4_rotation(info: dict[str, Any] | None, applied: int | None) -> str | None:
+    """Why an orientation found on this log cannot be written, or None: a PX4 log from before v1.12 (sdlog2's
+    ``IMU.Mag``, an older ULog's calibrated ``sensor_mag``) holds readings its drivers had already rotated by
+    ``CAL_MAGn_ROT`` (rotation first, then offsets and scales), so the orientation the fit finds is relative to
+    the logged readings, not the sensor's; the v1.12+ formula export writes would rotate them again."""
+    if info is None or applied is not None:
+        return None
+    fmt = str(info.get("format", ""))
+    raw = "sensor_mag is the raw reading" in " ".join(str(m) for m in info.get("messages") or [])
+    if "sdlog2" not in fmt and ("ULog" not in fmt or raw):
+        return None
+    instance = int(info.get("instance") or 0)
+    rotation = int((info.get("parameters") or {}).get(f"CAL_MAG{instance}_ROT", -1))
+    in_force = f"CAL_MAG{instance}_ROT = {rotation}" if rotation >= 0 else "SENS_BOARD_ROT (an internal compass)"
+    return (f"this log's readings were rotated by the drivers of PX4 before v1.12 ({in_force}, before their "
+            "offsets and scales): the orientation and offsets found are relative "
+            "to the logged readings, not the sensor's own frame, so `trimag export` will not write them as a "
+            "firmware's parameters; fit a log of PX4 v1.12 or later (raw sensor_mag) for the firmware's parameters")
 
 
 def _magnitude_stats(cal: Calibration, samples: Samples, regressors: dict[str, Any] | None) -> Calibration:

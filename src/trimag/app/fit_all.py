@@ -104,7 +104,13 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         from ..io.atomic import atomic_write_text
         from ..io.export_instances import export_instances
 
-        exp = export_instances([(r.calibration, n) for n, r in fits.items()], req.export_to)
+        try:
+            exp = export_instances([(r.calibration, n) for n, r in fits.items()], req.export_to)
+        except TrimagError:  # no parameter file: nothing of this run is left behind (the command exits 2)
+            for r in fits.values():
+                for path in r.written.values():
+                    Path(path).unlink(missing_ok=True)
+            raise
         written["parameters"] = str(atomic_write_text(req.export_out, exp.text))
         messages += [f"note: {note}" for note in exp.notes]
         messages += [f"warning: outside the firmware's limits: {v}" for v in exp.violations]

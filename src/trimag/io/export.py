@@ -190,6 +190,9 @@ def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, li
     klass = firmware_class(target)
     factor = _unit_factor(cal, klass.unit)
     fw = cal.diagnostics.get("firmware")
+    rotated = cal.diagnostics.get("readings_rotated")
+    if rotated:  # an old PX4 log's readings carry CAL_MAGn_ROT already (app._firmware)
+        raise TrimagInputError(f"cannot write {target}'s parameters: {rotated}")
     if isinstance(fw, dict) and fw.get("target") == target:
         compass = FirmwareCompass.from_dict(fw)
         _check_formula(cal, compass, _input_orientation(cal, target), factor)
