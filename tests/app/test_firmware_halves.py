@@ -131,3 +131,16 @@ def test_a_real_ground_handled_log_is_refused_keep_the_logs_calibration(tmp_path
     r = run_trimag("fit", PILOT_0004, "--target", "ardupilot", "-o", tmp_path / "cal.json")
     assert r.returncode == 3, (r.stdout, r.stderr)
     assert "keep the log's calibration" in r.stderr
+
+
+def test_a_policy_rejects_what_the_halves_check_only_warns_of(tmp_path: Path):
+    """``max_halves_ratio``: each half's fit on the other half over the log's calibration there; the warned log (each
+    half still beats the log's, by about 3x) is rejected at 0.2 (exit 4, written and marked so), accepted at 1."""
+    log = _write_log(tmp_path / "moved.bin", ArduPilotCompass(orientation=0), shift_second_mG=(30.0, -20.0, 25.0))
+    strict, loose = tmp_path / "strict.toml", tmp_path / "loose.toml"
+    strict.write_text("[limits]\nmax_halves_ratio = 0.2\n")
+    loose.write_text("[limits]\nmax_halves_ratio = 1.0\n")
+    r = run_trimag("fit", log, "--target", "ardupilot", "--policy", strict, "-o", tmp_path / "cal.json")
+    assert r.returncode == 4 and "max_halves_ratio" in r.stdout + r.stderr, (r.stdout, r.stderr)
+    r = run_trimag("fit", log, "--target", "ardupilot", "--policy", loose, "-o", tmp_path / "cal.json")
+    assert r.returncode == 0, r.stderr
