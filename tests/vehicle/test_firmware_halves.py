@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_firmware import simulate
 
 from trimag.errors import IdentifiabilityError
 from trimag.models.firmware import ArduPilotCompass
 from trimag.vehicle._firmware_halves import firmware_rms
 from trimag.vehicle.firmware import KeepTheLogs, fit_firmware
-
-from test_firmware import simulate
 
 TRUTH = ArduPilotCompass(orientation=0, offsets=[120.0, -80.0, 40.0], scale=1.0, diagonal=[1.02, 0.97, 1.01],
                          offdiagonal=[0.02, -0.01, 0.03])

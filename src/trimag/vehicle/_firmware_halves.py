@@ -35,7 +35,8 @@ from ..models.firmware import FirmwareCompass, rotation_matrix
 from ..quality.honesty import DRIFT_Z, correlation_time
 from ._firmware_levels import LevelProblem, LevelSolution
 
-__all__ = ["HALVES_MOVED_RATIO", "HALVES_MIN_SAMPLES", "HALVES_TOLERANCE", "HALVES_Z", "halves_check", "halves_message"]
+__all__ = ["HALVES_MIN_SAMPLES", "HALVES_MOVED_RATIO", "HALVES_TOLERANCE", "HALVES_Z", "firmware_rms", "halves_check",
+           "halves_message"]
 
 #: The other half's fit is "worse than the log's" when its RMS exceeds the log's by more than this fraction (a fit on
 #: half the data carries its own estimation error: a log whose calibration is right is already told to keep it).
@@ -99,11 +100,10 @@ def _half_covariance(problem: LevelProblem, sol: LevelSolution) -> NDArray[np.fl
     if sol.basis is not None and sol.scales is not None:
         B = sol.scales[:, None] * sol.basis
         J = sol.jacobian @ B
-        inner = np.linalg.pinv(J.T @ J)
-        cov = B @ inner @ B.T
+        cov = np.asarray(B @ np.linalg.pinv(J.T @ J) @ B.T, dtype=np.float64)
         dof = max(len(sol.residual) - sol.basis.shape[1], 1)
     else:
-        cov = np.linalg.pinv(sol.jacobian.T @ sol.jacobian)
+        cov = np.asarray(np.linalg.pinv(sol.jacobian.T @ sol.jacobian), dtype=np.float64)
         dof = max(len(sol.residual) - sol.jacobian.shape[1], 1)
     return np.asarray(cov * float(sol.residual @ sol.residual) / dof * tau, dtype=np.float64)
 
@@ -140,7 +140,8 @@ def halves_check(
     dict
         ``first``/``second``: ``rows``, ``rms_log`` (the log's calibration), ``rms_other_half_fit`` (the other half's
         parameters), ``rms_whole_fit`` (the chosen level on the whole log); ``worse_than_log`` (the halves where the
-        other half's fit is worse), ``refuse`` (those where the whole log's fit is worse than the log's too), ``z`` and ``change`` per parameter, ``moved``, ``flagged``.
+        other half's fit is worse), ``refuse`` (those where the whole log's fit is worse than the log's too), ``z``
+        and ``change`` per parameter, ``moved``, ``flagged``.
     """
     n = len(raw)
     if n < HALVES_MIN_SAMPLES:

@@ -25,6 +25,7 @@ than the calibration the vehicle has, so ``max_halves_ratio = 1.0`` rejects what
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -121,7 +122,7 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
     return verdict
 
 
-def _halves_ratio(diagnostics: dict[str, Any]) -> float | None:
+def _halves_ratio(diagnostics: Mapping[str, Any]) -> float | None:
     """The halves check's worst ratio of the other half's fit to the log's calibration (a firmware fit), or None."""
     halves = (diagnostics.get("firmware") or {}).get("halves") or {}
     if not halves.get("checked"):
