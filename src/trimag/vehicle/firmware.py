@@ -32,6 +32,10 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
 4. **Uncertainty**: ``s^2 (J^T J)^-1`` of the level's parameters, inflated like every fit's
    (:func:`trimag.quality.honesty.correlation_time` of the residuals, repeated rows), propagated to the firmware's
    parameters and recorded with :func:`trimag.calibration.make_uncertainty`.
+5. **Halves** (:mod:`trimag.vehicle._firmware_halves`): the chosen level refitted on each half of the log and judged
+   on the other through the firmware's formula against the log's calibration on that half: refused
+   (:class:`KeepTheLogs`, ``level="auto"``) when the other half's fit and the whole fit are both worse than the log's
+   on a half, else warned of (and recorded in :attr:`FirmwareFit.halves`).
 """
 
 from __future__ import annotations
