@@ -32,6 +32,10 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
 4. **Uncertainty**: ``s^2 (J^T J)^-1`` of the level's parameters, inflated like every fit's
    (:func:`trimag.quality.honesty.correlation_time` of the residuals, repeated rows), propagated to the firmware's
    parameters and recorded with :func:`trimag.calibration.make_uncertainty`.
+5. **Halves** (:mod:`trimag.vehicle._firmware_halves`): the chosen level refitted on each half of the log and judged
+   on the other through the firmware's formula against the log's calibration on that half: refused
+   (:class:`KeepTheLogs`, ``level="auto"``) when the other half's fit and the whole fit are both worse than the log's
+   on a half, else warned of (and recorded in :attr:`FirmwareFit.halves`).
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.firmware import ORIENTATION_TOLERANCE_DEG, FirmwareCompass, firmware_class, rotation_matrix
 from ..quality.honesty import correlation_time, count_repeated_rows
 from ..units import convert
+from ._firmware_halves import halves_check, halves_message
 from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
 
 __all__ = [
@@ -135,6 +140,8 @@ class FirmwareFit:
     noise_std: float
     n_samples: int = 0
     messages: list[str] = field(default_factory=list)
+    #: the halves check (:func:`trimag.vehicle._firmware_halves.halves_check`): both halves' RMS and the log's
+    halves: dict[str, Any] | None = None
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -354,6 +361,7 @@ class _Candidate:
     heldout_rms: float
     held_motor: bool = False
     n_identified: int = 0
+    bounds: Any = None
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -481,7 +489,7 @@ def _fit_level(
     return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
                       [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
-                      basis.shape[1])
+                      basis.shape[1], bounds)
 
 
 # ------------------------------------------------------------------ the fit
@@ -619,8 +627,33 @@ def fit_firmware(
         raise
     for row, cand in zip(table, candidates, strict=True):
         row["chosen"] = cand is chosen
-    return _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
-                   tilt)
+    halves = _halves(chosen, klass, held, fr.orientation, same_frame, v, h, motors, tilt, applied_orientation, F)
+    if halves["flagged"]:
+        text = halves_message(halves, chosen.level, klass.unit)
+        if halves["refuse"] and level == "auto":
+            raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
+        messages.append(f"warning: {text}")
+    fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
+                  tilt)
+    fit.halves = halves
+    return fit
+
+
+def _halves(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareCompass, orientation: int,
+            same_frame: bool, raw: NDArray[np.float64], field: NDArray[np.float64],
+            motors: Mapping[str, NDArray[np.float64]], tilt: NDArray[np.float64] | None, applied: int | None,
+            F: float) -> dict[str, Any]:
+    """The halves check of the chosen level (:mod:`trimag.vehicle._firmware_halves`)."""
+    params_held = held if same_frame or chosen.held_motor else None
+
+    def to_compass(sol: LevelSolution) -> FirmwareCompass:
+        return _compass(klass, sol, chosen.level, orientation, chosen.motor, params_held, chosen.held_motor)
+
+    x = motors.get(chosen.motor) if chosen.motor else None
+    scales = _effect_scales(chosen.problem, F, float(np.ptp(x)) if x is not None else 1.0)
+    names = [_firmware_name(klass, n) for n in chosen.problem.names()]
+    return halves_check(chosen.problem, chosen.solution, chosen.bounds, to_compass, held, raw, field, motors, tilt,
+                        applied, names, scales, F, IDENTIFIED)
 
 
 def _levels(
@@ -911,7 +944,8 @@ def firmware_calibration(
     firmware = {**compass.as_dict(), "level": fit.level, "levels": fit.table, "held": fit.held,
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
-                "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after}
+                "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
+                "halves": fit.halves}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:

@@ -17,10 +17,15 @@ file is read (exit 2, before the fit).
 | ``max_offset`` | largest hard-iron component, in the data's unit |
 | ``max_heading_sigma_deg`` | largest predicted 1-sigma heading error of a level sensor (needs ``--igrf``) |
 | ``max_inclination_error_deg`` | dip fitted with the accelerometer (``--accel-columns``) against IGRF's (needs both) |
+| ``max_halves_ratio`` | ``--target`` fits: each half's fit on the other half over the log's calibration there, RMS |
+
+``max_halves_ratio`` is the larger of the two halves' ratios (:mod:`trimag.vehicle._firmware_halves`; 1: no better
+than the calibration the vehicle has, so ``max_halves_ratio = 1.0`` rejects what the halves check only warns of).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +40,7 @@ __all__ = ["DEFAULT_LIMITS", "PolicyRejected", "check_policy", "read_policy"]
 DEFAULT_LIMITS: dict[str, float] = {"max_field_error_pct": 5.0, "min_coverage": 0.5, "max_heading_sigma_deg": 1.0}
 
 _RULES = ("max_rms_after", "max_field_error_pct", "max_inclination_error_deg", "min_coverage",
-          "max_heading_sigma_deg", "max_offset")
+          "max_heading_sigma_deg", "max_offset", "max_halves_ratio")
 
 
 class PolicyRejected(TrimagError):
@@ -91,6 +96,7 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
     measured["max_inclination_error_deg"] = (
         abs(float(dip) - inclination_deg) if dip is not None and inclination_deg is not None else None
     )
+    measured["max_halves_ratio"] = _halves_ratio(diag)
     measured["max_heading_sigma_deg"] = None
     if inclination_deg is not None and "max_heading_sigma_deg" in limits:
         from .heading import predicted_heading_sigma
@@ -114,3 +120,13 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
     if not passed and not failed:
         verdict["nothing_checked"] = True
     return verdict
+
+
+def _halves_ratio(diagnostics: Mapping[str, Any]) -> float | None:
+    """The halves check's worst ratio of the other half's fit to the log's calibration (a firmware fit), or None."""
+    halves = (diagnostics.get("firmware") or {}).get("halves") or {}
+    if not halves.get("checked"):
+        return None
+    ratios = [halves[k]["rms_other_half_fit"] / halves[k]["rms_log"] for k in ("first", "second")
+              if halves.get(k) and halves[k]["rms_log"] > 0]
+    return max(ratios) if ratios else None
