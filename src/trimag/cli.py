@@ -342,6 +342,8 @@ def _add_batch(sub: Any) -> None:
     _add_attitude_options(p)
     _add_time_options(p.add_argument_group("time (eddy-current terms, attitudes from a second file)"))
     _add_fit_steps(p)
+    p.add_argument("--policy", metavar="FILE.toml|default",
+                   help="acceptance limits for every file (as fit --policy); a rejected calibration exits 4")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -843,6 +845,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         _say(f"fitted {result.n_files - result.n_failed} of {result.n_files} files in {result.seconds:.1f} s "
              f"({result.files_per_second:.1f} files/s); wrote {', '.join(result.written.values())} and one "
              f"calibration per file in {args.out}", args)
+        if result.n_rejected:
+            _say(f"the acceptance policy rejected {result.n_rejected} of them (summary: accepted, rejected_by)", args)
         if "summary_parquet" not in result.written:
             _say('note: summary.parquet not written: it needs pyarrow (pip install "trimag[parquet]")', args)
     return result.exit_code()

@@ -334,3 +334,31 @@ def test_the_input_limits_hold_in_the_worker_processes(tmp_path: Path, fleet: Pa
     assert [Path(f["file"]).name for f in failed] == ["wide.csv"] and "more than 50" in failed[0]["error"]
     assert "--max-fields" in captured.err
     assert main(argv) == 0
+
+
+def test_batch_checks_every_calibration_against_a_policy(fleet: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """A fleet's calibrations are accepted or rejected as ``fit --policy`` does it, one verdict per file in the
+    summary and exit 4 when any is rejected (review of the chained features: batch had no --policy; a user had to
+    fit each file again to learn which to reject)."""
+    strict, loose = tmp_path / "strict.toml", tmp_path / "loose.toml"
+    strict.write_text("[limits]\nmax_rms_after = 0\n")
+    loose.write_text("[limits]\nmax_rms_after = 1e9\n")
+    argv = ["batch", str(fleet / "sensor*.csv"), "--units", "nT", "--json"]
+    assert main([*argv, "--out", str(tmp_path / "a"), "--policy", str(strict)]) == 4
+    s = json.loads(capsys.readouterr().out)
+    assert s["n_rejected"] == 4 and s["n_failed"] == 0
+    table = pd.read_csv(tmp_path / "a" / "summary.csv", keep_default_na=False, na_values=[""])
+    assert list(table["accepted"]) == [False] * 4 and all("max_rms_after" in r for r in table["rejected_by"])
+    assert main([*argv, "--out", str(tmp_path / "b"), "--policy", str(loose)]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["n_rejected"] == 0
+    table = pd.read_csv(tmp_path / "b" / "summary.csv", keep_default_na=False, na_values=[""])
+    assert list(table["accepted"]) == [True] * 4
+    assert main([*argv, "--out", str(tmp_path / "c")]) == 0  # no policy: no verdict
+    capsys.readouterr()
+    assert pd.read_csv(tmp_path / "c" / "summary.csv", keep_default_na=False, na_values=[""])["accepted"].isna().all()
+    # a policy that cannot be read is refused once, before any file is fitted (was: each file failed with it)
+    assert main([*argv, "--out", str(tmp_path / "d"), "--policy", str(tmp_path / "nope.toml")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "nope.toml" in err and not (tmp_path / "d").exists()

@@ -43,7 +43,7 @@ __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs
 #: Columns of the summary table, in order.
 SUMMARY_COLUMNS = (
     "file", "n", "n_used", "rms_before", "rms_after", "converged", "warnings", "error", "error_type",
-    "calibration", "seconds",
+    "calibration", "seconds", "accepted", "rejected_by",
 )
 
 
@@ -56,7 +56,8 @@ class BatchResult:
     table : pandas.DataFrame
         One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit; empty when the
         file failed; ``error`` holds the message, ``error_type`` ``"input"``, ``"identifiability"`` or
-        ``"internal"``).
+        ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a policy, and ``rejected_by``
+        the rules that failed, as ``trimag fit --policy`` gives them).
     written : dict
         ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
         ``parquet`` extra, is installed).
@@ -77,15 +78,23 @@ class BatchResult:
         return int(self.table["error"].astype(bool).sum())
 
     @property
+    def n_rejected(self) -> int:
+        """Files fitted whose calibration the acceptance policy rejected."""
+        return int((self.table["accepted"] == False).sum())  # noqa: E712 (a nullable boolean column)
+
+    @property
     def files_per_second(self) -> float:
         return self.n_files / self.seconds if self.seconds > 0 else float("inf")
 
     def exit_code(self) -> int:
-        """0 when every file was fitted; else the exit code of the first failure (2 input, 3 identifiability,
-        1 internal), as ``trimag fit`` would have returned for that file."""
+        """0 when every file was fitted (and accepted); else the exit code of the first failure (2 input, 3
+        identifiability, 1 internal), as ``trimag fit`` would have returned for that file, or 4 when the acceptance
+        policy rejected a calibration."""
         codes = {"input": 2, "identifiability": 3, "internal": 1}
         failed = self.table[self.table["error"].astype(bool)]
-        return 0 if failed.empty else codes.get(str(failed["error_type"].iloc[0]), 1)
+        if not failed.empty:
+            return codes.get(str(failed["error_type"].iloc[0]), 1)
+        return 4 if self.n_rejected else 0
 
     def summary(self) -> dict[str, Any]:
         """The JSON object ``trimag batch --json`` prints."""
@@ -94,6 +103,7 @@ class BatchResult:
             "n_files": self.n_files,
             "n_fitted": self.n_files - self.n_failed,
             "n_failed": self.n_failed,
+            "n_rejected": self.n_rejected,
             "seconds": self.seconds,
             "files_per_second": self.files_per_second,
             "failed": [{"file": f, "error": e} for f, e in zip(failed["file"], failed["error"], strict=True)],
@@ -222,6 +232,11 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
             rms_after=s.get("rms_after"), converged=bool(s.get("converged")),
             warnings="; ".join(s.get("warnings") or []), calibration=out,
         )
+        verdict = s.get("acceptance")
+        if verdict is not None:
+            row.update(accepted=bool(verdict.get("passed")),
+                       rejected_by="; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.3g}"
+                                             for f in verdict.get("failed") or []))
     except Exception as exc:
         message, kind = _failure(exc)
         row.update(error=message or type(exc).__name__, error_type=kind)
@@ -237,7 +252,8 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     df["rms_before"] = pd.to_numeric(df["rms_before"]).astype("float64")
     df["rms_after"] = pd.to_numeric(df["rms_after"]).astype("float64")
     df["converged"] = df["converged"].astype("boolean")
-    for col in ("file", "warnings", "error", "error_type", "calibration"):
+    df["accepted"] = df["accepted"].astype("boolean")
+    for col in ("file", "warnings", "error", "error_type", "calibration", "rejected_by"):
         df[col] = df[col].astype("string")
     df["seconds"] = df["seconds"].astype("float64")
     return df
@@ -305,8 +321,8 @@ def fit_batch(
     Raises
     ------
     TrimagInputError
-        A pattern matches no file, an unknown model/method/argument, or both ``request`` and fit arguments
-        (checked once, before any work).
+        A pattern matches no file, an unknown model/method/argument, a policy that cannot be read, or both
+        ``request`` and fit arguments (checked once, before any work).
     """
     from ..estimators import make_estimator
     from ..parallel import map_trials
@@ -314,6 +330,10 @@ def fit_batch(
     request = _batch_request(request, model=model, method=method, options=options, **fit_options)
     # unknown model, method or option: fail once, up front (``eddy`` is the application's, not the estimator's)
     make_estimator(request.model, request.method, {k: v for k, v in request.options.items() if k != "eddy"})
+    if request.policy is not None:  # a policy that cannot be read: once, before any file is fitted
+        from ..vehicle.policy import read_policy
+
+        read_policy(request.policy)
     files = expand_inputs(patterns)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
