@@ -87,3 +87,29 @@ def test_evaluate_names_a_corrected_field_far_from_the_one_the_calibration_was_f
     assert d["fitted_reference"]["rms_after"] > 2.0  # against 46 uT: the 6 % shows
     r = run_trimag("evaluate", cal, log, "--json")  # the log it was fitted on: within 2 %, nothing said
     assert r.returncode == 0 and not json.loads(r.stdout)["warnings"], r.stderr
+
+
+def test_a_reference_in_another_unit_is_named_as_the_reference_s_mistake(tmp_path: Path):
+    """Review: data in mG (|B| ~ 500) with `--reference 0.5` (the field given in gauss) was refused with 'the data
+    are not in mG; the numbers look like mG; give the right unit': a contradiction that blames the data. When the
+    data's field is an Earth field in their unit, the reference is what is wrong, and the refusal says so."""
+    from trimag.simulate import uniform_directions
+
+    path = tmp_path / "mG.csv"
+    raw = 500.0 * uniform_directions(300, seed=3) + [30.0, -20.0, 10.0]
+    np.savetxt(path, raw, delimiter=",", header="x,y,z", comments="")
+    r = run_trimag("fit", path, "--units", "mG", "--reference", "0.5", "-o", tmp_path / "cal.json")
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1
+    assert "--reference" in line and "the data are not in mG" not in line, line
+    assert "G" in line.split("looks like")[-1] if "looks like" in line else True
+    # data in G against a reference in mG: the data's field is no Earth field in G's numbers? It is (0.5 G) ->
+    # the reference (500 "G") is named, not the data
+    np.savetxt(path, raw / 1000.0, delimiter=",", header="x,y,z", comments="")
+    r = run_trimag("fit", path, "--units", "G", "--reference", "500", "-o", tmp_path / "cal.json")
+    assert r.returncode == 2 and "--reference" in r.stderr and "the data are not in G" not in r.stderr, r.stderr
+    # data in the wrong unit (counts of 500 read as nT) still blame the unit
+    np.savetxt(path, raw, delimiter=",", header="x,y,z", comments="")
+    r = run_trimag("fit", path, "--units", "nT", "--reference", "50000", "-o", tmp_path / "cal.json")
+    assert r.returncode == 2 and "unit is wrong" in r.stderr and "give --reference in" not in r.stderr, r.stderr

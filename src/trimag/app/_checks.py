@@ -72,9 +72,14 @@ def refuse_below_reference(median: float, unit: str, reference: str | float | No
         F = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT) / nT_per_unit(unit)
     if F is not None and F > 0 and median < 0.2 * F:
         shown = f" {unit}" if unit not in ("unknown", "counts") else ""
+        from ..units import plausible_units
+
+        blame = ("the reference or the data's unit is wrong" if (igrf_spec is not None and reference is None)
+                 or unit not in plausible_units(median, field=True) else
+                 f"the data's field is one in {unit}: give `reference` in the data's unit ({unit})")
         raise TrimagInputError(
             f"the data's median |B| is {median:.6g}{shown}, {median / F:.3g}x the reference field ({F:.6g}{shown}): "
-            "raw magnitudes are never that far below the field; the reference or the data's unit is wrong"
+            f"raw magnitudes are never that far below the field; {blame}"
         )
 
 
@@ -102,6 +107,13 @@ def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = Fal
         ratio = raw_field / float(value)
         if not 0.2 <= ratio <= 5.0:
             likely = plausible_units(raw_field, field=True)
+            if unit in likely:  # the data's field is an Earth field in their unit: the reference is what is off
+                other = [u for u in plausible_units(float(value), field=True) if u != unit]
+                in_other = f" (it would be one in {' or '.join(other)})" if other else ""
+                raise TrimagInputError(
+                    f"the reference field {float(value):.6g} {unit} is not an Earth field in {unit}{in_other}, while "
+                    f"the data's field is {raw_field:.6g} {unit}: give `reference` in the data's unit ({unit})"
+                )
             guess = f"; the numbers look like {' or '.join(likely)}" if likely else ""
             raise TrimagInputError(
                 f"the field in the data is {raw_field:.6g} {unit} (the correction's gain is {gain:.3g}), {ratio:.3g}x "
