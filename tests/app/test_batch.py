@@ -355,6 +355,13 @@ def test_batch_checks_every_calibration_against_a_policy(fleet: Path, tmp_path: 
     assert s["n_rejected"] == 0
     table = pd.read_csv(tmp_path / "b" / "summary.csv", keep_default_na=False, na_values=[""])
     assert list(table["accepted"]) == [True] * 4
+    # one rule passed and one failed: rejected, as fit rejects it (a list of passed rules was read as the verdict)
+    mixed = tmp_path / "mixed.toml"
+    mixed.write_text("[limits]\nmax_rms_after = 0\nmax_offset = 1e9\n")
+    assert main([*argv, "--out", str(tmp_path / "m"), "--policy", str(mixed)]) == 4
+    assert json.loads(capsys.readouterr().out)["n_rejected"] == 4
+    table = pd.read_csv(tmp_path / "m" / "summary.csv", keep_default_na=False, na_values=[""])
+    assert list(table["accepted"]) == [False] * 4
     assert main([*argv, "--out", str(tmp_path / "c")]) == 0  # no policy: no verdict
     capsys.readouterr()
     assert pd.read_csv(tmp_path / "c" / "summary.csv", keep_default_na=False, na_values=[""])["accepted"].isna().all()

@@ -234,7 +234,7 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
         )
         verdict = s.get("acceptance")
         if verdict is not None:
-            row.update(accepted=bool(verdict.get("passed")),
+            row.update(accepted=bool(verdict["accepted"]),
                        rejected_by="; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.3g}"
                                              for f in verdict.get("failed") or []))
     except Exception as exc:
