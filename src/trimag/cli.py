@@ -580,7 +580,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                  "marked rejected)")
             return EXIT_POLICY
         if not verdict["accepted"]:
-            failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
+            from .vehicle.policy import failed_rules
+
+            failed = "; ".join(failed_rules(verdict))
             _err(f"rejected by the acceptance policy: {failed} (the calibration is written, marked rejected)")
             return EXIT_POLICY
     return EXIT_OK

@@ -13,7 +13,7 @@ from ..errors import TrimagError, TrimagInputError
 from ..estimators import make_estimator
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..units import normalise_unit
+from ..units import normalise_unit, plausible_units
 
 
 def check_unit(
@@ -72,8 +72,6 @@ def refuse_below_reference(median: float, unit: str, reference: str | float | No
         F = float(igrf(*parse_igrf_spec(igrf_spec)).total_nT) / nT_per_unit(unit)
     if F is not None and F > 0 and median < 0.2 * F:
         shown = f" {unit}" if unit not in ("unknown", "counts") else ""
-        from ..units import plausible_units
-
         blame = ("the reference or the data's unit is wrong" if (igrf_spec is not None and reference is None)
                  or unit not in plausible_units(median, field=True) else
                  f"the data's field is one in {unit}: give `reference` in the data's unit ({unit})")
@@ -95,7 +93,7 @@ def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = Fal
     """
     from ..errors import IdentifiabilityError
     from ..estimators._finish import COVERAGE_WARN
-    from ..units import EARTH_FIELD_RANGE_NT, nT_per_unit, plausible_units
+    from ..units import EARTH_FIELD_RANGE_NT, nT_per_unit
 
     ref = cal.reference or {}
     value = ref.get("value")

@@ -80,7 +80,7 @@ class BatchResult:
     @property
     def n_rejected(self) -> int:
         """Files fitted whose calibration the acceptance policy rejected."""
-        return int((self.table["accepted"] == False).sum())  # noqa: E712 (a nullable boolean column)
+        return int(self.table["accepted"].eq(False).sum())
 
     @property
     def files_per_second(self) -> float:
@@ -234,9 +234,9 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
         )
         verdict = s.get("acceptance")
         if verdict is not None:
-            row.update(accepted=bool(verdict["accepted"]),
-                       rejected_by="; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.3g}"
-                                             for f in verdict.get("failed") or []))
+            from ..vehicle.policy import failed_rules
+
+            row.update(accepted=bool(verdict["accepted"]), rejected_by="; ".join(failed_rules(verdict, digits=3)))
     except Exception as exc:
         message, kind = _failure(exc)
         row.update(error=message or type(exc).__name__, error_type=kind)

@@ -132,7 +132,9 @@ def compass_warnings(number: int, fit: Any) -> list[str]:
             out.append(f"warning: compass {number}: policy rules not evaluated (the data cannot measure them): "
                        f"{', '.join(verdict['not_evaluated'])}")
         if not verdict["accepted"]:
-            failed = "; ".join(f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.4g}" for f in verdict["failed"])
+            from ..vehicle.policy import failed_rules
+
+            failed = "; ".join(failed_rules(verdict))
             out.append(f"warning: compass {number} rejected by the acceptance policy: {failed} (its calibration is "
                        "written, marked rejected)")
     return out

@@ -34,7 +34,7 @@ from ..quality.diagnostics import (
     raw_direction_geometry,
 )
 from ..units import normalise_unit
-from ..vehicle.policy import DEFAULT_LIMITS, check_policy
+from ..vehicle.policy import DEFAULT_LIMITS, check_policy, failed_rules
 from .sources import Batch
 
 __all__ = ["GOOD_ENOUGH_INFLATION", "GOOD_ENOUGH_UNSEEN_DEG", "MIN_FIT_SAMPLES", "LiveSession"]
@@ -317,8 +317,7 @@ class LiveSession:
         reasons: list[str] = []
         if not identifiable:
             reasons.append("poorly identified: " + "; ".join(warn_texts or [str(ident.get("warning"))]))
-        for failed in verdict["failed"]:
-            reasons.append(f"{failed['rule']} = {failed['limit']:g}: measured {failed['measured']:.3g}")
+        reasons += failed_rules(verdict, digits=3)
         if not verdict["passed"] and not verdict["failed"]:
             reasons.append("no rule of the acceptance policy could be evaluated")
         if inflation is not None and not inflation <= GOOD_ENOUGH_INFLATION:

@@ -34,7 +34,7 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import TrimagError, TrimagInputError
 
-__all__ = ["DEFAULT_LIMITS", "PolicyRejected", "check_policy", "read_policy"]
+__all__ = ["DEFAULT_LIMITS", "PolicyRejected", "check_policy", "failed_rules", "read_policy"]
 
 #: ``--policy default``: what a fitted MEMS or fluxgate calibration should meet in the field
 DEFAULT_LIMITS: dict[str, float] = {"max_field_error_pct": 5.0, "min_coverage": 0.5, "max_heading_sigma_deg": 1.0}
@@ -120,6 +120,12 @@ def check_policy(cal: Calibration, limits: dict[str, float], *, inclination_deg:
     if not passed and not failed:
         verdict["nothing_checked"] = True
     return verdict
+
+
+def failed_rules(verdict: Mapping[str, Any], digits: int = 4) -> list[str]:
+    """Each failed rule of ``verdict`` (:func:`check_policy`) as the user reads it: ``"max_offset = 100: measured
+    120.5"`` (the measured value to ``digits`` significant digits)."""
+    return [f"{f['rule']} = {f['limit']:g}: measured {f['measured']:.{digits}g}" for f in verdict.get("failed") or []]
 
 
 def _halves_ratio(diagnostics: Mapping[str, Any]) -> float | None:
