@@ -214,3 +214,39 @@ def test_matlab_mat_file_loads_in_scipy_and_m_text_has_no_injection(tmp_path: Pa
     text = export_calibration(cal, "matlab").text
     _no_injection(text)
     assert all(ln.startswith("%") or ln.startswith(("A = ", "b = ", "     ")) for ln in text.splitlines())
+
+
+def _internal_fit_calibration(target: str) -> Calibration:
+    """A firmware fit of an internal compass: its orientation is the board's (AHRS_ORIENTATION / SENS_BOARD_ROT)."""
+    from trimag.fields.attitude import body_field
+    from trimag.vehicle.firmware import firmware_calibration, fit_firmware
+
+    unit = 1.0 if target == "ardupilot" else 1e-3
+    klass = ArduPilotCompass if target == "ardupilot" else PX4Magnetometer
+    truth = klass(orientation=4, offsets=np.array([60.0, -40.0, 30.0]) * unit)
+    rng = np.random.default_rng(3)
+    n = 800
+    att = Rotation.from_euler("ZYX", np.column_stack([rng.uniform(0, 360, n), rng.uniform(-60, 60, n),
+                                                      rng.uniform(-60, 60, n)]), degrees=True)
+    h = body_field(att, np.array([200.0, 10.0, 450.0]) * unit)
+    raw = truth.uncorrect(h) + rng.normal(0, 1.0 * unit, (n, 3))
+    held = klass(orientation=4)
+    fit = fit_firmware(target, raw, field_body=h, held=held, external=False, level="offsets")
+    return firmware_calibration(fit, units=truth.unit)
+
+
+def test_an_internal_px4_magnetometer_is_written_rot_minus_one_as_px4_saves_it():
+    """PX4 rotates an internal magnetometer by SENS_BOARD_ROT and stores CAL_MAGn_ROT = -1 (ParametersSave): a
+    board rotation written into CAL_MAGn_ROT is read as the sensor's own once the device is external."""
+    exp = export_calibration(_internal_fit_calibration("px4"), "px4", instance=0)
+    assert exp.parameters["CAL_MAG0_ROT"] == -1
+    assert any("SENS_BOARD_ROT" in n for n in exp.notes)
+    compass = PX4Magnetometer.from_parameters({**exp.parameters, "SENS_BOARD_ROT": 4}, 0)
+    assert compass.orientation == 4
+
+
+def test_an_internal_ardupilot_compass_gets_no_compass_orient():
+    """ArduPilot ignores COMPASS_ORIENTn of an internal compass (AHRS_ORIENTATION rotates it): not written."""
+    exp = export_calibration(_internal_fit_calibration("ardupilot"), "ardupilot", instance=0)
+    assert "COMPASS_ORIENT" not in exp.parameters
+    assert any("AHRS_ORIENTATION" in n for n in exp.notes)

@@ -262,6 +262,9 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
         p = compass.parameters(instance)
         if not write_orientation:
             p = {k: v for k, v in p.items() if not k.endswith(("ORIENT", "_ROT")) and "ORIENT" not in k}
+        elif _internal(cal):
+            p, note = _internal_orientation(p, compass, instance)
+            more = [*more, note]
         if global_name in p and global_name in params and params[global_name] != p[global_name]:
             raise TrimagInputError(f"{global_name} is one for all magnetometers: these calibrations have a current "
                                    "term and a throttle term; fit them with the same motor channel")
@@ -277,6 +280,29 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
     text = (_param_file(params, header) if target == "ardupilot" else
             _comment_lines(header, "#") + "".join(f"param set {k} {v:.9g}\n" for k, v in params.items()))
     return Export(target, text, params, notes)
+
+
+def _internal(cal: Calibration) -> bool:
+    """The firmware fit was of an internal compass (its orientation follows the board's)."""
+    fw = cal.diagnostics.get("firmware")
+    decision = fw.get("orientation_decision") if isinstance(fw, dict) else None
+    return isinstance(decision, dict) and decision.get("external") is False
+
+
+def _internal_orientation(p: dict[str, float], compass: FirmwareCompass, instance: int
+                          ) -> tuple[dict[str, float], str]:
+    """An internal compass's orientation as its firmware stores it: ArduPilot ignores ``COMPASS_ORIENTn`` of an
+    internal compass (``AP_Compass_Backend::rotate_field`` rotates it by ``AHRS_ORIENTATION``), so it is not
+    written; PX4 stores ``CAL_MAGn_ROT = -1`` and rotates it by ``SENS_BOARD_ROT`` (``Magnetometer::ParametersSave``
+    / ``ParametersLoad``). The board's rotation also turns the IMU: it is never written from a compass fit."""
+    name = compass.rotation_name
+    if compass.target == "ardupilot":
+        p = {k: v for k, v in p.items() if not k.startswith("COMPASS_ORIENT")}
+        return p, (f"an internal compass: its orientation is the board's (AHRS_ORIENTATION = {compass.orientation}, "
+                   f"{name}), so COMPASS_ORIENT is not written")
+    p = {**p, f"CAL_MAG{instance}_ROT": -1.0}
+    return p, (f"an internal magnetometer: CAL_MAG{instance}_ROT = -1 as PX4 stores it; its orientation is the "
+               f"board's (SENS_BOARD_ROT = {compass.orientation}, {name})")
 
 
 def _formula_line(compass: FirmwareCompass, instance: int) -> str:
