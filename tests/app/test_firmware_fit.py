@@ -271,3 +271,18 @@ def test_an_old_px4_log_whose_readings_carry_the_rotation_is_not_exported_as_a_n
                    tmp_path / "all.params", "-o", tmp_path / "all.json")
     assert r.returncode == 2 and "v1.12" in r.stderr, r.stderr
     assert not list(tmp_path.glob("all*")), list(tmp_path.iterdir())  # nothing of the refused run is left
+
+
+def test_a_log_that_never_turned_gets_no_offsets_from_the_ekf_yaw_that_used_the_compass(tmp_path: Path):
+    """Found at the 2026-11-27 review: the real PX4 ULog (pyulog's sample_log_small, SITL, 6 s) never turned (the
+    field stayed within 2 deg), the honest heading-free fit left 58 % of the field unexplained, and the fallback to
+    the vector with the EKF's yaw (which fused this compass) wrote offsets (0.33, 0.43, -0.95) G, 0.6 G from the
+    log's, with exit 0: offsets fitted to a heading the compass itself made, from one direction of the field. Now
+    refused (exit 3, no file), naming --heading (the true heading at rest) and a calibration turn."""
+    log = TESTS_DIR / "data" / "logs" / "pyulog_sample_log_small.ulg"
+    out = tmp_path / "cal.json"
+    r = run_trimag("fit", log, "--target", "px4", "--sensor", "vehicle_magnetometer", "-o", out)
+    assert r.returncode == 3, r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert "--heading" in line and "turn" in line, line
+    assert not out.exists()

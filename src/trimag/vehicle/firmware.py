@@ -222,9 +222,7 @@ def _choose_orientation(
     info: dict[str, Any] = {"log_value": current, "best_value": best, "best_rms": best_rms,
                             "log_rms": current_rms, "external": external}
     chosen = current
-    directions = raw / np.linalg.norm(raw, axis=1, keepdims=True)
-    mean = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
-    cone = float(np.degrees(np.arccos(np.clip(directions @ mean, -1.0, 1.0))).max())
+    cone = _cone_deg(raw)
     info["cone_deg"] = cone
     if cone < MIN_CONE_DEG:
         messages.append(f"orientation: kept (the field direction stayed within {cone:.0f} deg: too little turning to "
@@ -257,6 +255,13 @@ def _choose_orientation(
             "CAL_MAGn_ROT 100 with CAL_MAGn_ROLL/PITCH/YAW) and record again"
         )
     return fr, info, messages
+
+
+def _cone_deg(raw: NDArray[np.float64]) -> float:
+    """How far (degrees) the field's direction in the sensor strayed from its mean: how much the vehicle turned."""
+    directions = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    mean = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
+    return float(np.degrees(np.arccos(np.clip(directions @ mean, -1.0, 1.0))).max())
 
 
 def _remaining_angle(u: NDArray[np.float64], h: NDArray[np.float64],
@@ -673,6 +678,14 @@ def _levels(
         except KeepTheLogs:
             raise
         except IdentifiabilityError as exc:
+            cone = _cone_deg(v)
+            if cone < MIN_CONE_DEG:  # the vector would take every offset from the yaw this compass made
+                raise IdentifiabilityError(
+                    f"the vehicle barely turned (the field's direction stayed within {cone:.0f} deg) and, without "
+                    f"the heading, {exc}; the only offsets left would come from the logged yaw, which the EKF took "
+                    "from this compass: for a vehicle at rest give its true heading (--heading DEG, as ArduPilot's "
+                    "MAG_CAL_YAW), or record a calibration turn through all headings"
+                ) from None
             messages.append(f"warning: heading-free, {exc}; fitted to the vector with the attitude's own yaw instead "
                             "(which used this compass: the orientation about the vertical and the horizontal soft "
                             "iron lean toward the calibration in the log)")
