@@ -683,8 +683,9 @@ def _levels(
                 raise IdentifiabilityError(
                     f"the vehicle barely turned (the field's direction stayed within {cone:.0f} deg) and, without "
                     f"the heading, {exc}; the only offsets left would come from the logged yaw, which the EKF took "
-                    "from this compass: for a vehicle at rest give its true heading (--heading DEG, as ArduPilot's "
-                    "MAG_CAL_YAW), or record a calibration turn through all headings"
+                    "from this compass: for a vehicle at rest give its true heading (`trimag fit LOG --heading DEG` "
+                    "without --target, as ArduPilot's MAG_CAL_YAW, then `trimag export`), or record a calibration "
+                    "turn through all headings"
                 ) from None
             messages.append(f"warning: heading-free, {exc}; fitted to the vector with the attitude's own yaw instead "
                             "(which used this compass: the orientation about the vertical and the horizontal soft "
