@@ -75,6 +75,8 @@ SWITCH_RATIO = 2.0
 MIN_CONE_DEG = 20.0
 #: A chosen level whose held-out RMS exceeds this fraction of the field is refused: nothing was identified.
 MAX_UNEXPLAINED = 0.2
+#: A chosen level whose held-out RMS exceeds this fraction of the field is written with a warning (a poor compass).
+POOR_UNEXPLAINED = 0.1
 #: Contiguous folds of the held-out RMS.
 N_FOLDS = 5
 #: auto: the simplest level whose held-out RMS is within this fraction of the best.
@@ -638,10 +640,25 @@ def fit_firmware(
         if halves["refuse"] and level == "auto":
             raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
         messages.append(f"warning: {text}")
+    messages += _poor(chosen, F, klass.unit)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
     fit.halves = halves
     return fit
+
+
+def _poor(chosen: _Candidate, F: float, unit: str) -> list[str]:
+    """A warning when the chosen level leaves more than :data:`POOR_UNEXPLAINED` of the field unexplained (under
+    the :data:`MAX_UNEXPLAINED` refusal: kept, as it may still be far better than the log's, but said)."""
+    rms = chosen.heldout_rms
+    if not np.isfinite(rms) or rms <= POOR_UNEXPLAINED * F:
+        return []
+    heading = float(np.degrees(np.arctan2(rms, F)))
+    return [f"warning: a poor compass: the {chosen.level} level leaves {rms:.4g} of the field {F:.4g} {unit} "
+            f"unexplained (held-out RMS, {100 * rms / F:.0f}%): heading errors of about {heading:.0f} deg where the "
+            "field is horizontal, more where it dips; the compass sits in a disturbed field (motors, power wiring, "
+            "iron) or the log's processing changed its readings: move it, or let the autopilot use a better compass "
+            "(ArduPilot COMPASS_USEn 0, PX4 CAL_MAGn_PRIO 0 for this one)"]
 
 
 def _halves(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareCompass, orientation: int,
