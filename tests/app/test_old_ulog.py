@@ -72,3 +72,16 @@ def test_a_refusal_with_igrf_given_offers_target_without_asking_for_igrf() -> No
     assert r.returncode == 3, r.stderr
     (line,) = _error_lines(r.stderr)
     assert "--target px4 fits" in line and "add --igrf" not in line, line
+
+
+def test_target_px4_with_the_right_magnitude_is_not_called_a_wrong_unit() -> None:
+    """Following the no-fix refusal's advice with the right magnitude (`--reference 0.48`, the log's own |B| under its
+    calibration) gave exit 2 "the data's field is 0.332x the reference field (0.1594 against 0.48 G) ... the reference
+    or the data's unit is wrong": the sphere through readings that span a 25 deg cap has no defined radius. The
+    log's calibration puts them at 0.48 G: the reference is not contradicted."""
+    r = run_trimag("fit", HEAD, "--target", "px4", "--reference", "0.48")
+    assert "unit is wrong" not in r.stderr, r.stderr
+    assert r.returncode in (0, 3), r.stderr
+    if r.returncode == 3:
+        (line,) = _error_lines(r.stderr)
+        assert "record" in line, line
