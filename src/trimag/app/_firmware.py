@@ -292,7 +292,9 @@ def _old_px4_rotation(info: dict[str, Any] | None, applied: int | None) -> str |
     instance = int(info.get("instance") or 0)
     rotation = int((info.get("parameters") or {}).get(f"CAL_MAG{instance}_ROT", -1))
     in_force = f"CAL_MAG{instance}_ROT = {rotation}" if rotation >= 0 else "SENS_BOARD_ROT (an internal compass)"
-    return (f"this log's readings were rotated by the drivers of PX4 before v1.12 ({in_force}, before their "
+    # 2016's sensor_combined: sensors.cpp rotated the driver's calibrated report (mag_poll), after its calibration
+    by = ("its sensors module", "after") if info.get("sensor") == "sensor_combined" else ("the drivers", "before")
+    return (f"this log's readings were rotated by {by[0]} of PX4 before v1.12 ({in_force}, {by[1]} their "
             "offsets and scales): the orientation and offsets found are relative "
             "to the logged readings, not the sensor's own frame, so `trimag export` will not write them as a "
             "firmware's parameters; fit a log of PX4 v1.12 or later (raw sensor_mag) for the firmware's parameters")

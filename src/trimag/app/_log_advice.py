@@ -49,9 +49,10 @@ def _reason(message: str, name: str, field: NDArray[np.float64]) -> str:
             + ". Record a calibration with the vehicle also pitched nose up and down and rolled on each side")
 
 
-def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDArray[np.float64]
-                ) -> IdentifiabilityError:
-    """``exc`` (a log's fit refused) said with the log's compasses and the modes that would help (one line)."""
+def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDArray[np.float64], *,
+                target: str | None = None, igrf_given: bool = False) -> IdentifiabilityError:
+    """``exc`` (a log's fit refused) said with the log's compasses and the modes that would help (one line); the
+    firmware-space fit is not offered when it was the fit refused (``target``), nor IGRF asked for when given."""
     name = str(log_info.get("sensor", ""))
     reason = _reason(str(exc).rstrip(". "), name, field).rstrip(". ")
     compasses = log_info.get("compasses") or []
@@ -66,17 +67,19 @@ def log_refusal(exc: IdentifiabilityError, log_info: dict[str, Any], field: NDAr
              "`prior=CAL.json` keeps an earlier full calibration and refits its offsets"]
     if not static:
         modes = [modes[1], modes[0], modes[2]]
-    return IdentifiabilityError(f"{head}: {reason}.{_firmware_fit(log_info)} For a vehicle that cannot be tumbled: "
+    firmware = "" if target else _firmware_fit(log_info, igrf_given)
+    return IdentifiabilityError(f"{head}: {reason}.{firmware} For a vehicle that cannot be tumbled: "
                                 f"{'; '.join(modes)}")
 
 
-def _firmware_fit(log_info: dict[str, Any]) -> str:
+def _firmware_fit(log_info: dict[str, Any], igrf_given: bool = False) -> str:
     """The firmware-space fit that an autopilot's ordinary flight can give (``target``, docs/autopilot.md), named
     with the firmware of the log's format; empty for logs of no autopilot (a phone, a ROS bag)."""
     fmt = str(log_info.get("format", ""))
     target = "px4" if "PX4" in fmt else ("ardupilot" if ("ArduPilot" in fmt or "MAVLink" in fmt) else None)
     if target is None:
         return ""
-    gps = "" if log_info.get("gps") else " (this log has no GPS fix: add `igrf_spec=LAT,LON,ALT_M,YYYY-MM-DD`)"
+    gps = "" if log_info.get("gps") or igrf_given else \
+        " (this log has no GPS fix: add `igrf_spec=LAT,LON,ALT_M,YYYY-MM-DD`)"
     return (f" From an ordinary flight, `target={target}` fits the parameters the firmware loads (the levels the "
             f"flight identifies, against the IGRF field rotated by the logged attitude){gps}.")

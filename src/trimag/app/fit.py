@@ -143,7 +143,8 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     except IdentifiabilityError as exc:  # a log: its compasses and the modes that would help (issue 30, item 7)
         if samples.log_info is None or mode is not None or req.prior is not None:
             raise
-        raise log_refusal(exc, samples.log_info, samples.field) from None
+        raise log_refusal(exc, samples.log_info, samples.field, target=req.target,
+                          igrf_given=req.reference.igrf_spec is not None) from None
 
 
 def _fit_samples(

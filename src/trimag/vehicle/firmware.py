@@ -621,8 +621,12 @@ def fit_firmware(
         T = fr.P_u @ _frame(target, int(held.orientation), applied_orientation).P_u.T
         A_held, o_held = T @ A_held @ T.T, T @ o_held
     F = float(np.median(np.linalg.norm(hh, axis=1) if vector else hh))
-    if not vector:
-        _refuse_contradicted_scale(_sphere_scale(u, F), F, klass)
+    if not vector:  # the sphere's radius is undefined for readings that barely turned: the held calibration's
+        # field must disagree too (its |B| is the log's own magnitude), as the vector path's two scales must
+        held_G = float(np.median(np.linalg.norm((u + o_held) @ A_held.T, axis=1)))
+        own = F / held_G if held_G > 0 else np.inf
+        _refuse_contradicted_scale(own if abs(np.log(own)) <= np.log(SCALE_CONTRADICTION) else _sphere_scale(u, F),
+                                   F, klass)
     held_frame = _frame(target, int(held.orientation), applied_orientation)
     try:
         table, candidates, chosen, tilt = _levels(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr,

@@ -6,6 +6,9 @@ Calibration PX4 applies, by era (the reader says which it undid):
   subtracted; ``CAL_MAGn_xSCALE``), after rotating ``r`` to the board frame; undone as ``r = m / scale + off``.
   On a ULog that also holds ``vehicle_magnetometer`` the reader checks it: the prime sensor's ``sensor_mag`` equals
   ``vehicle_magnetometer`` when ``sensor_mag`` is calibrated.
+- Early ULog (2016) without ``sensor_mag``: the prime magnetometer only in ``sensor_combined.magnetometer_ga``
+  (gauss), the same calibrated reading, then rotated into the body frame by the sensors module; read as the
+  compass ``sensor_combined`` (:func:`sensor_combined_magnetometer`), its offsets and scales undone, its rotation not.
 - ULog from v1.12: ``sensor_mag`` is the raw reading; ``sensor_calibration::Magnetometer`` (PX4-Autopilot
   src/lib/sensor_calibration/Magnetometer.cpp) applies ``rotation * (S_sym * ((r + power * comp) - off))``
   afterwards, so nothing is undone.
@@ -24,9 +27,13 @@ from numpy.typing import NDArray
 from ...errors import TrimagInputError
 from .base import Channel, MagnetometerStream, VehicleLog, mavlink_messages, require
 
-__all__ = ["read_px4log", "read_ulog", "undo_px4_legacy"]
+__all__ = ["RELATIVE_TIMESTAMP_INVALID", "read_px4log", "read_ulog", "sensor_combined_magnetometer",
+           "undo_px4_legacy"]
 
 _SLOW_HZ = 5.0
+#: ``sensor_combined``'s ``*_timestamp_relative`` when the row holds no reading of that sensor (PX4
+#: ``msg/sensor_combined.msg``: ``RELATIVE_TIMESTAMP_INVALID = 2147483647``).
+RELATIVE_TIMESTAMP_INVALID = 2147483647
 
 
 def _cal(params: dict[str, float], slot: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -85,9 +92,108 @@ def read_ulog(path: Path) -> VehicleLog:
                            np.column_stack([imu[f"gyro_rad[{i}]"] for i in range(3)]).astype(np.float64), "rad/s",
                            "sensor_combined.gyro_rad")
     log.messages = [w for w in (_slow_warning(m) for m in mags) if w]
-    if not mags:
-        raise TrimagInputError(f"{path}: the log has no sensor_mag or vehicle_magnetometer messages")
+    if not mags and imu is not None:
+        prime = int(params.get("CAL_MAG_PRIME", 0))
+        slots = [k for k in range(8) if prime and params.get(f"CAL_MAG{k}_ID") == prime]
+        stream, note = sensor_combined_magnetometer(imu, params, slots[0] if slots else 0)
+        log.messages += [note] if note else []
+        if stream is not None:
+            log.magnetometers.append(stream)
+    if not log.magnetometers:
+        raise TrimagInputError(f"{path}: the log has no magnetometer readings (no sensor_mag, vehicle_magnetometer "
+                               "or sensor_combined.magnetometer_ga values); log the magnetometer (PX4's default "
+                               "logging profile logs sensor_mag and vehicle_magnetometer)")
     return log
+
+
+def sensor_combined_magnetometer(imu: Any, params: dict[str, float], slot: int
+                                 ) -> tuple[MagnetometerStream | None, str]:
+    """The magnetometer of an early ULog's ``sensor_combined`` (``magnetometer_ga[0..2]``, gauss), one row per reading.
+
+    ``sensor_combined`` is published at the IMU's rate and repeats the last magnetometer value between readings: a
+    row is kept where the value changed (the first one too), at the magnetometer's own time
+    (``timestamp + magnetometer_timestamp_relative`` where the message has it). Rows without a reading (relative time
+    stamp :data:`RELATIVE_TIMESTAMP_INVALID`, all-zero or non-finite values) and repeats are dropped and counted.
+    The values are the firmware's output: calibrated by ``CAL_MAGn_xOFF``/``xSCALE`` (undone, as
+    :func:`undo_px4_legacy`) and rotated into the body frame (PX4 before v1.12 ``sensors.cpp``: ``SENS_BOARD_ROT``
+    and its ``SENS_BOARD_x_OFF`` trims for an internal compass, ``CAL_MAGn_ROT`` for an external one; not undone).
+
+    Parameters
+    ----------
+    imu : mapping of str to ndarray
+        The ``sensor_combined`` fields (pyulog's ``data``), each shape (N,).
+    params : dict
+        The log's parameters.
+    slot : int
+        The calibration slot of the prime magnetometer (``CAL_MAGn_ID == CAL_MAG_PRIME``).
+
+    Returns
+    -------
+    stream, message
+        The compass ``sensor_combined`` (None without magnetometer values) and what was kept and dropped.
+    """
+    if "magnetometer_ga[0]" not in imu:
+        return None, ""
+    logged = np.column_stack([imu[f"magnetometer_ga[{i}]"] for i in range(3)]).astype(np.float64)
+    t_us = imu["timestamp"].astype(np.int64)
+    rel = imu.get("magnetometer_timestamp_relative")
+    valid = np.isfinite(logged).all(axis=1) & np.any(logged != 0, axis=1)
+    if rel is not None:
+        valid &= rel != RELATIVE_TIMESTAMP_INVALID
+        t_us = t_us + np.where(valid, rel, 0).astype(np.int64)
+    idx = np.flatnonzero(valid)
+    n_rows, n_without = len(logged), len(logged) - len(idx)
+    if not len(idx):
+        return None, f"sensor_combined.magnetometer_ga: none of its {n_rows} rows holds a reading (all zero or invalid)"
+    new = np.r_[True, np.any(np.diff(logged[idx], axis=0) != 0, axis=1)]
+    keep = idx[new]
+    repeats = idx[~new]
+    republished = int(np.count_nonzero(t_us[repeats] != t_us[idx[np.flatnonzero(~new) - 1]])) if rel is not None else 0
+    times = "the magnetometer's own (timestamp + magnetometer_timestamp_relative)" if rel is not None else \
+        "the rows' (the message has no time stamp of the magnetometer's)"
+    span_s = float(imu["timestamp"][-1]) * 1e-6 - float(imu["timestamp"][0]) * 1e-6
+    rate = (n_rows - 1) / span_s if span_s > 0 else 0.0
+    message = (f"sensor_combined.magnetometer_ga: {n_rows} sensor_combined rows (published at the IMU's rate, "
+               f"{rate:.3g} Hz), {len(keep)} kept (a new reading: the value changed); {len(repeats)} repeat the "
+               "reading before them and were dropped"
+               + (f" ({republished} of them under a new magnetometer time stamp: an unchanged reading published "
+                  "again)" if republished else "")
+               + (f"; {n_without} without a reading dropped" if n_without else "")
+               + f"; times: {times}")
+    raw, undone, onboard = undo_px4_legacy(logged[keep], params, slot)
+    undone.append(_rotation_note(params, slot, _cal(params, slot)[0]))
+    prime = int(params.get("CAL_MAG_PRIME", 0))
+    stream = MagnetometerStream("sensor_combined", slot, t_us[keep].astype(np.float64) * 1e-6, raw, logged[keep], "G",
+                                undone, prime or None, onboard)
+    return stream, message
+
+
+def _rotation_note(params: dict[str, float], slot: int, offset_G: NDArray[np.float64]) -> str:
+    """What the firmware's rotation of ``sensor_combined`` means for the readings (one line).
+
+    PX4 2016 ``sensors.cpp`` (``mag_poll``): ``magnetometer_ga = R (r - off) * scale``, the driver's calibrated report
+    rotated by ``_mag_rotation``: ``SENS_BOARD_ROT`` with its trims ``Dcm(Euler(SENS_BOARD_X/Y/Z_OFF))`` for an
+    internal compass, ``CAL_MAGn_ROT`` for an external one. Adding the offsets back in the rotated frame (as
+    :func:`undo_px4_legacy`) keeps the log's own calibration exact on the logged readings; against the exact undo
+    ``R (R^T m / scale + off)`` it is off by ``|(R - I) off|`` (for unit scales), which is said.
+    """
+    from ...models.firmware import PX4_ROTATIONS, euler_matrix, rotation_matrix
+
+    rot = int(params.get(f"CAL_MAG{slot}_ROT", -1))
+    if rot >= 0:
+        in_force = f"CAL_MAG{slot}_ROT = {rot}"
+        R = rotation_matrix("px4", rot) if rot in PX4_ROTATIONS else None
+    else:
+        board = int(params.get("SENS_BOARD_ROT", 0))
+        trims = [float(params.get(f"SENS_BOARD_{a}_OFF", 0.0)) for a in "XYZ"]
+        in_force = (f"SENS_BOARD_ROT = {board} with its trims SENS_BOARD_X/Y/Z_OFF = {np.round(trims, 3).tolist()} "
+                    "deg: an internal compass")
+        R = euler_matrix(*trims) @ rotation_matrix("px4", board) if board in PX4_ROTATIONS else None
+    size = (f" (so the offsets added back are in the rotated frame: {np.linalg.norm((R - np.eye(3)) @ offset_G):.2g} G "
+            "from the exact undo)") if R is not None else ""
+    return ("sensor_combined.magnetometer_ga is the firmware's calibrated, rotated output (PX4 before v1.12, as an old "
+            f"log's sensor_mag): the rotation in force ({in_force}), applied after the offsets and scales, was not "
+            f"undone{size}")
 
 
 _Topics = dict[tuple[str, int], Any]
