@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -51,6 +52,7 @@ def _short(text: str, words: int = 14) -> str:
     text = text.replace("|", "/").strip()
     for prefix in ("trimag: ", "error: ", "cannot identify the model: "):
         text = text.removeprefix(prefix)
+    text = re.sub(r"^.*?another with --sensor N\): ", "", text)  # the compass list before the reason
     parts = text.split()
     return " ".join(parts[:words]) + (" ..." if len(parts) > words else "")
 

@@ -130,3 +130,25 @@ def test_violations_name_the_parameter_and_the_limit():
     assert not bad.violations(offsets_max=3000.0)[0].parameter.startswith("|")
     assert "CAL_MAG0_YSCALE" in str(PX4Magnetometer(diagonal=[1.0, 3.5, 1.0]).violations()[0])
     assert not AP.violations() and not PX4.violations()
+
+
+def test_ardupilot_dia_all_zero_is_the_firmwares_no_matrix_not_a_violation():
+    """Found on an unseen ArduCopter 3.3 log (erle-copter 218.BIN, COMPASS_DIA_X..Z = 0): ``correct_field`` applies
+    the DIA/ODI matrix only when a DIA is non-zero, so all-zero DIA is the identity; every level that held it was
+    called 'outside (0.2, 5)' and auto fell back to a level that fits the scale."""
+    held = ArduPilotCompass(offsets=[10.0, -20.0, 30.0], diagonal=[0.0, 0.0, 0.0])
+    assert held.violations() == []
+    assert np.allclose(held.correct([[100.0, 0.0, 0.0]]), [[110.0, -20.0, 30.0]])
+    one_zero = ArduPilotCompass(diagonal=[1.0, 0.0, 1.0])
+    assert [v.parameter for v in one_zero.violations()][:1] == ["COMPASS_DIA_Y"]
+
+
+def test_a_matrix_whose_mean_gain_is_beyond_compass_scale_keeps_the_rest_in_dia():
+    """Same log: the full level's matrix has a mean diagonal of 1.505, which from_algebra put whole into
+    COMPASS_SCALE (loadable up to 1.5), so the level was 'outside' although DIA (up to 5) can carry the rest."""
+    A = np.array([[1.62, 0.02, 0.0], [0.02, 1.48, 0.01], [0.0, 0.01, 1.42]])
+    compass = ArduPilotCompass.from_algebra(A, [5.0, 6.0, 7.0], np.zeros(3), orientation=0, motor_type=None)
+    assert compass.violations() == []
+    assert compass.scale == pytest.approx(1.5)
+    raw = np.array([[100.0, -50.0, 300.0], [-200.0, 10.0, 40.0]])
+    assert np.allclose(compass.correct(raw), (raw + np.array([5.0, 6.0, 7.0])) @ A.T)

@@ -352,7 +352,7 @@ class ArduPilotCompass(FirmwareCompass):
             out.append(Violation(f"|COMPASS_OFS{n}_X..Z|", size,
                                  f"COMPASS_OFFS_MAX = {offsets_max:g} mGauss (the offset vector's length, "
                                  "AP_Arming::compass_checks; COMPASS_OFFS_MAX goes up to 3000)"))
-        for a, v in zip("XYZ", self.diagonal, strict=True):
+        for a, v in zip("XYZ", self.diagonal if np.any(self.diagonal) else (), strict=False):  # all 0: no matrix
             if not 0.2 < v < 5.0:
                 out.append(Violation(f"COMPASS_DIA{n}_{a}", float(v), "(0.2, 5) (CompassCalibrator::fit_acceptable)"))
         for a, v in zip("XYZ", self.offdiagonal, strict=True):
@@ -391,10 +391,11 @@ class ArduPilotCompass(FirmwareCompass):
     @classmethod
     def from_algebra(cls, A: ArrayLike, o: ArrayLike, m: ArrayLike, *, orientation: int,
                      motor_type: str | None, scale: float | None = None) -> ArduPilotCompass:
-        """``COMPASS_SCALE`` = ``scale`` or the mean of ``A``'s diagonal (as MAGFit renormalises), ``DIA``/``ODI``
-        = ``A / SCALE``."""
+        """``COMPASS_SCALE`` = ``scale`` or the mean of ``A``'s diagonal (as MAGFit renormalises) within the range
+        the firmware uses, [1/1.5, 1.5] (beyond it ``DIA``, 0.2..5, carries the rest), ``DIA``/``ODI`` = ``A /
+        SCALE``."""
         A = np.asarray(A, dtype=np.float64)
-        s = float(np.mean(np.diag(A))) if scale is None else float(scale)
+        s = float(np.clip(np.mean(np.diag(A)), _AP_SCALE_MIN, _AP_SCALE_MAX)) if scale is None else float(scale)
         M = A / s
         return cls(orientation=orientation, offsets=np.asarray(o, dtype=np.float64), scale=s, diagonal=np.diag(M),
                    offdiagonal=np.array([M[0, 1], M[0, 2], M[1, 2]]),
