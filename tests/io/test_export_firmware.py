@@ -250,3 +250,25 @@ def test_an_internal_ardupilot_compass_gets_no_compass_orient():
     exp = export_calibration(_internal_fit_calibration("ardupilot"), "ardupilot", instance=0)
     assert "COMPASS_ORIENT" not in exp.parameters
     assert any("AHRS_ORIENTATION" in n for n in exp.notes)
+
+
+def test_a_held_matrix_seen_in_a_new_orientation_is_written_without_rounding_noise():
+    """A guard (the issue 30 notes saw `COMPASS_ODI_X,-2.55e-17` once; not reproduced on this path, which passes on
+    the tree it was written on): the held identity, turned into the orientation the fit chose by rotation matrices
+    whose cos(90 deg) is 6e-17, is written as exact zeros and ones."""
+    from trimag.fields.attitude import body_field
+    from trimag.vehicle.firmware import firmware_calibration, fit_firmware
+
+    truth = ArduPilotCompass(orientation=6, offsets=[60.0, -40.0, 30.0], diagonal=[1.0, 1.0, 1.0])
+    rng = np.random.default_rng(5)
+    n = 800
+    att = Rotation.from_euler("ZYX", np.column_stack([rng.uniform(0, 360, n), rng.uniform(-60, 60, n),
+                                                      rng.uniform(-60, 60, n)]), degrees=True)
+    h = body_field(att, np.array([200.0, 10.0, 450.0]))
+    raw = truth.uncorrect(h) + rng.normal(0, 1.0, (n, 3))
+    held = ArduPilotCompass(orientation=0, diagonal=[1.0, 1.0, 1.0], offdiagonal=[0.0, 0.0, 0.0])
+    fit = fit_firmware("ardupilot", raw, field_body=h, held=held, level="offsets")
+    p = export_calibration(firmware_calibration(fit, units="mG"), "ardupilot").parameters
+    assert p["COMPASS_ORIENT"] == 6
+    assert [p[f"COMPASS_ODI_{a}"] for a in "XYZ"] == [0.0, 0.0, 0.0], p
+    assert [p[f"COMPASS_DIA_{a}"] for a in "XYZ"] == [1.0, 1.0, 1.0], p
