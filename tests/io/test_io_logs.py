@@ -298,3 +298,22 @@ def test_an_old_dataflash_gps_gives_its_date_from_week_and_time_ms():
     assert _dataflash_gps(new)["date"] == "2015-05-08"  # type: ignore[index]
     old["Week"][1:] = 0  # no week yet (a fix before the GPS's time is known): no date, not 1980
     assert _dataflash_gps(old)["date"] is None  # type: ignore[index]
+
+
+def test_px4_v1_14_gps_fields_give_the_fix():
+    """Found on an unseen PX4 v1.15 ULog (AscendEngineering/UpgradeEnergy test.ulg): from v1.14 the GPS message
+    (sensor_gps, also as vehicle_gps_position) names its fields latitude_deg / longitude_deg / altitude_msl_m (float
+    degrees and metres); the reader looked up 'lat' and every fit ended in an internal error (KeyError, exit 1)."""
+    from trimag.io.logs.px4 import _ulog_gps
+
+    n = 5
+    new = {"timestamp": np.arange(n) * 1e5, "fix_type": np.array([0, 3, 3, 3, 3]),
+           "latitude_deg": np.full(n, 47.397742), "longitude_deg": np.full(n, 8.545594),
+           "altitude_msl_m": np.full(n, 488.1), "time_utc_usec": np.full(n, 1_700_000_000_000_000)}
+    fix = _ulog_gps(new)
+    assert fix is not None
+    assert fix["lat_deg"] == pytest.approx(47.397742) and fix["lon_deg"] == pytest.approx(8.545594)
+    assert fix["alt_m"] == pytest.approx(488.1) and fix["date"] == "2023-11-14"
+    old = {"timestamp": np.arange(n) * 1e5, "fix_type": np.full(n, 3), "lat": np.full(n, 473977420),
+           "lon": np.full(n, 85455940), "alt": np.full(n, 488100), "time_utc_usec": np.full(n, 0)}
+    assert _ulog_gps(old)["alt_m"] == pytest.approx(488.1)

@@ -85,7 +85,7 @@ def read_ulog(path: Path) -> VehicleLog:
     mags = _ulog_magnetometers(data, params, _ulog_version_minor(ulog))
     log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
     _ulog_channels(log, data)
-    log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)))
+    log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)) or data.get(("sensor_gps", 0)))
     imu = data.get(("sensor_combined", 0))
     if imu is not None and "gyro_rad[0]" in imu:
         log.gyro = Channel(imu["timestamp"].astype(np.float64) * 1e-6,
@@ -274,7 +274,9 @@ def _ulog_channels(log: VehicleLog, data: _Topics) -> None:
 
 
 def _ulog_gps(gps: Any) -> dict[str, Any] | None:
-    """The middle 3-D fix of ``vehicle_gps_position`` (latitude, longitude, altitude, UTC date), or None."""
+    """The middle 3-D fix of ``vehicle_gps_position`` / ``sensor_gps`` (latitude, longitude, altitude, UTC date), or
+    None; the fields as PX4 names them before v1.14 (``lat``, ``lon``: 1e-7 deg, ``alt``: mm) and from it
+    (``latitude_deg``, ``longitude_deg``, ``altitude_msl_m``)."""
     if gps is None or not len(gps["timestamp"]):
         return None
     fix = gps.get("fix_type", np.full(len(gps["timestamp"]), 3))
@@ -282,11 +284,16 @@ def _ulog_gps(gps: Any) -> dict[str, Any] | None:
     if not len(good):
         return None
     k = good[len(good) // 2]
-    scale = 1e-7 if np.issubdtype(gps["lat"].dtype, np.integer) else 1.0
     utc = int(gps["time_utc_usec"][k]) if "time_utc_usec" in gps else 0
+    date = _dt.datetime.fromtimestamp(utc / 1e6, _dt.UTC).date().isoformat() if utc else None
+    if "latitude_deg" in gps:  # PX4 v1.14+ (sensor_gps): degrees and metres as floats
+        return {"lat_deg": float(gps["latitude_deg"][k]), "lon_deg": float(gps["longitude_deg"][k]),
+                "alt_m": float(gps["altitude_msl_m"][k]), "date": date}
+    if "lat" not in gps:
+        return None
+    scale = 1e-7 if np.issubdtype(gps["lat"].dtype, np.integer) else 1.0
     return {"lat_deg": float(gps["lat"][k]) * scale, "lon_deg": float(gps["lon"][k]) * scale,
-            "alt_m": float(gps["alt"][k]) * (1e-3 if scale == 1e-7 else 1.0),
-            "date": _dt.datetime.fromtimestamp(utc / 1e6, _dt.UTC).date().isoformat() if utc else None}
+            "alt_m": float(gps["alt"][k]) * (1e-3 if scale == 1e-7 else 1.0), "date": date}
 
 
 def read_px4log(path: Path) -> VehicleLog:
