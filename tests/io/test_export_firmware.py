@@ -272,3 +272,31 @@ def test_a_held_matrix_seen_in_a_new_orientation_is_written_without_rounding_noi
     assert p["COMPASS_ORIENT"] == 6
     assert [p[f"COMPASS_ODI_{a}"] for a in "XYZ"] == [0.0, 0.0, 0.0], p
     assert [p[f"COMPASS_DIA_{a}"] for a in "XYZ"] == [1.0, 1.0, 1.0], p
+
+
+def test_parameters_the_logs_firmware_lacks_are_not_written():
+    """Unseen ArduCopter 3.4.4 / 3.3-dev / 3.6 logs: COMPASS_SCALE (and DIA/ODI, MOT) lines were written for firmware
+    that has no such parameter (a GCS refuses or ignores them; the offsets were fitted with them)."""
+    from trimag.vehicle.firmware import firmware_calibration, fit_firmware
+
+    raw, h = _internal_like_flight()
+    for absent, gone in ((("scale",), ["COMPASS_SCALE"]),
+                         (("scale", "matrix", "motor"),
+                          ["COMPASS_SCALE", "COMPASS_DIA", "COMPASS_ODI", "COMPASS_MOT"])):
+        fit = fit_firmware("ardupilot", raw, field_body=h, absent=absent)
+        p = export_calibration(firmware_calibration(fit, units="mG"), "ardupilot").parameters
+        assert not [k for k in p if k.startswith(tuple(gone))], p
+        assert "COMPASS_OFS_X" in p
+
+
+def _internal_like_flight() -> tuple[np.ndarray, np.ndarray]:
+    from trimag.fields.attitude import body_field
+
+    truth = ArduPilotCompass(orientation=0, offsets=[60.0, -40.0, 30.0], diagonal=[1.03, 0.98, 1.0],
+                             offdiagonal=[0.01, 0.0, -0.02], scale=1.1)
+    rng = np.random.default_rng(8)
+    n = 900
+    att = Rotation.from_euler("ZYX", np.column_stack([rng.uniform(0, 360, n), rng.uniform(-60, 60, n),
+                                                      rng.uniform(-60, 60, n)]), degrees=True)
+    h = body_field(att, np.array([200.0, 10.0, 450.0]))
+    return truth.uncorrect(h) + rng.normal(0, 1.0, (n, 3)), h

@@ -184,3 +184,41 @@ def test_a_fit_that_leaves_a_tenth_of_the_field_unexplained_is_written_with_a_wa
     fit = fit_firmware("ardupilot", raw + disturbance, field_body=h, motor_values={"current": x})
     said = [m for m in fit.messages if m.startswith("warning:") and "unexplained" in m]
     assert len(said) == 1 and "%" in said[0], fit.messages
+
+
+def test_a_firmware_without_compass_scale_or_the_matrix_gets_only_what_it_has():
+    """Found on unseen logs (ArduCopter 3.4.4: DIA/ODI but no COMPASS_SCALE; 3.3-dev: neither): the fit wrote
+    COMPASS_SCALE (ignored by that firmware: a 9.6 % gain error once loaded) and DIA/ODI (absent) with offsets
+    fitted together with them. The parameters a log's firmware lacks are now never fitted."""
+    raw, h, x = simulate(AP_TRUTH, 1500, seed=3)
+    no_scale = fit_firmware("ardupilot", raw, field_body=h, motor_values={"current": x}, absent=("scale",))
+    assert no_scale.compass.scale == 0.0 and "scale" not in {r["level"] for r in no_scale.table}
+    full = fit_firmware("ardupilot", raw, field_body=h, motor_values={"current": x})
+    test_raw, test_h, test_x = simulate(AP_TRUTH, 1500, seed=4)
+    assert _rms(no_scale.compass.correct(test_raw, test_x), test_h) < 1.05 * _rms(full.compass.correct(test_raw,
+                                                                                                      test_x), test_h)
+    offsets_only = fit_firmware("ardupilot", raw, field_body=h, motor_values={"current": x},
+                                absent=("scale", "matrix", "motor"))
+    assert {r["level"] for r in offsets_only.table} == {"offsets"} and offsets_only.compass.motor_type is None
+    with pytest.raises(TrimagInputError, match="COMPASS_SCALE"):
+        fit_firmware("ardupilot", raw, field_body=h, level="scale", absent=("scale",))
+
+
+def test_a_level_whose_added_parameters_are_none_identified_is_not_chosen():
+    """Found on an unseen log (beastayyg sample.bin, compass 2): auto chose `offsets + throttle` with m_x, m_y, m_z
+    all not identified (held-out 24.59 -> 23.00 mG) and wrote COMPASS_MOT and COMPASS_MOTCT 1 (the log had 0)."""
+    from types import SimpleNamespace
+
+    from trimag.vehicle.firmware import _choose
+
+    def cand(level: str, motor: str | None, heldout: float, weak: list[str], n: int) -> SimpleNamespace:
+        names = ["o_x", "o_y", "o_z"] + (["m_x", "m_y", "m_z"] if motor else [])
+        return SimpleNamespace(level=level, motor=motor, heldout_rms=heldout, weak=weak, identified=not weak,
+                               n_identified=n - len(weak), violations=[], at_limit=[],
+                               problem=SimpleNamespace(n_params=n, names=lambda names=names: names))
+
+    plain = cand("offsets", None, 24.59, [], 3)
+    unidentified_motor = cand("offsets", "throttle", 23.00, ["m_x", "m_y", "m_z"], 6)
+    assert _choose("auto", [plain, unidentified_motor]) is plain
+    identified_motor = cand("offsets", "throttle", 20.0, ["m_z"], 6)
+    assert _choose("auto", [plain, identified_motor]) is identified_motor

@@ -79,6 +79,22 @@ def _held(target: str, log_info: dict[str, Any] | None) -> tuple[FirmwareCompass
     return held, applied, external, offsets_max, [msg]
 
 
+def _absent(target: str, log_info: dict[str, Any] | None) -> tuple[tuple[str, ...], list[str]]:
+    """The parts of ``target``'s calibration the log's firmware lacks (its parameter list has none of their
+    parameters: an older version), never fitted nor written, and the message saying so."""
+    from ..models.firmware import absent_features
+
+    if log_info is None or _log_firmware(log_info) != target:
+        return (), []
+    absent = absent_features(target, log_info.get("parameters") or {})
+    if not absent:
+        return (), []
+    names = {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA/ODI", "motor": "the motor term",
+             "offdiagonal": "CAL_MAGn_xODIAG"}
+    return absent, [f"the log's firmware has no {', '.join(names[a] for a in absent)} (not among its parameters): "
+                    "not fitted, not written"]
+
+
 def _yaw_source(samples: Samples) -> tuple[Samples, str, str | None, list[str]]:
     """The yaw column to use (``yaw_gps_deg``, ``yaw_gsf_deg`` or ``yaw_deg``), the rows kept, its name and a note."""
     table = samples.table
@@ -247,6 +263,8 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
         raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
+    absent, more = _absent(target, info)
+    messages += more
     samples, _, columns, more = _motor_channels(target, samples, info)  # first: the rows a channel leaves empty
     messages += more
     samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
@@ -256,7 +274,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
                        level=req.level or "auto", motor=req.motor or "auto",
-                       offsets_max=offsets_max, heading_free=tilt)
+                       offsets_max=offsets_max, heading_free=tilt, absent=absent)
     messages += [m for m in fit.messages if not m.startswith("warning:")]
     kind = fit.compass.motor_type
     channel = columns.get(kind) if kind else None

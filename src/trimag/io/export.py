@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..models.firmware import (
+    FIRMWARE_FEATURES,
     FirmwareCompass,
     compass_from_affine,
     firmware_class,
@@ -259,7 +260,7 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
         if bad:
             raise TrimagInputError(f"{target} cannot load this calibration (nothing written): "
                                    + "; ".join(str(v) for v in bad))
-        p = compass.parameters(instance)
+        p = _present(compass.parameters(instance), cal, target)
         if not write_orientation:
             p = {k: v for k, v in p.items() if not k.endswith(("ORIENT", "_ROT")) and "ORIENT" not in k}
         elif _internal(cal):
@@ -280,6 +281,19 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
     text = (_param_file(params, header) if target == "ardupilot" else
             _comment_lines(header, "#") + "".join(f"param set {k} {v:.9g}\n" for k, v in params.items()))
     return Export(target, text, params, notes)
+
+
+def _present(p: dict[str, float], cal: Calibration, target: str) -> dict[str, float]:
+    """``p`` without the parameters the log's firmware lacks (``diagnostics["firmware"]["absent"]``: the fit held
+    them at the firmware's neutral values, so the correction is the same without them)."""
+    import re
+
+    fw = cal.diagnostics.get("firmware")
+    absent = fw.get("absent") if isinstance(fw, dict) and fw.get("target") == target else None
+    if not absent:
+        return p
+    patterns = [re.compile(FIRMWARE_FEATURES[target][a]) for a in absent if a in FIRMWARE_FEATURES[target]]
+    return {k: v for k, v in p.items() if not any(r.match(k) for r in patterns)}
 
 
 def _internal(cal: Calibration) -> bool:

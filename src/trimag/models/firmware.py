@@ -47,6 +47,7 @@ from ..errors import TrimagInputError
 
 __all__ = [
     "ARDUPILOT_ROTATIONS",
+    "FIRMWARE_FEATURES",
     "FIRMWARE_TARGETS",
     "ORIENTATION_TOLERANCE_DEG",
     "PX4_ROTATIONS",
@@ -54,6 +55,7 @@ __all__ = [
     "FirmwareCompass",
     "PX4Magnetometer",
     "Violation",
+    "absent_features",
     "compass_from_affine",
     "euler_matrix",
     "firmware_class",
@@ -92,6 +94,29 @@ PX4_ROTATIONS: dict[int, tuple[str, float, float, float]] = {
     k: v for k, v in ARDUPILOT_ROTATIONS.items() if k <= 40
 }
 PX4_ROTATIONS[38] = ("ROLL_90_PITCH_68_YAW_293", 90, 68, 293)
+
+
+#: The optional parts of each firmware's compass calibration and the parameters (regular expressions over the names,
+#: any instance) that carry them: a firmware that lacks a part (older versions: ArduPilot before 3.4 has no DIA/ODI,
+#: before 4.0 no COMPASS_SCALE; PX4 before 1.11 no ODIAG / COMP) ignores or refuses them.
+FIRMWARE_FEATURES: dict[str, dict[str, str]] = {
+    "ardupilot": {"scale": r"COMPASS_SCALE\d?$", "matrix": r"COMPASS_(DIA|ODI)\d?_[XYZ]$",
+                  "motor": r"COMPASS_(MOT\d?_[XYZ]|MOTCT)$"},
+    "px4": {"offdiagonal": r"CAL_MAG\d_[XYZ]ODIAG$", "motor": r"CAL_MAG(\d_[XYZ]COMP|_COMP_TYP)$"},
+}
+
+
+def absent_features(target: str, params: Mapping[str, float]) -> tuple[str, ...]:
+    """The parts of :data:`FIRMWARE_FEATURES` that a log's firmware lacks: its parameter list (``params``, the
+    log's, which holds every parameter the firmware has) has none of their first compass's parameters. A list
+    without the compass's offsets (no PARM, or a truncated one) says nothing."""
+    probe = {"ardupilot": ("COMPASS_OFS_X", {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA_X",
+                                             "motor": "COMPASS_MOTCT"}),
+             "px4": ("CAL_MAG0_XOFF", {"offdiagonal": "CAL_MAG0_XODIAG", "motor": "CAL_MAG0_XCOMP"})}
+    offsets, features = probe[target]
+    if offsets not in params:
+        return ()
+    return tuple(feature for feature, name in features.items() if name not in params)
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> NDArray[np.float64]:

@@ -41,7 +41,7 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,7 +50,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..calibration import Calibration, jsonable, make_uncertainty
 from ..errors import IdentifiabilityError, TrimagInputError
-from ..models.firmware import ORIENTATION_TOLERANCE_DEG, FirmwareCompass, firmware_class, rotation_matrix
+from ..models.firmware import (
+    FIRMWARE_FEATURES,
+    ORIENTATION_TOLERANCE_DEG,
+    ArduPilotCompass,
+    FirmwareCompass,
+    firmware_class,
+    rotation_matrix,
+)
 from ..quality.honesty import correlation_time, count_repeated_rows
 from ..units import convert
 from ._firmware_halves import halves_check, halves_message
@@ -144,6 +151,8 @@ class FirmwareFit:
     messages: list[str] = field(default_factory=list)
     #: the halves check (:func:`trimag.vehicle._firmware_halves.halves_check`): both halves' RMS and the log's
     halves: dict[str, Any] | None = None
+    #: the parts of the firmware's calibration the log's firmware lacks (:data:`FIRMWARE_FEATURES`): never fitted
+    absent: tuple[str, ...] = ()
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -549,7 +558,7 @@ def fit_firmware(
     motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,
     applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
     tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
-    heading_free: ArrayLike | None = None,
+    heading_free: ArrayLike | None = None, absent: Collection[str] = (),
 ) -> FirmwareFit:
     """Fit ``target``'s parameters (see the module docstring).
 
@@ -596,6 +605,9 @@ def fit_firmware(
     if motor not in ("auto", "none", *_MOTOR_KINDS):
         raise TrimagInputError(f"`motor` must be auto, none, current or throttle; got {motor!r}")
     v, h, motors = _check_inputs(raw, field_body, magnitude, motor_values)
+    absent = _check_absent(target, absent, level, motor)
+    if "motor" in absent:
+        motors = {}
     if held is None:
         held = klass(orientation=applied_orientation or 0)
     if not isinstance(held, klass):
@@ -630,7 +642,7 @@ def fit_firmware(
     held_frame = _frame(target, int(held.orientation), applied_orientation)
     try:
         table, candidates, chosen, tilt = _levels(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr,
-                                                  held_frame, omax, same_frame, tilt, vector, F, messages)
+                                                  held_frame, omax, same_frame, tilt, vector, F, messages, absent)
     except IdentifiabilityError as exc:  # what the orientation step found explains many a refusal
         said = [m[len("warning: "):] for m in messages if m.startswith("warning: the field fits")]
         if said:
@@ -645,10 +657,44 @@ def fit_firmware(
             raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
         messages.append(f"warning: {text}")
     messages += _poor(chosen, F, klass.unit)
+    if "scale" in absent and isinstance(chosen.compass, ArduPilotCompass) and chosen.compass.scale:
+        c = chosen.compass  # no COMPASS_SCALE in this firmware: the whole gain in DIA/ODI (the same correction)
+        chosen.compass = dataclasses.replace(
+            ArduPilotCompass.from_algebra(c.algebra()[0], c.algebra()[1], c.algebra()[2], orientation=c.orientation,
+                                          motor_type=c.motor_type, scale=1.0), motor=c.motor, scale=0.0)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
     fit.halves = halves
+    fit.absent = tuple(absent)
     return fit
+
+
+_NEEDS = {("ardupilot", "scale"): "scale", ("ardupilot", "diagonal"): "matrix", ("ardupilot", "full"): "matrix",
+          ("px4", "full"): "offdiagonal"}
+_FEATURE_NAMES = {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA/ODI", "offdiagonal": "CAL_MAGn_xODIAG",
+                  "motor": "the motor term (COMPASS_MOT / CAL_MAGn_xCOMP)"}
+
+
+def _loadable(target: str, level: str, absent: Collection[str]) -> bool:
+    """Whether the log's firmware has the parameters ``level`` fits (``absent``: :func:`absent_features`)."""
+    return _NEEDS.get((target, level)) not in absent
+
+
+def _check_absent(target: str, absent: Collection[str], level: str, motor: str) -> tuple[str, ...]:
+    """``absent`` checked against :data:`FIRMWARE_FEATURES`; a level or motor term asked for that the firmware
+    lacks is refused."""
+    out = tuple(absent)
+    unknown = [a for a in out if a not in FIRMWARE_FEATURES[target]]
+    if unknown:
+        raise TrimagInputError(f"`absent` takes {', '.join(FIRMWARE_FEATURES[target])} for {target}; got {unknown}")
+    if level != "auto" and not _loadable(target, level, out):
+        missing = _FEATURE_NAMES[_NEEDS[(target, level)]]
+        raise TrimagInputError(f"the log's firmware has no {missing} (not among its parameters): the {level} level "
+                               "cannot be loaded; use --level auto or a lower level")
+    if motor in _MOTOR_KINDS and "motor" in out:
+        raise TrimagInputError(f"the log's firmware has no {_FEATURE_NAMES['motor']} (not among its parameters): "
+                               "use --motor none")
+    return out
 
 
 def _poor(chosen: _Candidate, F: float, unit: str) -> list[str]:
@@ -687,13 +733,14 @@ def _levels(
     hh: NDArray[np.float64], h: NDArray[np.float64], v: NDArray[np.float64], klass: type[FirmwareCompass],
     held: FirmwareCompass, A_held: NDArray[np.float64], o_held: NDArray[np.float64], fr: _Frame, held_frame: _Frame,
     omax: float, same_frame: bool, tilt: NDArray[np.float64] | None, vector: bool, F: float, messages: list[str],
+    absent: tuple[str, ...] = (),
 ) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
     """The levels' table and candidates and the one chosen, heading-free first where asked (module docstring)."""
     if tilt is not None:  # heading-free first; the vector (the untrusted yaw) only where it identifies nothing
         level_field = np.einsum("nij,nj->ni", tilt, h)
         hz = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
         table, candidates = _run_levels(level, motor, motors, u, hz, klass, held, A_held, o_held, fr.orientation,
-                                        omax, v, same_frame, tilt @ fr.P_h)
+                                        omax, v, same_frame, tilt @ fr.P_h, absent)
         try:
             chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, tilt), F)
         except KeepTheLogs:
@@ -714,7 +761,7 @@ def _levels(
             tilt = None
     if tilt is None:
         table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation,
-                                        omax, v, same_frame)
+                                        omax, v, same_frame, None, absent)
         chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, None), F)
     return table, candidates, chosen, tilt
 
@@ -744,9 +791,9 @@ def _run_levels(
     level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
     target: NDArray[np.float64], klass: type[FirmwareCompass], held: FirmwareCompass, A_held: NDArray[np.float64],
     o_held: NDArray[np.float64], orientation: int, omax: float, raw: NDArray[np.float64], same_frame: bool,
-    tilt: NDArray[np.float64] | None = None,
+    tilt: NDArray[np.float64] | None = None, absent: tuple[str, ...] = (),
 ) -> tuple[list[dict[str, Any]], list[_Candidate]]:
-    levels = LEVELS if level == "auto" else (level,)
+    levels = tuple(lv for lv in LEVELS if _loadable(klass.target, lv, absent)) if level == "auto" else (level,)
     table: list[dict[str, Any]] = []
     candidates: list[_Candidate] = []
     previous: dict[str | None, Any] = {}  # each motor choice's solution of the level below: its start and what
@@ -787,7 +834,7 @@ def _choose(level: str, candidates: list[_Candidate], before: float | None = Non
                 "and holds the rest at the log's values"
             )
         candidates = whole
-    usable = [c for c in candidates if c.n_identified and not c.violations]
+    usable = [c for c in candidates if c.n_identified and not c.violations and (level != "auto" or _adds(c))]
     inside = [c for c in usable if not c.at_limit]  # a level the limits hold back is only taken if it is all there is
     if level == "auto" and usable and not inside:
         c = min(usable, key=lambda c: c.heldout_rms)
@@ -829,6 +876,16 @@ def _choose(level: str, candidates: list[_Candidate], before: float | None = Non
         if c.heldout_rms <= best * (1.0 + AUTO_TOLERANCE):
             return c
     return usable[0]
+
+
+def _adds(c: _Candidate) -> bool:
+    """Whether the level identifies something it adds to the offsets: not when every one of its motor parameters, or
+    every one of its matrix parameters, is unidentified (auto then takes the level without them)."""
+    names = c.problem.names()
+    motor = [n for n in names if n.startswith("m_")]
+    matrix = [n for n in names if not n.startswith(("o_", "m_"))]
+    weak = set(c.weak)
+    return not ((motor and weak.issuperset(motor)) or (matrix and weak.issuperset(matrix)))
 
 
 def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass, motor: str | None,
@@ -903,7 +960,8 @@ def _result(
     fitted = chosen.compass.parameters(0)
     for name in chosen.weak:  # the directions the data do not identify, held at the level below's values
         fw = _firmware_name(klass, name)
-        held_values[f"{fw} (not identified)"] = float(fitted.get(fw, 0.0))
+        held_values[f"{fw} (not identified alone: moved only with the identified directions)"] = \
+            float(fitted.get(fw, 0.0))
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
@@ -980,7 +1038,7 @@ def firmware_calibration(
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves}
+                "halves": fit.halves, "absent": list(fit.absent)}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
