@@ -317,3 +317,16 @@ def test_px4_v1_14_gps_fields_give_the_fix():
     old = {"timestamp": np.arange(n) * 1e5, "fix_type": np.full(n, 3), "lat": np.full(n, 473977420),
            "lon": np.full(n, 85455940), "alt": np.full(n, 488100), "time_utc_usec": np.full(n, 0)}
     assert _ulog_gps(old)["alt_m"] == pytest.approx(488.1)
+
+
+def test_a_compass_stream_with_a_gap_says_its_span_and_longest_gap():
+    """Unseen ArduCopter logs: '728 samples at 10 Hz' over a 701 s log with one 628 s hole, '2010 samples at 10 Hz'
+    over 639 s: the summary hid that most of the log has no compass data."""
+    from trimag.io.logs.base import MagnetometerStream
+
+    t = np.r_[np.arange(0, 40, 0.1), 668.0 + np.arange(0, 32.8, 0.1)]
+    stream = MagnetometerStream("MAG", 0, t, np.zeros((len(t), 3)), np.zeros((len(t), 3)), "mG")
+    line = stream.describe()
+    assert "10 Hz" in line and "701 s" in line and "628 s" in line, line
+    steady = MagnetometerStream("MAG", 0, t[:400], np.zeros((400, 3)), np.zeros((400, 3)), "mG")
+    assert "gap" not in steady.describe()

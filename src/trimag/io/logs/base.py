@@ -116,7 +116,13 @@ class MagnetometerStream:
     def describe(self) -> str:
         """One line for the user: name, samples, rate, unit."""
         dev = f", device id {self.device_id}" if self.device_id else ""
-        return f"{self.name}: {len(self.time_s)} samples at {self.rate_hz:.3g} Hz, {self.unit}{dev}"
+        gaps = ""
+        if len(self.time_s) > 2 and self.rate_hz > 0:
+            span = float(self.time_s[-1] - self.time_s[0])
+            longest = float(np.max(np.diff(self.time_s)))
+            if span > 1.5 * (len(self.time_s) - 1) / self.rate_hz and longest > 10.0 / self.rate_hz:
+                gaps = f" over {span:.0f} s (with gaps: the longest {longest:.0f} s without a reading)"
+        return f"{self.name}: {len(self.time_s)} samples at {self.rate_hz:.3g} Hz{gaps}, {self.unit}{dev}"
 
 
 @dataclass
