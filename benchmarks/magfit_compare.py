@@ -10,7 +10,11 @@ the second half (held out), each through ArduPilot's own formula (``trimag.model
   three variants: default (offsets + scale), ``--elliptical``, and ``--elliptical --cmot`` where the log has a
   battery current; ``--att-source ATT`` where the log lacks ``AHRS_EKF_TYPE`` (ArduPilot 3.x); the variant with the
   lowest held-out error is reported (an optimistic choice for MAGFit).
-- **trimag**: ``trimag fit LOG --sensor 0 --target ardupilot --rows 0:HALF`` then ``trimag export``.
+- **trimag**: ``trimag fit LOG --sensor 1 --target ardupilot --rows 0:HALF`` then ``trimag export``.
+
+Both tools' parameters are judged as the log's firmware loads them: a part its parameter list lacks
+(``trimag.models.firmware.absent_features``: ``COMPASS_SCALE`` before ArduPilot 4.0, ``DIA/ODI`` before 3.4) is
+ignored by that firmware, so it is dropped before the judge (MAGFit writes ``COMPASS_SCALE`` for any version).
 
 Field error on the held-out half, two ways:
 
@@ -25,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -123,7 +128,7 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
 
     from trimag.fields.reference import igrf
     from trimag.io.logs import read_log
-    from trimag.models.firmware import ArduPilotCompass
+    from trimag.models.firmware import FIRMWARE_FEATURES, ArduPilotCompass, absent_features
 
     vlog = read_log(log)
     mag = vlog.choose("1")
@@ -154,7 +159,12 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
     channels = {"current": df["current_A"].to_numpy()[test] if "current_A" in df else None,
                 "throttle": df["throttle"].to_numpy()[test] if "throttle" in df else None}
 
+    absent = absent_features("ardupilot", params)  # what the log's firmware lacks, it ignores: judged as loaded
+    lacking = [re.compile(FIRMWARE_FEATURES["ardupilot"][a]) for a in absent]
+    row["absent"] = list(absent)
+
     def judge(p: dict[str, float]) -> tuple[float, float]:
+        p = {k: v for k, v in p.items() if not any(r.match(k) for r in lacking)}
         compass = ArduPilotCompass.from_parameters({**params, **p}, 0)
         return _errors(compass, raw_chip, channels.get(compass.motor_type or ""), att, ned, magfit_field,
                        declination)
