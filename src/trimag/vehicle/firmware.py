@@ -36,6 +36,9 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    on the other through the firmware's formula against the log's calibration on that half: refused
    (:class:`KeepTheLogs`, ``level="auto"``) when the other half's fit and the whole fit are both worse than the log's
    on a half, else warned of (and recorded in :attr:`FirmwareFit.halves`).
+6. **Heading** (heading-free fits, :mod:`trimag.vehicle._firmware_heading`): the heading error against the logged
+   yaw with the log's calibration and with the fit, reported; a fit that turns it far is warned of or refused
+   (:class:`KeepTheLogs`, ``level="auto"``) and recorded in :attr:`FirmwareFit.heading`.
 """
 
 from __future__ import annotations
