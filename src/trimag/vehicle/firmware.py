@@ -36,6 +36,9 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    on the other through the firmware's formula against the log's calibration on that half: refused
    (:class:`KeepTheLogs`, ``level="auto"``) when the other half's fit and the whole fit are both worse than the log's
    on a half, else warned of (and recorded in :attr:`FirmwareFit.halves`).
+6. **Heading** (heading-free fits, :mod:`trimag.vehicle._firmware_heading`): the heading error against the logged
+   yaw with the log's calibration and with the fit, reported; a fit that turns it far is warned of or refused
+   (:class:`KeepTheLogs`, ``level="auto"``) and recorded in :attr:`FirmwareFit.heading`.
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ from ..models.firmware import (
 from ..quality.honesty import correlation_time, count_repeated_rows
 from ..units import convert
 from ._firmware_halves import halves_check, halves_message
+from ._firmware_heading import heading_check, heading_decision
 from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
 
 __all__ = [
@@ -153,6 +157,8 @@ class FirmwareFit:
     halves: dict[str, Any] | None = None
     #: the parts of the firmware's calibration the log's firmware lacks (:data:`FIRMWARE_FEATURES`): never fitted
     absent: tuple[str, ...] = ()
+    #: the heading check of a heading-free fit (:func:`trimag.vehicle._firmware_heading.heading_check`)
+    heading: dict[str, Any] | None = None
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -656,6 +662,14 @@ def fit_firmware(
         if halves["refuse"] and level == "auto":
             raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
         messages.append(f"warning: {text}")
+    heading = None
+    if heading_free is not None:  # the heading the fit could not see, against the logged yaw (_firmware_heading)
+        heading = heading_check(chosen.compass, held, v, h, motors, np.asarray(heading_free, dtype=np.float64),
+                                applied_orientation)
+        said, refusal = heading_decision(heading, level)
+        if refusal is not None:
+            raise KeepTheLogs(refusal)
+        messages += said
     messages += _poor(chosen, F, klass.unit)
     if "scale" in absent and isinstance(chosen.compass, ArduPilotCompass) and chosen.compass.scale:
         c = chosen.compass  # no COMPASS_SCALE in this firmware: the whole gain in DIA/ODI (the same correction)
@@ -664,7 +678,7 @@ def fit_firmware(
                                           motor_type=c.motor_type, scale=1.0), motor=c.motor, scale=0.0)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
-    fit.halves = halves
+    fit.halves, fit.heading = halves, heading
     fit.absent = tuple(absent)
     return fit
 
@@ -1038,7 +1052,7 @@ def firmware_calibration(
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves, "absent": list(fit.absent)}
+                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
