@@ -78,3 +78,17 @@ def test_the_heading_error_is_the_compass_heading_minus_the_logged_yaw():
     out = heading_check(compass, compass, turned, field, {}, tilt, None)
     assert out["mean_after_deg"] == pytest.approx(10.0, abs=1e-6) and out["rms_before_deg"] == pytest.approx(10.0)
     assert heading_check(compass, compass, field, field, {}, tilt, None)["rms_after_deg"] < 1e-6
+
+
+def test_a_log_that_barely_turned_is_refused_once_the_fit_turns_its_heading_past_the_warning():
+    """Review of the merge: the real ArduCopter 3.6 log (beastayyg sample, compass 2, the field within 12 deg) went
+    10.3 -> 28.1 deg RMS against the logged yaw and was only warned of (under the 30 deg refusal), writing ~700 mG
+    offsets: a heading-free fit of a log that never turned has no information on the heading at all, so a heading
+    change past the warning is refused there."""
+    from trimag.vehicle._firmware_heading import heading_decision
+
+    check = {"rms_before_deg": 10.3, "mean_before_deg": 8.7, "rms_after_deg": 28.1, "mean_after_deg": 27.5}
+    said, refusal = heading_decision(dict(check), "auto", barely_turned=True)
+    assert refusal is not None and "turned" in refusal
+    said, refusal = heading_decision(dict(check), "auto", barely_turned=False)
+    assert refusal is None and any(m.startswith("warning:") for m in said)

@@ -19,7 +19,8 @@ heading (clockwise from north: ``atan2(-y, x)`` of the level-frame field, the ti
 
 The rule (:func:`heading_decision`): the fit's RMS heading error more than :data:`WARN_EXCESS_DEG` above the log's
 calibration's (and above :data:`WARN_MIN_DEG`) is a warning; more than :data:`REFUSE_EXCESS_DEG` above it is
-refused under ``level="auto"`` (keep the log's calibration, exit 3) and a warning for a level asked for.
+refused under ``level="auto"`` (keep the log's calibration, exit 3) and a warning for a level asked for; a log that
+barely turned (the field within ``MIN_CONE_DEG`` of :mod:`trimag.vehicle.firmware`) is refused from the warning on.
 """
 
 from __future__ import annotations
@@ -93,9 +94,12 @@ def heading_check(fitted: FirmwareCompass, held: FirmwareCompass, raw: NDArray[n
     return out
 
 
-def heading_decision(check: dict[str, Any], level: str) -> tuple[list[str], str | None]:
+def heading_decision(check: dict[str, Any], level: str, barely_turned: bool = False
+                     ) -> tuple[list[str], str | None]:
     """``(messages, refusal)``: the info line (always), a warning where the fit turns the heading (module
-    docstring's rule), and the refusal text under ``level="auto"`` beyond :data:`REFUSE_EXCESS_DEG` (else None).
+    docstring's rule), and the refusal text under ``level="auto"`` beyond :data:`REFUSE_EXCESS_DEG` (else None);
+    beyond the warning already when the log ``barely_turned`` (the field's direction within a narrow cone: the
+    heading-free fit then has no information on the heading at all).
     ``check["decision"]`` is set to ``"ok"``, ``"warned"`` or ``"refused"``."""
     b, a = check["rms_before_deg"], check["rms_after_deg"]
     info = (f"heading against the logged yaw (EKF, which used this compass): RMS {b:.1f} deg (mean "
@@ -111,8 +115,9 @@ def heading_decision(check: dict[str, Any], level: str) -> tuple[list[str], str 
             "calibration; fit a flight with a yaw independent of this compass (a GPS "
             "heading, or ArduPilot 4.1+ with XKY0 logged: the EKF-GSF yaw) so the vector can be fitted, or record a "
             "calibration turn through all headings")
-    if excess > REFUSE_EXCESS_DEG and level == "auto":
+    if (excess > REFUSE_EXCESS_DEG or barely_turned) and level == "auto":
         check["decision"] = "refused"
-        return [info], f"{text}; keep the log's calibration"
+        why = "; the vehicle barely turned, so nothing in the log supports the change" if barely_turned else ""
+        return [info], f"{text}{why}; keep the log's calibration"
     check["decision"] = "warned"
     return [info, f"warning: {text}"], None

@@ -666,7 +666,7 @@ def fit_firmware(
     if heading_free is not None:  # the heading the fit could not see, against the logged yaw (_firmware_heading)
         heading = heading_check(chosen.compass, held, v, h, motors, np.asarray(heading_free, dtype=np.float64),
                                 applied_orientation)
-        said, refusal = heading_decision(heading, level)
+        said, refusal = heading_decision(heading, level, barely_turned=_cone_deg(v) < MIN_CONE_DEG)
         if refusal is not None:
             raise KeepTheLogs(refusal)
         messages += said
