@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -128,7 +127,7 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
 
     from trimag.fields.reference import igrf
     from trimag.io.logs import read_log
-    from trimag.models.firmware import FIRMWARE_FEATURES, ArduPilotCompass, absent_features
+    from trimag.models.firmware import ArduPilotCompass, absent_features, without_features
 
     vlog = read_log(log)
     mag = vlog.choose("1")
@@ -160,11 +159,10 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
                 "throttle": df["throttle"].to_numpy()[test] if "throttle" in df else None}
 
     absent = absent_features("ardupilot", params)  # what the log's firmware lacks, it ignores: judged as loaded
-    lacking = [re.compile(FIRMWARE_FEATURES["ardupilot"][a]) for a in absent]
     row["absent"] = list(absent)
 
     def judge(p: dict[str, float]) -> tuple[float, float]:
-        p = {k: v for k, v in p.items() if not any(r.match(k) for r in lacking)}
+        p = without_features("ardupilot", p, absent)
         compass = ArduPilotCompass.from_parameters({**params, **p}, 0)
         return _errors(compass, raw_chip, channels.get(compass.motor_type or ""), att, ned, magfit_field,
                        declination)

@@ -82,17 +82,15 @@ def _held(target: str, log_info: dict[str, Any] | None) -> tuple[FirmwareCompass
 def _absent(target: str, log_info: dict[str, Any] | None) -> tuple[tuple[str, ...], list[str]]:
     """The parts of ``target``'s calibration the log's firmware lacks (its parameter list has none of their
     parameters: an older version), never fitted nor written, and the message saying so."""
-    from ..models.firmware import absent_features
+    from ..models.firmware import FEATURE_NAMES, absent_features
 
     if log_info is None or _log_firmware(log_info) != target:
         return (), []
     absent = absent_features(target, log_info.get("parameters") or {})
     if not absent:
         return (), []
-    names = {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA/ODI", "motor": "the motor term",
-             "offdiagonal": "CAL_MAGn_xODIAG"}
-    return absent, [f"the log's firmware has no {', '.join(names[a] for a in absent)} (not among its parameters): "
-                    "not fitted, not written"]
+    parts = ", ".join(FEATURE_NAMES[a] for a in absent)
+    return absent, [f"the log's firmware has no {parts} (not among its parameters): not fitted, not written"]
 
 
 def _yaw_source(samples: Samples) -> tuple[Samples, str, str | None, list[str]]:

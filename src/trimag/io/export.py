@@ -43,12 +43,12 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..models.firmware import (
-    FIRMWARE_FEATURES,
     FirmwareCompass,
     compass_from_affine,
     firmware_class,
     nearest_rotation,
     rotation_matrix,
+    without_features,
 )
 from ..units import convert
 
@@ -286,14 +286,9 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
 def _present(p: dict[str, float], cal: Calibration, target: str) -> dict[str, float]:
     """``p`` without the parameters the log's firmware lacks (``diagnostics["firmware"]["absent"]``: the fit held
     them at the firmware's neutral values, so the correction is the same without them)."""
-    import re
-
     fw = cal.diagnostics.get("firmware")
     absent = fw.get("absent") if isinstance(fw, dict) and fw.get("target") == target else None
-    if not absent:
-        return p
-    patterns = [re.compile(FIRMWARE_FEATURES[target][a]) for a in absent if a in FIRMWARE_FEATURES[target]]
-    return {k: v for k, v in p.items() if not any(r.match(k) for r in patterns)}
+    return without_features(target, p, absent) if absent else p
 
 
 def _internal(cal: Calibration) -> bool:

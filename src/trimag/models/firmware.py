@@ -37,7 +37,8 @@ reading in the firmware's frame (ArduPilot: after ``R``; PX4: before it) and ``A
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import re
+from collections.abc import Collection, Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -47,6 +48,7 @@ from ..errors import TrimagInputError
 
 __all__ = [
     "ARDUPILOT_ROTATIONS",
+    "FEATURE_NAMES",
     "FIRMWARE_FEATURES",
     "FIRMWARE_TARGETS",
     "ORIENTATION_TOLERANCE_DEG",
@@ -61,6 +63,7 @@ __all__ = [
     "firmware_class",
     "nearest_rotation",
     "rotation_matrix",
+    "without_features",
 ]
 
 FIRMWARE_TARGETS = ("ardupilot", "px4")
@@ -104,6 +107,19 @@ FIRMWARE_FEATURES: dict[str, dict[str, str]] = {
                   "motor": r"COMPASS_(MOT\d?_[XYZ]|MOTCT)$"},
     "px4": {"offdiagonal": r"CAL_MAG\d_[XYZ]ODIAG$", "motor": r"CAL_MAG(\d_[XYZ]COMP|_COMP_TYP)$"},
 }
+
+
+#: How the user reads each part of :data:`FIRMWARE_FEATURES`.
+FEATURE_NAMES: dict[str, str] = {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA/ODI",
+                                 "offdiagonal": "CAL_MAGn_xODIAG",
+                                 "motor": "the motor term (COMPASS_MOT / CAL_MAGn_xCOMP)"}
+
+
+def without_features(target: str, params: Mapping[str, float], absent: Collection[str]) -> dict[str, float]:
+    """``params`` without the parameters of the parts ``absent`` (:data:`FIRMWARE_FEATURES`): what a firmware that
+    lacks them loads."""
+    patterns = [re.compile(FIRMWARE_FEATURES[target][a]) for a in absent if a in FIRMWARE_FEATURES[target]]
+    return {k: v for k, v in params.items() if not any(r.match(k) for r in patterns)}
 
 
 def absent_features(target: str, params: Mapping[str, float]) -> tuple[str, ...]:

@@ -54,6 +54,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..calibration import Calibration, jsonable, make_uncertainty
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.firmware import (
+    FEATURE_NAMES,
     FIRMWARE_FEATURES,
     ORIENTATION_TOLERANCE_DEG,
     ArduPilotCompass,
@@ -666,16 +667,18 @@ def fit_firmware(
     if heading_free is not None:  # the heading the fit could not see, against the logged yaw (_firmware_heading)
         heading = heading_check(chosen.compass, held, v, h, motors, np.asarray(heading_free, dtype=np.float64),
                                 applied_orientation)
-        said, refusal = heading_decision(heading, level, barely_turned=_cone_deg(v) < MIN_CONE_DEG)
+        said, refusal = heading_decision(heading, level,
+                                          barely_turned=orientation.get("cone_deg", np.inf) < MIN_CONE_DEG)
         if refusal is not None:
             raise KeepTheLogs(refusal)
         messages += said
     messages += _poor(chosen, F, klass.unit)
     if "scale" in absent and isinstance(chosen.compass, ArduPilotCompass) and chosen.compass.scale:
         c = chosen.compass  # no COMPASS_SCALE in this firmware: the whole gain in DIA/ODI (the same correction)
+        A, o, m = c.algebra()
         chosen.compass = dataclasses.replace(
-            ArduPilotCompass.from_algebra(c.algebra()[0], c.algebra()[1], c.algebra()[2], orientation=c.orientation,
-                                          motor_type=c.motor_type, scale=1.0), motor=c.motor, scale=0.0)
+            ArduPilotCompass.from_algebra(A, o, m, orientation=c.orientation, motor_type=c.motor_type, scale=1.0),
+            motor=c.motor, scale=0.0)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
     fit.halves, fit.heading = halves, heading
@@ -685,9 +688,6 @@ def fit_firmware(
 
 _NEEDS = {("ardupilot", "scale"): "scale", ("ardupilot", "diagonal"): "matrix", ("ardupilot", "full"): "matrix",
           ("px4", "full"): "offdiagonal"}
-_FEATURE_NAMES = {"scale": "COMPASS_SCALE", "matrix": "COMPASS_DIA/ODI", "offdiagonal": "CAL_MAGn_xODIAG",
-                  "motor": "the motor term (COMPASS_MOT / CAL_MAGn_xCOMP)"}
-
 
 def _loadable(target: str, level: str, absent: Collection[str]) -> bool:
     """Whether the log's firmware has the parameters ``level`` fits (``absent``: :func:`absent_features`)."""
@@ -702,11 +702,11 @@ def _check_absent(target: str, absent: Collection[str], level: str, motor: str) 
     if unknown:
         raise TrimagInputError(f"`absent` takes {', '.join(FIRMWARE_FEATURES[target])} for {target}; got {unknown}")
     if level != "auto" and not _loadable(target, level, out):
-        missing = _FEATURE_NAMES[_NEEDS[(target, level)]]
+        missing = FEATURE_NAMES[_NEEDS[(target, level)]]
         raise TrimagInputError(f"the log's firmware has no {missing} (not among its parameters): the {level} level "
                                "cannot be loaded; use --level auto or a lower level")
     if motor in _MOTOR_KINDS and "motor" in out:
-        raise TrimagInputError(f"the log's firmware has no {_FEATURE_NAMES['motor']} (not among its parameters): "
+        raise TrimagInputError(f"the log's firmware has no {FEATURE_NAMES['motor']} (not among its parameters): "
                                "use --motor none")
     return out
 
