@@ -64,3 +64,29 @@ def small_chunks() -> Iterator[Callable[[int], None]]:
     yield rows
     if tokens:
         chunks._WORKING_MEMORY.reset(tokens[0])
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The counts of the documentation's commands (tests/test_docs.py, issue 42): executed, skipped, failing."""
+    counts = {"passed": 0, "skipped": 0, "failed": 0}
+    skipped: list[str] = []
+    seen = False
+    for reports in terminalreporter.stats.values():
+        for report in reports:
+            if getattr(report, "when", None) != "call":
+                continue
+            for name, value in getattr(report, "user_properties", ()):
+                if name == "doc_commands":
+                    seen = True
+                    for key in counts:
+                        counts[key] += value[key]
+                    skipped.extend(value["skipped_list"])
+    if not seen:
+        return
+    terminalreporter.write_line(
+        f"doc commands (README.md, docs/*.md): {counts['passed'] + counts['failed']} executed, "
+        f"{counts['skipped']} skipped, {counts['failed']} failing"
+        + ("" if terminalreporter.config.option.verbose > 0 or not skipped else " (-v lists the skipped ones)"))
+    if terminalreporter.config.option.verbose > 0:
+        for line in sorted(skipped):
+            terminalreporter.write_line(f"  skipped {line}")
