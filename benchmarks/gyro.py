@@ -16,16 +16,17 @@ Every log is cut at its middle sample: each method is fitted on the first half a
 Methods: ``ml`` (trimag's magnitude-only default), ``gyro`` (trimag's gyro-aided fit, defaults), MAGYC-LS and
 MAGYC-NLS (``pip install magyc`` 1.0.0, Rodríguez-Martín et al.; run in their own interpreter, ``--magyc``, since
 the package needs numpy < 2; their corrected output is rebuilt as ``(m - hi) @ inv(si).T``: the package's own is
-scrambled by a reshape, /work/notes/unseen-logs.md). MAGYC takes one time vector for both sensors: a gyroscope with
-its own clock is interpolated to the magnetometer's stamps for it; trimag's fit integrates it on its own stamps.
+scrambled by a reshape, its (N, 3) result laid out column by column). MAGYC takes one time vector for both sensors:
+a gyroscope with its own clock is interpolated to the magnetometer's stamps for it; trimag's fit integrates it
+on its own stamps.
 
 Logs: BROAD trials 01, 02, 03, 06 (``--broad``, ../shared/data/broad, CC BY 4.0: myon aktos-t, uT, 285.7 Hz,
-OptiTrack attitude); the robot logs of miguelrasteiro/IMU_dataset (``--unseen``: /work/notes/data/unseen, research
-use only, not redistributed: an ABB robot turning boards with an LSM9DS0, an MPU9150 and an RM3100 beside an
-MPU6500; the robot's attitude as truth); the simorxb Sensor Logger phone export (MIT; no truth attitude).
+OptiTrack attitude); the robot logs of miguelrasteiro/IMU_dataset (``--unseen DIR``: a folder of your own; research
+use only, not redistributed, not in ../shared: an ABB robot turning boards with an LSM9DS0, an MPU9150 and an RM3100
+beside an MPU6500; the robot's attitude as truth); the simorxb Sensor Logger phone export (MIT; no truth attitude).
 
-    python benchmarks/gyro.py --broad ../shared/data/broad --unseen /work/notes/data/unseen \\
-        --magyc /work/venv-magyc/bin/python --json docs/results/gyro-heldout.json
+    python benchmarks/gyro.py --broad ../shared/data/broad --unseen UNSEEN_DIR \\
+        --magyc MAGYC_VENV/bin/python --json docs/results/gyro-heldout.json
 """
 
 from __future__ import annotations

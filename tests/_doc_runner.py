@@ -454,8 +454,8 @@ def _run_python(step: Step, cwd: Path, namespace: dict[str, object]) -> str:
     old = Path.cwd()
     os.chdir(cwd)
     try:
-        exec(compile(source, step.doc, "exec"), namespace)  # noqa: S102 - the doc's own example
-    except BaseException as exc:  # noqa: BLE001 - reported as the doc's failure
+        exec(compile(source, step.doc, "exec"), namespace)
+    except BaseException as exc:
         frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == step.doc]
         line = frames[-1].lineno if frames else step.line
         return f"{step.doc}:{line}: the python block raised {type(exc).__name__}: {_short(str(exc), 300)}\n"

@@ -434,3 +434,22 @@ def test_simulate_refuses_a_bad_unit_before_writing_anything(tmp_path: Path) -> 
     r = run_trimag("simulate", "--model", "ellipsoid", "--params", params, "--n", "50", "-o", out, "--truth",
                    folder / "t.json")
     assert r.returncode == 2 and not out.exists()
+
+
+def test_apply_and_export_without_o_write_beside_the_input_under_a_stated_name(tmp_path, ellipsoid_log):
+    """`apply`/`export` without `-o` exited 2 (issue 42, item 6): the output goes beside the input, named from it and
+    said on stderr; a file of that name is never replaced, and the input never."""
+    cal = tmp_path / "cal.json"
+    assert run_trimag("fit", ellipsoid_log, "--units", "nT", "-o", cal).returncode == 0
+    before = cal.read_bytes(), ellipsoid_log.read_bytes()
+    r = run_trimag("apply", cal, ellipsoid_log)
+    corrected = tmp_path / "log-corrected.csv"
+    assert r.returncode == 0 and corrected.is_file() and "log-corrected.csv" in r.stderr, r.stderr
+    assert "bx_cal" in corrected.read_text().splitlines()[0]
+    again = run_trimag("apply", cal, ellipsoid_log)
+    assert again.returncode == 2 and "already exists" in again.stderr and "-o" in again.stderr, again.stderr
+    assert len(again.stderr.strip().splitlines()) == 1
+    for target, name in (("ardupilot", "cal.param"), ("px4", "cal.params"), ("json", "cal-export.json")):
+        r = run_trimag("export", cal, "--to", target)
+        assert r.returncode == 0 and (tmp_path / name).is_file() and name in r.stderr, (target, r.stderr)
+    assert (cal.read_bytes(), ellipsoid_log.read_bytes()) == before

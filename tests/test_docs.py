@@ -14,6 +14,7 @@ Convention (details in tests/_doc_runner.py; for users at the top of docs/index.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -27,6 +28,7 @@ from _doc_runner import (
     parse_doc,
     run_doc,
 )
+
 from _helpers import SHARED_DATA
 
 DOCS = doc_files()
@@ -127,3 +129,60 @@ def test_runner_reports_exit_codes_outputs_and_shared_skips(tmp_path: Path) -> N
     assert "docs/example.md:10: `trimag fit no-such-file.csv` exited 2, the doc expects 0" in outcomes[2].message
     assert "../shared/data absent" in outcomes[4].message
     assert (tmp_path / "repo" / "made.txt").is_file() and not (REPO_DIR / "made.txt").exists()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# what the docs say (issue 42, item 2)
+
+
+def _outside_fences(lines: list[str]) -> list[tuple[int, str]]:
+    kept, fenced = [], False
+    for number, line in enumerate(lines, 1):
+        if line.lstrip().startswith(("```", "~~~")):
+            fenced = not fenced
+            continue
+        if not fenced:
+            kept.append((number, line))
+    return kept
+
+
+def _is_row(line: str) -> bool:
+    stripped = line.strip()
+    return stripped.startswith("|") and stripped.endswith("|") and stripped.count("|") >= 3
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=[str(p.relative_to(REPO_DIR)) for p in DOCS])
+def test_every_table_row_belongs_to_a_table(doc: Path) -> None:
+    """A row (`| ... |`) follows its table's header or another row: a paragraph between rows breaks the table
+    (docs/cli.md's `fit --json` table had its `time_sync` row after a paragraph, shown as text)."""
+    lines = _outside_fences(doc.read_text(encoding="utf-8").splitlines())
+    stray = []
+    for (_, before), (number, line), after in zip(lines, lines[1:], [*lines[2:], (0, "")], strict=False):
+        is_row = _is_row(line)
+        starts_table = _is_row(after[1]) and set(after[1].replace("|", "").strip()) <= set("-: ")
+        if is_row and not _is_row(before) and not starts_table:
+            stray.append(f"{doc.relative_to(REPO_DIR)}:{number}: {line[:80]}")
+    assert not stray, "table rows outside a table:\n" + "\n".join(stray)
+
+
+def test_docs_and_benchmarks_name_no_path_outside_the_repository() -> None:
+    """The docs, the README and the benchmarks name files in the repository or ../shared/data, never a folder of
+    this machine (/work/notes/..., a venv, a worktree under /work)."""
+    machine = re.compile(r"/work/|/home/\w+|/Users/\w+")
+    found = []
+    for path in [*DOCS, *sorted((REPO_DIR / "benchmarks").glob("*.py"))]:
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if machine.search(line):
+                found.append(f"{path.relative_to(REPO_DIR)}:{number}: {line.strip()[:100]}")
+    assert not found, "paths outside the repository:\n" + "\n".join(found)
+
+
+def test_tests_read_no_file_outside_the_repository() -> None:
+    """A test's data live in tests/data or ../shared/data (issue 42, item 4: two tests skipped for files in a notes
+    folder of this machine and never ran)."""
+    found = []
+    for path in sorted(REPO_DIR.joinpath("tests").rglob("*.py")):
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"[\"']/work/|/notes/", line) and path.name != "test_docs.py":
+                found.append(f"{path.relative_to(REPO_DIR)}:{number}: {line.strip()[:100]}")
+    assert not found, "tests reading files outside the repository:\n" + "\n".join(found)

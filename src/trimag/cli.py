@@ -265,8 +265,9 @@ def _add_apply(sub: Any) -> None:
                        description="Correct every row of a log; all input columns are kept and x/y/z_cal appended.")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("data", metavar="DATA")
-    p.add_argument("-o", "--out", required=True, metavar="OUT",
-                   help="output file (.csv, .parquet or .npz; - for CSV on standard output)")
+    p.add_argument("-o", "--out", metavar="OUT",
+                   help="output file (.csv, .parquet or .npz; - for CSV on standard output; default: DATA's name "
+                        "with -corrected.csv, beside it, never over an existing file)")
     _add_data_options(p, selection=False)
     _add_chunk_rows(p)
     p.add_argument("--scalar-column", metavar="S", help="scalar column (Tolles–Lawson files; default: as fitted)")
@@ -283,8 +284,28 @@ def _add_export(sub: Any) -> None:
     p.add_argument("--instance", type=int,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
                         "default: the compass the calibration was fitted to (fit --sensor N), else 1")
-    p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
+    p.add_argument("-o", "--out", metavar="FILE",
+                   help="output file (- for standard output; default: CAL.json's name with the target's extension, "
+                        "e.g. cal.param, beside it, never over an existing file)")
     _add_output_options(p)
+
+
+#: the extension of ``trimag export``'s default output, per target (issue 42)
+EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "c-header": ".h", "json": "-export.json",
+                   "ros-yaml": ".yaml", "matlab": ".m"}
+
+
+def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:
+    """Without ``-o``: the output beside ``source``, named from it (``source``'s stem + ``tail``), said on stderr;
+    an existing file of that name is never replaced (exit 2)."""
+    if args.out is not None:
+        return
+    target = Path(source).with_name(Path(source).stem + tail)
+    if target.exists() or target.is_symlink():
+        raise TrimagInputError(f"no -o given and {target} (the default name) already exists: name the output with "
+                               "-o FILE, or -o - for standard output")
+    args.out = str(target)
+    _err(f"no -o given: writing {target}")
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -633,6 +654,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     from .app.requests import ApplyRequest
     from .app.tolles_lawson import apply_compensation_file, is_compensation_file
 
+    _default_out(args, args.data, "-corrected.csv")
     _check_writable(args.out, suffixes=(".csv", ".txt", ".parquet", ".npz"))
     _check_stdout(args)
     req = _request(ApplyRequest, args, args.data)
@@ -791,6 +813,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .app import export_to_file
     from .app.requests import ExportRequest
 
+    _default_out(args, args.calibration, EXPORT_SUFFIXES[args.target])
     _check_writable(args.out)
     _check_stdout(args)
     r = export_to_file(_request(ExportRequest, args))

@@ -301,3 +301,13 @@ def test_a_log_of_a_firmware_without_compass_scale_gets_none_written(tmp_path: P
     assert e.returncode == 0, e.stderr
     p = _param_file(param)
     assert not [k for k in p if k.startswith("COMPASS_SCALE")] and "COMPASS_DIA_X" in p
+
+
+def test_a_px4_log_is_not_told_to_log_ardupilots_xky0(tmp_path: Path):
+    """A PX4 flight (the bundled sdlog2 log) was told "Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+)" (issue 42, item 6):
+    its advice is PX4's own."""
+    r = run_trimag("fit", TESTS_DIR / "data" / "logs" / "px4tools_01_07_59.px4log", "--target", "px4",
+                   "-o", tmp_path / "cal.json")
+    line = next(x for x in (r.stdout + r.stderr).splitlines() if x.startswith("attitude:") and "heading-free" in x)
+    assert r.returncode == 0 and "XKY0" not in line and "ArduPilot" not in line, line
+    assert "PX4" in line, line

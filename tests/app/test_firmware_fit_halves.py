@@ -121,18 +121,6 @@ def test_a_steady_flight_is_not_flagged(tmp_path: Path):
         assert halves[half]["rms_log"] > 10 * halves[half]["rms_whole_fit"]
 
 
-PILOT_0004 = Path("/work/notes/data/flight-logs/pyflightcoach-flightdata_pilot_0004.BIN")
-
-
-@pytest.mark.skipif(not PILOT_0004.is_file(), reason="the research notes' PyFlightCoach log is not here")
-def test_a_real_ground_handled_log_is_refused_keep_the_logs_calibration(tmp_path: Path):
-    """pilot_0004 (ArduPlane 4.2.3, handled on the ground): the log's calibration leaves 87.6 mG on the first half and
-    15 on the second; before the check, the fit was written with exit 0."""
-    r = run_trimag("fit", PILOT_0004, "--target", "ardupilot", "-o", tmp_path / "cal.json")
-    assert r.returncode == 3, (r.stdout, r.stderr)
-    assert "keep the log's calibration" in r.stderr
-
-
 def test_a_policy_rejects_what_the_halves_check_only_warns_of(tmp_path: Path):
     """``max_halves_ratio``: each half's fit on the other half over the log's calibration there; the warned log (each
     half still beats the log's, by about 3x) is rejected at 0.2 (exit 4, written and marked so), accepted at 1."""

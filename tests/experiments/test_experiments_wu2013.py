@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import trimag
 from trimag.experiments import get_experiment
 from trimag.experiments.wu2013 import attitudes_for, fig3_trial, fig5_trial, load_real_log, run
 
@@ -64,6 +66,15 @@ def test_real_log_loader_and_fig6(tmp_path):
     assert (tmp_path / res["figure"]).exists()
     assert res["rel_std_after_pairwise"] < res["rel_std_before"]
     assert res["rel_std_after_geometric"] < res["rel_std_before"]
+
+
+def test_the_stride_note_reads_as_english(tmp_path):
+    """"every 2th sample used" in `trimag reproduce wu2013`'s Fig. 6 line (issue 42, item 6): 2nd, 3rd, 4th, 11th."""
+    from trimag.experiments.wu2013 import real_log_figure
+
+    demo = Path(trimag.__file__).parent / "data" / "qmc5883l_noisy_raw_data.csv"
+    notes = {stride: real_log_figure(demo, tmp_path, stride=stride)["note"] for stride in (2, 3)}
+    assert "every 2nd sample used" in notes[2] and "every 3rd sample used" in notes[3], notes
 
 
 @pytest.mark.skipif(not (SHARED_DATA / "broad").exists(), reason="shared data absent")

@@ -316,11 +316,11 @@ def test_the_page_in_a_real_browser(tmp_path):
     """Headless Chromium (the distribution's package) driven by Selenium loads the page, sees the cloud and the
     coverage drawn, and takes screenshots (test artefacts in tmp_path; copied into docs/ when
     TRIMAG_LIVE_SCREENSHOTS=docs)."""
-    log = tmp_path / "log.csv"
-    np.savetxt(log, read_samples(DEMO).field, delimiter=",", header="mx,my,mz", comments="")
-    driver = chrome(tmp_path / "profile")
+    log = tmp_path / DEMO.name  # named as the demo log, and given relative to the folder the command runs in: the
+    np.savetxt(log, read_samples(DEMO).field, delimiter=",", header="mx,my,mz", comments="")  # page's header (the
+    driver = chrome(tmp_path / "profile")  # docs' screenshots) names the demo, not a temporary folder (issue 42)
     try:
-        proc, url = start_live("--replay", str(log), "--rate", "1500", "--units", "counts", "--out",
+        proc, url = start_live("--replay", DEMO.name, "--rate", "1500", "--units", "counts", "--out",
                                str(tmp_path / "cal.json"), cwd=tmp_path)
     except BaseException:
         driver.quit()
@@ -341,6 +341,8 @@ def test_the_page_in_a_real_browser(tmp_path):
                 "const g = document.getElementById('coverage').getContext('2d');"
                 "return Array.from(g.getImageData(0, 0, 640, 320).data).filter((v, i) => i % 4 === 3 && v).length")
             assert drawn > 1000, "the coverage map is drawn"
+            header = driver.find_element("id", "source").text
+            assert DEMO.name in header and str(tmp_path) not in header, header
             path = tmp_path / f"live-{label}.png"
             driver.save_screenshot(str(path))
             shots.append(path)

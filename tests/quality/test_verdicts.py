@@ -4,7 +4,6 @@ magnitude cannot be an Earth field is refused."""
 
 from __future__ import annotations
 
-import os
 import re
 import struct
 import warnings
@@ -149,16 +148,18 @@ def test_a_fitted_field_that_is_not_an_earth_field_is_refused_when_poorly_identi
     assert r.returncode == 0 and "F = 100 mG is not a plausible Earth field in mG (150-950)" in r.stderr, r.stderr
 
 
-#: Real logs trimag never saw (docs/accuracy.md, "Real logs trimag never saw"): most have no licence, so they are not in
-#: the repository; the tests that read them skip when the folder is absent.
-UNSEEN = Path(os.environ.get("TRIMAG_UNSEEN_DATA", "/work/notes/data/unseen"))
-
-
-@pytest.mark.skipif(not (UNSEEN / "emma-hmc5883l" / "mag_uT.csv").exists(), reason="unseen real logs absent")
-def test_a_single_axis_turn_with_a_static_tail_is_refused_for_its_turn():
-    """Finding (unseen real logs, emma-hmc5883l): the first 170 rows (a turn about y) were refused as a single-axis
-    turn, the whole file (the same turn, then static) only with "condition number 9.96e+13 (poorly determined:
-    hard_iron_x, hard_iron_y, hard_iron_z)": the refusal now names the turn there too."""
-    log = UNSEEN / "emma-hmc5883l" / "mag_uT.csv"
+def test_a_single_axis_turn_with_a_static_tail_is_refused_for_its_turn(tmp_path: Path):
+    """Finding (a real log, emma-hmc5883l, not redistributable: a turn about y, then static): the first rows were
+    refused as a single-axis turn, the whole file only with "condition number 9.96e+13 (poorly determined: hard_iron_x,
+    hard_iron_y, hard_iron_z)": the refusal names the turn there too. The same shape here: 170 rows of a full turn
+    about the sensor's y axis (uT, hard iron), then 400 still rows (issue 42: the test read a file outside the
+    repository and never ran)."""
+    rng = np.random.default_rng(7)
+    angle = np.linspace(0.0, 2.0 * np.pi, 170, endpoint=False)
+    turn = 48.0 * np.column_stack([np.cos(angle), np.zeros_like(angle), np.sin(angle)])
+    still = np.repeat(turn[-1:], 400, axis=0)
+    field = np.vstack([turn, still]) + np.array([12.0, -7.0, 20.0]) + rng.normal(scale=0.05, size=(570, 3))
+    log = tmp_path / "mag_uT.csv"
+    np.savetxt(log, field, delimiter=",", header="bx_uT,by_uT,bz_uT", comments="", fmt="%.4f")
     code, line = _verdict(log, "--columns", "bx_uT,by_uT,bz_uT")
-    assert code == 3 and "single axis" in line and "+y axis" in line, line
+    assert code == 3 and "turned through" in line and "+y axis" in line and "condition number" not in line, line

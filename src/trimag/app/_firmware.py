@@ -136,11 +136,14 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
         why = f"COMPASS_USE = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
     else:
         why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none"
+    advice = ("Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly with a GPS heading to fit the full vector"
+              if target == "ardupilot" else
+              "trimag reads no compass-free yaw from PX4 logs: the full vector needs a calibration turn through all "
+              "headings, pitched and rolled")
     return True, (f"attitude: {source}; its yaw is the EKF's, which fused this compass ({why}): a fit to it would "
                   "partly see its own heading, so the levels are fitted heading-free (the field's horizontal and "
                   "vertical components under the logged roll and pitch, MAGFit's cost as least squares) and the "
-                  "orientation only among the standard rotations. Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly "
-                  "with a GPS heading to fit the full vector")
+                  f"orientation only among the standard rotations. {advice}")
 
 
 #: A motor channel empty on at most this share of the rows (a battery logged from a little after the compass) is

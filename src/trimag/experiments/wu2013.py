@@ -166,6 +166,12 @@ def load_real_log(path: Path) -> tuple[NDArray[np.float64], str, str]:
     return data[drop:], "counts", f"first {init:g} s ({drop} samples, the source's initialisation period) dropped"
 
 
+def _ordinal(n: int) -> str:
+    """2 -> "2nd", 3 -> "3rd", 4 -> "4th", 11 -> "11th", 22 -> "22nd"."""
+    suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
 def real_log_figure(path: Path, out: Path, *, stride: int = 1) -> dict[str, Any]:
     """Fit ``ortho-gain-bias`` by ``pairwise`` and ``geometric`` on one real log, plot |B| per sample before and
     after (Fig. 6 analogue), write ``fig6_<name>.png/.csv``; returns a summary dict."""
@@ -212,7 +218,7 @@ def real_log_figure(path: Path, out: Path, *, stride: int = 1) -> dict[str, Any]
     return {
         "file": f"{path.parent.name}/{path.name}",
         "unit": unit,
-        "note": note + (f"; every {stride}th sample used" if stride > 1 else ""),
+        "note": note + (f"; every {_ordinal(stride)} sample used" if stride > 1 else ""),
         "n_samples": len(B),
         "rel_std_before": rel(before),
         "rel_std_after_pairwise": rel(after_pw),
