@@ -383,3 +383,18 @@ def test_a_value_no_sensor_reads_is_a_line_not_understood():
     batches = list(line_source([b"1,2,3\n", b"1e308,1e308,1e308\n", b"4,5,6\n"]))
     assert np.vstack([b.samples for b in batches]).tolist() == [[1, 2, 3], [4, 5, 6]]
     assert sum(b.n_garbage for b in batches) == 1
+
+
+def test_the_advice_names_the_sensors_own_axes_not_a_vector():
+    """"turn the sensor so that its direction [-0.74, 0.66, 0.13] points along the Earth's field" says nothing a person
+    can act on (issue 42, item 6): the direction is said in the sensor's own axes."""
+    from trimag.live.session import next_orientations
+
+    geometry = {"cone_axis": [0.0, 0.0, 1.0], "never_seen_axis": [-0.74, 0.66, 0.13], "never_seen_within_deg": 40.0}
+    text = next_orientations(geometry)
+    assert "[" not in text and "between the sensor's -x and +y axes" in text, text
+    geometry["never_seen_axis"] = [-0.43, -0.87, 0.25]
+    text = next_orientations(geometry)
+    assert "[" not in text and "sensor's -y axis, tilted towards -x" in text and "+z" in text, text
+    geometry["never_seen_axis"] = [0.0, 0.0, -1.0]
+    assert "-z axis" in next_orientations(geometry)

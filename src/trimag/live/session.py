@@ -81,12 +81,31 @@ def next_orientations(geometry: Mapping[str, Any] | None) -> str:
     if axis.endswith(" axis"):
         side = axis.removesuffix(" axis")
         region = f"the {side} hemisphere" if within >= 60.0 else f"a cap of about {within:.0f} deg around the {axis}"
+        words, target = f"its {axis}", f"the sensor's {axis}"
     else:
-        region = f"the region around the sensor's {axis}"
-    return (f"the field has not been seen from {region} yet (no sample within {within:.0f} deg of the sensor's "
-            f"{axis}). "
-            f"Next: turn the sensor so that its {axis} points along the Earth's field (towards magnetic north and, "
+        region, target, words = f"around {_direction_in_words(never)}", "it", "this direction"
+    return (f"the field has not been seen from {region} yet (no sample within {within:.0f} deg of {target}). "
+            f"Next: turn the sensor so that {words} points along the Earth's field (towards magnetic north and, "
             "in the northern hemisphere, steeply down; in the southern, up), then rock it around that attitude")
+
+
+def _direction_in_words(direction: Any) -> str:
+    """A direction in the sensor's frame said with its own axes (no vector): "the sensor's -y axis, tilted towards
+    -x (and a little towards +z)", or "midway between the sensor's -x and +y axes" (issue 42)."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    order = np.argsort(-np.abs(d))
+    names = [f"{'+' if d[k] >= 0 else '-'}{'xyz'[k]}" for k in order]
+    sizes = np.abs(d[order])
+    if sizes[1] >= 0.6 * sizes[0]:
+        text = f"the direction midway between the sensor's {names[0]} and {names[1]} axes"
+    elif sizes[1] >= 0.35:
+        text = f"the sensor's {names[0]} axis, tilted towards {names[1]}"
+    else:
+        text = f"the sensor's {names[0]} axis" + (f", tilted a little towards {names[1]}" if sizes[1] >= 0.15 else "")
+    if sizes[2] >= 0.15:
+        text += f" (and a little towards {names[2]})"
+    return text
 
 
 class LiveSession:
