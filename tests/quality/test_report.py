@@ -29,3 +29,19 @@ def test_coverage_title_is_the_share_of_the_cells_drawn_covered():
     cells = next(c for c in ax.collections if len(c.get_offsets()) == n_cells)
     covered = np.all(np.isclose(cells.get_facecolors()[:, :3], to_rgba("#1b7f3b")[:3]), axis=1)
     assert round(100 * covered.mean()) == percent == round(100 * cal.diagnostics["coverage"]["fraction"])
+
+
+def test_the_after_histogram_shows_its_shape_beside_a_far_wider_before():
+    """The demo's after-histogram sat in 3 of 80 bins shared with a before 100x wider (issue 42, item 6): each is drawn
+    on axes of its own, with its own bins, so both show their shape."""
+    from pathlib import Path
+
+    raw = np.loadtxt(Path(trimag.__file__).parent / "data" / "qmc5883l_noisy_raw_data.csv", delimiter=",",
+                     skiprows=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = trimag.fit(raw, model="ellipsoid", units="counts")
+    fig = fit_report(raw, cal)
+    for label in ("before", "after"):
+        bars = next(c for a in fig.axes for c in a.containers if c.patches[0].get_label().startswith(label))
+        assert sum(p.get_height() > 0 for p in bars.patches) >= 20, label

@@ -164,11 +164,16 @@ def _magnitude_panel(ax: Any, n_before: NDArray[np.float64], n_after: NDArray[np
 
 
 def _error_panel(ax: Any, err_b: NDArray[np.float64], err_a: NDArray[np.float64], cal: Calibration) -> None:
-    """Histograms of |B| - F before and after (0.5-99.5 percentile range), with the calibration's RMS."""
-    lo = float(min(np.percentile(err_b, 0.5), np.percentile(err_a, 0.5)))
-    hi = float(max(np.percentile(err_b, 99.5), np.percentile(err_a, 99.5)))
-    bins = np.linspace(lo, hi, 80) if hi > lo else 40
+    """Histograms of |B| - F before and after (0.5-99.5 percentile range), with the calibration's RMS, on one bin
+    width that shows both: 80 bins over both ranges, or narrower when the after's range is narrower (at least 30 bins
+    across it, at most 1500 in all): on 80 shared bins the demo's after sat in 6 of them (issue 42)."""
     rms_b, rms_a = cal.stats.get("rms_before", np.nan), cal.stats.get("rms_after", np.nan)
+    ranges = [(float(np.percentile(e, 0.5)), float(np.percentile(e, 99.5))) for e in (err_b, err_a)]
+    lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
+    bins: Any = 40
+    if hi > lo:
+        width = min((hi - lo) / 80, max((ranges[1][1] - ranges[1][0]) / 30, (hi - lo) / 1500))
+        bins = np.arange(lo, hi + width, width)
     ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, label=f"before: RMS {rms_b:.3g}")
     ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, label=f"after: RMS {rms_a:.3g}")
     ax.set(xlabel=f"|B| - F [{cal.units}]", ylabel="samples", title="magnitude error")
