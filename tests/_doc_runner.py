@@ -368,9 +368,17 @@ def refusal(text: str) -> str | None:
 def run_shell(step: Step, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     argv = _trimag_argv(step.text, cwd, env)
     if argv is not None and hasattr(os, "fork") and not os.environ.get("TRIMAG_TEST_FRESH_PROCESS"):
-        from _zygote import run_forked
+        import _zygote
 
-        return run_forked(argv, cwd=cwd, env=env, timeout=step.timeout_s)
+        try:
+            return _zygote.run_forked(argv, cwd=cwd, env=env, timeout=step.timeout_s)
+        except (TimeoutError, RuntimeError, OSError):
+            # the zygote did not answer in time (a loaded machine): its replies may now be out of step, so it is
+            # stopped (the next command starts another) and this command runs as a fresh process instead
+            if _zygote._zygote is not None:
+                _zygote._zygote.kill()
+                _zygote._zygote.wait()
+                _zygote._zygote = None
     return subprocess.run(["bash", "-c", step.text], capture_output=True, text=True, cwd=cwd, env=env,
                           timeout=step.timeout_s)
 

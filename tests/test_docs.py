@@ -14,6 +14,7 @@ Convention (details in tests/_doc_runner.py; for users at the top of docs/index.
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -46,6 +47,10 @@ def test_documented_commands_run(doc: Path, tmp_path: Path, request: pytest.Fixt
     skipped = [f"{o.step.doc}:{o.step.line}: `{o.step.text.splitlines()[0][:90]}`: {o.message}"
                for o in counted if o.status == "skipped"]
     request.node.user_properties.append(("doc_commands", {**counts, "skipped_list": skipped}))
+    if os.environ.get("TRIMAG_DOC_TIMES"):  # a file to append each command's seconds to (finding the slow ones)
+        with open(os.environ["TRIMAG_DOC_TIMES"], "a", encoding="utf-8") as times:
+            times.writelines(f"{o.seconds:8.2f} s  {o.step.doc}:{o.step.line}  {o.step.text.splitlines()[0][:100]}\n"
+                             for o in counted if o.status != "skipped")
     failures = [o.message for o in outcomes if o.status == "failed"]
     if failures:
         pytest.fail(f"{len(failures)} of the {len(counted)} commands in {doc.relative_to(REPO_DIR)} failed "

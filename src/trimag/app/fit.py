@@ -124,6 +124,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
             raise TrimagInputError(
                 f"`regressors` works with the models {', '.join(REGRESSOR_MODELS)}; got {req.model!r}"
             )
+    req = _rows_as_attitude_stream(req)
     mode = large_mode(req)
     options, sync_options, prior_options = _split_options(req, mode)
     eddy_terms = _eddy_terms(req, options)
@@ -209,6 +210,18 @@ def _fit_samples(
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
                      written)
+
+
+def _rows_as_attitude_stream(req: FitRequest) -> FitRequest:
+    """``estimate_lag`` (or ``max_lag``) with the attitudes in the data's own rows and no ``attitude_file``: the data
+    file is also the attitude stream (its attitude columns on its time column), so the lag between the two sets of
+    columns (a filter's delay) is searched as between two files (issue 42)."""
+    att = req.attitude
+    sync = any(k in req.options for k in ("estimate_lag", "max_lag"))
+    in_rows = att.attitude_columns is not None or att.quaternion_columns is not None
+    if not sync or not in_rows or att.attitude_file is not None or gyro_requested(req) or _phone_export(req):
+        return req
+    return dataclasses.replace(req, attitude=dataclasses.replace(att, attitude_file=req.input.path))
 
 
 def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:

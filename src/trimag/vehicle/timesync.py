@@ -203,12 +203,15 @@ def estimate_lag(
     X, tm = X[common], tm[common]
     slerp = Slerp(stream.times, stream.rotation)
 
+    def at(times: NDArray[np.float64]) -> Rotation:  # the grid's edge may pass the span by a rounding error
+        return slerp(np.clip(times, t0, t1))
+
     def ss(lag: float, every: int = 1) -> float:
-        return _vector_ss(X[::every], body_field(slerp(tm[::every] + lag), H_n))[0]
+        return _vector_ss(X[::every], body_field(at(tm[::every] + lag), H_n))[0]
 
     step = max(min(0.5 * stream.median_interval, max_lag / 20), 2 * max_lag / (MAX_GRID - 1))
     lag = _minimise_on_grid(ss, max_lag, step, every=max(len(X) // GRID_SAMPLES, 1))
-    ss_lag, resid = _vector_ss(X, body_field(slerp(tm + lag), H_n))
+    ss_lag, resid = _vector_ss(X, body_field(at(tm + lag), H_n))
     n = len(X)
     sigma2 = ss_lag / max(3 * n - 12, 1)
     h = step
