@@ -291,7 +291,7 @@ def _add_export(sub: Any) -> None:
 
 
 #: the extension of ``trimag export``'s default output, per target (issue 42)
-EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "c-header": ".h", "json": "-export.json",
+_EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "c-header": ".h", "json": "-export.json",
                    "ros-yaml": ".yaml", "matlab": ".m"}
 
 
@@ -813,7 +813,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .app import export_to_file
     from .app.requests import ExportRequest
 
-    _default_out(args, args.calibration, EXPORT_SUFFIXES[args.target])
+    _default_out(args, args.calibration, _EXPORT_SUFFIXES[args.target])
     _check_writable(args.out)
     _check_stdout(args)
     r = export_to_file(_request(ExportRequest, args))
