@@ -34,10 +34,52 @@ class _Terminated(BaseException):
     """Raised by the SIGTERM handler so that ``finally`` and cleanup code run (no stray temporary files)."""
 
 
+#: A word that is a number (or a list of numbers, a place, a range) with a leading minus sign: ``-33.9,151.2,0,...``,
+#: ``-.5``, ``-1e3``, ``-20:30``. argparse takes such a word for an option unless it is one plain number.
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> Any:  # one line, exit 2
         sys.stderr.write(f"trimag: error: {message} (see `{self.prog} --help`)\n")
         raise SystemExit(EXIT_INPUT)
+
+    def parse_known_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        """argparse's parse, with every option that takes one value accepting a value with a leading minus sign
+        given as the next word (``--igrf -33.9,151.2,0,2024-01-01``, ``--background-ned -200,10,-430``)."""
+        words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(self._joined_negative_values(words), namespace)
+
+    def _joined_negative_values(self, words: list[str]) -> list[str]:
+        """``words`` with ``--option -NUMBER...`` joined into ``--option=-NUMBER...`` where ``--option`` (or an
+        unambiguous prefix of it) is one of this parser's options taking exactly one value; words after ``--`` and
+        after a subcommand's name (its own parser does the same) are left as they are."""
+        takes_one = {s: a for a in self._actions for s in a.option_strings if a.nargs is None}
+        out: list[str] = []
+        k = 0
+        while k < len(words):
+            word = words[k]
+            if word == "--" or word in self._subcommand_names():
+                return out + words[k:]
+            option = takes_one.get(word) or self._unique_prefix(word, takes_one)
+            if option is not None and k + 1 < len(words) and _NEGATIVE_VALUE.match(words[k + 1]):
+                out.append(f"{word}={words[k + 1]}")
+                k += 2
+                continue
+            out.append(word)
+            k += 1
+        return out
+
+    def _subcommand_names(self) -> set[str]:
+        return {name for a in self._actions if isinstance(a, argparse._SubParsersAction) for name in a.choices}
+
+    def _unique_prefix(self, word: str, options: dict[str, argparse.Action]) -> argparse.Action | None:
+        """The option that ``word`` abbreviates (argparse's ``allow_abbrev``), when exactly one does."""
+        if not (word.startswith("--") and len(word) > 2 and self.allow_abbrev):
+            return None
+        matches = {a for s, a in options.items() if s.startswith(word)}
+        return matches.pop() if len(matches) == 1 else None
 
 
 #: Python argument name -> the command line's flag (filled from the parser by :func:`main`): the library's messages
