@@ -31,7 +31,7 @@ def check_unit(
     if in_header is not None:
         if units is not None and normalise_unit(units) != in_header:
             raise TrimagInputError(
-                f"the column headers say {in_header} ({', '.join(samples.columns)}) but units={units!r}; "
+                f"the column headers say {in_header} ({', '.join(samples.columns)}) but `units={units}`; "
                 "give the data's real unit"
             )
         if units is None:
@@ -50,7 +50,7 @@ def check_log_unit(units: str | None, log_info: dict[str, Any] | None, columns: 
         return units
     if units is not None and normalise_unit(units) != log_info["unit"]:
         raise TrimagInputError(
-            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop `units={units}` (it is known)"
         )
     return units or str(log_info["unit"])
 

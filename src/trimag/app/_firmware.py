@@ -258,7 +258,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     target = str(req.target)
     klass = firmware_class(target)
     if unit in ("unknown", "counts"):
-        raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
+        raise TrimagInputError(f"`target={target}` needs the data's unit (`units=mG`, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
     absent, more = _absent(target, info)

@@ -171,7 +171,7 @@ class LiveSession:
         if self.units is None:
             self.units = stated
         elif normalise_unit(self.units) != normalise_unit(stated):
-            raise TrimagInputError(f"{by} {stated} but units={self.units!r}; give the data's real unit")
+            raise TrimagInputError(f"{by} {stated} but `units={self.units}`; give the data's real unit")
 
     def samples(self) -> NDArray[np.float64]:
         """A copy of every sample received so far, shape (N, 3)."""
