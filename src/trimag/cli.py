@@ -245,9 +245,10 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
 def _add_gyro_options(p: argparse.ArgumentParser) -> None:
     """The gyroscope of the gyro-aided fit (``--method gyro``, docs/method-gyro.md)."""
     g = p.add_argument_group("gyroscope (the gyro-aided fit of the ellipsoid; docs/method-gyro.md)")
-    g.add_argument("--gyro-columns", metavar="GX,GY,GZ",
+    g.add_argument("--gyro-columns", metavar="GX,GY,GZ|VARIABLE",
                    help="angular rate columns: in the same rows (with --time-column or --rate), or in --gyro-file "
-                        "(default x,y,z there); implies --method gyro")
+                        "(default x,y,z there); of an NPZ or MAT file, the variable of the same rows (imu_gyr); "
+                        "implies --method gyro")
     g.add_argument("--gyro-unit", choices=["rad/s", "deg/s"],
                    help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
     g.add_argument("--gyro-file", metavar="FILE",

@@ -93,6 +93,7 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
         out["rms_after_without_regressors"] = s.get("rms_after_without_regressors")
     if samples is not None:
         out["columns"] = list(samples.columns)
+        out["variable"] = samples.variable or None  # an NPZ or MAT file's variable
         out["selection"] = samples.selection
         out["source"] = samples.source
     return out
