@@ -54,10 +54,10 @@ class BatchResult:
     Attributes
     ----------
     table : pandas.DataFrame
-        One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit, ``units``; empty when the
-        file failed; ``error`` holds the message, ``error_type`` ``"input"``, ``"identifiability"`` or
-        ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a policy, and ``rejected_by``
-        the rules that failed, as ``trimag fit --policy`` gives them).
+        One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit, which ``units``
+        says; empty when the file failed; ``error`` holds the message, ``error_type`` ``"input"``,
+        ``"identifiability"`` or ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a
+        policy, and ``rejected_by`` the rules that failed, as ``trimag fit --policy`` gives them).
     written : dict
         ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
         ``parquet`` extra, is installed).
