@@ -587,6 +587,16 @@ def _regressor_flag(text: str | None) -> tuple[str, ...] | None:
     return None if names is None else tuple(names)
 
 
+#: The options of ``fit`` that a Tolles-Lawson fit does not use (refused with it, issue 39).
+_NOT_TOLLES_LAWSON = (
+    "report", "deviation_card", "policy", "sensor", "rows", "where", "strict", "reference", "igrf_spec",
+    "reference_column", "attitude_columns", "quaternion_columns", "background_ned", "background_columns",
+    "igrf_columns", "background_run", "attitude_file", "position_columns", "regressors", "prior", "target", "level",
+    "motor", "level_turn", "heading", "heading_column", "export_to", "export_out", "gyro_columns", "gyro_file",
+    "gyro_unit", "method",
+)
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     from .app import fit_file, parse_options
 
@@ -602,6 +612,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
                                    "scalar (drop --accel-columns)")
+        # flags of a vector calibration's fit: refused, never ignored (--report drew nothing and said nothing)
+        _refuse_unused(args, _NOT_TOLLES_LAWSON, "model tolles-lawson (it prints its per-segment table; `trimag "
+                       "evaluate COMP.json DATA` prints it again)")
         return _cmd_fit_tolles_lawson(args)
 
     from .app.requests import FitRequest

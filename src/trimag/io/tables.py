@@ -126,9 +126,11 @@ def refuse_calibration_file(path: str | Path) -> None:
     found = _CALIBRATION_FILE.search(head)
     if found is not None:
         kind = found.group(1).decode()
+        takes = ("`trimag apply` or `trimag evaluate`" if kind == "compensation"  # (export has no compensation)
+                 else "`trimag apply`, `trimag evaluate` or `trimag export`")
         raise TrimagInputError(
-            f"{path}: this is a {kind} file, not a log of x, y, z samples: give it to `trimag apply`, `trimag "
-            f"evaluate` or `trimag export` (e.g. `trimag apply {Path(path).name} LOG.csv -o OUT.csv`)"
+            f"{path}: this is a {kind} file, not a log of x, y, z samples: give it to {takes} (e.g. `trimag apply "
+            f"{Path(path).name} LOG.csv -o OUT.csv`)"
         )
 
 
