@@ -107,7 +107,8 @@ def evaluate_file(
         "mean_norm_before": stats_before["mean_norm"], "mean_norm_after": stats_after["mean_norm"],
         "std_norm_before": stats_before["std_norm"], "std_norm_after": stats_after["std_norm"],
         "worse_than_raw": worse, "fitted_reference": fitted,
-        "warnings": ([worse_than_raw_warning(what, judged_after, judged_before, unit)] if worse else []) + ([fitted_warning] if fitted_warning else []),
+        "warnings": ([worse_than_raw_warning(what, judged_after, judged_before, unit)] if worse else [])
+        + ([fitted_warning] if fitted_warning else []),
     }
 
 
@@ -154,8 +155,8 @@ def worse_than_raw_warning(what: str, after: float, before: float, unit: str) ->
     """The warning of an evaluation in which the calibration makes the data worse than the raw data (issue 32)."""
     sep = "" if unit == "%" else " "
     return (f"the calibration makes these data worse than the raw data ({what} {after:.4g}{sep}{unit} after against "
-            f"{before:.4g}{sep}{unit} before): it does not hold for this log (fitted on too little rotation, on another sensor "
-            "or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
+            f"{before:.4g}{sep}{unit} before): it does not hold for this log (fitted on too little rotation, on "
+            "another sensor or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
 
 
 def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str]:
