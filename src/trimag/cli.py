@@ -221,9 +221,11 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
     p.add_argument("--level", choices=["auto", "offsets", "scale", "diagonal", "full"],
                    help="--target's level: offsets < + one scale < + diagonal < + off-diagonal (full); auto (default) "
                         "takes the simplest the data identify, by held-out RMS")
-    p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
+    p.add_argument("--motor", metavar="auto|none|current|throttle|current=COLUMN|throttle=COLUMN",
                    help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
-                        "(default) fits it when it improves the held-out RMS")
+                        "(default) fits it when it improves the held-out RMS; a table's current or throttle column is "
+                        "found by its usual names (current, curr, battery_current, throttle, thr, ...) or named: "
+                        "current=COLUMN")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
