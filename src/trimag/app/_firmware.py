@@ -157,13 +157,17 @@ MOTOR_COLUMN_NAMES: dict[str, tuple[str, ...]] = {
 
 def parse_motor(text: str | None) -> tuple[str, str | None]:
     """``motor`` as given (``auto``, ``none``, ``current``, ``throttle``, or ``current=COLUMN`` /
-    ``throttle=COLUMN``: the table's column of that channel) -> ``(kind, column or None)``."""
+    ``throttle=COLUMN``: the table's column of that channel; ``auto=current`` / ``auto=throttle``: the motor term
+    fitted when it helps, on that channel only, as ``--sensor all`` asks for one channel for every compass)
+    -> ``(kind, column or None)`` (for ``auto=KIND``: ``("auto", KIND)``)."""
     kind, sep, column = str(text or "auto").partition("=")
     kind, column = kind.strip().lower(), column.strip()
-    if kind not in ("auto", "none", *MOTOR_COLUMN_NAMES) or (sep and (kind not in MOTOR_COLUMN_NAMES or not column)):
+    restricted = kind == "auto" and column.lower() in MOTOR_COLUMN_NAMES
+    if kind not in ("auto", "none", *MOTOR_COLUMN_NAMES) or (
+            sep and not restricted and (kind not in MOTOR_COLUMN_NAMES or not column)):
         raise TrimagInputError(f"`motor` is auto, none, current, throttle, current=COLUMN or throttle=COLUMN; got "
                                f"{text!r}")
-    return kind, column or None
+    return kind, (column.lower() if restricted else column) or None
 
 
 def _plain_name(name: Any) -> str:
@@ -174,6 +178,8 @@ def _motor_column(table: Any, kind: str, named: tuple[str, str | None], log: boo
     """The column of the motor channel ``kind``: the one ``named`` (``motor=KIND=COLUMN``; a missing one is
     refused, naming the table's columns), else a log's own (``current_A``, ``throttle``), else the first of a
     table's columns with one of :data:`MOTOR_COLUMN_NAMES`."""
+    if named[0] == "auto" and named[1] is not None and named[1] != kind:  # auto=KIND: that channel only
+        return None
     if named[0] == kind and named[1] is not None:
         if named[1] not in table.columns:
             raise TrimagInputError(f"no column {named[1]!r} (named by `motor={kind}={named[1]}`); the columns are "
