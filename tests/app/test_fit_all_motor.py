@@ -62,9 +62,11 @@ def _write_log(path: Path, n: int = 2500, seed: int = 4) -> Path:
         "PARM": ("QNf", "TimeUS,Name,Value", [(1000, k, v) for k, v in params.items()]),
         "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S", rows),
         "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF",
-                [(int(t), 0.0, r, 0.0, p, 0.0, y % 360.0, 0.0, 0.0, 3) for t, (y, p, r) in zip(t_us, ypr, strict=True)]),
+                [(int(t), 0.0, r, 0.0, p, 0.0, y % 360.0, 0.0, 0.0, 3)
+                 for t, (y, p, r) in zip(t_us, ypr, strict=True)]),
         "BAT": ("QBfffffcfB", "TimeUS,Instance,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res,RemPct",
-                [(int(t), 0, 16.0, 16.0, float(a), 0.0, 0.0, 25.0, 0.0, 80) for t, a in zip(t_us, amps, strict=True)]),
+                [(int(t), 0, 16.0, 16.0, float(a), 0.0, 0.0, 25.0, 0.0, 80)
+                 for t, a in zip(t_us, amps, strict=True)]),
         "CTUN": ("Qf", "TimeUS,ThO", [(int(t), float(x)) for t, x in zip(t_us, throttle, strict=True)]),
         "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
                 [(int(t), 0, 3, MS, WEEK, 12, 0.8, LAT, LON, ALT, 0.0, 0.0, 0.0, 0.0, 1) for t in t_us[::10]]),
