@@ -27,3 +27,18 @@ def test_the_samples_file_of_a_recording_is_refitted_in_its_unit(unit: str, scal
     assert json.loads(capsys.readouterr().out)["units"] == unit
     first = next(replay_source(samples, rate=None))
     assert first.units == unit
+
+
+def test_a_samples_file_of_an_earlier_version_is_read_in_the_unit_its_first_line_states(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Files written before the unit went into the column names: ``x,y,z`` under "# ...; unit G"."""
+    samples = tmp_path / "old-samples.csv"
+    raw = sensor(uniform_directions(600, seed=22)) * 1e-3
+    samples.write_text("# trimag live recording (serial /dev/ttyUSB0); unit G\nx,y,z\n"
+                       + "\n".join(",".join(f"{v:.9g}" for v in row) for row in raw) + "\n")
+    assert main(["fit", str(samples), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["units"] == "G" and "first line" in captured.err
+    assert main(["fit", str(samples), "--units", "uT", "-q"]) == 2
+    assert "first line says unit G" in capsys.readouterr().err
+    assert next(replay_source(samples, rate=None)).units == "G"

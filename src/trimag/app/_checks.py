@@ -29,15 +29,16 @@ def check_unit(
 
     messages: list[str] = []
     in_header = header_unit(list(samples.columns))
+    said = f"the column headers say {in_header} ({', '.join(samples.columns)})"
+    if in_header is None and samples.stated_unit:  # a `trimag live` recording's first line
+        in_header, said = normalise_unit(samples.stated_unit), f"the file's first line says unit {samples.stated_unit}"
     if in_header is not None:
         if units is not None and normalise_unit(units) != in_header:
-            raise TrimagInputError(
-                f"the column headers say {in_header} ({', '.join(samples.columns)}) but `units={units}`; "
-                "give the data's real unit"
-            )
+            raise TrimagInputError(f"{said} but `units={units}`; give the data's real unit")
         if units is None:
             units = in_header
-            messages.append(f"unit {in_header} (from the column headers)")
+            where = "the column headers" if said.startswith("the column") else "the file's first line"
+            messages.append(f"unit {in_header} (from {where})")
     if len(samples.field):  # raw magnitudes never fall far below the field, hard iron or not (issue 33)
         median = float(np.median(np.linalg.norm(samples.field, axis=1)))
         refuse_below_reference(median, normalise_unit(units), reference, igrf_spec, field=samples.field)

@@ -96,6 +96,8 @@ class Samples:
     wild_note: str = ""
     #: the variable of an NPZ or MAT file the samples were taken from (``imu_mag``), empty for other files
     variable: str = ""
+    #: the unit the file states besides its column names (a ``trimag live`` recording's first line), empty if none
+    stated_unit: str = ""
 
 
 def detect_format(path: str | Path, fmt: str | None = None) -> str:
@@ -582,6 +584,10 @@ def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
         )
 
 
+#: The first line of a ``trimag live`` samples file: ``# trimag live recording (SOURCE); unit G``.
+_LIVE_UNIT = re.compile(r"^#\s*trimag live recording\b.*;\s*unit\s+(nT|uT|G|mG|counts)\s*$")
+
+
 def read_table(
     path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
 ) -> pd.DataFrame:
@@ -600,7 +606,11 @@ def read_table(
         return _read_vehicle_log(p, kind, sensor)
     check_sensor(kind, sensor, p)
     if kind in ("csv", "txt"):
-        return _read_delimited(p, kind)[0]
+        df, layout = _read_delimited(p, kind)
+        stated = next((m.group(1) for m in map(_LIVE_UNIT.search, layout.preamble) if m), None)
+        if stated is not None:  # a `trimag live` recording states its unit on its first line
+            df.attrs["trimag_stated_unit"] = stated
+        return df
     if kind == "xyz":
         from .geosoft import read_xyz
 
@@ -818,6 +828,7 @@ def read_samples(
     p = Path(path)
     df = read_table(p, fmt=fmt, var=var, sensor=sensor)
     variable = str(df.attrs.get("trimag_variable", ""))
+    stated_unit = str(df.attrs.get("trimag_stated_unit", ""))
     if not df.index.equals(pd.RangeIndex(len(df))):  # the index numbers the data rows (Samples.table)
         df = df.set_axis(pd.RangeIndex(len(df)), axis=0)
     log_info = df.attrs.get("trimag_log")
@@ -866,6 +877,7 @@ def read_samples(
         wild_index=wild_index[:1000],
         wild_note=wild_note,
         variable=variable,
+        stated_unit=stated_unit,
     )
 
 
