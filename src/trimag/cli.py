@@ -34,10 +34,52 @@ class _Terminated(BaseException):
     """Raised by the SIGTERM handler so that ``finally`` and cleanup code run (no stray temporary files)."""
 
 
+#: A word that is a number (or a list of numbers, a place, a range) with a leading minus sign: ``-33.9,151.2,0,...``,
+#: ``-.5``, ``-1e3``, ``-20:30``. argparse takes such a word for an option unless it is one plain number.
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> Any:  # one line, exit 2
         sys.stderr.write(f"trimag: error: {message} (see `{self.prog} --help`)\n")
         raise SystemExit(EXIT_INPUT)
+
+    def parse_known_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        """argparse's parse, with every option that takes one value accepting a value with a leading minus sign
+        given as the next word (``--igrf -33.9,151.2,0,2024-01-01``, ``--background-ned -200,10,-430``)."""
+        words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(self._joined_negative_values(words), namespace)
+
+    def _joined_negative_values(self, words: list[str]) -> list[str]:
+        """``words`` with ``--option -NUMBER...`` joined into ``--option=-NUMBER...`` where ``--option`` (or an
+        unambiguous prefix of it) is one of this parser's options taking exactly one value; words after ``--`` and
+        after a subcommand's name (its own parser does the same) are left as they are."""
+        takes_one = {s: a for a in self._actions for s in a.option_strings if a.nargs is None}
+        out: list[str] = []
+        k = 0
+        while k < len(words):
+            word = words[k]
+            if word == "--" or word in self._subcommand_names():
+                return out + words[k:]
+            option = takes_one.get(word) or self._unique_prefix(word, takes_one)
+            if option is not None and k + 1 < len(words) and _NEGATIVE_VALUE.match(words[k + 1]):
+                out.append(f"{word}={words[k + 1]}")
+                k += 2
+                continue
+            out.append(word)
+            k += 1
+        return out
+
+    def _subcommand_names(self) -> set[str]:
+        return {name for a in self._actions if isinstance(a, argparse._SubParsersAction) for name in a.choices}
+
+    def _unique_prefix(self, word: str, options: dict[str, argparse.Action]) -> argparse.Action | None:
+        """The option that ``word`` abbreviates (argparse's ``allow_abbrev``), when exactly one does."""
+        if not (word.startswith("--") and len(word) > 2 and self.allow_abbrev):
+            return None
+        matches = {a for s, a in options.items() if s.startswith(word)}
+        return matches.pop() if len(matches) == 1 else None
 
 
 #: Python argument name -> the command line's flag (filled from the parser by :func:`main`): the library's messages
@@ -179,9 +221,11 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
     p.add_argument("--level", choices=["auto", "offsets", "scale", "diagonal", "full"],
                    help="--target's level: offsets < + one scale < + diagonal < + off-diagonal (full); auto (default) "
                         "takes the simplest the data identify, by held-out RMS")
-    p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
+    p.add_argument("--motor", metavar="auto|none|current|throttle|current=COLUMN|throttle=COLUMN",
                    help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
-                        "(default) fits it when it improves the held-out RMS")
+                        "(default) fits it when it improves the held-out RMS; a table's current or throttle column is "
+                        "found by its usual names (current, curr, battery_current, throttle, thr, ...) or named: "
+                        "current=COLUMN")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
@@ -203,9 +247,10 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
 def _add_gyro_options(p: argparse.ArgumentParser) -> None:
     """The gyroscope of the gyro-aided fit (``--method gyro``, docs/method-gyro.md)."""
     g = p.add_argument_group("gyroscope (the gyro-aided fit of the ellipsoid; docs/method-gyro.md)")
-    g.add_argument("--gyro-columns", metavar="GX,GY,GZ",
+    g.add_argument("--gyro-columns", metavar="GX,GY,GZ|VARIABLE",
                    help="angular rate columns: in the same rows (with --time-column or --rate), or in --gyro-file "
-                        "(default x,y,z there); implies --method gyro")
+                        "(default x,y,z there); of an NPZ or MAT file, the variable of the same rows (imu_gyr); "
+                        "implies --method gyro")
     g.add_argument("--gyro-unit", choices=["rad/s", "deg/s"],
                    help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
     g.add_argument("--gyro-file", metavar="FILE",
@@ -565,6 +610,16 @@ def _regressor_flag(text: str | None) -> tuple[str, ...] | None:
     return None if names is None else tuple(names)
 
 
+#: The options of ``fit`` that a Tolles-Lawson fit does not use (refused with it, issue 39).
+_NOT_TOLLES_LAWSON = (
+    "report", "deviation_card", "policy", "sensor", "rows", "where", "strict", "reference", "igrf_spec",
+    "reference_column", "attitude_columns", "quaternion_columns", "background_ned", "background_columns",
+    "igrf_columns", "background_run", "attitude_file", "position_columns", "regressors", "prior", "target", "level",
+    "motor", "level_turn", "heading", "heading_column", "export_to", "export_out", "gyro_columns", "gyro_file",
+    "gyro_unit", "method",
+)
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     from .app import fit_file, parse_options
 
@@ -580,6 +635,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         if args.accel_columns:
             raise TrimagInputError("--accel-columns aligns a vector calibration; a Tolles-Lawson compensation is "
                                    "scalar (drop --accel-columns)")
+        # flags of a vector calibration's fit: refused, never ignored (--report drew nothing and said nothing)
+        _refuse_unused(args, _NOT_TOLLES_LAWSON, "model tolles-lawson (it prints its per-segment table; `trimag "
+                       "evaluate COMP.json DATA` prints it again)")
         return _cmd_fit_tolles_lawson(args)
 
     from .app.requests import FitRequest

@@ -109,10 +109,11 @@ def plausible_units(median_norm: float, *, field: bool = False) -> list[str]:
 
 
 def header_unit(names: list[str]) -> str | None:
-    """The unit written in the x, y, z column headers (``Mx (uT)``, ``mag_x_nT``, ``Bx[G]``), if one and the same."""
+    """The unit written in the x, y, z column headers (``Mx (uT)``, ``mag_x_nT``, ``Bx[G]``, ``x_counts``), if one
+    and the same."""
     import re
 
-    pattern = re.compile(r"(?:[\(\[]\s*|[_\s])(nT|uT|µT|μT|mG|mGauss|G|gauss|Gauss)\s*[\)\]]?\s*$")
+    pattern = re.compile(r"(?:[\(\[]\s*|[_\s])(nT|uT|µT|μT|mG|mGauss|G|gauss|Gauss|counts)\s*[\)\]]?\s*$")
     found = set()
     for name in names:
         m = pattern.search(str(name))

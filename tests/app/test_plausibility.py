@@ -109,7 +109,8 @@ def test_a_reference_in_another_unit_is_named_as_the_reference_s_mistake(tmp_pat
     np.savetxt(path, raw / 1000.0, delimiter=",", header="x,y,z", comments="")
     r = run_trimag("fit", path, "--units", "G", "--reference", "500", "-o", tmp_path / "cal.json")
     assert r.returncode == 2 and "--reference" in r.stderr and "the data are not in G" not in r.stderr, r.stderr
-    # data in the wrong unit (counts of 500 read as nT) still blame the unit
+    # data in the wrong unit (numbers of 500 read as nT) still blame the unit, and name the likely one (issue 38)
     np.savetxt(path, raw, delimiter=",", header="x,y,z", comments="")
     r = run_trimag("fit", path, "--units", "nT", "--reference", "50000", "-o", tmp_path / "cal.json")
-    assert r.returncode == 2 and "unit is wrong" in r.stderr and "give --reference in" not in r.stderr, r.stderr
+    assert r.returncode == 2 and "the data look like mG" in r.stderr and "give --reference in" not in r.stderr, \
+        r.stderr

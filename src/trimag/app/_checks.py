@@ -7,6 +7,7 @@ import warnings
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import TrimagError, TrimagInputError
@@ -28,18 +29,19 @@ def check_unit(
 
     messages: list[str] = []
     in_header = header_unit(list(samples.columns))
+    said = f"the column headers say {in_header} ({', '.join(samples.columns)})"
+    if in_header is None and samples.stated_unit:  # a `trimag live` recording's first line
+        in_header, said = normalise_unit(samples.stated_unit), f"the file's first line says unit {samples.stated_unit}"
     if in_header is not None:
         if units is not None and normalise_unit(units) != in_header:
-            raise TrimagInputError(
-                f"the column headers say {in_header} ({', '.join(samples.columns)}) but units={units!r}; "
-                "give the data's real unit"
-            )
+            raise TrimagInputError(f"{said} but `units={units}`; give the data's real unit")
         if units is None:
             units = in_header
-            messages.append(f"unit {in_header} (from the column headers)")
+            where = "the column headers" if said.startswith("the column") else "the file's first line"
+            messages.append(f"unit {in_header} (from {where})")
     if len(samples.field):  # raw magnitudes never fall far below the field, hard iron or not (issue 33)
         median = float(np.median(np.linalg.norm(samples.field, axis=1)))
-        refuse_below_reference(median, normalise_unit(units), reference, igrf_spec)
+        refuse_below_reference(median, normalise_unit(units), reference, igrf_spec, field=samples.field)
     return units, messages
 
 
@@ -50,12 +52,52 @@ def check_log_unit(units: str | None, log_info: dict[str, Any] | None, columns: 
         return units
     if units is not None and normalise_unit(units) != log_info["unit"]:
         raise TrimagInputError(
-            f"the log records {log_info['sensor']} in {log_info['unit']}; drop units={units!r} (it is known)"
+            f"the log records {log_info['sensor']} in {log_info['unit']}; drop `units={units}` (it is known)"
         )
     return units or str(log_info["unit"])
 
 
-def refuse_below_reference(median: float, unit: str, reference: str | float | None, igrf_spec: str | None) -> None:
+#: How far (a factor either way) the data's fitted sphere may be from the reference field in a unit for that unit to be
+#: named as the data's likely one (soft iron and the local anomaly move it by a few per cent to some tens).
+LIKELY_UNIT_FACTOR = 1.5
+
+
+#: The mean resultant length of the directions about a fitted sphere's centre above which the data cover too small a
+#: cap for its radius to mean anything (a 25 deg cap gives ~0.95; a full turn about one axis ~0.1).
+CAP_RESULTANT = 0.8
+
+
+def sphere_radius(field: NDArray[np.float64]) -> float | None:
+    """The radius of the sphere that best fits ``field`` (N, 3) algebraically (centre free); None when none does or
+    the directions about its centre cover too small a cap (:data:`CAP_RESULTANT`) for the radius to be defined."""
+    if len(field) < 4:
+        return None
+    design = np.column_stack([2.0 * field, np.ones(len(field))])
+    solution, *_ = np.linalg.lstsq(design, np.einsum("ij,ij->i", field, field), rcond=None)
+    r2 = float(solution[3] + solution[:3] @ solution[:3])
+    if not (np.isfinite(r2) and r2 > 0):
+        return None
+    about = field - solution[:3]
+    norms = np.linalg.norm(about, axis=1, keepdims=True)
+    directions = about / np.where(norms > 0, norms, 1.0)
+    return float(np.sqrt(r2)) if np.linalg.norm(directions.mean(axis=0)) < CAP_RESULTANT else None
+
+
+def likely_unit(field: NDArray[np.float64] | None, reference_nT: float) -> tuple[str, float] | None:
+    """The physical unit in which the data's fitted sphere (:func:`sphere_radius`) is closest to the reference field
+    ``reference_nT``, within :data:`LIKELY_UNIT_FACTOR`: ``(unit, the radius in it)``, or None (issue 38)."""
+    from ..units import UNITS
+
+    radius = sphere_radius(field) if field is not None else None
+    if radius is None or not reference_nT > 0:
+        return None
+    ratios = {u: radius * f / reference_nT for u, f in UNITS.items() if f is not None and u != "1e4nT"}
+    unit = min(ratios, key=lambda u: abs(np.log(ratios[u])))
+    return (unit, radius) if abs(np.log(ratios[unit])) <= np.log(LIKELY_UNIT_FACTOR) else None
+
+
+def refuse_below_reference(median: float, unit: str, reference: str | float | None, igrf_spec: str | None,
+                           field: NDArray[np.float64] | None = None) -> None:
     """Refuse raw data whose median magnitude is below 1/5 of the reference, whatever the unit and even inside the
     Earth range (issue 33: 6.9x below was accepted). Raw magnitudes do not fall below the field: over the
     directions of a turn ``|F u + h|`` has a median of ``sqrt(F^2 + |h|^2) >= F``; hard iron only adds (which is why
@@ -75,6 +117,11 @@ def refuse_below_reference(median: float, unit: str, reference: str | float | No
         blame = ("the reference or the data's unit is wrong" if (igrf_spec is not None and reference is None)
                  or unit not in plausible_units(median, field=True) else
                  f"the data's field is one in {unit}: give `reference` in the data's unit ({unit})")
+        likely = likely_unit(field, F * nT_per_unit(unit)) if unit not in ("unknown", "counts") else None
+        if likely is not None and likely[0] != unit:  # a unit in which the data's sphere is the reference field
+            blame = (f"the data look like {likely[0]} (their fitted sphere's radius {likely[1]:.4g} is "
+                     f"{likely[1] * nT_per_unit(likely[0]) / (F * nT_per_unit(unit)):.2f}x the reference field in "
+                     f"{likely[0]}): give `units={likely[0]}`")
         raise TrimagInputError(
             f"the data's median |B| is {median:.6g}{shown}, {median / F:.3g}x the reference field ({F:.6g}{shown}): "
             f"raw magnitudes are never that far below the field; {blame}"

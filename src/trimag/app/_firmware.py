@@ -18,9 +18,11 @@ What this layer decides from the data and the log:
 from __future__ import annotations
 
 import dataclasses
+import re
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
@@ -146,22 +148,72 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
                   f"orientation only among the standard rotations. {advice}")
 
 
+#: The names under which a table holds a motor channel (compared in lower case, spaces as underscores, a unit in
+#: brackets dropped: ``Current (A)`` is ``current``); the first one the table has is used. A vehicle log's reader
+#: names them ``current_A`` and ``throttle`` (the first of each).
+MOTOR_COLUMN_NAMES: dict[str, tuple[str, ...]] = {
+    "current": ("current_a", "current", "curr", "battery_current", "battery_current_a", "batt_current", "batt_curr",
+                "bat_current", "bat_curr", "current_amps", "curr_a", "ibatt", "i_batt", "amps"),
+    "throttle": ("throttle", "thr", "thr_out", "throttle_out", "throut", "thrust"),
+}
+
+
+def parse_motor(text: str | None) -> tuple[str, str | None]:
+    """``motor`` as given (``auto``, ``none``, ``current``, ``throttle``, or ``current=COLUMN`` /
+    ``throttle=COLUMN``: the table's column of that channel; ``auto=current`` / ``auto=throttle``: the motor term
+    fitted when it helps, on that channel only, as ``--sensor all`` asks for one channel for every compass)
+    -> ``(kind, column or None)`` (for ``auto=KIND``: ``("auto", KIND)``)."""
+    kind, sep, column = str(text or "auto").partition("=")
+    kind, column = kind.strip().lower(), column.strip()
+    restricted = kind == "auto" and column.lower() in MOTOR_COLUMN_NAMES
+    if kind not in ("auto", "none", *MOTOR_COLUMN_NAMES) or (
+            sep and not restricted and (kind not in MOTOR_COLUMN_NAMES or not column)):
+        raise TrimagInputError(f"`motor` is auto, none, current, throttle, current=COLUMN or throttle=COLUMN; got "
+                               f"{text!r}")
+    return kind, (column.lower() if restricted else column) or None
+
+
+def _plain_name(name: Any) -> str:
+    return re.sub(r"\s*[\(\[][^\)\]]*[\)\]]\s*$", "", str(name)).strip().lower().replace(" ", "_")
+
+
+def _motor_column(table: Any, kind: str, named: tuple[str, str | None], log: bool) -> str | None:
+    """The column of the motor channel ``kind``: the one ``named`` (``motor=KIND=COLUMN``; a missing one is
+    refused, naming the table's columns), else a log's own (``current_A``, ``throttle``), else the first of a
+    table's columns with one of :data:`MOTOR_COLUMN_NAMES`."""
+    if named[0] == "auto" and named[1] is not None and named[1] != kind:  # auto=KIND: that channel only
+        return None
+    if named[0] == kind and named[1] is not None:
+        if named[1] not in table.columns:
+            raise TrimagInputError(f"no column {named[1]!r} (named by `motor={kind}={named[1]}`); the columns are "
+                                   f"{', '.join(map(str, table.columns))}")
+        return named[1]
+    if log:
+        own = "current_A" if kind == "current" else "throttle"
+        return own if own in table.columns else None
+    plain = {_plain_name(c): c for c in reversed(list(table.columns))}  # the first of equal names wins
+    return next((plain[n] for n in MOTOR_COLUMN_NAMES[kind] if n in plain), None)
+
+
 #: A motor channel empty on at most this share of the rows (a battery logged from a little after the compass) is
 #: kept and those rows dropped (counted); emptier, the channel is not used.
 MOTOR_MAX_EMPTY = 0.05
 
 
-def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None
+def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None,
+                    named: tuple[str, str | None] = ("auto", None),
                     ) -> tuple[Samples, dict[str, Any], dict[str, str], list[str]]:
-    """``(samples, {"current": values, "throttle": values}, {kind: column}, messages)`` from the logged channels;
-    the rows a used channel leaves empty are dropped and counted."""
+    """``(samples, {"current": values, "throttle": values}, {kind: column}, messages)`` from the logged channels
+    (``named``: :func:`parse_motor` of the request's ``motor``); the rows a used channel leaves empty are dropped
+    and counted."""
     table = samples.table
     columns: dict[str, str] = {}
     messages: list[str] = []
     keep = np.ones(len(table), dtype=bool)
-    for kind, column in (("current", "current_A"), ("throttle", "throttle")):
-        if column in table.columns:
-            v = table[column].to_numpy(dtype=float)
+    for kind in MOTOR_COLUMN_NAMES:
+        column = _motor_column(table, kind, named, info is not None)
+        if column is not None:
+            v = pd.to_numeric(table[column], errors="coerce").to_numpy(dtype=float)
             finite = np.isfinite(v)
             if finite.mean() >= 1.0 - MOTOR_MAX_EMPTY and finite.any() and np.ptp(v[finite]) > 0:
                 columns[kind] = column
@@ -170,7 +222,18 @@ def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None
                                     "channel's log starts later or ends earlier than the compass's)")
                 keep &= finite
     samples = _keep(samples, keep)
-    values: dict[str, Any] = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
+    if info is None and columns:
+        messages.append("motor channel(s): " + ", ".join(f"{kind} from column {column}"
+                                                         for kind, column in columns.items()))
+    kind = named[0]
+    if info is None and kind in MOTOR_COLUMN_NAMES and kind not in columns:
+        column = _motor_column(table, kind, named, False)
+        why = (f"column {column} does not vary (or is empty on more than {MOTOR_MAX_EMPTY:.0%} of the rows)"
+               if column is not None else f"no column named {', '.join(MOTOR_COLUMN_NAMES[kind])}")
+        raise TrimagInputError(f"`motor={kind}` needs a {kind} channel that varies: {why}; the table's columns are "
+                               f"{', '.join(map(str, table.columns))}: name one with `motor={kind}=COLUMN`")
+    values: dict[str, Any] = {kind: pd.to_numeric(samples.table[column], errors="coerce").to_numpy(dtype=float)
+                              for kind, column in columns.items()}
     vehicle = str((info or {}).get("vehicle") or "")
     if target == "ardupilot" and "throttle" in values and any(k in vehicle for k in ("Plane", "Rover")):
         del values["throttle"], columns["throttle"]
@@ -261,20 +324,22 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     target = str(req.target)
     klass = firmware_class(target)
     if unit in ("unknown", "counts"):
-        raise TrimagInputError(f"`target={target}` needs the data's unit (units=mG, G, uT or nT); got {unit!r}")
+        raise TrimagInputError(f"`target={target}` needs the data's unit (`units=mG`, G, uT or nT); got {unit!r}")
     info = samples.log_info
     held, applied, external, offsets_max, messages = _held(target, info)
     absent, more = _absent(target, info)
     messages += more
-    samples, _, columns, more = _motor_channels(target, samples, info)  # first: the rows a channel leaves empty
+    named = parse_motor(req.motor)
+    samples, _, columns, more = _motor_channels(target, samples, info, named)  # first: the rows a channel leaves empty
     messages += more
     samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
     messages += more
-    motors = {kind: samples.table[column].to_numpy(dtype=float) for kind, column in columns.items()}
+    motors = {kind: pd.to_numeric(samples.table[column], errors="coerce").to_numpy(dtype=float)
+              for kind, column in columns.items()}
     factor = convert(1.0, unit, klass.unit)
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
-                       level=req.level or "auto", motor=req.motor or "auto",
+                       level=req.level or "auto", motor=named[0],
                        offsets_max=offsets_max, heading_free=tilt, absent=absent)
     messages += [m for m in fit.messages if not m.startswith("warning:")]
     kind = fit.compass.motor_type

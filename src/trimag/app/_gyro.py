@@ -59,18 +59,60 @@ def _unit(req: FitRequest, names: list[str], messages: list[str]) -> str:
     return "rad/s"
 
 
-def _times(req: FitRequest, samples: Samples) -> np.ndarray:
+#: The names of a sample rate (Hz) stored as a variable of an NPZ or MAT file beside the samples (BROAD's
+#: ``sampling_rate``), lower case.
+RATE_VARIABLES = ("sampling_rate", "sample_rate", "sampling_rate_hz", "rate_hz", "fs", "samplerate")
+
+
+def _times(req: FitRequest, samples: Samples, messages: list[str]) -> np.ndarray:
     """The magnetometer's time stamps (s) of the kept rows: ``time_column`` (a vehicle log's ``time_s``), or the
-    row number over ``rate_hz``."""
+    row number over ``rate_hz`` (else over the file's own sample rate variable, :data:`RATE_VARIABLES`)."""
     column = req.attitude.time_column or ("time_s" if "time_s" in samples.table.columns else None)
     if column is not None:
         from ..vehicle.timesync import time_values
 
         return time_values(samples.table, column, str(req.input.path))
-    if req.rate_hz is None:
+    rate_hz = req.rate_hz
+    if rate_hz is None and samples.variable:
+        from ..io.tables import file_variables
+
+        stored = {k: v for k, v in file_variables(req.input.path, req.input.fmt).items()
+                  if k.lower() in RATE_VARIABLES and v.size == 1}
+        if stored:
+            name, value = next(iter(stored.items()))
+            rate_hz = float(value.ravel()[0])
+            if not (np.isfinite(rate_hz) and rate_hz > 0):
+                raise TrimagInputError(f"{req.input.path}: its sample rate {name} = {rate_hz:g} is no rate; give "
+                                       "`rate_hz=HZ`")
+            messages.append(f"sample rate {rate_hz:g} Hz from the file's variable {name}")
+    if rate_hz is None:
         raise TrimagInputError("the gyro-aided fit needs the samples' time: give `time_column=T` (seconds) or "
                                "`rate_hz=HZ`")
-    return np.asarray(samples.table.index, dtype=np.float64) / float(req.rate_hz)
+    return np.asarray(samples.table.index, dtype=np.float64) / float(rate_hz)
+
+
+def _variable_rate(req: FitRequest, samples: Samples, name: str) -> np.ndarray | None:
+    """The gyroscope as the variable ``name`` of the magnetometer's own NPZ or MAT file (``gyro_columns=imu_gyr``):
+    its rows of the kept samples, (N, 3); None when ``name`` is not a single name or the file has no variables."""
+    if "," in name or not samples.variable:
+        return None
+    from ..io.tables import file_variables
+
+    variables = file_variables(req.input.path, req.input.fmt)
+    if name not in variables:
+        raise TrimagInputError(f"{req.input.path}: no variable {name!r} (named by `gyro_columns`); its variables are "
+                               f"{', '.join(sorted(variables))}")
+    values = np.squeeze(variables[name])
+    if values.ndim == 2 and values.shape[0] == 3 and values.shape[1] != 3:
+        values = values.T
+    if values.ndim != 2 or values.shape[1] != 3:
+        raise TrimagInputError(f"{req.input.path}: variable {name!r} has shape {variables[name].shape}; a gyroscope "
+                               "is N x 3")
+    if len(values) != samples.n_total_rows:
+        raise TrimagInputError(f"{req.input.path}: variable {name!r} has {len(values)} rows and the magnetometer "
+                               f"{samples.variable!r} {samples.n_total_rows}: a gyroscope of the same rows is needed "
+                               "(else give `gyro_file` with its own time column)")
+    return np.asarray(values, dtype=np.float64)[np.asarray(samples.table.index)]
 
 
 def _keep(samples: Samples, ok: np.ndarray) -> Samples:
@@ -90,7 +132,7 @@ def angular_rate(
     if not own and req.gyro_columns is None:
         raise TrimagInputError("method gyro needs the gyroscope: `gyro_columns=GX,GY,GZ` (the same rows), "
                                "`gyro_file=FILE` (its own clock) or a log with a gyroscope")
-    t = _times(req, samples)
+    t = _times(req, samples, messages)
     if own:
         tg, rate, source = _own_stream(req, samples, messages)
         margin = max_lag if estimate_lag is not False else 0.0
@@ -106,9 +148,10 @@ def angular_rate(
         gyro = AngularRate(t[ok], tg, rate, 0.0, True, source)
     else:
         assert req.gyro_columns is not None
-        names = _names(req.gyro_columns, "gyro_columns")
+        stored = _variable_rate(req, samples, req.gyro_columns.strip())
+        names = [req.gyro_columns.strip()] if stored is not None else _names(req.gyro_columns, "gyro_columns")
         unit = _unit(req, names, messages)
-        values = _values(samples.table, names, req.input.path, "gyro_columns")
+        values = stored if stored is not None else _values(samples.table, names, req.input.path, "gyro_columns")
         ok = np.isfinite(values).all(axis=1) & np.isfinite(t)
         if (~ok).sum():
             if req.input.strict:
@@ -116,7 +159,8 @@ def angular_rate(
                                        "`strict` to skip and count them")
             messages.append(f"dropped {int((~ok).sum())} rows whose gyroscope value or time is missing")
         samples = _keep(samples, ok)
-        source = f"columns {', '.join(names)} ({unit})"
+        source = (f"variable {names[0]} ({unit})" if stored is not None else f"columns {', '.join(names)} ({unit})")
+        messages.append(f"gyroscope: {source}, in the magnetometer's rows")
         gyro = AngularRate.same_rows(t[ok], values[ok], unit=unit, source=source)
         if estimate_lag:  # a lag between columns of the same rows: the rows' stamps as the gyroscope's own clock
             samples, gyro = _same_rows_lag(samples, gyro, max_lag, messages)

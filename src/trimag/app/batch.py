@@ -42,7 +42,7 @@ __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs
 
 #: Columns of the summary table, in order.
 SUMMARY_COLUMNS = (
-    "file", "n", "n_used", "rms_before", "rms_after", "converged", "warnings", "error", "error_type",
+    "file", "n", "n_used", "rms_before", "rms_after", "units", "converged", "warnings", "error", "error_type",
     "calibration", "seconds", "accepted", "rejected_by",
 )
 
@@ -54,10 +54,10 @@ class BatchResult:
     Attributes
     ----------
     table : pandas.DataFrame
-        One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit; empty when the
-        file failed; ``error`` holds the message, ``error_type`` ``"input"``, ``"identifiability"`` or
-        ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a policy, and ``rejected_by``
-        the rules that failed, as ``trimag fit --policy`` gives them).
+        One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit, which ``units``
+        says; empty when the file failed; ``error`` holds the message, ``error_type`` ``"input"``,
+        ``"identifiability"`` or ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a
+        policy, and ``rejected_by`` the rules that failed, as ``trimag fit --policy`` gives them).
     written : dict
         ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
         ``parquet`` extra, is installed).
@@ -229,7 +229,7 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
         s = result.summary
         row.update(
             n=s.get("n_samples"), n_used=s.get("n_used"), rms_before=s.get("rms_before"),
-            rms_after=s.get("rms_after"), converged=bool(s.get("converged")),
+            rms_after=s.get("rms_after"), units=s.get("units"), converged=bool(s.get("converged")),
             warnings="; ".join(s.get("warnings") or []), calibration=out,
         )
         verdict = s.get("acceptance")
@@ -253,7 +253,7 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     df["rms_after"] = pd.to_numeric(df["rms_after"]).astype("float64")
     df["converged"] = df["converged"].astype("boolean")
     df["accepted"] = df["accepted"].astype("boolean")
-    for col in ("file", "warnings", "error", "error_type", "calibration", "rejected_by"):
+    for col in ("file", "units", "warnings", "error", "error_type", "calibration", "rejected_by"):
         df[col] = df[col].astype("string")
     df["seconds"] = df["seconds"].astype("float64")
     return df

@@ -81,10 +81,19 @@ def evaluate_file(
     F_used = F if F is not None else (None if given.reference_column else stats_after["mean_norm"])
     stats_before = before.result(F_used)
     selection = (f"rows {src.rows}" if src.rows else "", f"where {src.where}" if src.where else "")
-    # worse than raw: like with like. Against the corrected data's own mean (no reference) the raw |B| is judged
-    # about its own mean too (its spread), not against a magnitude it was never meant to have
-    judged = ("rms", "RMS of |B| - F") if F is not None or given.reference_column else ("std_norm", "spread of |B|")
-    worse = bool(stats_after[judged[0]] > stats_before[judged[0]])
+    # worse than raw: like with like. Against a reference, RMS(|B| - F) before and after. Against the corrected data's
+    # own mean (no reference) the raw |B| is judged about its own mean too, and relative to it: a calibration's
+    # gain scales the spread with the field (a scale-only change is not worse: issue 38)
+    if F is not None or given.reference_column:
+        judged_after, judged_before, what, unit = stats_after["rms"], stats_before["rms"], "RMS of |B| - F", cal.units
+    else:
+        field_after = _fitted_field(cal) or stats_after["mean_norm"]  # the field the calibration maps the data to
+        judged_after = 100.0 * stats_after["std_norm"] / field_after if field_after > 0 else np.inf
+        judged_before = 100.0 * stats_before["std_norm"] / stats_before["mean_norm"] \
+            if stats_before["mean_norm"] > 0 else np.inf
+        what, unit = "spread of |B| relative to the field (std / |B|)", "%"
+    worse = bool(judged_after > judged_before * (1.0 + RELATIVE_SPREAD_TOLERANCE)
+                 if unit == "%" else judged_after > judged_before)
     fitted, fitted_warning = (None, None) if F is not None or given.reference_column else \
         _against_fitted_reference(cal, after, before)
     return {
@@ -98,9 +107,21 @@ def evaluate_file(
         "mean_norm_before": stats_before["mean_norm"], "mean_norm_after": stats_after["mean_norm"],
         "std_norm_before": stats_before["std_norm"], "std_norm_after": stats_after["std_norm"],
         "worse_than_raw": worse, "fitted_reference": fitted,
-        "warnings": ([worse_than_raw_warning(judged[1], stats_after[judged[0]], stats_before[judged[0]], cal.units)]
-                     if worse else []) + ([fitted_warning] if fitted_warning else []),
+        "warnings": ([worse_than_raw_warning(what, judged_after, judged_before, unit)] if worse else [])
+        + ([fitted_warning] if fitted_warning else []),
     }
+
+
+#: Share by which the relative spread of |B| may grow before an evaluation without a reference calls the calibration
+#: worse than the raw data: on a static pose the raw spread is the noise, which a gain scales with the field, and the
+#: field the calibration maps to differs from the corrected mean by the local anomaly (issue 38).
+RELATIVE_SPREAD_TOLERANCE = 0.05
+
+
+def _fitted_field(cal: Calibration) -> float | None:
+    """The field magnitude the calibration was fitted to (its reference's value, the fitted mean included), if any."""
+    value = (cal.reference or {}).get("value")
+    return float(value) if isinstance(value, (int, float)) and np.isfinite(value) and value > 0 else None
 
 
 #: Share by which the corrected mean magnitude may differ from the magnitude the calibration was fitted to before an
@@ -132,9 +153,10 @@ def _against_fitted_reference(cal: Calibration, after: Any, before: Any) -> tupl
 
 def worse_than_raw_warning(what: str, after: float, before: float, unit: str) -> str:
     """The warning of an evaluation in which the calibration makes the data worse than the raw data (issue 32)."""
-    return (f"the calibration makes these data worse than the raw data ({what} {after:.4g} {unit} after against "
-            f"{before:.4g} before): it does not hold for this log (fitted on too little rotation, on another sensor "
-            "or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
+    sep = "" if unit == "%" else " "
+    return (f"the calibration makes these data worse than the raw data ({what} {after:.4g}{sep}{unit} after against "
+            f"{before:.4g}{sep}{unit} before): it does not hold for this log (fitted on too little rotation, on "
+            "another sensor or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
 
 
 def _reference_value(req: EvaluateRequest, unit: str) -> tuple[float | None, str]:

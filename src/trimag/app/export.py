@@ -66,6 +66,14 @@ def _read_calibration(path: Any, target: str) -> Calibration:
     from ..io.logs import log_format
 
     make = (f"make one with `trimag fit {path} -o cal.json`, then `trimag export cal.json --to {target} -o FILE`")
+    from .tolles_lawson import is_compensation_file
+
+    if is_compensation_file(path):  # never "make one with trimag fit" (which points back here: issue 39)
+        name = Path(path).name
+        raise TrimagInputError(f"{path} is a Tolles-Lawson compensation (the terms of a scalar magnetometer, not a "
+                               f"vector calibration): no firmware or tool takes it as parameters; use it with `trimag "
+                               f"apply {name} LOG -o OUT.csv` or `trimag evaluate {name} LOG` (its coefficients are "
+                               "in the file's \"coefficients\")")
     if Path(path).exists() and log_format(path) is not None:
         raise TrimagInputError(f"{path} is an autopilot log, not a calibration: export writes the parameters of a "
                                f"calibration file (JSON); {make}")

@@ -93,6 +93,7 @@ def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, A
         out["rms_after_without_regressors"] = s.get("rms_after_without_regressors")
     if samples is not None:
         out["columns"] = list(samples.columns)
+        out["variable"] = samples.variable or None  # an NPZ or MAT file's variable
         out["selection"] = samples.selection
         out["source"] = samples.source
     return out
@@ -142,10 +143,47 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
                             prior_options, mode, gyro_messages)
     except IdentifiabilityError as exc:  # a log: its compasses and the modes that would help (issue 30, item 7)
-        if samples.log_info is None or mode is not None or req.prior is not None:
+        if mode is not None or req.prior is not None:
             raise
+        if samples.log_info is None:
+            return _level_only(req, samples, exc)
         raise log_refusal(exc, samples.log_info, samples.field, target=req.target,
                           igrf_given=req.reference.igrf_spec is not None) from None
+
+
+def _level_only(req: FitRequest, samples: Samples, exc: IdentifiabilityError) -> FitResult:
+    """A table whose samples turned about one axis only (a vehicle that turns level: a boat, a rover): with a field
+    reference, the default fit (model ellipsoid, no method, no step the level turn cannot take) is the level-turn
+    fit, said; else the refusal names `level_turn` first, never only "record rotations about two more axes"
+    (issue 38)."""
+    from ..quality.diagnostics import FLAT_RATIO, principal_std
+
+    spread = principal_std(samples.field)[0]
+    if not spread[2] < FLAT_RATIO * spread[1]:  # not a turn about one axis
+        raise exc
+    given = req.reference
+    reference = given.igrf_spec is not None or given.reference_column is not None or (
+        given.reference is not None and str(given.reference).strip().lower() != "mean")
+    default = (req.model == "ellipsoid" and req.method is None and req.target is None and not req.regressors
+               and req.accel_columns is None and req.attitude.attitude_file is None and not gyro_requested(req))
+    if reference and default:
+        try:
+            result = fit_file(dataclasses.replace(req, level_turn=True))
+        except (IdentifiabilityError, TrimagInputError) as level_exc:
+            raise IdentifiabilityError(f"the samples turned about one axis only (a vehicle that turns level): the "
+                                       f"level-turn fit (`level_turn`) fails too: {level_exc}") from None
+        result.messages.insert(0, "the samples turned about one axis only (a vehicle that turns level) and the "
+                                  "field's reference is given: fitted by the level-turn method, as `level_turn` "
+                                  "asks (the horizontal offsets and scales from the turn, the vertical offset from "
+                                  "the field's magnitude and inclination)")
+        return result
+    if reference:
+        asked = f"model {req.model}" + (f" with method {req.method}" if req.method else "")
+        raise IdentifiabilityError(f"the samples turned about one axis only (a vehicle that turns level): fit it "
+                                   f"with `level_turn` (model ellipsoid, the default method), which needs no tilt; "
+                                   f"{asked} cannot: {exc}") from None
+    raise IdentifiabilityError(f"{exc} (a vehicle that cannot tilt, a boat or a rover: `level_turn` with the "
+                               "field's reference, `igrf_spec=LAT,LON,ALT_M,DATE`, fits its level turns)") from None
 
 
 def _fit_samples(

@@ -80,20 +80,17 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
 
     if (req.export_to is None) != (req.export_out is None):
         raise TrimagInputError("give both `export_to=ardupilot|px4` and `export_out=FILE` (the parameter file)")
-    fits: dict[int, Any] = {}
-    refused: dict[int, str] = {}
-    errors: list[TrimagError] = []
+    compasses = _compasses(req)
+    fits, refused, errors = _fit_each(req, compasses, fit_file)
     messages: list[str] = []
-    for number, name in _compasses(req):
-        one = dataclasses.replace(req, input=dataclasses.replace(req.input, sensor=name), out=numbered(req.out, number),
-                                  report=numbered(req.report, number),
-                                  deviation_card=numbered(req.deviation_card, number), export_to=None,
-                                  export_out=None)
-        try:
-            fits[number] = fit_file(one)
-        except TrimagError as exc:
-            refused[number] = f"{'cannot identify the model: ' if isinstance(exc, IdentifiabilityError) else ''}{exc}"
-            errors.append(exc)
+    channel = _one_motor_channel(req, compasses, fits, fit_file)
+    if channel is not None:  # every compass again with the one channel: its files replace the first pass's
+        for r in fits.values():
+            for path in r.written.values():
+                Path(path).unlink(missing_ok=True)
+        fits, refused, errors = _fit_each(dataclasses.replace(req, motor=f"auto={channel['channel']}"), compasses,
+                                          fit_file)
+        messages.append(channel["message"])
     if not fits:
         kind = IdentifiabilityError if any(isinstance(e, IdentifiabilityError) for e in errors) else TrimagInputError
         raise kind("no compass of this log could be fitted: " + "; ".join(
@@ -119,6 +116,67 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
     for n, why in refused.items():
         messages.append(f"warning: compass {n} not calibrated (its parameters are not written): {why}")
     return AllSensorsResult(fits, refused, comparison, messages, written)
+
+
+def _fit_each(req: FitRequest, compasses: list[tuple[int, str]], fit_file: Any, *, outputs: bool = True
+              ) -> tuple[dict[int, Any], dict[int, str], list[TrimagError]]:
+    """Each compass fitted as ``--sensor N`` would fit it: ``(fits, refused: number -> reason, errors)``; without
+    ``outputs`` nothing is written."""
+    fits: dict[int, Any] = {}
+    refused: dict[int, str] = {}
+    errors: list[TrimagError] = []
+    for number, name in compasses:
+        one = dataclasses.replace(req, input=dataclasses.replace(req.input, sensor=name), export_to=None,
+                                  export_out=None,
+                                  **({"out": numbered(req.out, number), "report": numbered(req.report, number),
+                                      "deviation_card": numbered(req.deviation_card, number)} if outputs else
+                                     {"out": None, "report": None, "deviation_card": None, "policy": None}))
+        try:
+            fits[number] = fit_file(one)
+        except TrimagError as exc:
+            refused[number] = f"{'cannot identify the model: ' if isinstance(exc, IdentifiabilityError) else ''}{exc}"
+            errors.append(exc)
+    return fits, refused, errors
+
+
+def _motor_type(fit: Any) -> str | None:
+    return (fit.calibration.diagnostics.get("firmware") or {}).get("motor_type")
+
+
+def _heldout_rms(fit: Any) -> float:
+    """The held-out RMS of the level a firmware fit chose (its levels table)."""
+    rows = (fit.calibration.diagnostics.get("firmware") or {}).get("levels") or []
+    chosen = [r["heldout_rms"] for r in rows if r.get("chosen") and r.get("heldout_rms") is not None]
+    return float(chosen[0]) if chosen else float("inf")
+
+
+def _one_motor_channel(req: FitRequest, compasses: list[tuple[int, str]], fits: dict[int, Any], fit_file: Any
+                       ) -> dict[str, Any] | None:
+    """The one motor channel of a vehicle whose compasses, each fitted with ``motor=auto``, chose different ones
+    (the firmware's COMPASS_MOTCT / CAL_MAG_COMP_TYP is one parameter, issue 39): every compass fitted again with
+    the motor term on each channel only (or none), and the channel of the least summed held-out RMS chosen.
+    ``{"channel", "message"}``, or None when the compasses agree (or ``motor`` was given)."""
+    from ._firmware import parse_motor
+
+    if req.target is None or parse_motor(req.motor) != ("auto", None):
+        return None
+    chose = {n: _motor_type(r) for n, r in fits.items()}
+    kinds = sorted({k for k in chose.values() if k is not None})
+    if len(kinds) < 2:
+        return None
+    fitted = [(n, name) for n, name in compasses if n in fits]
+    totals: dict[str, float] = {}
+    for kind in kinds:
+        each, refused, _ = _fit_each(dataclasses.replace(req, motor=f"auto={kind}"), fitted, fit_file, outputs=False)
+        totals[kind] = float("inf") if refused else sum(_heldout_rms(r) for r in each.values())
+    best = min(kinds, key=lambda k: totals[k])
+    unit = (next(iter(fits.values())).calibration.diagnostics.get("firmware") or {}).get("unit", "")
+    prefer = "; ".join(f"compass {n} {k or 'none'}" for n, k in chose.items())
+    sums = ", ".join(f"{k} {totals[k]:.4g}" for k in kinds)
+    return {"channel": best, "message": (
+        f"one motor channel for the vehicle (the firmware's motor channel is one parameter for every compass): "
+        f"fitted alone the compasses preferred different ones ({prefer}); {best} serves them best (summed held-out "
+        f"RMS {sums} {unit}): every compass is fitted with the motor term on {best} (or none)")}
 
 
 def compass_warnings(number: int, fit: Any) -> list[str]:

@@ -122,7 +122,7 @@ def _unit_factor(cal: Calibration, unit: str) -> float:
     if cal.units in ("unknown", "counts"):
         raise TrimagInputError(
             f"this calibration is in {cal.units!r}; the firmware needs {unit}: refit with the data's unit "
-            "(units=nT, uT, G or mG)"
+            "(`units=nT`, uT, G or mG)"
         )
     return float(convert(1.0, cal.units, unit))
 

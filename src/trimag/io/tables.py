@@ -94,6 +94,10 @@ class Samples:
     n_wild: int = 0
     wild_index: list[int] = dataclasses.field(default_factory=list)
     wild_note: str = ""
+    #: the variable of an NPZ or MAT file the samples were taken from (``imu_mag``), empty for other files
+    variable: str = ""
+    #: the unit the file states besides its column names (a ``trimag live`` recording's first line), empty if none
+    stated_unit: str = ""
 
 
 def detect_format(path: str | Path, fmt: str | None = None) -> str:
@@ -124,9 +128,11 @@ def refuse_calibration_file(path: str | Path) -> None:
     found = _CALIBRATION_FILE.search(head)
     if found is not None:
         kind = found.group(1).decode()
+        takes = ("`trimag apply` or `trimag evaluate`" if kind == "compensation"  # (export has no compensation)
+                 else "`trimag apply`, `trimag evaluate` or `trimag export`")
         raise TrimagInputError(
-            f"{path}: this is a {kind} file, not a log of x, y, z samples: give it to `trimag apply`, `trimag "
-            f"evaluate` or `trimag export` (e.g. `trimag apply {Path(path).name} LOG.csv -o OUT.csv`)"
+            f"{path}: this is a {kind} file, not a log of x, y, z samples: give it to {takes} (e.g. `trimag apply "
+            f"{Path(path).name} LOG.csv -o OUT.csv`)"
         )
 
 
@@ -373,7 +379,9 @@ def _array_table(arr: Any, name: str, path: Path) -> pd.DataFrame:
         raise TrimagInputError(f"{path}: variable {name!r} must be 2-D (N x 3 or 3 x N); got shape {a.shape}")
     if a.shape[1] > a.shape[0]:
         a = a.T
-    return pd.DataFrame(a.astype(np.float64), columns=[f"col{i}" for i in range(a.shape[1])])
+    df = pd.DataFrame(a.astype(np.float64), columns=[f"col{i}" for i in range(a.shape[1])])
+    df.attrs["trimag_variable"] = name  # which variable of the file (said with the columns: issue 39)
+    return df
 
 
 def _pick_variable(candidates: dict[str, Any], var: str | None, path: Path) -> str:
@@ -415,7 +423,9 @@ def _struct_table(value: Any, name: str, path: Path) -> pd.DataFrame:
     if not fields:
         raise TrimagInputError(f"{path}: struct {name!r} has no numeric vector fields")
     n = max(len(a) for a in fields.values())
-    return pd.DataFrame({k: a for k, a in fields.items() if len(a) == n})
+    df = pd.DataFrame({k: a for k, a in fields.items() if len(a) == n})
+    df.attrs["trimag_variable"] = name
+    return df
 
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -461,6 +471,39 @@ def _read_mat(path: Path, var: str | None) -> pd.DataFrame:
             return _array_table(np.asarray(candidates[name]), name, path)
     except OSError as exc:
         raise TrimagInputError(f"{path}: not a readable MAT file ({exc})") from None
+
+
+def file_variables(path: str | Path, fmt: str | None = None) -> dict[str, NDArray[Any]]:
+    """Every numeric array variable of an NPZ or MAT file (v4-v7.2; v7.3 with the ``mat`` extra), by name; an
+    empty dict for any other kind of file. What a gyroscope or a sample rate stored beside the magnetometer is
+    read from (``imu_gyr``, ``sampling_rate``)."""
+    p = Path(path)
+    kind = detect_format(p, fmt)
+    if kind == "npz" and p.suffix.lower() != ".npy":
+        if _npz_size(p) > _limits().max_decompressed_bytes:
+            raise _limits().too_large(str(p), "its arrays are decompressed")
+        with np.load(p, allow_pickle=False) as data:
+            found = {k: data[k] for k in data.files}
+    elif kind == "mat":
+        import scipy.io
+
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", scipy.io.matlab.MatReadWarning)
+                found = {k: v for k, v in scipy.io.loadmat(p).items() if not k.startswith("__")}
+        except NotImplementedError:  # MATLAB v7.3 = HDF5
+            h5py = require("h5py", f"{p}: reading MATLAB v7.3 (HDF5) files")
+            with h5py.File(p, "r") as h5:
+                found = {k: np.asarray(h5[k]) for k in h5.keys() if isinstance(h5[k], h5py.Dataset)}
+    else:
+        return {}
+    return {k: np.asarray(v) for k, v in found.items() if np.asarray(v).dtype.kind in "fiub"}
+
+
+def _limits() -> Any:
+    from .limits import current_limits
+
+    return current_limits()
 
 
 def _npz_size(path: Path) -> int:
@@ -541,6 +584,10 @@ def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
         )
 
 
+#: The first line of a ``trimag live`` samples file: ``# trimag live recording (SOURCE); unit G``.
+_LIVE_UNIT = re.compile(r"^#\s*trimag live recording\b.*;\s*unit\s+(nT|uT|G|mG|counts)\s*$")
+
+
 def read_table(
     path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
 ) -> pd.DataFrame:
@@ -559,7 +606,11 @@ def read_table(
         return _read_vehicle_log(p, kind, sensor)
     check_sensor(kind, sensor, p)
     if kind in ("csv", "txt"):
-        return _read_delimited(p, kind)[0]
+        df, layout = _read_delimited(p, kind)
+        stated = next((m.group(1) for m in map(_LIVE_UNIT.search, layout.preamble) if m), None)
+        if stated is not None:  # a `trimag live` recording states its unit on its first line
+            df.attrs["trimag_stated_unit"] = stated
+        return df
     if kind == "xyz":
         from .geosoft import read_xyz
 
@@ -776,6 +827,8 @@ def read_samples(
     """
     p = Path(path)
     df = read_table(p, fmt=fmt, var=var, sensor=sensor)
+    variable = str(df.attrs.get("trimag_variable", ""))
+    stated_unit = str(df.attrs.get("trimag_stated_unit", ""))
     if not df.index.equals(pd.RangeIndex(len(df))):  # the index numbers the data rows (Samples.table)
         df = df.set_axis(pd.RangeIndex(len(df)), axis=0)
     log_info = df.attrs.get("trimag_log")
@@ -787,6 +840,8 @@ def read_samples(
         note = f"using {log_info['sensor']} (calibration undone: mag_x, mag_y, mag_z)"
     else:
         cols, note = resolve_columns(df, columns, str(p))
+    if variable:  # the variable of the file, as well as its columns
+        note = f"variable {variable}: {note}" if note else f"variable {variable}: columns {', '.join(cols)}"
     df, selection = select_rows(df, rows, where)
     xyz = np.column_stack([_numeric(df[c]) for c in cols])
     ok = np.isfinite(xyz).all(axis=1)
@@ -821,6 +876,8 @@ def read_samples(
         n_wild=len(wild_index),
         wild_index=wild_index[:1000],
         wild_note=wild_note,
+        variable=variable,
+        stated_unit=stated_unit,
     )
 
 

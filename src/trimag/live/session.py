@@ -190,7 +190,7 @@ class LiveSession:
         if self.units is None:
             self.units = stated
         elif normalise_unit(self.units) != normalise_unit(stated):
-            raise TrimagInputError(f"{by} {stated} but units={self.units!r}; give the data's real unit")
+            raise TrimagInputError(f"{by} {stated} but `units={self.units}`; give the data's real unit")
 
     def samples(self) -> NDArray[np.float64]:
         """A copy of every sample received so far, shape (N, 3)."""
@@ -424,7 +424,8 @@ class LiveSession:
         return _finite(out)
 
     def save(self, out: str | Path, samples_out: str | Path | None = None) -> dict[str, str]:
-        """Write one snapshot of the recorded samples (CSV ``x,y,z``) and the calibration fitted to exactly that
+        """Write one snapshot of the recorded samples (CSV ``x,y,z``, each name with the unit when it is known:
+        ``x_G``, so that every command reads the file in its unit) and the calibration fitted to exactly that
         snapshot (JSON), each atomically, the samples first; the fit is redone on the snapshot unless the latest
         one used the same samples. Saves run one at a time. Returns what was written (the calibration is missing
         when the samples cannot identify the model)."""
@@ -433,7 +434,8 @@ class LiveSession:
         with self._save_lock:
             B, garbage, units = self._snapshot()
             text = io.StringIO()
-            text.write(f"# trimag live recording ({self.source}); unit {units}\nx,y,z\n")
+            names = ",".join(f"{axis}_{units}" if units != "unknown" else axis for axis in "xyz")  # x_G: the unit
+            text.write(f"# trimag live recording ({self.source}); unit {units}\n{names}\n")
             np.savetxt(text, B, delimiter=",", fmt="%.17g")
             written = {"samples": str(atomic_write_text(target, text.getvalue()))}
             with self._lock:

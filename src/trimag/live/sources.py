@@ -144,7 +144,7 @@ def replay_source(path: str | Path, *, rate: float | None = 2000.0, sleep: Calla
     if rate is not None and not rate > 0:
         raise TrimagInputError(f"`rate` must be a positive number of samples per second; got {rate}")
     samples = read_samples(path, **read_arguments)  # read now: a missing file fails here, not in the reader thread
-    units = (samples.log_info or {}).get("unit") or header_unit(list(samples.columns))
+    units = (samples.log_info or {}).get("unit") or header_unit(list(samples.columns)) or samples.stated_unit or None
     return _play(samples.field, samples.n_dropped, units, rate, sleep)
 
 
