@@ -245,7 +245,7 @@ def _add_fit(sub: Any) -> None:
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
     g = p.add_argument_group("all compasses of a log (--sensor all; docs/autopilot.md)")
-    g.add_argument("--export-to", choices=["ardupilot", "px4"],
+    g.add_argument("--export-to", choices=["ardupilot", "px4", "qgc"],
                    help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
                         "this firmware")
     g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
@@ -279,7 +279,9 @@ def _add_export(sub: Any) -> None:
                                    "(docs/autopilot.md).")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("--to", required=True, dest="target",
-                   choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
+                   choices=["ardupilot", "px4", "qgc", "c-header", "json", "ros-yaml", "matlab"],
+                   help="qgc: PX4's parameters as QGroundControl's parameter file (Load from file), CAL_MAGn_ID from "
+                        "the log's device id")
     p.add_argument("--instance", type=int,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
                         "default: the compass the calibration was fitted to (fit --sensor N), else 1")

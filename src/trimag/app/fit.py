@@ -246,9 +246,7 @@ def _finish(
     recalibration (no predicted heading error)."""
     messages: list[str] = []
     if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
-        cal = cal.with_diagnostics(log_compass={"compass": int(samples.log_info["compass"]),
-                                                "name": str(samples.log_info.get("sensor")),
-                                                "format": str(samples.log_info.get("format"))})
+        cal = cal.with_diagnostics(log_compass=log_compass_record(samples.log_info))
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
@@ -285,6 +283,18 @@ def _finish(
             and req.model == "ellipsoid" and req.target is None):
         messages.append(_heading_message(cal, igrf_spec, summary))
     return cal, summary, messages
+
+
+def log_compass_record(log_info: dict[str, Any]) -> dict[str, Any]:
+    """What a calibration records of the log's compass it was fitted to (``diagnostics["log_compass"]``): its number
+    (from 1, export's default instance), the log's name for it, the log's format and, where the log gives it, the
+    device id (QGroundControl's file sets ``CAL_MAGn_ID`` from it)."""
+    record: dict[str, Any] = {"compass": int(log_info["compass"]), "name": str(log_info.get("sensor")),
+                              "format": str(log_info.get("format"))}
+    dev = log_info.get("device_id")
+    if isinstance(dev, int | float) and not isinstance(dev, bool) and dev > 0:
+        record["device_id"] = int(dev)
+    return record
 
 
 def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
