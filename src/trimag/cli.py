@@ -388,6 +388,24 @@ def _add_live(sub: Any) -> None:
     _add_output_options(p, json_help="print the final state as one JSON object on stdout")
 
 
+def _add_review(sub: Any) -> None:
+    p = sub.add_parser("review", help="a local page: what the compasses did in a flight, and their parameters",
+                       description="Review a flight: a local web page (127.0.0.1 only) shows the flight, every "
+                                   "compass side by side, the expected against the measured field, the field length "
+                                   "beside the motor channel, the heading change, the levels and the verdict; drag a "
+                                   "range to fit, choose the level and the motor term, download the parameter files "
+                                   "(exactly what `trimag export` writes) and the calibration JSON (docs/review.md; "
+                                   "needs the review extra: pip install \"trimag[review]\").")
+    p.add_argument("log", metavar="LOG", help="an autopilot log: DataFlash .bin/.log, .tlog, ULog .ulg, .px4log")
+    p.add_argument("--format", dest="fmt", help="the log's format when its extension does not say")
+    p.add_argument("--target", choices=["ardupilot", "px4"], help="whose parameters (default: the log's firmware)")
+    p.add_argument("--igrf", dest="igrf_spec", metavar="LAT,LON,ALT_M,DATE",
+                   help="where and when the log was flown, for a log without a GPS fix")
+    p.add_argument("--port", type=int, default=8765, help="local port of the page (default 8765; 0: a free one)")
+    p.add_argument("--no-browser", dest="open_browser", action="store_false", help="do not open a browser")
+    _add_output_options(p, json_help=None)
+
+
 def _add_reproduce(sub: Any) -> None:
     # the benchmarks are not subcommands: they live in the repository's benchmarks/ folder (not installed)
     p = sub.add_parser("reproduce", help="reproduce a paper's figures and tables",
@@ -403,7 +421,8 @@ def _add_reproduce(sub: Any) -> None:
 
 #: The subcommands, in the order ``trimag --help`` lists them: each adds its parser (and its flags).
 _SUBCOMMANDS: tuple[Callable[[Any], None], ...] = (
-    _add_fit, _add_apply, _add_export, _add_evaluate, _add_simulate, _add_demo, _add_batch, _add_live, _add_reproduce,
+    _add_fit, _add_apply, _add_export, _add_evaluate, _add_simulate, _add_demo, _add_batch, _add_live, _add_review,
+    _add_reproduce,
 )
 
 
@@ -913,6 +932,19 @@ def _cmd_live(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_review(args: argparse.Namespace) -> int:
+    from .app.requests import ReviewRequest
+    from .live.review import run_review
+
+    def say(msg: str) -> None:  # flushed: the page's address must reach a pipe (a script, tee) at once
+        _say(msg, args)
+        sys.stdout.flush()
+
+    result = run_review(_request(ReviewRequest, args), say=say)
+    _say(f"trimag review: stopped ({result.reason})", args)
+    return EXIT_OK
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
@@ -934,6 +966,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "batch": _cmd_batch,
         "reproduce": _cmd_reproduce,
         "live": _cmd_live,
+        "review": _cmd_review,
     }
     import signal
 
