@@ -143,10 +143,11 @@ class FlightReview:
             raise TrimagInputError(f"{path}: the log has no magnetometer readings")
         fw = self.log.format
         own = "ardupilot" if fw.startswith(("ArduPilot", "MAVLink")) else "px4" if fw.startswith("PX4") else None
-        self.target = target or own
-        if self.target not in ("ardupilot", "px4"):
+        chosen = target or own
+        if chosen not in ("ardupilot", "px4"):
             raise TrimagInputError(f"{path} is a {fw} log: give the firmware whose parameters to fit (`target` "
                                    "ardupilot or px4)")
+        self.target: str = str(chosen)
         self.igrf_spec = igrf_spec
         self.results: dict[int, CompassResult] = {}
         self.choice: dict[str, Any] = {}
@@ -172,7 +173,7 @@ class FlightReview:
             finite = np.isfinite(norm)
             mean = float(np.mean(norm[finite])) if finite.any() else float("nan")
             out.append(_finite_or_none({
-                "number": m.number, "name": m.name, "device_id": m.device_id, "n_samples": int(len(m.time_s)),
+                "number": m.number, "name": m.name, "device_id": m.device_id, "n_samples": len(m.time_s),
                 "rate_hz": round(rate, 3), "span_s": float(m.time_s[-1] - m.time_s[0]) if len(m.time_s) else 0.0,
                 "n_gaps": int(np.sum(dt > gap_s)) if len(dt) else 0,
                 "longest_gap_s": float(np.max(dt)) if len(dt) else 0.0,
@@ -265,7 +266,7 @@ class FlightReview:
             words += ["--motor", req.motor]
         if req.reference.igrf_spec:
             words += ["--igrf", req.reference.igrf_spec]
-        return " ".join(words + ["-o", f"compass{req.input.sensor}.json"])
+        return " ".join([*words, "-o", f"compass{req.input.sensor}.json"])
 
     def fit(self, start_s: float | None = None, stop_s: float | None = None, level: str = "auto",
             motor: str = "auto", compasses: Sequence[int] | None = None,
@@ -387,7 +388,7 @@ class FlightReview:
             for part, mask in (("fitted", fitted), ("held_out", ~fitted)):
                 e = err[mask & np.isfinite(err)]
                 stats[f"{key}_{part}_rms"] = float(np.sqrt(np.mean(e ** 2))) if len(e) else None
-                stats[f"{part}_rows"] = int(len(e))
+                stats[f"{part}_rows"] = len(e)
         return stats
 
     def compass_figures(self, number: int) -> dict[str, dict[str, Any]]:
@@ -400,7 +401,7 @@ class FlightReview:
         names = {"expected": "expected (IGRF rotated by the attitude)", "logged": "the log's calibration",
                  "candidate": "this fit"}
         field_traces = []
-        for axis, letter in enumerate("XYZ"):
+        for axis, _letter in enumerate("XYZ"):
             for key in ("expected", "logged", "candidate"):
                 if key in j:
                     field_traces.append(_line(t[k], j[key][k, axis], f"{names[key]}", xaxis="x",
@@ -511,10 +512,10 @@ def _verdict(result: CompassResult | None, stats: dict[str, Any]) -> str:
     cal = result.calibration
     fw = cal.diagnostics.get("firmware") or {}
     unit = fw.get("unit", cal.units)
-    held = stats.get("candidate_held_out_rms"), stats.get("logged_held_out_rms")
+    held = [stats.get("candidate_held_out_rms"), stats.get("logged_held_out_rms")]
     text = f"level {fw.get('level')}: field RMS {fw.get('rms_before', float('nan')):.4g} -> " \
            f"{fw.get('rms_after', float('nan')):.4g} {unit} on the fitted rows"
-    if all(v is not None for v in held):
+    if held[0] is not None and held[1] is not None:
         better = "better" if held[0] < held[1] else "WORSE"
         text += f"; held-out rows: {held[1]:.4g} (log) -> {held[0]:.4g} ({better})"
     warnings = cal.diagnostics.get("warnings") or []

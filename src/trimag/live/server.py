@@ -19,7 +19,7 @@ import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from typing import Any
+from typing import Any, TypeVar
 
 from ..errors import TrimagInputError
 from .session import LiveSession
@@ -47,6 +47,7 @@ _STATIC = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("ind
            "/live.js": ("live.js", "text/javascript; charset=utf-8")}
 
 
+_S = TypeVar("_S", bound="LocalServer")
 #: An answer: status code, body, content type and any further headers.
 Answer = tuple[int, bytes, str, dict[str, str]]
 
@@ -64,6 +65,7 @@ class _Server(ThreadingHTTPServer):
     """A thread per connection; a client that drops its connection is not an error worth a line."""
 
     daemon_threads = True
+    name = "trimag live"
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         exc = sys.exc_info()[1]
@@ -132,7 +134,7 @@ class LocalServer:
                     "trimag-token meta tag)")
         return None
 
-    def start(self) -> LocalServer:
+    def start(self: _S) -> _S:
         """Serve on a daemon thread; returns self."""
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
                                         name=f"{self.name.replace(' ', '-')}-http", daemon=True)
