@@ -256,7 +256,9 @@ def _add_fit(sub: Any) -> None:
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
-    p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here (.png, .pdf, .svg; .html: a flight's firmware fit as one self-contained page, docs/review.md)")
+    p.add_argument("--report", metavar="REPORT.png",
+                   help="write the fit report figure here (.png, .pdf, .svg; .html: a flight's firmware fit as one "
+                        "self-contained page, docs/review.md)")
     _add_output_options(p, quiet_help="print only errors (and --json output)")
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..calibration import Calibration
+from ..errors import TrimagInputError
 from ..io.atomic import atomic_path
 
 if TYPE_CHECKING:
