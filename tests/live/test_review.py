@@ -58,7 +58,7 @@ def start_review(*args: str, cwd: Path) -> tuple[subprocess.Popen, str]:
 
 def _stop(proc: subprocess.Popen) -> None:
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "Traceback" not in err, err
 
@@ -93,7 +93,7 @@ def _drag_across_flight(driver, start: float, stop: float) -> None:  # type: ign
     width = area.size["width"]
     chain = ActionChains(driver)
     chain.move_to_element_with_offset(area, int(-width / 2 + start * width), 0).click_and_hold()
-    for k in range(1, 11):
+    for _k in range(1, 11):
         chain.move_by_offset(int((stop - start) * width / 10), 0)
     chain.release().perform()
 
