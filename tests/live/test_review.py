@@ -137,8 +137,8 @@ def _review_fit_and_download(tmp_path: Path, log: Path, target: str, kinds: tupl
         for name in ("field", "magnitude", "heading"):
             assert driver.execute_script(f"return document.querySelectorAll('#fig-1-{name} .main-svg').length") > 0
         cal_json = _download(driver, "dl-json-1", downloads, ".json")
-        files = {kind: _download(driver, f"dl-{kind}-1", downloads, suffix)
-                 for kind, suffix in zip(kinds, (".param", ".params", ".txt"), strict=False)}
+        suffixes = {"ardupilot": ".param", "qgc": ".params", "px4": ".txt"}
+        files = {kind: _download(driver, f"dl-{kind}-1", downloads, suffixes[kind]) for kind in kinds}
         # byte for byte: `trimag export` of the downloaded calibration writes the downloaded parameter file
         for kind, path in files.items():
             exported = tmp_path / f"exported-{kind}"
@@ -165,6 +165,18 @@ def _review_fit_and_download(tmp_path: Path, log: Path, target: str, kinds: tupl
 
 def test_the_review_page_of_a_dataflash_flight_in_a_real_browser(tmp_path: Path) -> None:
     _review_fit_and_download(tmp_path, _flight_log(tmp_path), "ardupilot", ("ardupilot",))
+
+
+def test_the_review_page_of_a_px4_ulog_flight_in_a_real_browser(tmp_path: Path) -> None:
+    """A simulated PX4 v1.13 flight written as a ULog on pyulog's sample (tests/live/_ulog_flight.py): the
+    QGroundControl file (CAL_MAG0_ID the log's device id) and the param-set script, byte for byte."""
+    pytest.importorskip("pyulog", reason="pyulog (the logs extra) is not installed")
+    from _ulog_flight import DEVICE_ID, write_px4_flight
+
+    log = write_px4_flight(tmp_path / "px4-flight.ulg")
+    _review_fit_and_download(tmp_path, log, "px4", ("qgc", "px4"))
+    qgc = next((tmp_path / "downloads").glob("*.params")).read_text()
+    assert f"1\t1\tCAL_MAG0_ID\t{DEVICE_ID}\t6" in qgc.splitlines()
 
 
 def test_the_html_report_opens_offline_and_holds_every_figure(tmp_path: Path) -> None:

@@ -317,9 +317,11 @@ def _qgc(items: Sequence[tuple[Calibration, int]]) -> Export:
             notes.append(f"CAL_MAG{instance}_ID not written: the calibration does not record its magnetometer's "
                          "device id (fitted to a table, or to a log without it); PX4 applies the slot only to the "
                          "device it names: set it yourself")
-    header = ["Onboard parameters for Vehicle 1", "", *(line[2:] for line in px4.text.splitlines()
-                                                       if line.startswith("# ")), "",
-              "Vehicle-Id Component-Id Name Value Type"]
+    written = [instance for cal, instance in items if device_id(cal) is not None]
+    comments = [line[2:] for line in px4.text.splitlines() if line.startswith("# ")]
+    comments = [re.sub(r"; set CAL_MAG(\d)_ID to the sensor's device id$",
+                       lambda m: "" if int(m.group(1)) in written else m.group(0), line) for line in comments]
+    header = ["Onboard parameters for Vehicle 1", "", *comments, "", "Vehicle-Id Component-Id Name Value Type"]
     lines = []
     for name, value in sorted(params.items()):
         integer = bool(_PX4_INTEGERS.match(name))
