@@ -115,6 +115,10 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                                "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
+    if req.report is not None and Path(req.report).suffix.lower() in (".html", ".htm"):
+        from .._core.extras import require
+
+        require("plotly", "an HTML report (report.html)")  # before the fit: a missing extra is said at once
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:

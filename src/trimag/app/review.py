@@ -84,6 +84,15 @@ def _finite_or_none(value: Any) -> Any:
     return value
 
 
+def _unwrapped_breaks(deg: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A wrapped angle (deg, [-180, 180)) with a gap (NaN) where it jumps across the wrap, so no line is drawn
+    across the plot."""
+    out = np.array(deg, dtype=np.float64)
+    jump = np.abs(np.diff(out)) > 180.0
+    out[1:][jump] = np.nan
+    return out
+
+
 def _figure(traces: list[dict[str, Any]], title: str, **layout: Any) -> dict[str, Any]:
     return {"data": traces, "layout": {"title": {"text": title, "font": {"size": 14}, "y": 0.99, "yanchor": "top"},
                                        "height": 340,
@@ -426,13 +435,15 @@ class FlightReview:
         head_traces = []
         for key in ("logged", "candidate"):
             if f"heading_{key}" in j:
-                head_traces.append(_line(t[k], j[f"heading_{key}"][k], f"{names[key]} - logged yaw",
+                head_traces.append(_line(t[k], _unwrapped_breaks(j[f"heading_{key}"][k]),
+                                         f"{names[key]} - logged yaw",
                                          line={"width": 1, "color": colours[key]}))
         if "heading_logged" in j and "heading_candidate" in j:
             from ..vehicle.heading import heading_difference
 
             change = heading_difference(j["heading_candidate"], j["heading_logged"])
-            head_traces.append(_line(t[k], change[k], "heading change: this fit - the log's calibration",
+            head_traces.append(_line(t[k], _unwrapped_breaks(change[k]),
+                                     "heading change: this fit - the log's calibration",
                                      line={"width": 1, "color": "#9467bd", "dash": "dot"}))
         head_fig = _figure(head_traces, f"compass {number}: tilt-compensated heading against the attitude's yaw "
                            f"({j.get('yaw_source') or 'no attitude'})", xaxis={"title": {"text": "time (s)"}},
@@ -468,7 +479,8 @@ class FlightReview:
         (``what="json"``) one compass's calibration JSON as ``trimag fit -o`` writes it."""
         from ..io.export_instances import export_instances
 
-        fitted = {n: r.calibration for n, r in self.results.items() if r.calibration is not None}
+        fitted = {n: r.calibration for n, r in self.results.items() if r.calibration is not None
+                  and (what == "json" or not isinstance(_parameters(r.calibration, self.target, n), str))}
         if not fitted:
             raise TrimagInputError("no compass has a calibration yet: fit first (or the data refused every compass)")
         if compass == "all":

@@ -146,6 +146,7 @@ def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
     before anything is served."""
     from . import _StopSignals
 
+    plotly_js()  # a missing review extra is said before the log is read
     review = FlightReview(request.log, fmt=request.fmt, target=request.target, igrf_spec=request.igrf_spec)
     server = ReviewServer(review, request.port)
     server.start()

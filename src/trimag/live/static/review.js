@@ -55,7 +55,8 @@ function compassTable(results) {
     row("vector RMS, fitted rows", (c, r) => `log ${stats(r, "logged_fitted_rms")} &rarr; fit ${stats(r, "candidate_fitted_rms")}`) +
     row("vector RMS, held-out rows", (c, r) => `log ${stats(r, "logged_held_out_rms")} &rarr; fit ${stats(r, "candidate_held_out_rms")}` +
         ` (${r && r.statistics ? r.statistics.held_out_rows || 0 : 0} rows)`) +
-    row("download", (c, r) => (r && !r.error ? downloads(c.number) : "-")) +
+    row("download", (c, r) => (r && !r.error ? (typeof r.parameters === "string" ? text(r.parameters)
+                                                 : downloads(c.number)) : "-")) +
     "</table>";
 }
 
@@ -91,7 +92,8 @@ function checks(r) {
 
 function render(results) {
   $("compasses").innerHTML = compassTable(results.compasses);
-  $("downloads-all").innerHTML = results.compasses.some((r) => !r.error) ? downloads("all") : "no compass fitted";
+  $("downloads-all").innerHTML = results.compasses.some((r) => !r.error && typeof r.parameters === "object")
+    ? downloads("all") : "no compass has parameters to write";
   const holder = $("per-compass");
   holder.style.gridTemplateColumns = `repeat(${Math.max(1, results.compasses.length)}, minmax(0, 1fr))`;
   holder.innerHTML = results.compasses.map((r) => `<section id="compass-${r.number}"><h2>compass ${r.number}</h2>` +
