@@ -182,6 +182,9 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motor", choices=["auto", "none", "current", "throttle"],
                    help="--target's motor term (COMPASS_MOT, CAL_MAGn_xCOMP) on the logged current or throttle; auto "
                         "(default) fits it when it improves the held-out RMS")
+    p.add_argument("--yaw-source", choices=["auto", "attitude", "gsf", "gps"],
+                   help="--target's yaw for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else the "
+                        "log's attitude), attitude (the log's; heading-free where its EKF used this compass), gsf, gps")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "

@@ -605,13 +605,14 @@ def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) 
 
 def _target_of(req: FitRequest, samples: Samples) -> FitRequest:
     """``level``/``motor`` without ``target``: the log's own firmware (refused for other data)."""
-    if req.target is not None or (req.level is None and req.motor is None):
+    if req.target is not None or (req.level is None and req.motor is None and req.yaw_source is None):
         return req
     from ._firmware import _log_firmware
 
     target = _log_firmware(samples.log_info)
     if target is None:
-        raise TrimagInputError("`level` and `motor` belong to a firmware fit: give `target=ardupilot` or `target=px4`")
+        raise TrimagInputError("`level`, `motor` and `yaw_source` belong to a firmware fit: give `target=ardupilot` "
+                               "or `target=px4`")
     return dataclasses.replace(req, target=target)
 
 

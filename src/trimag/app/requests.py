@@ -113,6 +113,10 @@ class FitRequest:
     target: str | None = None
     level: str | None = None
     motor: str | None = None
+    #: the yaw of a firmware fit of a log: ``"auto"`` (None: a GPS heading, else the EKF-GSF yaw, else the log's
+    #: attitude), ``"attitude"`` (the log's attitude: heading-free where its EKF used this compass), ``"gsf"``
+    #: (ArduPilot's ``XKY0``), ``"gps"`` (a moving-baseline GPS heading)
+    yaw_source: str | None = None
     #: a vehicle that turns but cannot tilt: :func:`trimag.vehicle.level_turn.fit_level_turn` (docs/autopilot.md)
     level_turn: bool = False
     #: the vehicle's known true heading (degrees), or a column of it: the offsets from the field's vector

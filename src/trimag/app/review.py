@@ -238,9 +238,15 @@ class FlightReview:
             "gps": self.log.gps, "span_s": [lo, hi], "compasses": self.compasses(),
             "attitude_source": None if self.log.attitude is None else self.log.attitude.source,
             "yaw_sources": sorted(self.log.yaw_sources), "channels": sorted(self.log.channels),
-            "levels": list(LEVELS), "motors": list(MOTORS), "flight": self.flight_figure(),
+            "levels": list(LEVELS), "motors": list(MOTORS), "yaw_choices": self.yaw_sources(),
+            "flight": self.flight_figure(),
             "messages": list(self.log.messages),
         })
+
+    def yaw_sources(self) -> list[str]:
+        """The yaw sources this log offers a firmware fit (``fit --yaw-source``)."""
+        out = ["auto", "attitude"] if self.log.attitude is not None else ["auto"]
+        return out + [name for name, key in (("gsf", "XKY0.YC"), ("gps", "GPS.Yaw")) if key in self.log.yaw_sources]
 
     # ------------------------------------------------------------------ the fit
     def _table(self, number: int) -> Any:
@@ -257,13 +263,14 @@ class FlightReview:
         return int(np.searchsorted(t, start_s, "left")), int(np.searchsorted(t, stop_s, "right"))
 
     def request(self, number: int, start_s: float, stop_s: float, level: str = "auto", motor: str = "auto",
-                out: str | Path | None = None, report: str | Path | None = None) -> FitRequest:
+                yaw_source: str = "auto", out: str | Path | None = None,
+                report: str | Path | None = None) -> FitRequest:
         """The :class:`FitRequest` of one compass over the time range: exactly what the command line fits."""
         a, b = self.rows_of(number, start_s, stop_s)
         return FitRequest(input=InputSpec(self.path, fmt=self.fmt, rows=f"{a}:{b}", sensor=str(number)),
                           reference=ReferenceSpec(igrf_spec=self.igrf_spec), target=self.target,
                           level=None if level == "auto" else level, motor=None if motor == "auto" else motor,
-                          out=out, report=report)
+                          yaw_source=None if yaw_source == "auto" else yaw_source, out=out, report=report)
 
     def command(self, req: FitRequest) -> str:
         """The command line of ``req`` (what the page shows beside the result)."""
@@ -273,12 +280,14 @@ class FlightReview:
             words += ["--level", req.level]
         if req.motor:
             words += ["--motor", req.motor]
+        if req.yaw_source:
+            words += ["--yaw-source", req.yaw_source]
         if req.reference.igrf_spec:
             words += ["--igrf", req.reference.igrf_spec]
         return " ".join([*words, "-o", f"compass{req.input.sensor}.json"])
 
     def fit(self, start_s: float | None = None, stop_s: float | None = None, level: str = "auto",
-            motor: str = "auto", compasses: Sequence[int] | None = None,
+            motor: str = "auto", yaw_source: str = "auto", compasses: Sequence[int] | None = None,
             progress: Callable[[str], None] | None = None) -> dict[int, CompassResult]:
         """Fit every compass (or ``compasses``) over ``[start_s, stop_s]`` (default: the whole log) with
         :func:`trimag.app.fit_file`; a compass the data cannot calibrate gets its refusal (the command line's exit
@@ -289,6 +298,9 @@ class FlightReview:
             raise TrimagInputError(f"`level` must be one of {', '.join(LEVELS)}; got {level!r}")
         if motor not in MOTORS:
             raise TrimagInputError(f"`motor` must be one of {', '.join(MOTORS)}; got {motor!r}")
+        if yaw_source not in self.yaw_sources():
+            raise TrimagInputError(f"`yaw_source` must be one of {', '.join(self.yaw_sources())} for this log; got "
+                                   f"{yaw_source!r}")
         lo, hi = self.span_s
         start = lo if start_s is None else float(start_s)
         stop = hi if stop_s is None else float(stop_s)
@@ -300,7 +312,7 @@ class FlightReview:
             if progress is not None:
                 progress(f"fitting compass {number} of {len(numbers)} ({start:.1f}..{stop:.1f} s, level {level}, "
                          f"motor {motor})")
-            req = self.request(number, start, stop, level, motor)
+            req = self.request(number, start, stop, level, motor, yaw_source)
             result = CompassResult(number, None, rows=str(req.input.rows), command=self.command(req))
             try:
                 fitted = fit_file(req)
@@ -314,7 +326,8 @@ class FlightReview:
             results[number] = result
         with self._lock:
             self.results.update(results)
-            self.choice = {"start_s": start, "stop_s": stop, "level": level, "motor": motor}
+            self.choice = {"start_s": start, "stop_s": stop, "level": level, "motor": motor,
+                           "yaw_source": yaw_source}
         return results
 
     # ------------------------------------------------------------------ what is judged and drawn

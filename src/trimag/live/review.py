@@ -7,7 +7,8 @@ server; the server answers from :class:`trimag.app.review.FlightReview`, which f
 :func:`trimag.app.fit_file` and writes the parameters with ``trimag export``'s writers:
 
 - ``GET /overview``: the log, its compasses, the flight figure, the choices;
-- ``POST /fit`` (JSON ``start_s``, ``stop_s``, ``level``, ``motor``): fit every compass on a background thread;
+- ``POST /fit`` (JSON ``start_s``, ``stop_s``, ``level``, ``motor``, ``yaw_source``): fit every compass on a
+  background thread;
 - ``GET /state``: busy or not, the progress line, the last choice, a fit's error; ``GET /results``: per compass
   the verdict, the tables and the figures;
 - ``GET /download?what=ardupilot|px4|qgc|json&compass=N|all``: the file, as an attachment.
@@ -65,7 +66,8 @@ class ReviewServer(LocalServer):
     def _fit(self, choice: dict[str, Any]) -> None:
         try:
             self.review.fit(choice.get("start_s"), choice.get("stop_s"), str(choice.get("level") or "auto"),
-                            str(choice.get("motor") or "auto"), progress=self._progress)
+                            str(choice.get("motor") or "auto"), str(choice.get("yaw_source") or "auto"),
+                            progress=self._progress)
             self._progress("drawing")
             compasses = [self.review.compass_result(n) for n in sorted(self.review.results)]
             body = json.dumps({"choice": self.review.choice, "compasses": compasses,

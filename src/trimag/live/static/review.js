@@ -113,6 +113,7 @@ function render(results) {
     $("stop").value = results.choice.stop_s.toFixed(1);
     $("level").value = results.choice.level;
     $("motor").value = results.choice.motor;
+    $("yaw").value = results.choice.yaw_source;
   }
 }
 
@@ -138,7 +139,7 @@ async function poll() {
 async function fit() {
   $("error").textContent = "";
   const body = { start_s: parseFloat($("start").value), stop_s: parseFloat($("stop").value),
-                 level: $("level").value, motor: $("motor").value };
+                 level: $("level").value, motor: $("motor").value, yaw_source: $("yaw").value };
   try {
     // the session's token, which the server put into this page (no other page can read it): POST needs it
     await ask("fit", { method: "POST", headers: { "X-Trimag-Token": token, "Content-Type": "application/json" },
@@ -155,8 +156,9 @@ async function init() {
     `parameters for ${overview.target}; ${overview.compasses.length} compass(es)`;
   $("level").innerHTML = overview.levels.map((l) => `<option>${text(l)}</option>`).join("");
   $("motor").innerHTML = overview.motors.map((m) => `<option>${text(m)}</option>`).join("");
-  $("attitude").textContent = `attitude: ${overview.attitude_source || "none"}` +
-    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")} (chosen by the fit)` : "");
+  $("yaw").innerHTML = overview.yaw_choices.map((y) => `<option>${text(y)}</option>`).join("");
+  $("attitude").textContent = `(attitude: ${overview.attitude_source || "none"}` +
+    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")})` : ")");
   $("start").value = overview.span_s[0].toFixed(1);
   $("stop").value = overview.span_s[1].toFixed(1);
   $("compasses").innerHTML = compassTable([]);
