@@ -54,3 +54,26 @@ def test_a_table_is_not_a_flight(tmp_path: Path) -> None:
     table.write_text("x,y,z\n1,2,3\n")
     with pytest.raises(TrimagInputError, match="autopilot log"):
         FlightReview(table)
+
+
+def test_a_flights_png_report_draws_the_field_against_time(tmp_path: Path) -> None:
+    """The lab report draws |B| against the sample number; a flight's, against the log's time (s)."""
+    from trimag.io import read_samples
+    from trimag.quality.report import fit_report
+
+    log = _write_log(tmp_path / "flight.bin", n=300, seed=8)
+    samples = read_samples(log, sensor="1")
+    cal = FlightReview(log).fit(level="offsets", compasses=[1])[1].calibration
+    assert cal is not None
+    plain = cal.__class__.from_json(cal.to_json())
+    shifted = samples.field - plain.regressor_shift({"current_A": samples.table["current_A"].to_numpy()},
+                                                    samples.field.shape) if plain.regressors else samples.field
+    import dataclasses
+
+    shown = dataclasses.replace(plain, regressors=None)
+    t = samples.table["time_s"].to_numpy()
+    axis = fit_report(shifted, shown, time_s=t).axes[0]
+    assert axis.get_xlabel() == "time (s)" and axis.get_xlim()[1] > 30.0  # seconds from the log's start (10 s)
+    assert fit_report(shifted, shown).axes[0].get_xlabel() == "sample"
+    with pytest.raises(TrimagInputError, match="time stamp per sample"):
+        fit_report(shifted, shown, time_s=t[:-1])
