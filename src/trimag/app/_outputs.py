@@ -62,13 +62,13 @@ def _html_report(cal: Calibration, samples: Samples, req: FitRequest) -> Path:
     (:func:`trimag.app.review.report_html`), one self-contained file (Plotly inline; nothing fetched)."""
     from ..errors import TrimagInputError
     from ..io.atomic import atomic_write_text
-    from .review import CompassResult, FlightReview, report_html
+    from ._flight import CompassResult, FlightLog, report_html
 
     info = samples.log_info
     if info is None or req.target is None or info.get("compass") is None:
         raise TrimagInputError("an HTML report (report.html) shows a flight's firmware fit: give an autopilot log "
                                "and `target`; for other data write report.png")
-    review = FlightReview(req.input.path, fmt=req.input.fmt, target=req.target, igrf_spec=req.reference.igrf_spec)
+    review = FlightLog(req.input.path, fmt=req.input.fmt, target=req.target, igrf_spec=req.reference.igrf_spec)
     number = int(info["compass"])
     n = len(review.log.choose(number).time_s)
     rows = req.input.rows or f"0:{n}"
