@@ -245,3 +245,41 @@ def test_review_refuses_what_cannot_work_in_one_line(tmp_path: Path) -> None:
         r = run_trimag("review", *args, "--no-browser", "--port", "0")
         assert r.returncode == 2, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1 and words in r.stderr, r.stderr
+
+
+def test_the_review_server_takes_orders_only_from_its_own_page() -> None:
+    """The live server's checks (LocalServer): its own Host only; POST /fit from its page's origin with the token."""
+    import http.client
+
+    from trimag.app.review import FlightReview
+    from trimag.live.review import ReviewServer
+
+    server = ReviewServer(FlightReview(LOGS / "ardusub_small.BIN", igrf_spec="47.6,-122.3,0,2021-06-01"), 0).start()
+    origin = f"http://127.0.0.1:{server.port}"
+
+    def ask(method: str, path: str, headers: dict[str, str], body: bytes = b"") -> tuple[int, bytes]:
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+        conn.putrequest(method, path, skip_host=True)
+        for key, value in headers.items():
+            conn.putheader(key, value)
+        conn.putheader("Content-Length", str(len(body)))
+        conn.endheaders(body)
+        r = conn.getresponse()
+        return r.status, r.read()
+
+    host = {"Host": f"127.0.0.1:{server.port}"}
+    try:
+        assert ask("GET", "/overview", {"Host": "evil.example:80"})[0] == 403  # DNS rebinding
+        status, page = ask("GET", "/", host)
+        assert status == 200 and server.token.encode() in page and b"plotly.min.js" in page
+        assert ask("GET", "/plotly.min.js", host)[0] == 200
+        assert ask("POST", "/fit", host, b"{}")[0] == 403  # no origin, no token
+        assert ask("POST", "/fit", {**host, "Origin": origin}, b"{}")[0] == 403  # no token
+        good = {**host, "Origin": origin, "X-Trimag-Token": server.token}
+        assert ask("POST", "/fit", {**good, "Origin": "http://evil.example"}, b"{}")[0] == 403
+        assert ask("POST", "/fit", good, b"[1, 2]")[0] == 400
+        assert ask("POST", "/fit", good, b'{"start_s": "ten"}')[0] == 400
+        assert ask("GET", "/download?what=ardupilot&compass=all", host)[0] == 400  # nothing fitted yet
+        assert ask("POST", "/fit", good, b"x" * (server.max_body + 1))[0] == 413
+    finally:
+        server.shutdown()
