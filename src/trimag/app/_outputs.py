@@ -32,7 +32,8 @@ def write_fit_outputs(
                 field_ = samples.field - cal.regressor_shift(regressor_values, samples.field.shape)
                 shown = dataclasses.replace(cal, regressors=None)
             time_s = (samples.table["time_s"].to_numpy(dtype=float)
-                      if samples.log_info is not None and "time_s" in samples.table.columns else None)
+                      if samples.log_info is not None and "time_s" in samples.table.columns
+                      and len(samples.table) == len(field_) else None)
             written["report"] = str(save_figure(fit_report(field_, shown, title=title, notes=notes, time_s=time_s),
                                                 req.report))
         card = cal.diagnostics.get("deviation_card")
