@@ -30,6 +30,7 @@ BLOCKED = {
     "mat": ("h5py",),
     "batch": ("dask", "distributed"),
     "logs": ("pymavlink", "pyulog", "rosbags"),
+    "review": ("plotly",),
 }
 EVERY_EXTRA = tuple(name for names in BLOCKED.values() for name in names)
 
@@ -213,3 +214,15 @@ def test_an_unguarded_import_of_an_extra_still_exits_2(monkeypatch: pytest.Monke
     monkeypatch.setattr(app, "simulate_to_file", needs_nothing_known)
     assert cli.main(argv) == 1
     assert "a bug in trimag" in capsys.readouterr().err
+
+
+def test_the_review_and_the_html_report_need_the_review_extra(tmp_path: Path) -> None:
+    """``trimag review`` and ``fit --report report.html`` (issue 40) say the review extra before any work; the PNG
+    report needs no extra."""
+    log = LOGS / "ardusub_small.BIN"
+    assert_needs_extra(run_without(BLOCKED["review"], "review", log, "--no-browser", "--port", "0"), "review")
+    report = tmp_path / "report.html"
+    proc = run_without(BLOCKED["review"], "fit", log, "--target", "ardupilot", "--igrf", "47.6,-122.3,0,2021-06-01",
+                       "--sensor", "2", "--report", report)
+    assert_needs_extra(proc, "review")
+    assert not report.exists()

@@ -226,6 +226,9 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                         "(default) fits it when it improves the held-out RMS; a table's current or throttle column is "
                         "found by its usual names (current, curr, battery_current, throttle, thr, ...) or named: "
                         "current=COLUMN")
+    p.add_argument("--yaw-source", choices=["auto", "attitude", "gsf", "gps"],
+                   help="--target's yaw for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else the "
+                        "log's attitude), attitude (the log's; heading-free where its EKF used this compass), gsf, gps")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
@@ -290,7 +293,7 @@ def _add_fit(sub: Any) -> None:
     _add_tolles_lawson_options(p)
     _add_fit_steps(p)
     g = p.add_argument_group("all compasses of a log (--sensor all; docs/autopilot.md)")
-    g.add_argument("--export-to", choices=["ardupilot", "px4"],
+    g.add_argument("--export-to", choices=["ardupilot", "px4", "qgc"],
                    help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
                         "this firmware")
     g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
@@ -301,7 +304,9 @@ def _add_fit(sub: Any) -> None:
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits ([limits] table; docs/cli.md); a failed rule exits 4")
     p.add_argument("-o", "--out", metavar="CAL.json", help="write the calibration here")
-    p.add_argument("--report", metavar="REPORT.png", help="write the fit report figure here")
+    p.add_argument("--report", metavar="REPORT.png",
+                   help="write the fit report figure here (.png, .pdf, .svg; .html: a flight's firmware fit as one "
+                        "self-contained page, docs/review.md)")
     _add_output_options(p, quiet_help="print only errors (and --json output)")
 
 
@@ -325,7 +330,9 @@ def _add_export(sub: Any) -> None:
                                    "(docs/autopilot.md).")
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("--to", required=True, dest="target",
-                   choices=["ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab"])
+                   choices=["ardupilot", "px4", "qgc", "c-header", "json", "ros-yaml", "matlab"],
+                   help="qgc: PX4's parameters as QGroundControl's parameter file (Load from file), CAL_MAGn_ID from "
+                        "the log's device id")
     p.add_argument("--instance", type=int,
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
                         "default: the compass the calibration was fitted to (fit --sensor N), else 1")
@@ -452,6 +459,24 @@ def _add_live(sub: Any) -> None:
     _add_output_options(p, json_help="print the final state as one JSON object on stdout")
 
 
+def _add_review(sub: Any) -> None:
+    p = sub.add_parser("review", help="a local page: what the compasses did in a flight, and their parameters",
+                       description="Review a flight: a local web page (127.0.0.1 only) shows the flight, every "
+                                   "compass side by side, the expected against the measured field, the field length "
+                                   "beside the motor channel, the heading change, the levels and the verdict; drag a "
+                                   "range to fit, choose the level and the motor term, download the parameter files "
+                                   "(exactly what `trimag export` writes) and the calibration JSON (docs/review.md; "
+                                   "needs the review extra: pip install \"trimag[review]\").")
+    p.add_argument("log", metavar="LOG", help="an autopilot log: DataFlash .bin/.log, .tlog, ULog .ulg, .px4log")
+    p.add_argument("--format", dest="fmt", help="the log's format when its extension does not say")
+    p.add_argument("--target", choices=["ardupilot", "px4"], help="whose parameters (default: the log's firmware)")
+    p.add_argument("--igrf", dest="igrf_spec", metavar="LAT,LON,ALT_M,DATE",
+                   help="where and when the log was flown, for a log without a GPS fix")
+    p.add_argument("--port", type=int, default=8765, help="local port of the page (default 8765; 0: a free one)")
+    p.add_argument("--no-browser", dest="open_browser", action="store_false", help="do not open a browser")
+    _add_output_options(p, json_help=None)
+
+
 def _add_reproduce(sub: Any) -> None:
     # the benchmarks are not subcommands: they live in the repository's benchmarks/ folder (not installed)
     p = sub.add_parser("reproduce", help="reproduce a paper's figures and tables",
@@ -467,7 +492,8 @@ def _add_reproduce(sub: Any) -> None:
 
 #: The subcommands, in the order ``trimag --help`` lists them: each adds its parser (and its flags).
 _SUBCOMMANDS: tuple[Callable[[Any], None], ...] = (
-    _add_fit, _add_apply, _add_export, _add_evaluate, _add_simulate, _add_demo, _add_batch, _add_live, _add_reproduce,
+    _add_fit, _add_apply, _add_export, _add_evaluate, _add_simulate, _add_demo, _add_batch, _add_live, _add_review,
+    _add_reproduce,
 )
 
 
@@ -624,7 +650,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from .app import fit_file, parse_options
 
     _check_writable(args.out)
-    _check_writable(args.report, suffixes=(".png", ".pdf", ".svg"))
+    _check_writable(args.report, suffixes=(".png", ".pdf", ".svg", ".html"))
     _check_writable(args.deviation_card, suffixes=(".png",))
     _check_stdout(args)
     if args.out == "-" and ((args.sensor or "").strip().lower() == "all" or args.model == "tolles-lawson"):
@@ -992,6 +1018,19 @@ def _cmd_live(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_review(args: argparse.Namespace) -> int:
+    from .app.requests import ReviewRequest
+    from .live.review import run_review
+
+    def say(msg: str) -> None:  # flushed: the page's address must reach a pipe (a script, tee) at once
+        _say(msg, args)
+        sys.stdout.flush()
+
+    result = run_review(_request(ReviewRequest, args), say=say)
+    _say(f"trimag review: stopped ({result.reason})", args)
+    return EXIT_OK
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
     parser = build_parser()
@@ -1013,6 +1052,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "batch": _cmd_batch,
         "reproduce": _cmd_reproduce,
         "live": _cmd_live,
+        "review": _cmd_review,
     }
     import signal
 

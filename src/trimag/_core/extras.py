@@ -12,6 +12,7 @@ extra          packages                                   what needs them
 ``batch``      dask[distributed]                          ``trimag batch --scheduler`` (a Dask cluster)
 ``logs``       pymavlink, pyulog, rosbags                 autopilot and ROS logs, ``trimag live --mavlink``
 ``live``       pyserial                                   ``trimag live --serial``
+``review``     plotly                                     ``trimag review``, ``fit --report report.html``
 =============  ========================================  ====================================================
 """
 
@@ -34,6 +35,7 @@ EXTRAS: dict[str, str] = {
     "pyulog": "logs",
     "rosbags": "logs",
     "serial": "live",
+    "plotly": "review",
 }
 
 

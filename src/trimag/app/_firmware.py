@@ -95,12 +95,29 @@ def _absent(target: str, log_info: dict[str, Any] | None) -> tuple[tuple[str, ..
     return absent, [f"the log's firmware has no {parts} (not among its parameters): not fitted, not written"]
 
 
-def _yaw_source(samples: Samples) -> tuple[Samples, str, str | None, list[str]]:
-    """The yaw column to use (``yaw_gps_deg``, ``yaw_gsf_deg`` or ``yaw_deg``), the rows kept, its name and a note."""
+#: The yaw sources a firmware fit of a log may be told to take (``fit --yaw-source``).
+YAW_SOURCES = ("auto", "attitude", "gsf", "gps")
+
+
+def _yaw_source(samples: Samples, choice: str | None = None) -> tuple[Samples, str, str | None, list[str]]:
+    """The yaw column to use (``yaw_gps_deg``, ``yaw_gsf_deg`` or ``yaw_deg``), the rows kept, its name and a note;
+    ``choice`` (:data:`YAW_SOURCES`; None: ``"auto"``) forces one, refused where the log has none usable."""
     table = samples.table
     info = samples.log_info or {}
     source = info.get("attitude_source") or "the attitude columns"
-    if "yaw_gps_deg" in table.columns and np.isfinite(table["yaw_gps_deg"]).mean() >= GSF_MIN_SHARE:
+    choice = choice or "auto"
+    if choice not in YAW_SOURCES:
+        raise TrimagInputError(f"`yaw_source` must be one of {', '.join(YAW_SOURCES)}; got {choice!r}")
+    if choice == "attitude":
+        return samples, "yaw_deg", None, [f"attitude: {source}, as asked (`yaw_source=attitude`)"]
+    if choice == "gps" and not ("yaw_gps_deg" in table.columns and np.isfinite(table["yaw_gps_deg"]).any()):
+        raise TrimagInputError("`yaw_source=gps`: the log has no GPS heading (GPS.Yaw of a moving-baseline GPS); "
+                               "choose auto, attitude or gsf")
+    if choice == "gsf" and "yaw_gsf_deg" not in table.columns:
+        raise TrimagInputError("`yaw_source=gsf`: the log has no EKF-GSF yaw (XKY0, ArduPilot 4.1+); choose auto, "
+                               "attitude or gps")
+    if choice == "gps" or (choice == "auto" and "yaw_gps_deg" in table.columns
+                           and np.isfinite(table["yaw_gps_deg"]).mean() >= GSF_MIN_SHARE):
         ok = np.isfinite(table["yaw_gps_deg"].to_numpy(dtype=float))
         return _keep(samples, ok), "yaw_gps_deg", "GPS.Yaw", [f"attitude: roll and pitch from {source}, yaw from the "
                                                              "GPS heading (GPS.Yaw): independent of the compass"]
@@ -109,7 +126,11 @@ def _yaw_source(samples: Samples) -> tuple[Samples, str, str | None, list[str]]:
         gsf = table["yaw_gsf_deg"].to_numpy(dtype=float)
         apart = np.abs((gsf - table["yaw_deg"].to_numpy(dtype=float) + 180.0) % 360.0 - 180.0)
         ok = np.isfinite(gsf) & (sigma <= GSF_MAX_SIGMA_DEG) & (apart <= GSF_MAX_APART_DEG)
-        if ok.mean() >= GSF_MIN_SHARE:
+        if choice == "gsf" and not ok.any():
+            raise TrimagInputError(f"`yaw_source=gsf`: the EKF-GSF yaw never converged in this log (sigma <= "
+                                   f"{GSF_MAX_SIGMA_DEG:g} deg within {GSF_MAX_APART_DEG:g} deg of the EKF's yaw); "
+                                   "choose auto or attitude")
+        if ok.mean() >= GSF_MIN_SHARE or choice == "gsf":
             note = (f"attitude: roll and pitch from {source}, yaw from the EKF-GSF estimator (XKY0.YC, where its sigma "
                     f"is <= {GSF_MAX_SIGMA_DEG:g} deg and it has converged to within {GSF_MAX_APART_DEG:g} deg of the "
                     f"EKF's yaw; {int((~ok).sum())} samples without it dropped): independent of the compass")
@@ -266,7 +287,7 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
         yaw_column = None
         circular = False
         if info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg":
-            samples, yaw_column, yaw_name, messages = _yaw_source(samples)
+            samples, yaw_column, yaw_name, messages = _yaw_source(samples, req.yaw_source)
             if yaw_name is None:
                 circular, line = _circularity(target, info)
                 messages.append(line)

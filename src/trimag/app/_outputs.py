@@ -20,7 +20,9 @@ def write_fit_outputs(
     written: dict[str, str] = {}
     path = req.input.path
     try:
-        if req.report is not None:
+        if req.report is not None and Path(req.report).suffix.lower() in (".html", ".htm"):
+            written["report"] = str(_html_report(cal, samples, req))
+        elif req.report is not None:
             from ..quality.report import fit_report, save_figure
 
             notes = [f"{samples.n_dropped} rows dropped"] if samples.n_dropped else []
@@ -29,7 +31,11 @@ def write_fit_outputs(
             if regressor_values is not None:  # the figure shows the samples with the regressor terms removed
                 field_ = samples.field - cal.regressor_shift(regressor_values, samples.field.shape)
                 shown = dataclasses.replace(cal, regressors=None)
-            written["report"] = str(save_figure(fit_report(field_, shown, title=title, notes=notes), req.report))
+            time_s = (samples.table["time_s"].to_numpy(dtype=float)
+                      if samples.log_info is not None and "time_s" in samples.table.columns
+                      and len(samples.table) == len(field_) else None)
+            written["report"] = str(save_figure(fit_report(field_, shown, title=title, notes=notes, time_s=time_s),
+                                                req.report))
         card = cal.diagnostics.get("deviation_card")
         if req.deviation_card is not None and card is not None:  # a large vehicle's fit (trimag.app._large)
             from ..quality.report import deviation_figure, save_figure
@@ -50,6 +56,35 @@ def write_fit_outputs(
                 Path(done).unlink(missing_ok=True)
         raise
     return cal, written
+
+
+def _html_report(cal: Calibration, samples: Samples, req: FitRequest) -> Path:
+    """``report=report.html`` of a flight's firmware fit: the review's figures and tables of this fit
+    (:func:`trimag.app.review.report_html`), one self-contained file (Plotly inline; nothing fetched)."""
+    from ..errors import TrimagInputError
+    from ..io.atomic import atomic_write_text
+    from ._flight import CompassResult, FlightLog, report_html
+
+    info = samples.log_info
+    if info is None or req.target is None or info.get("compass") is None:
+        raise TrimagInputError("an HTML report (report.html) shows a flight's firmware fit: give an autopilot log "
+                               "and `target`; for other data write report.png")
+    review = FlightLog(req.input.path, fmt=req.input.fmt, target=req.target, igrf_spec=req.reference.igrf_spec)
+    number = int(info["compass"])
+    n = len(review.log.choose(number).time_s)
+    rows = req.input.rows or f"0:{n}"
+    start, stop = (int(x) if x.strip() else None for x in rows.split(":"))
+    t = review.log.choose(number).time_s
+    start_s = float(t[start or 0]) if n else 0.0
+    stop_s = float(t[min(stop if stop is not None else n, n) - 1]) if n else 0.0
+    fw = cal.diagnostics.get("firmware") or {}
+    review.results[number] = CompassResult(number, cal, rows=f"{start or 0}:{min(stop if stop is not None else n, n)}",
+                                           command="")
+    review.choice = {"start_s": start_s, "stop_s": stop_s, "level": fw.get("level", req.level or "auto"),
+                     "motor": fw.get("motor_type") or req.motor or "auto"}
+    title = f"trimag fit of {Path(req.input.path).name}: compass {number}, {req.target} level {fw.get('level')}"
+    assert req.report is not None
+    return atomic_write_text(req.report, report_html(review, [number], title=title))
 
 
 def _to_standard_output(cal: Calibration) -> None:

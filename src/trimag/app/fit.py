@@ -116,6 +116,10 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                                "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
+    if req.report is not None and Path(req.report).suffix.lower() in (".html", ".htm"):
+        from .._core.extras import require
+
+        require("plotly", "an HTML report (report.html)")  # before the fit: a missing extra is said at once
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
@@ -297,9 +301,7 @@ def _finish(
     recalibration (no predicted heading error)."""
     messages: list[str] = []
     if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
-        cal = cal.with_diagnostics(log_compass={"compass": int(samples.log_info["compass"]),
-                                                "name": str(samples.log_info.get("sensor")),
-                                                "format": str(samples.log_info.get("format"))})
+        cal = cal.with_diagnostics(log_compass=log_compass_record(samples.log_info))
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
@@ -336,6 +338,18 @@ def _finish(
             and req.model == "ellipsoid" and req.target is None):
         messages.append(_heading_message(cal, igrf_spec, summary))
     return cal, summary, messages
+
+
+def log_compass_record(log_info: dict[str, Any]) -> dict[str, Any]:
+    """What a calibration records of the log's compass it was fitted to (``diagnostics["log_compass"]``): its number
+    (from 1, export's default instance), the log's name for it, the log's format and, where the log gives it, the
+    device id (QGroundControl's file sets ``CAL_MAGn_ID`` from it)."""
+    record: dict[str, Any] = {"compass": int(log_info["compass"]), "name": str(log_info.get("sensor")),
+                              "format": str(log_info.get("format"))}
+    dev = log_info.get("device_id")
+    if isinstance(dev, int | float) and not isinstance(dev, bool) and dev > 0:
+        record["device_id"] = int(dev)
+    return record
 
 
 def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:
@@ -642,13 +656,14 @@ def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) 
 
 def _target_of(req: FitRequest, samples: Samples) -> FitRequest:
     """``level``/``motor`` without ``target``: the log's own firmware (refused for other data)."""
-    if req.target is not None or (req.level is None and req.motor is None):
+    if req.target is not None or (req.level is None and req.motor is None and req.yaw_source is None):
         return req
     from ._firmware import _log_firmware
 
     target = _log_firmware(samples.log_info)
     if target is None:
-        raise TrimagInputError("`level` and `motor` belong to a firmware fit: give `target=ardupilot` or `target=px4`")
+        raise TrimagInputError("`level`, `motor` and `yaw_source` belong to a firmware fit: give `target=ardupilot` "
+                               "or `target=px4`")
     return dataclasses.replace(req, target=target)
 
 

@@ -22,7 +22,7 @@ from ..errors import TrimagInputError
 
 __all__ = [
     "ApplyRequest", "AttitudeSpec", "EvaluateRequest", "ExportRequest", "FitRequest", "InputSpec", "LiveRequest",
-    "ReferenceSpec", "SimulateRequest",
+    "ReferenceSpec", "ReviewRequest", "SimulateRequest",
 ]
 
 _R = TypeVar("_R")
@@ -113,6 +113,10 @@ class FitRequest:
     target: str | None = None
     level: str | None = None
     motor: str | None = None
+    #: the yaw of a firmware fit of a log: ``"auto"`` (None: a GPS heading, else the EKF-GSF yaw, else the log's
+    #: attitude), ``"attitude"`` (the log's attitude: heading-free where its EKF used this compass), ``"gsf"``
+    #: (ArduPilot's ``XKY0``), ``"gps"`` (a moving-baseline GPS heading)
+    yaw_source: str | None = None
     #: a vehicle that turns but cannot tilt: :func:`trimag.vehicle.level_turn.fit_level_turn` (docs/autopilot.md)
     level_turn: bool = False
     #: the vehicle's known true heading (degrees), or a column of it: the offsets from the field's vector
@@ -263,6 +267,21 @@ class SimulateRequest:
     field: float = 1.0
     units: str | None = None
     truth: str | Path | None = None
+
+
+@dataclass(frozen=True)
+class ReviewRequest:
+    """One flight review (``trimag review``, :func:`trimag.live.review.run_review`): the autopilot ``log`` (its
+    format ``fmt`` when the extension does not say), fitted for ``target`` (default: the log's own firmware) with
+    the field at ``igrf_spec`` when the log has no GPS fix, served on ``port`` (127.0.0.1 only; 0 picks a free one),
+    the browser opened unless ``open_browser`` is false."""
+
+    log: str | Path
+    fmt: str | None = None
+    target: str | None = None
+    igrf_spec: str | None = None
+    port: int = 8765
+    open_browser: bool = True
 
 
 #: The sources of ``trimag live`` (the :class:`LiveRequest` field that names each).

@@ -9,6 +9,10 @@ convention:
 - PX4 (``sensor_calibration::Magnetometer::Correct``): ``m = R (S ((r + p COMP) - off))``; ``CAL_MAGn_ROT``,
   ``CAL_MAGn_xOFF`` in gauss (subtracted), symmetric ``S`` from ``CAL_MAGn_xSCALE``/``xODIAG``, ``CAL_MAGn_xCOMP``
   with ``CAL_MAG_COMP_TYP`` (1 thrust, 2 current in kA).
+- QGroundControl (``qgc``): PX4's parameters in the file QGroundControl's "Load from file" reads
+  (``ParameterManager::loadFromStream``): ``# Vehicle-Id Component-Id Name Value Type`` then one tab-separated line
+  per parameter, vehicle 1, component 1, the ``MAV_PARAM_TYPE`` (6 INT32, 9 REAL32), with ``CAL_MAGn_ID`` the
+  device id of the log's magnetometer the calibration was fitted to (PX4 applies a slot only to the device it names).
 - MATLAB ``magcal``: ``C = (D - b) A`` on rows ``D``: ``A = W'``, ``b``, in the data's unit (a ``.m`` text, or a MAT
   file when the output ends in ``.mat``).
 - C header, JSON, ROS YAML: ``c = W (r - b)`` as trimag, in the data's unit.
@@ -55,7 +59,7 @@ from ..units import convert
 __all__ = ["EXPORT_TARGETS", "Export", "export_calibration", "export_calibrations", "firmware_compass",
            "symmetric_polar", "write_export"]
 
-EXPORT_TARGETS = ("ardupilot", "px4", "c-header", "json", "ros-yaml", "matlab")
+EXPORT_TARGETS = ("ardupilot", "px4", "qgc", "c-header", "json", "ros-yaml", "matlab")
 
 #: ArduPilot's acceptance limits (libraries/AP_Compass/CompassCalibrator.cpp fit_acceptable, AP_Compass.h);
 #: the checks themselves are :meth:`trimag.models.firmware.ArduPilotCompass.violations`.
@@ -239,8 +243,11 @@ def _check_formula(cal: Calibration, compass: FirmwareCompass, applied: int | No
 def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -> Export:
     """One autopilot parameter file for several magnetometers: ``items`` are ``(calibration, instance)`` pairs
     (instance 0-based). The firmware-wide motor-term type (``COMPASS_MOTCT``, ``CAL_MAG_COMP_TYP``) must agree."""
+    if target == "qgc":
+        return _qgc(items)
     if target not in ("ardupilot", "px4"):
-        raise TrimagInputError(f"several magnetometers go into one file for ardupilot or px4 only; got {target!r}")
+        raise TrimagInputError(f"several magnetometers go into one file for ardupilot, px4 or qgc only; got "
+                               f"{target!r}")
     if not items:
         raise TrimagInputError("give at least one calibration to export")
     params: dict[str, float] = {}
@@ -281,6 +288,47 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
     text = (_param_file(params, header) if target == "ardupilot" else
             _comment_lines(header, "#") + "".join(f"param set {k} {v:.9g}\n" for k, v in params.items()))
     return Export(target, text, params, notes)
+
+
+#: PX4's integer parameters among those written (``MAV_PARAM_TYPE_INT32``); every other one is a float (REAL32).
+_PX4_INTEGERS = re.compile(r"^CAL_MAG([0-9]_(ID|ROT|PRIO)|_COMP_TYP)$")
+#: MAVLink's MAV_PARAM_TYPE of a QGroundControl parameter file's last column.
+_MAV_PARAM_TYPE_INT32, _MAV_PARAM_TYPE_REAL32 = 6, 9
+
+
+def device_id(cal: Calibration) -> int | None:
+    """The device id of the log's magnetometer ``cal`` was fitted to (``diagnostics["log_compass"]``), or None."""
+    record = cal.diagnostics.get("log_compass")
+    value = record.get("device_id") if isinstance(record, dict) else None
+    return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and value > 0 else None
+
+
+def _qgc(items: Sequence[tuple[Calibration, int]]) -> Export:
+    """PX4's parameters of ``items`` as QGroundControl's parameter file, each slot's ``CAL_MAGn_ID`` the device id
+    of the magnetometer it was fitted to (a calibration without one is written without it, and said)."""
+    px4 = export_calibrations(items, "px4")
+    params = dict(px4.parameters)
+    notes = list(px4.notes)
+    for cal, instance in items:
+        dev = device_id(cal)
+        if dev is not None:
+            params[f"CAL_MAG{instance}_ID"] = float(dev)
+        else:
+            notes.append(f"CAL_MAG{instance}_ID not written: the calibration does not record its magnetometer's "
+                         "device id (fitted to a table, or to a log without it); PX4 applies the slot only to the "
+                         "device it names: set it yourself")
+    written = [instance for cal, instance in items if device_id(cal) is not None]
+    comments = [line[2:] for line in px4.text.splitlines() if line.startswith("# ")]
+    comments = [re.sub(r"; set CAL_MAG(\d)_ID to the sensor's device id$",
+                       lambda m: "" if int(m.group(1)) in written else m.group(0), line) for line in comments]
+    header = ["Onboard parameters for Vehicle 1", "", *comments, "", "Vehicle-Id Component-Id Name Value Type"]
+    lines = []
+    for name, value in sorted(params.items()):
+        integer = bool(_PX4_INTEGERS.match(name))
+        text = f"{int(value)}" if integer else f"{value:.9g}"
+        kind = _MAV_PARAM_TYPE_INT32 if integer else _MAV_PARAM_TYPE_REAL32
+        lines.append(f"1\t1\t{name}\t{text}\t{kind}")
+    return Export("qgc", _comment_lines(header, "#") + "\n".join(lines) + "\n", params, notes)
 
 
 def _present(p: dict[str, float], cal: Calibration, target: str) -> dict[str, float]:
@@ -405,7 +453,7 @@ def export_calibration(cal: Calibration, target: str, *, instance: int = 0) -> E
         raise TrimagInputError(f"unknown export target {target!r}; choose one of {', '.join(EXPORT_TARGETS)}")
     if instance < 0 or instance > 7:
         raise TrimagInputError(f"instance must be 0..7; got {instance}")
-    if target in ("ardupilot", "px4"):
+    if target in ("ardupilot", "px4", "qgc"):
         return export_calibrations([(cal, instance)], target)
     _no_regressors(cal, target)
     return {"c-header": _c_header, "json": _json, "ros-yaml": _ros_yaml, "matlab": _matlab}[target](cal)

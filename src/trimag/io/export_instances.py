@@ -18,7 +18,7 @@ from .export import Export, export_calibrations
 __all__ = ["PARAMETER_TARGETS", "export_instances"]
 
 #: The targets whose files hold several compasses' parameters.
-PARAMETER_TARGETS = ("ardupilot", "px4")
+PARAMETER_TARGETS = ("ardupilot", "px4", "qgc")
 
 
 def export_instances(calibrations: Sequence[tuple[Calibration, int]], target: str) -> Export:
@@ -37,7 +37,8 @@ def export_instances(calibrations: Sequence[tuple[Calibration, int]], target: st
         compass's own writer refuses (the firmware's limits).
     """
     if target not in PARAMETER_TARGETS:
-        raise TrimagInputError(f"one file for several compasses is written for {' or '.join(PARAMETER_TARGETS)}; "
+        raise TrimagInputError("one file for several compasses is written for ardupilot or px4 (or qgc: PX4's in "
+                               "QGroundControl's file); "
                                f"got {target!r}")
     if not calibrations:
         raise TrimagInputError("no calibration to write")

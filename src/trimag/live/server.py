@@ -19,12 +19,12 @@ import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from typing import Any
+from typing import Any, TypeVar
 
 from ..errors import TrimagInputError
 from .session import LiveSession
 
-__all__ = ["HOST", "LiveServer"]
+__all__ = ["HOST", "LiveServer", "LocalServer"]
 
 #: The only address the server listens on.
 HOST = "127.0.0.1"
@@ -47,38 +47,44 @@ _STATIC = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("ind
            "/live.js": ("live.js", "text/javascript; charset=utf-8")}
 
 
+_S = TypeVar("_S", bound="LocalServer")
+#: An answer: status code, body, content type and any further headers.
+Answer = tuple[int, bytes, str, dict[str, str]]
+
+
 def _static(name: str) -> bytes:
     return (resources.files("trimag.live") / "static" / name).read_bytes()
+
+
+def _json_answer(code: int, data: Any) -> Answer:
+    """``data`` as a JSON answer."""
+    return code, json.dumps(data, allow_nan=False).encode(), "application/json", {}
 
 
 class _Server(ThreadingHTTPServer):
     """A thread per connection; a client that drops its connection is not an error worth a line."""
 
     daemon_threads = True
+    name = "trimag live"
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         exc = sys.exc_info()[1]
         if isinstance(exc, (ConnectionError, TimeoutError)):  # the client went away: nothing to say
             return
-        sys.stderr.write(f"trimag live: internal error while answering a request: {type(exc).__name__}: {exc}\n")
+        name = getattr(self, "name", "trimag live")
+        sys.stderr.write(f"{name}: internal error while answering a request: {type(exc).__name__}: {exc}\n")
 
 
-class LiveServer:
-    """Serve ``session`` on ``http://127.0.0.1:PORT/`` (``port`` 0: a free port) from a background thread.
+class LocalServer:
+    """A page and its requests on ``http://127.0.0.1:PORT/`` (``port`` 0: a free one) from a background thread, with
+    the checks of every request (:meth:`refusal`); what each path answers is the subclass's (:meth:`get`,
+    :meth:`post`). ``name`` says which command serves (the internal-error line, the thread's name)."""
 
-    Parameters
-    ----------
-    session : LiveSession
-    port : int
-        TCP port (0 picks a free one: see :attr:`port`).
-    save : callable, optional
-        What ``POST /save`` runs; returns the written files ({what: path}).
-    """
+    name = "trimag live"
+    #: The largest request body a POST may carry (bytes).
+    max_body = 64 * 1024
 
-    def __init__(self, session: LiveSession, port: int = 8765,
-                 save: Callable[[], dict[str, str]] | None = None) -> None:
-        self.session = session
-        self._save = save
+    def __init__(self, port: int = 8765) -> None:
         #: The per-session token a state-changing request must carry (in the page; never in a URL).
         self.token = secrets.token_urlsafe(32)
         check_port(port)
@@ -88,6 +94,7 @@ class LiveServer:
         except OSError as exc:
             raise TrimagInputError(f"cannot listen on {HOST}:{port} ({exc.strerror or exc}); give another `port` "
                                    "(0 picks a free one)") from None
+        self.httpd.name = self.name
         self._thread: threading.Thread | None = None
 
     @property
@@ -127,10 +134,10 @@ class LiveServer:
                     "trimag-token meta tag)")
         return None
 
-    def start(self) -> LiveServer:
+    def start(self: _S) -> _S:
         """Serve on a daemon thread; returns self."""
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
-                                        name="trimag-live-http", daemon=True)
+                                        name=f"{self.name.replace(' ', '-')}-http", daemon=True)
         self._thread.start()
         return self
 
@@ -140,6 +147,18 @@ class LiveServer:
             self.httpd.shutdown()
             self._thread.join(timeout=5)
         self.httpd.server_close()
+
+    def page(self, name: str, kind: str) -> Answer:
+        """A static file of the page, with the session's token put in."""
+        return 200, _static(name).replace(_TOKEN_PLACEHOLDER, self.token.encode()), kind, {}
+
+    def get(self, path: str, query: str) -> Answer:
+        """The answer to ``GET path?query``."""
+        return _json_answer(404, {"error": f"no page {path}"})
+
+    def post(self, path: str, body: bytes) -> Answer:
+        """The answer to ``POST path`` with ``body`` (the checks of :meth:`refusal` passed)."""
+        return _json_answer(404, {"error": f"no action {path}"})
 
     def _handler(self) -> type[BaseHTTPRequestHandler]:
         server = self
@@ -155,54 +174,81 @@ class LiveServer:
                     self.send_header(key, value)
                 super().end_headers()
 
-            def _send(self, code: int, body: bytes, kind: str) -> None:
+            def _send(self, answer: Answer) -> None:
+                code, body, kind, headers = answer
                 self.send_response(code)
                 self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(body)))
+                for key, value in headers.items():
+                    self.send_header(key, value)
                 self.end_headers()
                 self.wfile.write(body)
-
-            def _json(self, code: int, data: Any) -> None:
-                self._send(code, json.dumps(data, allow_nan=False).encode(), "application/json")
 
             def _refused(self) -> bool:
                 why = server.refusal(self.command, self.headers)
                 if why is not None:
                     self.close_connection = True
-                    self._json(403, {"error": why})
+                    self._send(_json_answer(403, {"error": why}))
                 return why is not None
 
             def do_GET(self) -> None:
                 if self._refused():
                     return
-                path = self.path.split("?", 1)[0]
-                if path == "/status":
-                    points = "points=0" not in self.path
-                    self._json(200, server.session.status(points=points))
-                elif path in _STATIC:
-                    name, kind = _STATIC[path]
-                    body = _static(name)
-                    self._send(200, body.replace(_TOKEN_PLACEHOLDER, server.token.encode()), kind)
-                else:
-                    self._json(404, {"error": f"no page {path}"})
+                path, _, query = self.path.partition("?")
+                self._send(server.get(path, query))
 
             def do_POST(self) -> None:
                 if self._refused():
                     return
-                if self.path.split("?", 1)[0] != "/save":
-                    self._json(404, {"error": f"no action {self.path}"})
-                    return
-                if server._save is None:
-                    self._json(403, {"error": "saving is not enabled"})
-                    return
                 try:
-                    written = server._save()
-                except Exception as exc:  # a full disk, a folder removed: shown on the page, not fatal
-                    self._json(500, {"error": f"{type(exc).__name__}: {exc}"})
+                    length = int(self.headers.get("Content-Length") or 0)
+                except ValueError:
+                    length = -1
+                if not 0 <= length <= server.max_body:
+                    self.close_connection = True
+                    self._send(_json_answer(413, {"error": f"a request body of at most {server.max_body} bytes"}))
                     return
-                self._json(200, {"written": written})
+                body = self.rfile.read(length) if length else b""
+                self._send(server.post(self.path.split("?", 1)[0], body))
 
         return Handler
+
+
+class LiveServer(LocalServer):
+    """Serve ``session`` on ``http://127.0.0.1:PORT/`` (``port`` 0: a free port) from a background thread.
+
+    Parameters
+    ----------
+    session : LiveSession
+    port : int
+        TCP port (0 picks a free one: see :attr:`port`).
+    save : callable, optional
+        What ``POST /save`` runs; returns the written files ({what: path}).
+    """
+
+    def __init__(self, session: LiveSession, port: int = 8765,
+                 save: Callable[[], dict[str, str]] | None = None) -> None:
+        self.session = session
+        self._save = save
+        super().__init__(port)
+
+    def get(self, path: str, query: str) -> Answer:
+        if path == "/status":
+            return _json_answer(200, self.session.status(points="points=0" not in query))
+        if path in _STATIC:
+            return self.page(*_STATIC[path])
+        return _json_answer(404, {"error": f"no page {path}"})
+
+    def post(self, path: str, body: bytes) -> Answer:
+        if path != "/save":
+            return _json_answer(404, {"error": f"no action {path}"})
+        if self._save is None:
+            return _json_answer(403, {"error": "saving is not enabled"})
+        try:
+            written = self._save()
+        except Exception as exc:  # a full disk, a folder removed: shown on the page, not fatal
+            return _json_answer(500, {"error": f"{type(exc).__name__}: {exc}"})
+        return _json_answer(200, {"written": written})
 
 
 def check_port(port: int) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..calibration import Calibration
+from ..errors import TrimagInputError
 from ..io.atomic import atomic_path
 
 if TYPE_CHECKING:
@@ -113,6 +114,7 @@ def fit_report(
     reference: ArrayLike | float | None = None,
     title: str = "",
     notes: Sequence[str] = (),
+    time_s: ArrayLike | None = None,
 ) -> Figure:
     """Draw the fit report.
 
@@ -126,6 +128,8 @@ def fit_report(
     title : str
     notes : sequence of str
         Extra lines printed under the title (e.g. dropped-row counts).
+    time_s : array_like, shape (N,), optional
+        The samples' time stamps (s; a flight log's): the magnitude is drawn against time, not sample number.
     """
     B = np.asarray(raw, dtype=np.float64)
     corrected = cal.apply(B)
@@ -140,7 +144,10 @@ def fit_report(
 
     fig = _figure((15, 9))
     axes = fig.subplots(2, 3)
-    _magnitude_panel(axes[0, 0], n_before, n_after, F, sub, cal.units)
+    t = None if time_s is None else np.asarray(time_s, dtype=np.float64)
+    if t is not None and t.shape != (len(B),):
+        raise TrimagInputError(f"time_s must have one time stamp per sample ({len(B)}); got shape {t.shape}")
+    _magnitude_panel(axes[0, 0], n_before, n_after, F, sub, cal.units, t)
     _error_panel(axes[0, 1], n_before - F, n_after - F, cal)
     _coverage_panel(axes[0, 2], B)
     _cloud_panels(axes[1], B, corrected, sub, cal.units)
@@ -151,15 +158,18 @@ def fit_report(
 
 
 def _magnitude_panel(ax: Any, n_before: NDArray[np.float64], n_after: NDArray[np.float64], F: Any,
-                     sub: NDArray[np.intp], unit: str) -> None:
-    """|B| per sample (the samples ``sub``) before and after, and the reference ``F`` (a number or (N,))."""
-    ax.plot(sub, n_before[sub], ".", ms=2, color="tab:red", label="before")
-    ax.plot(sub, n_after[sub], ".", ms=2, color="tab:blue", label="after")
+                     sub: NDArray[np.intp], unit: str, time_s: NDArray[np.float64] | None = None) -> None:
+    """|B| per sample (the samples ``sub``) before and after, and the reference ``F`` (a number or (N,)); against
+    ``time_s`` (a flight's time stamps) when given, else against the sample number."""
+    x = sub if time_s is None else time_s[sub]
+    ax.plot(x, n_before[sub], ".", ms=2, color="tab:red", label="before")
+    ax.plot(x, n_after[sub], ".", ms=2, color="tab:blue", label="after")
     if np.ndim(F) == 0:
         ax.axhline(float(F), color="k", lw=1, label=f"F = {float(F):.5g}")
     else:
-        ax.plot(sub, np.asarray(F)[sub], "k-", lw=1, label="F (per sample)")
-    ax.set(xlabel="sample", ylabel=f"|B| [{unit}]", title="field magnitude per sample")
+        ax.plot(x, np.asarray(F)[sub], "k-", lw=1, label="F (per sample)")
+    ax.set(xlabel="sample" if time_s is None else "time (s)", ylabel=f"|B| [{unit}]",
+           title="field magnitude per sample" if time_s is None else "field magnitude against time")
     ax.legend(loc="best", fontsize=8)
 
 

@@ -1,0 +1,79 @@
+"""The flight review's application layer (issue 40, :class:`trimag.app.review.FlightReview`): it fits with the
+command line's own fit and says what it cannot fit; the yaw source the user chooses (``fit --yaw-source``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from test_firmware_fit import _write_log
+
+from trimag.app.review import FlightReview
+from trimag.errors import TrimagInputError
+
+from _helpers import run_trimag
+
+pytest.importorskip("pymavlink")
+
+
+def test_the_yaw_source_is_the_users_choice_where_the_log_has_several(tmp_path: Path) -> None:
+    log = _write_log(tmp_path / "gsf.bin", n=900, seed=6, gsf=True)
+    review = FlightReview(log)
+    assert review.yaw_sources() == ["auto", "attitude", "gsf"]
+    auto = review.fit(level="offsets", compasses=[1])[1]
+    assert auto.error is None and any("EKF-GSF" in m for m in auto.messages)
+    assert auto.calibration is not None and auto.calibration.diagnostics["firmware"]["residual"] == "vector"
+    att = review.fit(level="offsets", yaw_source="attitude", compasses=[1])[1]
+    assert att.calibration is not None and att.calibration.diagnostics["firmware"]["residual"] == "heading-free"
+    assert "--yaw-source attitude" in att.command
+    with pytest.raises(TrimagInputError, match="yaw_source"):
+        review.fit(yaw_source="gps")
+    r = run_trimag("fit", log, "--target", "ardupilot", "--yaw-source", "gps")
+    assert r.returncode == 2 and "no GPS heading" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    r = run_trimag("fit", log, "--yaw-source", "attitude", "--level", "offsets", "--json")  # --target from the log
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["firmware"]["residual"] == "heading-free"
+
+
+def test_the_range_is_the_command_lines_rows_and_the_rest_is_held_out(tmp_path: Path) -> None:
+    log = _write_log(tmp_path / "flight.bin", n=900, seed=7)
+    review = FlightReview(log)
+    lo, hi = review.span_s
+    result = review.fit(lo + 20.0, hi - 20.0, level="offsets", compasses=[1])[1]
+    assert result.rows == "200:700" and "--rows 200:700" in result.command  # 10 Hz: 10.0 + 20 s .. 99.9 - 20 s
+    stats = review.compass_result(1)["statistics"]
+    assert stats["fitted_rows"] == 500 and stats["held_out_rows"] == 400
+    assert stats["candidate_held_out_rms"] < stats["logged_held_out_rms"]
+    with pytest.raises(TrimagInputError, match="forward in time"):
+        review.fit(hi, lo)
+
+
+def test_a_table_is_not_a_flight(tmp_path: Path) -> None:
+    table = tmp_path / "t.csv"
+    table.write_text("x,y,z\n1,2,3\n")
+    with pytest.raises(TrimagInputError, match="autopilot log"):
+        FlightReview(table)
+
+
+def test_a_flights_png_report_draws_the_field_against_time(tmp_path: Path) -> None:
+    """The lab report draws |B| against the sample number; a flight's, against the log's time (s)."""
+    from trimag.io import read_samples
+    from trimag.quality.report import fit_report
+
+    log = _write_log(tmp_path / "flight.bin", n=300, seed=8)
+    samples = read_samples(log, sensor="1")
+    cal = FlightReview(log).fit(level="offsets", compasses=[1])[1].calibration
+    assert cal is not None
+    plain = cal.__class__.from_json(cal.to_json())
+    shifted = samples.field - plain.regressor_shift({"current_A": samples.table["current_A"].to_numpy()},
+                                                    samples.field.shape) if plain.regressors else samples.field
+    import dataclasses
+
+    shown = dataclasses.replace(plain, regressors=None)
+    t = samples.table["time_s"].to_numpy()
+    axis = fit_report(shifted, shown, time_s=t).axes[0]
+    assert axis.get_xlabel() == "time (s)" and axis.get_xlim()[1] > 30.0  # seconds from the log's start (10 s)
+    assert fit_report(shifted, shown).axes[0].get_xlabel() == "sample"
+    with pytest.raises(TrimagInputError, match="time stamp per sample"):
+        fit_report(shifted, shown, time_s=t[:-1])
