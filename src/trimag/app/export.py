@@ -47,9 +47,11 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
 
 
 def _instance(cal: Calibration, given: int | None) -> tuple[int, list[str]]:
-    """The compass number to write: ``given``, else the compass of the log the calibration was fitted to (recorded
-    by fit as ``diagnostics.log_compass``), else 1; a given number that differs from the fitted compass is said."""
-    fitted = (cal.diagnostics.get("log_compass") or {}).get("compass")
+    """The compass number to write: ``given``, else the compass of the log the calibration was fitted to (its
+    sensor record, ``sensor.compass``; ``diagnostics.log_compass`` in a file of an earlier trimag), else 1; a given
+    number that differs from the fitted compass is said."""
+    fitted = cal.sensor.compass if cal.sensor is not None and cal.sensor.kind == "log" else \
+        (cal.diagnostics.get("log_compass") or {}).get("compass")
     fitted = int(fitted) if isinstance(fitted, int | float) and 1 <= int(fitted) <= 8 else None
     if given is None:
         return fitted or 1, []

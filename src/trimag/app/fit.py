@@ -45,6 +45,7 @@ from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, l
 from ._log_advice import log_refusal
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
+from ._sensor import sensor_record
 from ._timesync import attach_attitude_file
 from .requests import FitRequest, as_request
 
@@ -245,10 +246,8 @@ def _finish(
     acceptance (``limits``) recorded in the calibration; ``(calibration, summary, messages)``. ``quick``: a quick
     recalibration (no predicted heading error)."""
     messages: list[str] = []
-    if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
-        cal = cal.with_diagnostics(log_compass={"compass": int(samples.log_info["compass"]),
-                                                "name": str(samples.log_info.get("sensor")),
-                                                "format": str(samples.log_info.get("format"))})
+    # the sensor it belongs to: what evaluate, apply, export (its default instance), live and batch read
+    cal = cal.with_sensor(sensor_record(samples, req.input, cal.units))
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
