@@ -31,6 +31,9 @@ def write_duplicate_slot_ulog(path: Path, n: int = 600, seed: int = 0, noise_G: 
     ulog = pyulog.ULog(str(SAMPLE))
     ulog.msg_info_dict["ver_sw_branch"] = "v1.14.0"
     params = ulog.initial_parameters
+    for k in range(4):  # the parameters v1.14 has and this v1.11 log lacks: the off-diagonal scales
+        for a in "XYZ":
+            params.setdefault(f"CAL_MAG{k}_{a}ODIAG", 0.0)
     params["CAL_MAG2_ID"] = DEVICE_ID  # the stale duplicate
     for a, v in zip("XYZ", (0.4, 0.3, -0.2), strict=True):
         params[f"CAL_MAG2_{a}OFF"] = v

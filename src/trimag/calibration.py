@@ -96,6 +96,9 @@ class SensorRecord:
         ``("CAL_MAG1_XOFF", ...)``): the names the printout, the file and ``export`` use for this sensor.
     stale_slots : tuple of int
         Later PX4 slots that hold the same device id (stale duplicates the firmware never reads).
+    absent_parameters : tuple of str
+        The slot's (and the shared) firmware parameters the log's firmware lacks (``COMPASS_ORIENT2`` in an
+        ArduCopter 3.2 log): ``export`` does not write them.
     columns : tuple of str or None
         The x, y, z columns read (a table; for a log, the table trimag made of it: ``mag_x, mag_y, mag_z``).
     variable : str or None
@@ -115,6 +118,7 @@ class SensorRecord:
     slot: int | None = None
     offset_parameters: tuple[str, ...] | None = None
     stale_slots: tuple[int, ...] = ()
+    absent_parameters: tuple[str, ...] = ()
     columns: tuple[str, ...] | None = None
     variable: str | None = None
 
@@ -140,6 +144,8 @@ class SensorRecord:
                 value = tuple(str(v) for v in value)
             elif key == "stale_slots":
                 value = tuple(int(v) for v in value or ())
+            elif key == "absent_parameters":
+                value = tuple(str(v) for v in value or ())
             elif key in ("compass", "device_id", "slot") and value is not None:
                 value = int(value)
             values[key] = value

@@ -5,20 +5,25 @@ and refuse a log whose compass is another device unless ``--sensor`` names one."
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from _helpers import TESTS_DIR, run_trimag
 
 from trimag import Calibration
 from trimag.calibration import FORMAT_VERSION, SensorRecord
+
+from _helpers import TESTS_DIR, run_trimag
 
 pytest.importorskip("pymavlink")
 
 BIN = TESTS_DIR / "data" / "logs" / "ardusub_small.BIN"  # ArduSub 4.1, two compasses (MIT, tests/data/logs/README.md)
 SITE = "48.386140,-124.630574,0.1,2023-05-04"  # the tlog of the same vehicle's GPS fix
+
+
+FIT_OUTPUT: dict[str, str] = {}
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +32,41 @@ def compass2(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("sensor") / "bin2.json"
     r = run_trimag("fit", BIN, "--sensor", "2", "--target", "ardupilot", "--igrf", SITE, "-o", out, timeout=300)
     assert r.returncode == 0, r.stderr
+    FIT_OUTPUT["stdout"] = r.stdout
     return out
+
+
+def json_keys(obj: object) -> list[str]:
+    """Every key of a JSON value's objects, at any depth."""
+    if isinstance(obj, dict):
+        return [str(k) for k in obj] + [k for v in obj.values() for k in json_keys(v)]
+    if isinstance(obj, list):
+        return [k for v in obj for k in json_keys(v)]
+    return []
+
+
+def test_compass_2_is_named_as_its_firmware_names_it_in_the_printout_the_file_and_export(compass2: Path,
+                                                                                          tmp_path: Path) -> None:
+    """Issue 39, items 2 and 4: COMPASS_OFS2_X, never compass 1's COMPASS_OFS_X; keys are parameter names."""
+    data = json.loads(compass2.read_text())
+    printed = FIT_OUTPUT["stdout"]
+    assert "COMPASS_OFS2_X = " in printed and "held COMPASS_DIA2_X = 1" in printed
+    for first in ("COMPASS_OFS_", "COMPASS_DIA_", "COMPASS_ODI_", "COMPASS_SCALE ", "COMPASS_SCALE =",
+                  "COMPASS_MOT_"):
+        assert first not in printed and first not in compass2.read_text(), first
+    assert set(data["params"]) >= {"COMPASS_OFS2_X", "COMPASS_DIA2_X", "COMPASS_SCALE2"}
+    assert set(data["uncertainty"]["param_std"]) <= set(data["params"])
+    held = data["diagnostics"]["firmware"]["held"]
+    assert held["COMPASS_DIA2_X"] == {"value": 1.0, "why": "held at the log's value (the offsets level does not fit "
+                                                            "it)"}
+    assert any("not identified alone" in h["why"] for h in held.values())
+    bad = [k for k in json_keys(data) if not re.fullmatch(r"[A-Za-z0-9_.\-]+", k)]
+    assert not bad, f"keys that are not names: {bad}"
+    out = tmp_path / "bin2.param"
+    e = run_trimag("export", compass2, "--to", "ardupilot", "-o", out)
+    assert e.returncode == 0, e.stderr
+    written = {line.split(",")[0] for line in out.read_text().splitlines() if not line.startswith("#")}
+    assert {"COMPASS_OFS2_X", "COMPASS_OFS2_Y", "COMPASS_OFS2_Z"} <= written <= set(data["params"]) | {"COMPASS_MOTCT"}
 
 
 def test_a_sensor_record_round_trips_and_a_file_without_one_is_written_as_before() -> None:

@@ -72,12 +72,17 @@ def sensor_record(samples: Samples, src: InputSpec, unit: str) -> SensorRecord:
         if firmware == "px4" and device:
             stale = tuple(k for k in range(4) if k != slot
                           and int((info.get("parameters") or {}).get(f"CAL_MAG{k}_ID", 0) or 0) == int(device))
+        absent: tuple[str, ...] = ()
+        if firmware is not None and slot is not None:
+            from ..models.firmware import absent_parameters
+
+            absent = absent_parameters(firmware, info.get("parameters") or {}, int(slot))
         name = str(info.get("sensor") or "")
         return SensorRecord("log", format=fmt, compass=info.get("compass"), name=name, message=_message(name),
                             device_id=int(device) if device else None, firmware=firmware,
                             slot=None if slot is None else int(slot),
                             offset_parameters=offset_parameters(firmware, None if slot is None else int(slot)),
-                            stale_slots=stale, **common)
+                            stale_slots=stale, absent_parameters=absent, **common)
     kind = log_format(path, src.fmt)
     table_fmt = src.fmt or (path.suffix.lower().lstrip(".") or None)
     return SensorRecord("log" if kind else "table", format=table_fmt, variable=src.var, **common)

@@ -45,7 +45,7 @@ from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, l
 from ._log_advice import log_refusal
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
-from ._sensor import sensor_record
+from ._sensor import input_for, sensor_record
 from ._timesync import attach_attitude_file
 from .requests import FitRequest, as_request
 
@@ -134,9 +134,11 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     method = "gyro" if named_gyro and req.method is None and req.model == "ellipsoid" else req.method
     estimator = make_estimator(req.model, method, {k: v for k, v in options.items()
                                                    if not (_phone_export(req) and k in _GYRO_OPTIONS)})
-    src = req.input
+    src, sensor = req.input, req.input.sensor
+    if req.prior is not None:  # a quick recalibration reads the prior's sensor by default (issue 39)
+        src, sensor = input_for(Calibration.from_file(req.prior), src)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
-                           strict=src.strict, sensor=src.sensor)
+                           strict=src.strict, sensor=sensor)
     estimator, gyro_messages = _gyro_estimator(req, samples, estimator, options)
     try:
         return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
