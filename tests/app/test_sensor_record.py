@@ -133,3 +133,13 @@ def test_a_calibration_file_without_a_sensor_record_still_reads_and_says_so(comp
     assert Calibration.from_file(old).sensor is None
     r = run_trimag("evaluate", old, BIN, "--sensor", "2")
     assert r.returncode == 0 and "sensor: compass 2" in r.stdout
+
+
+def test_export_never_writes_over_the_calibration_it_exports(compass2: Path, tmp_path: Path) -> None:
+    """Found while chaining the commands (issue 39): ``export cal.json --to json -o cal.json`` replaced the
+    calibration by its parameter file."""
+    copy = tmp_path / "cal.json"
+    copy.write_bytes(compass2.read_bytes())
+    r = run_trimag("export", copy, "--to", "json", "-o", copy)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "destroy" in r.stderr
+    assert copy.read_bytes() == compass2.read_bytes()
