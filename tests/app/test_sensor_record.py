@@ -143,3 +143,22 @@ def test_export_never_writes_over_the_calibration_it_exports(compass2: Path, tmp
     r = run_trimag("export", copy, "--to", "json", "-o", copy)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "destroy" in r.stderr
     assert copy.read_bytes() == compass2.read_bytes()
+
+
+def test_a_quick_recalibration_reads_the_prior_s_compass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``fit --prior`` (and ``batch --prior``) reads the compass the prior belongs to: the PX4 log's second
+    magnetometer, where the log's default is the first (as many samples: the first)."""
+    from trimag.io.logs import read_log
+
+    monkeypatch.setenv("TRIMAG_TEST_FRESH_PROCESS", "1")  # a long fit on a loaded machine
+    log = TESTS_DIR / "data" / "logs" / "px4tools_01_07_59.px4log"
+    second = read_log(log).choose("2")
+    record = SensorRecord("log", unit="G", compass=2, name=second.name, device_id=second.device_id)
+    prior = Calibration.from_matrix_offset(np.diag([1.10669, 1.0409, 1.05836]), [0.09462, -0.06406, 0.00244],
+                                           units="G", sensor=record)
+    prior.to_file(tmp_path / "prior.json")
+    r = run_trimag("fit", log, "--prior", tmp_path / "prior.json", "--json", "-o", tmp_path / "new.json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["log"]["compass"] == 2
+    new = Calibration.from_file(tmp_path / "new.json").sensor
+    assert new is not None and (new.compass, new.device_id) == (2, second.device_id)
