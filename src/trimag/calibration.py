@@ -24,7 +24,7 @@ import json
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -36,12 +36,137 @@ from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
 from .units import normalise_unit
 
-__all__ = ["FORMAT_VERSION", "UNCERTAINTY_FIELDS", "Calibration", "Uncertainty", "jsonable", "make_uncertainty"]
+__all__ = ["FORMAT_VERSION", "UNCERTAINTY_FIELDS", "Calibration", "SensorRecord", "Uncertainty", "jsonable",
+           "make_uncertainty"]
 
 FORMAT_VERSION = "1.0.0"
 _FORMAT_MAJOR = 1
 #: The format version of a calibration with regressor terms (a 1.x reader would ignore them: refused there).
 REGRESSORS_FORMAT_VERSION = "2.0.0"
+#: The minor version of a file with a sensor record (``"sensor"``): 1.1.0, or 2.1.0 with regressor terms. A 1.0
+#: reader ignores the record and applies the same correction (only the check of the sensor is lost), so the file
+#: stays in its major version; a file without the record is written exactly as before.
+SENSOR_MINOR_VERSION = 1
+
+
+def _format_version(regressors: Any, sensor: Any) -> str:
+    major = REGRESSORS_FORMAT_VERSION if regressors is not None else FORMAT_VERSION
+    return major if sensor is None else f"{major.split('.')[0]}.{SENSOR_MINOR_VERSION}.0"
+
+
+@dataclass(frozen=True)
+class SensorRecord:
+    """Which sensor a calibration belongs to: the ``"sensor"`` object of its file (docs/calibration-file.md).
+
+    Written by ``trimag fit`` (and ``batch``, ``live``) from what it read; ``evaluate``, ``apply``, ``live --replay``
+    and ``batch --prior`` read the same sensor by default and refuse a log whose compass is another device. Every
+    field is a plain JSON value; a field the source does not know is None.
+
+    Attributes
+    ----------
+    kind : str
+        ``"log"`` (one magnetometer of an autopilot, ROS or phone log), ``"table"`` (three columns of a data file) or
+        ``"stream"`` (a live source: standard input, a serial port, MAVLink).
+    unit : str
+        Unit of the readings the calibration takes (as :attr:`Calibration.units`).
+    source : str or None
+        The file's name (without its folder) the calibration was fitted to.
+    source_sha256 : str or None
+        SHA-256 of that file (None for a folder, e.g. a ROS 2 bag, or a stream).
+    format : str or None
+        ``"ArduPilot DataFlash"``, ``"MAVLink telemetry"``, ``"PX4 ULog"``, ... (a log), or the table's format
+        (``"csv"``, ``"mat"``, ``"npz"``, ``"parquet"``, ...).
+    compass : int or None
+        The log's compass number as the user gives it (``--sensor N``, ``export --instance N``), from 1: the
+        firmware slot + 1 (ArduPilot ``COMPASS_OFS2`` = 2; PX4 ``CAL_MAG1`` = 2).
+    name : str or None
+        The stream's name in the log (``"MAG[1]"``, ``"SCALED_IMU2"``, ``"sensor_mag[1]"``, ``"vehicle_magnetometer"``).
+    message : str or None
+        The log's message or topic of that stream (``"MAG"``, ``"SCALED_IMU2"``, ``"sensor_mag"``).
+    device_id : int or None
+        The firmware's device id (ArduPilot ``COMPASS_DEV_IDn``, PX4 ``CAL_MAGn_ID`` / ``sensor_mag.device_id``):
+        what identifies the physical compass across logs; None when the log does not say.
+    firmware : str or None
+        ``"ardupilot"`` or ``"px4"`` for an autopilot log, else None.
+    slot : int or None
+        The firmware's calibration slot, 0-based (ArduPilot compass index; PX4 ``n`` of ``CAL_MAGn_*``, the first
+        ``CAL_MAGn_ID`` holding the device id, as PX4 chooses it).
+    offset_parameters : tuple of str or None
+        The slot's offset parameters (``("COMPASS_OFS2_X", "COMPASS_OFS2_Y", "COMPASS_OFS2_Z")``,
+        ``("CAL_MAG1_XOFF", ...)``): the names the printout, the file and ``export`` use for this sensor.
+    stale_slots : tuple of int
+        Later PX4 slots that hold the same device id (stale duplicates the firmware never reads).
+    absent_parameters : tuple of str
+        The slot's (and the shared) firmware parameters the log's firmware lacks (``COMPASS_ORIENT2`` in an
+        ArduCopter 3.2 log): ``export`` does not write them.
+    columns : tuple of str or None
+        The x, y, z columns read (a table; for a log, the table trimag made of it: ``mag_x, mag_y, mag_z``).
+    variable : str or None
+        The variable of an NPZ or MAT file the columns came from.
+    """
+
+    kind: str
+    unit: str = "unknown"
+    source: str | None = None
+    source_sha256: str | None = None
+    format: str | None = None
+    compass: int | None = None
+    name: str | None = None
+    message: str | None = None
+    device_id: int | None = None
+    firmware: str | None = None
+    slot: int | None = None
+    offset_parameters: tuple[str, ...] | None = None
+    stale_slots: tuple[int, ...] = ()
+    absent_parameters: tuple[str, ...] = ()
+    columns: tuple[str, ...] | None = None
+    variable: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON types (every field, None where unknown)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> SensorRecord:
+        """Rebuild from :meth:`as_dict` (unknown keys, from a newer minor version, are ignored)."""
+        if not isinstance(data, Mapping) or not isinstance(data.get("kind"), str):
+            raise CalibrationFormatError('calibration file\'s "sensor" entry is not an object with a "kind"')
+        known = {f.name for f in fields(cls)}
+        values: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                continue
+            if key in ("offset_parameters", "columns") and value is not None:
+                value = tuple(str(v) for v in value)
+            elif key == "stale_slots":
+                value = tuple(int(v) for v in value or ())
+            elif key == "absent_parameters":
+                value = tuple(str(v) for v in value or ())
+            elif key in ("compass", "device_id", "slot") and value is not None:
+                value = int(value)
+            values[key] = value
+        return cls(**values)
+
+    def describe(self) -> str:
+        """One line for the user: ``compass 2 of ardusub_small.tlog (SCALED_IMU2, device id 1245450, ArduPilot
+        COMPASS_OFS2_X..Z), mG``; a table's: ``columns mag_x, mag_y, mag_z of lab.csv, uT``."""
+        where = f" of {self.source}" if self.source else ""
+        if self.kind == "log":
+            what = [x for x in (self.name, f"device id {self.device_id}" if self.device_id else None) if x]
+            if self.offset_parameters:
+                what.append(f"{self.offset_parameters[0][:-1]}X..Z" if self.firmware == "ardupilot" else
+                            f"{self.offset_parameters[0].rsplit('_', 1)[0]}_*")
+            number = f"compass {self.compass}" if self.compass is not None else "the magnetometer"
+            return f"{number}{where} ({', '.join(what)}), {self.unit}"
+        if self.kind == "table":
+            cols = f"columns {', '.join(self.columns)}" if self.columns else "the columns"
+            var = f" (variable {self.variable})" if self.variable else ""
+            return f"{cols}{var}{where}, {self.unit}"
+        return f"{self.format or 'a live stream'}{where}, {self.unit}"
 
 
 def file_major_version(data: Any, kind: str, current: str) -> int:
@@ -242,6 +367,9 @@ class Calibration:
         Regressor terms of the offset (docs/vehicle.md): ``names`` (m), ``means`` (m,), ``coefficients`` (m, 3)
         in ``units`` per regressor unit; :meth:`apply` subtracts ``sum_j k_j (u_j - mean_j)`` from the raw
         samples first. None: the offset is constant.
+    sensor : SensorRecord or None
+        The sensor the calibration belongs to (:class:`SensorRecord`); None when not known (a calibration built
+        from arrays, or a file written before the record existed).
     """
 
     matrix: NDArray[np.float64]
@@ -258,6 +386,7 @@ class Calibration:
     trimag_version: str = __version__
     format_version: str = FORMAT_VERSION
     regressors: Mapping[str, Any] | None = None
+    sensor: SensorRecord | None = None
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -276,9 +405,11 @@ class Calibration:
         diagnostics: Mapping[str, Any] | None = None,
         created: str | None = None,
         regressors: Mapping[str, Any] | None = None,
+        sensor: SensorRecord | None = None,
     ) -> Calibration:
         """Build a calibration from its correction matrix (3, 3) and offset (3,) in ``units``; ``regressors``:
-        the offset's regressor terms (see the class docstring), None for a constant offset."""
+        the offset's regressor terms (see the class docstring), None for a constant offset; ``sensor``: the sensor
+        it belongs to."""
         m = _frozen_array(matrix, (3, 3), "matrix")
         if abs(np.linalg.det(m)) < 1e-300 or np.linalg.cond(m) > 1e12:
             raise TrimagInputError("`matrix` is singular: a calibration must be invertible")
@@ -295,7 +426,8 @@ class Calibration:
             diagnostics=dict(diagnostics or {}),
             created=created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             regressors=None if regressors is None else check_regressor_terms(regressors),
-            format_version=FORMAT_VERSION if regressors is None else REGRESSORS_FORMAT_VERSION,
+            format_version=_format_version(regressors, sensor),
+            sensor=sensor,
         )
 
     @classmethod
@@ -414,7 +546,8 @@ class Calibration:
         matrix = self.matrix @ other.matrix
         offset = other.offset + np.linalg.solve(other.matrix, self.offset)
         return Calibration.from_matrix_offset(
-            matrix, offset, units=other.units, model="affine", method=f"{self.method} * {other.method}"
+            matrix, offset, units=other.units, model="affine", method=f"{self.method} * {other.method}",
+            sensor=other.sensor,
         )
 
     def approx_equal(self, other: Calibration, atol: float = 1e-9) -> bool:
@@ -442,10 +575,15 @@ class Calibration:
         """A copy with ``entries`` merged into :attr:`stats`."""
         return replace(self, stats={**self.stats, **entries})
 
+    def with_sensor(self, sensor: SensorRecord | None) -> Calibration:
+        """A copy that belongs to ``sensor`` (:class:`SensorRecord`; None: to no known sensor)."""
+        return replace(self, sensor=sensor, format_version=_format_version(self.regressors, sensor))
+
     # ------------------------------------------------------------------ export
     def as_dict(self) -> dict[str, Any]:
         """All content as plain JSON types (the file format; see ``docs/calibration-file.md``). A calibration
-        without regressor terms has no ``regressors`` key (format 1.0.0, as before they existed)."""
+        without regressor terms has no ``regressors`` key (format 1.0.0, as before they existed), one without a
+        sensor record no ``sensor`` key."""
         out = jsonable(
             {
                 "format": "trimag-calibration",
@@ -471,6 +609,9 @@ class Calibration:
             out["format_version"] = REGRESSORS_FORMAT_VERSION
             out["convention"] = "B_corrected = matrix @ (B_raw - offset - sum_j k_j (u_j - mean_j))"
             out["regressors"] = jsonable(dict(self.regressors))
+        if self.sensor is not None:
+            out["sensor"] = jsonable(self.sensor.as_dict())
+        out["format_version"] = _format_version(self.regressors, self.sensor)
         return dict(out)
 
     def to_json(self, indent: int | None = 2) -> str:
@@ -524,8 +665,9 @@ class Calibration:
                 diagnostics=dict(data.get("diagnostics") or {}),
                 created=str(data.get("created", "")),
                 trimag_version=str(data.get("trimag_version", "")),
-                format_version=FORMAT_VERSION if terms is None else REGRESSORS_FORMAT_VERSION,
+                format_version=_format_version(terms, data.get("sensor")),
                 regressors=None if terms is None else check_regressor_terms(terms),
+                sensor=None if data.get("sensor") is None else SensorRecord.from_dict(data["sensor"]),
             )
         except KeyError as exc:
             raise CalibrationFormatError(f"calibration file lacks the entry {exc.args[0]!r}") from None

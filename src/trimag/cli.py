@@ -124,6 +124,13 @@ def _say(msg: str, args: argparse.Namespace) -> None:
         stream.write(_as_flags(msg) + "\n")
 
 
+def _say_sensor(result: dict[str, Any], args: argparse.Namespace) -> None:
+    """The sensor a command read for its calibration (``sensor: ...``; a warning when it is another compass's)."""
+    line = result.get("sensor")
+    if line:
+        _err(line) if line.startswith("warning:") else _say(line, args)
+
+
 def _add_data_options(p: argparse.ArgumentParser, *, selection: bool = True) -> None:
     g = p.add_argument_group("data")
     g.add_argument("--format", dest="fmt",
@@ -754,6 +761,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
                               "one row); their compensated cells are empty")
 
     result = _with_progress(args, apply_to_file, req)
+    _say_sensor(result, args)
     if result["column_note"]:
         _say(result["column_note"], args)
     return _print_applied(result, args, "corrected", result["units"], "had missing or non-numeric x/y/z; they are "
@@ -824,6 +832,7 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .app import evaluate_file
 
     r = _with_progress(args, evaluate_file, req)
+    _say_sensor(r, args)
     if r["n_dropped"]:
         column = req.reference.reference_column
         what = " or ".join(["x/y/z"] + (["regressor values"] if r.get("regressors") else [])
@@ -852,6 +861,7 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     from .app import evaluate_vector_file
 
     v = evaluate_vector_file(req)
+    _say_sensor(v, args)
     for warning in v["warnings"]:
         _err(f"warning: {warning}")
     if args.json:
@@ -876,6 +886,7 @@ def _cmd_evaluate_heading(req: EvaluateRequest, args: argparse.Namespace) -> int
         raise TrimagInputError("--heading-column and --declination need --accel-columns AX,AY,AZ (the heading is "
                                "tilt-compensated with the accelerometer)")
     h = evaluate_heading_file(req)
+    _say_sensor(h, args)
     if h["alignment"] == "none":
         _err("warning: the calibration has no alignment (fit with --accel-columns): the magnetometer's axes are "
              "taken as the accelerometer's")

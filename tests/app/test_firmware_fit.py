@@ -139,7 +139,8 @@ def test_a_flight_that_mostly_yawed_gives_offsets_and_the_current_term_instead_o
     fw = summary["firmware"]
     assert fw["motor_type"] == "current" and fw["orientation"] == 6
     assert fw["rms_after"] < 0.2 * fw["rms_before"]  # the matrix held at the log's (identity): offsets absorb the rest
-    assert "COMPASS_DIA_X" in fw["held"] or any("not identified" in k for k in fw["held"])  # and says what it held
+    # and says what it held: keys are parameter names, the reason is the value (issue 39, item 4)
+    assert "COMPASS_DIA_X" in fw["held"] or any("not identified" in h["why"] for h in fw["held"].values())
     assert "EKF-GSF" in r.stderr and "independent of the compass" in r.stderr  # the yaw source is named
     assert run_trimag("export", cal, "--to", "ardupilot", "-o", tmp_path / "c.param").returncode == 0
 

@@ -53,6 +53,14 @@ def _log_firmware(log_info: dict[str, Any] | None) -> str | None:
     return None
 
 
+def _instance(target: str, log_info: dict[str, Any] | None) -> int:
+    """The 0-based instance whose parameter names the fit uses: the log's compass of ``target``'s firmware (its
+    slot), else 0 (a table, or another firmware's log: ``export --instance`` names it later)."""
+    if log_info is None or _log_firmware(log_info) != target:
+        return 0
+    return int(log_info.get("instance") or 0)
+
+
 def _held(target: str, log_info: dict[str, Any] | None) -> tuple[FirmwareCompass | None, int | None, bool,
                                                                   float | None, list[str]]:
     """``(held, applied orientation, external, offsets_max, messages)`` from a log of ``target``'s firmware."""
@@ -361,7 +369,8 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
                        level=req.level or "auto", motor=named[0],
-                       offsets_max=offsets_max, heading_free=tilt, absent=absent)
+                       offsets_max=offsets_max, heading_free=tilt, absent=absent,
+                       instance=_instance(target, info))
     messages += [m for m in fit.messages if not m.startswith("warning:")]
     kind = fit.compass.motor_type
     channel = columns.get(kind) if kind else None
@@ -371,7 +380,8 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
                                input_orientation=applied)
     messages.append(f"{target} levels ({fit.residual_kind} residual; held-out RMS over {5} contiguous folds):\n"
                     + level_table(fit.table, klass.unit))
-    held_names = ", ".join(f"{k} = {v:.4g}" for k, v in fit.held.items()) or "nothing"
+    held_names = "; ".join(f"{k} = {h['value']:.4g}" + (f" ({h['why']})" if "not identified" in h["why"] else "")
+                           for k, h in fit.held.items()) or "nothing"
     messages.append(f"level {fit.level}: held {held_names}; orientation {fit.orientation['decision']}: "
                     f"{fit.compass.rotation_name} ({fit.compass.orientation}); field RMS {fit.rms_before:.4g} -> "
                     f"{fit.rms_after:.4g} {klass.unit}")

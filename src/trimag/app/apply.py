@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..io import apply_file
+from ._sensor import input_for, sensor_line
 from .requests import ApplyRequest, as_request
 
 __all__ = ["apply_to_file"]
@@ -33,24 +34,26 @@ def apply_to_file(
     cal = Calibration.from_file(req.calibration)
     if src.units is not None:
         cal.check_units(src.units)
+    src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
     if spec:  # eddy-current terms: the derivative of the samples themselves, streamed (trimag.vehicle.eddy)
         from ..vehicle.eddy import streamed_calibrate
 
         calibrate, names = streamed_calibrate(cal, spec, src.path, fmt=src.fmt, columns=src.columns, var=src.var,
-                                              chunk_rows=req.chunk_rows, sensor=src.sensor)
+                                              chunk_rows=req.chunk_rows, sensor=sensor)
     else:
         def calibrate(xyz: NDArray[np.float64], *u: NDArray[np.float64]) -> NDArray[np.float64]:
             return cal.apply(xyz, regressors=u[0] if u else None)
 
     def write(out: str | Path) -> dict[str, Any]:
         return apply_file(calibrate, src.path, out, fmt=src.fmt, columns=src.columns, var=src.var,
-                          chunk_rows=req.chunk_rows, progress=progress, regressor_columns=names, sensor=src.sensor,
+                          chunk_rows=req.chunk_rows, progress=progress, regressor_columns=names, sensor=sensor,
                           strict=src.strict)
 
     result = _to_standard_output(write) if str(req.out) == "-" else write(req.out)
     result["units"] = cal.units
+    result["sensor"] = sensor_line(cal, req.input, result.pop("log_info", None), result.get("columns"))
     return result
 
 

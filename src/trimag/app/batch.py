@@ -43,7 +43,7 @@ __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs
 #: Columns of the summary table, in order.
 SUMMARY_COLUMNS = (
     "file", "n", "n_used", "rms_before", "rms_after", "units", "converged", "warnings", "error", "error_type",
-    "calibration", "seconds", "accepted", "rejected_by",
+    "calibration", "seconds", "accepted", "rejected_by", "sensor",
 )
 
 
@@ -57,7 +57,8 @@ class BatchResult:
         One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit, which ``units``
         says; empty when the file failed; ``error`` holds the message, ``error_type`` ``"input"``,
         ``"identifiability"`` or ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a
-        policy, and ``rejected_by`` the rules that failed, as ``trimag fit --policy`` gives them).
+        policy, and ``rejected_by`` the rules that failed, as ``trimag fit --policy`` gives them; ``sensor`` the
+        sensor each calibration belongs to, :meth:`SensorRecord.describe <trimag.calibration.SensorRecord.describe>`).
     written : dict
         ``{"summary_csv": path, "summary_parquet": path}`` (``summary_parquet`` only when pyarrow, the
         ``parquet`` extra, is installed).
@@ -232,6 +233,8 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
             rms_after=s.get("rms_after"), units=s.get("units"), converged=bool(s.get("converged")),
             warnings="; ".join(s.get("warnings") or []), calibration=out,
         )
+        record = getattr(getattr(result, "calibration", None), "sensor", None)
+        row["sensor"] = record.describe() if record is not None else ""
         verdict = s.get("acceptance")
         if verdict is not None:
             from ..vehicle.policy import failed_rules
@@ -253,7 +256,7 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     df["rms_after"] = pd.to_numeric(df["rms_after"]).astype("float64")
     df["converged"] = df["converged"].astype("boolean")
     df["accepted"] = df["accepted"].astype("boolean")
-    for col in ("file", "units", "warnings", "error", "error_type", "calibration", "rejected_by"):
+    for col in ("file", "units", "warnings", "error", "error_type", "calibration", "rejected_by", "sensor"):
         df[col] = df[col].astype("string")
     df["seconds"] = df["seconds"].astype("float64")
     return df

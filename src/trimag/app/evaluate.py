@@ -17,6 +17,7 @@ from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
 from ..units import convert, normalise_unit
 from ._inputs import refuse_background_vector
+from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
 
 __all__ = ["evaluate_file"]
@@ -40,8 +41,10 @@ def evaluate_file(
     if src.units is not None:
         cal.check_units(unit)
     F, source = _reference_value(req, unit)
+    src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
-                                  sensor=src.sensor)
+                                  sensor=sensor)
+    sensor_read = sensor_line(cal, req.input, columns.log_info, columns.columns)
     rows = _parse_rows(src.rows)
     regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None
@@ -98,7 +101,8 @@ def evaluate_file(
         _against_fitted_reference(cal, after, before)
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
-        "units": cal.units, "columns": list(columns.columns), "n_samples": n_rows, "n_used": after.n,
+        "sensor": sensor_read, "units": cal.units,
+        "columns": list(columns.columns), "n_samples": n_rows, "n_used": after.n,
         "n_dropped": n_bad, "selection": "; ".join(x for x in selection if x), "regressors": list(regressor_names),
         "reference": {"value": F_used, "source": source, "unit": cal.units},
         "rms_before": stats_before["rms"], "rms_after": stats_after["rms"],

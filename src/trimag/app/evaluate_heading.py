@@ -16,6 +16,7 @@ from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples, read_samples
 from ..io.tables import strict_refusal
 from ._inputs import calibration_regressors
+from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
 
 __all__ = ["evaluate_heading_file"]
@@ -53,8 +54,10 @@ def evaluate_heading_file(
         raise TrimagInputError("a heading evaluation needs exactly one reference: `heading_column=H` (degrees "
                                "clockwise from true north) or `attitude_columns=yaw,pitch,roll`")
     decl, decl_source = _declination(req)
+    src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
-                           strict=src.strict, sensor=src.sensor)
+                           strict=src.strict, sensor=sensor)
+    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns)
     reference, accel = _reference_and_accel(req, samples)
     u = None
     if cal.regressors is not None:
@@ -78,6 +81,7 @@ def evaluate_heading_file(
     stats = heading_error_stats(heading, reference[ok])
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
+        "sensor": sensor_read,
         "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
         "n_used": int(ok.sum()), "n_dropped": samples.n_dropped + int((~ok).sum()),
         "accel_columns": req.accel_columns,

@@ -21,6 +21,7 @@ from ._inputs import (
     drop_rows_without_attitude,
     drop_rows_without_background,
 )
+from ._sensor import input_for, sensor_line
 from ._timesync import attach_attitude_file
 from .evaluate import worse_than_raw_warning
 from .requests import AttitudeSpec, EvaluateRequest, as_request
@@ -52,8 +53,10 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         req = dataclasses.replace(req, position_columns=gradient.get("position_columns"))  # the fitted columns
     if src.units is not None:
         cal.check_units(src.units)
+    src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
-                           strict=src.strict, sensor=src.sensor)
+                           strict=src.strict, sensor=sensor)
+    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns)
     samples, att, lag = _attitudes(req, samples, cal)
     samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns, strict=src.strict)
     samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns,
@@ -70,6 +73,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     attitude_file = req.attitude.attitude_file
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
+        "sensor": sensor_read,
         "units": cal.units, "columns": list(samples.columns), "n_samples": samples.n_rows,
         "n_used": len(raw), "n_dropped": samples.n_dropped,  # the attitude and background drops included
         "background": {"ned": (background.mean(axis=0) if background.ndim == 2 else background).tolist(),

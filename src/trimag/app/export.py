@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from ..calibration import Calibration
@@ -30,6 +31,9 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     if req.instance is not None and not 1 <= req.instance <= 8:  # counted from 1, as the firmware's names do
         raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
                                f"{req.instance}")
+    if str(req.out) != "-" and Path(req.out).exists() and Path(req.out).resolve() == Path(req.calibration).resolve():
+        raise TrimagInputError(f"-o {req.out} is the calibration being exported: writing it would destroy it; give "
+                               "another output file")
     cal = _read_calibration(req.calibration, req.target)
     instance, note = _instance(cal, req.instance)
     exp = export_calibration(cal, req.target, instance=instance - 1)
@@ -47,9 +51,11 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
 
 
 def _instance(cal: Calibration, given: int | None) -> tuple[int, list[str]]:
-    """The compass number to write: ``given``, else the compass of the log the calibration was fitted to (recorded
-    by fit as ``diagnostics.log_compass``), else 1; a given number that differs from the fitted compass is said."""
-    fitted = (cal.diagnostics.get("log_compass") or {}).get("compass")
+    """The compass number to write: ``given``, else the compass of the log the calibration was fitted to (its
+    sensor record, ``sensor.compass``; ``diagnostics.log_compass`` in a file of an earlier trimag), else 1; a given
+    number that differs from the fitted compass is said."""
+    fitted = cal.sensor.compass if cal.sensor is not None and cal.sensor.kind == "log" else \
+        (cal.diagnostics.get("log_compass") or {}).get("compass")
     fitted = int(fitted) if isinstance(fitted, int | float) and 1 <= int(fitted) <= 8 else None
     if given is None:
         return fitted or 1, []
@@ -61,8 +67,6 @@ def _instance(cal: Calibration, given: int | None) -> tuple[int, list[str]]:
 def _read_calibration(path: Any, target: str) -> Calibration:
     """The calibration file ``path``; a log or a data file given instead is refused saying which command makes a
     calibration (a newcomer's ``trimag export flight.bin`` said "not UTF-8 text")."""
-    from pathlib import Path
-
     from ..io.logs import log_format
 
     make = (f"make one with `trimag fit {path} -o cal.json`, then `trimag export cal.json --to {target} -o FILE`")

@@ -45,6 +45,7 @@ from ._large import MODE_OPTIONS, fit_fixed_heading_file, fit_level_turn_file, l
 from ._log_advice import log_refusal
 from ._outputs import write_fit_outputs
 from ._recalibrate import prior_units, refit_prior
+from ._sensor import input_for, sensor_record
 from ._timesync import attach_attitude_file
 from .requests import FitRequest, as_request
 
@@ -139,9 +140,11 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     method = "gyro" if named_gyro and req.method is None and req.model == "ellipsoid" else req.method
     estimator = make_estimator(req.model, method, {k: v for k, v in options.items()
                                                    if not (_phone_export(req) and k in _GYRO_OPTIONS)})
-    src = req.input
+    src, sensor = req.input, req.input.sensor
+    if req.prior is not None:  # a quick recalibration reads the prior's sensor by default (issue 39)
+        src, sensor = input_for(Calibration.from_file(req.prior), src)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
-                           strict=src.strict, sensor=src.sensor)
+                           strict=src.strict, sensor=sensor)
     estimator, gyro_messages = _gyro_estimator(req, samples, estimator, options)
     try:
         return _fit_samples(req, samples, estimator, limits, regressor_names, eddy_terms, sync_options,
@@ -300,8 +303,8 @@ def _finish(
     acceptance (``limits``) recorded in the calibration; ``(calibration, summary, messages)``. ``quick``: a quick
     recalibration (no predicted heading error)."""
     messages: list[str] = []
-    if samples.log_info is not None and samples.log_info.get("compass") is not None:  # export's default instance
-        cal = cal.with_diagnostics(log_compass=log_compass_record(samples.log_info))
+    # the sensor it belongs to: what evaluate, apply, export (its default instance), live and batch read
+    cal = cal.with_sensor(sensor_record(samples, req.input, cal.units))
     if sync is not None:
         cal = cal.with_diagnostics(time_sync=sync)
     if cal.method == "gyro" and "gyro_alignment" in cal.diagnostics:
@@ -338,18 +341,6 @@ def _finish(
             and req.model == "ellipsoid" and req.target is None):
         messages.append(_heading_message(cal, igrf_spec, summary))
     return cal, summary, messages
-
-
-def log_compass_record(log_info: dict[str, Any]) -> dict[str, Any]:
-    """What a calibration records of the log's compass it was fitted to (``diagnostics["log_compass"]``): its number
-    (from 1, export's default instance), the log's name for it, the log's format and, where the log gives it, the
-    device id (QGroundControl's file sets ``CAL_MAGn_ID`` from it)."""
-    record: dict[str, Any] = {"compass": int(log_info["compass"]), "name": str(log_info.get("sensor")),
-                              "format": str(log_info.get("format"))}
-    dev = log_info.get("device_id")
-    if isinstance(dev, int | float) and not isinstance(dev, bool) and dev > 0:
-        record["device_id"] = int(dev)
-    return record
 
 
 def _eddy_terms(req: FitRequest, options: dict[str, Any]) -> int | None:

@@ -268,6 +268,8 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
             raise TrimagInputError(f"{target} cannot load this calibration (nothing written): "
                                    + "; ".join(str(v) for v in bad))
         p = _present(compass.parameters(instance), cal, target)
+        p, dropped = _without_absent(p, cal, target, instance, compass)
+        more = [*more, *dropped]
         if not write_orientation:
             p = {k: v for k, v in p.items() if not k.endswith(("ORIENT", "_ROT")) and "ORIENT" not in k}
         elif _internal(cal):
@@ -297,9 +299,13 @@ _MAV_PARAM_TYPE_INT32, _MAV_PARAM_TYPE_REAL32 = 6, 9
 
 
 def device_id(cal: Calibration) -> int | None:
-    """The device id of the log's magnetometer ``cal`` was fitted to (``diagnostics["log_compass"]``), or None."""
-    record = cal.diagnostics.get("log_compass")
-    value = record.get("device_id") if isinstance(record, dict) else None
+    """The device id of the log's magnetometer ``cal`` was fitted to (its sensor record; ``diagnostics["log_compass"]``
+    in a file of an earlier trimag), or None."""
+    if cal.sensor is not None and cal.sensor.device_id is not None:
+        value: Any = cal.sensor.device_id
+    else:
+        record = cal.diagnostics.get("log_compass")
+        value = record.get("device_id") if isinstance(record, dict) else None
     return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and value > 0 else None
 
 
@@ -337,6 +343,38 @@ def _present(p: dict[str, float], cal: Calibration, target: str) -> dict[str, fl
     fw = cal.diagnostics.get("firmware")
     absent = fw.get("absent") if isinstance(fw, dict) and fw.get("target") == target else None
     return without_features(target, p, absent) if absent else p
+
+
+#: The value of each kind of parameter that changes nothing (a firmware without the parameter behaves so).
+_NEUTRAL = ((re.compile(r"COMPASS_DIA\d?_|CAL_MAG\d_[XYZ]SCALE"), 1.0),
+            (re.compile(r"COMPASS_(ODI|MOT)\d?_|CAL_MAG\d_[XYZ](ODIAG|COMP)"), 0.0),
+            (re.compile(r"COMPASS_SCALE\d?$"), None))
+
+
+def _without_absent(p: dict[str, float], cal: Calibration, target: str, instance: int, compass: FirmwareCompass
+                    ) -> tuple[dict[str, float], list[str]]:
+    """``p`` without the parameters the log's firmware lacks for this compass (its sensor record's
+    ``absent_parameters``, when written as the same slot of the same firmware) and the note saying so; one that
+    would change the correction (a matrix, scale or motor value the firmware cannot load) is refused."""
+    record = cal.sensor
+    if record is None or record.firmware != target or record.slot != instance or not record.absent_parameters:
+        return p, []
+    gone = [k for k in record.absent_parameters if k in p]
+    if not gone:
+        return p, []
+    for name in gone:
+        for pattern, neutral in _NEUTRAL:
+            value = p[name]
+            if pattern.match(name) and not (value in (0.0, 1.0) if neutral is None else value == neutral):
+                raise TrimagInputError(
+                    f"the log's firmware has no {name} (not among its parameters), and this calibration needs "
+                    f"{name} = {value:.6g}: it cannot load it; fit with --target {target} (which fits only what the "
+                    "firmware has) or update the firmware")
+    kept = {k: v for k, v in p.items() if k not in gone}
+    orient = [k for k in gone if "ORIENT" in k or k.endswith("_ROT")]
+    why = (f" (its orientation stays the firmware's own; fitted: {compass.rotation_name}, {compass.orientation})"
+           if orient else "")
+    return kept, [f"not written: {', '.join(gone)}: the log's firmware has no such parameter{why}"]
 
 
 def _internal(cal: Calibration) -> bool:

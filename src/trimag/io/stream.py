@@ -39,6 +39,8 @@ from .tables import _numeric, check_sensor, detect_csv_layout, detect_format, gu
 if TYPE_CHECKING:
     import pyarrow as pa
 
+    from .logs.base import SensorChoice
+
 __all__ = ["Chunk", "ChunkSource", "MagnitudeAccumulator", "apply_file", "iter_chunks", "open_chunks"]
 
 
@@ -112,6 +114,8 @@ class ChunkSource:
     raw_path: Path | None = None
     skip: int = 0
     n_fields: int = 0
+    #: an autopilot log: what it told of the magnetometer read (``Samples.log_info``), else None
+    log_info: dict[str, Any] | None = None
 
 
 def _parse_rows(rows: str | None) -> tuple[int, int | None]:
@@ -191,7 +195,7 @@ def open_chunks(
     columns: str | None = None,
     var: str | None = None,
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
-    sensor: str | int | None = None,
+    sensor: SensorChoice = None,
 ) -> tuple[ChunkSource, Iterator[Chunk]]:
     """Inspect ``path`` and return its description and an iterator over :class:`Chunk` s of ``chunk_rows`` rows
     (the last one shorter); ``sensor``: which magnetometer of an autopilot log (refused for other files)."""
@@ -212,7 +216,7 @@ def open_chunks(
         return _open_parquet(p, str(path), columns, chunk_rows)
     df = read_table(p, fmt=kind, var=var, sensor=sensor)
     cols, note = resolve_columns(df, columns, str(path))
-    source = ChunkSource(kind, cols, note, all_columns=list(df.columns))
+    source = ChunkSource(kind, cols, note, all_columns=list(df.columns), log_info=df.attrs.get("trimag_log"))
     return source, iter([Chunk(df, np.column_stack([_numeric(df[c]) for c in cols]), 0)])
 
 
@@ -366,7 +370,7 @@ def apply_file(
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
     progress: Callable[[int], None] | None = None,
     regressor_columns: Sequence[str] = (),
-    sensor: str | int | None = None,
+    sensor: SensorChoice = None,
     strict: bool = False,
 ) -> dict[str, Any]:
     """Correct every row of ``in_path`` and write all input columns plus the corrected x, y, z to ``out_path``.
@@ -414,6 +418,7 @@ def apply_file(
         "column_note": source.column_note,
         "output_columns": new_cols,
         "out": str(out),
+        "log_info": source.log_info,
     }
 
 

@@ -15,7 +15,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -24,6 +24,9 @@ from numpy.typing import NDArray
 from .._core.extras import available, require
 from .._core.rowwise import count_duplicate_rows
 from ..errors import TrimagInputError
+
+if TYPE_CHECKING:
+    from .logs.base import SensorChoice
 
 __all__ = [
     "FORMATS",
@@ -535,7 +538,7 @@ def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
     return _array_table(candidates[name], name, path)
 
 
-def _read_vehicle_log(p: Path, kind: str, sensor: str | int | None) -> pd.DataFrame:
+def _read_vehicle_log(p: Path, kind: str, sensor: SensorChoice) -> pd.DataFrame:
     """An autopilot log as a table of one magnetometer with the other streams aligned (``io.logs``).
 
     ``df.attrs["trimag_log"]`` carries what the fit needs from the log: the unit, the magnetometer used, what was
@@ -575,7 +578,7 @@ def strict_refusal(where: str, n_bad: int, values: str, first: str) -> TrimagInp
                             "skip and count them")
 
 
-def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
+def check_sensor(kind: str, sensor: SensorChoice, path: str | Path) -> None:
     """Refuse a ``sensor`` for a file that is not an autopilot log (a table has one magnetometer: its columns)."""
     if sensor is not None and kind not in LOG_KINDS:
         raise TrimagInputError(
@@ -589,7 +592,7 @@ _LIVE_UNIT = re.compile(r"^#\s*trimag live recording\b.*;\s*unit\s+(nT|uT|G|mG|c
 
 
 def read_table(
-    path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
+    path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: SensorChoice = None
 ) -> pd.DataFrame:
     """Read a whole log into a DataFrame (text cells stay strings; see :func:`read_samples`)."""
     p = Path(path)
@@ -802,7 +805,7 @@ def read_samples(
     rows: str | None = None,
     where: str | None = None,
     strict: bool = False,
-    sensor: str | int | None = None,
+    sensor: SensorChoice = None,
 ) -> Samples:
     """Read a magnetometer log and return its finite field samples with provenance.
 

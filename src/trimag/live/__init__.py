@@ -22,6 +22,7 @@ from types import TracebackType
 from typing import Any
 
 from ..app.requests import LiveRequest
+from ..calibration import SensorRecord
 from ..errors import TrimagInputError
 from ._checks import check_method, check_request, replay_units
 from .server import LiveServer
@@ -45,13 +46,14 @@ class LiveResult:
 
 def open_source(request: LiveRequest) -> tuple[Iterator[Batch], str]:
     """The batches of the request's source and a short description of it."""
-    batches, description, _, _ = _open(request)
+    batches, description, _, _, _ = _open(request)
     return batches, description
 
 
-def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[str]]:
+def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[str], SensorRecord]:
     """The batches, a description, the unit known before the first sample (``request.units``, or a replayed log's
-    checked one) and the messages of the unit check."""
+    checked one), the messages of the unit check (a replay's first: the sensor it reads) and the record of the
+    sensor (:class:`~trimag.calibration.SensorRecord`, its unit set when the session saves)."""
     kind = request.source
     columns = None if request.columns is None else [c.strip() for c in request.columns.split(",")]
     if kind == "replay":
@@ -64,21 +66,29 @@ def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[
         # read now: a missing file or a contradicting unit fails here, before the session starts
         samples = read_samples(request.replay, fmt=request.fmt, columns=request.columns, sensor=request.sensor)
         units, messages = replay_units(samples, request)
+        from ..app._sensor import sensor_record
+        from ..app.requests import InputSpec
+
+        record = sensor_record(samples, InputSpec(request.replay, fmt=request.fmt, columns=request.columns,
+                                                  sensor=request.sensor), units or "unknown")
         return (_play(samples.field, samples.n_dropped, units, rate, time.sleep),
                 f"replay of {request.replay} at {rate:g} samples/s" if rate else f"replay of {request.replay}",
-                units, messages)
+                units, [f"sensor: {record.describe()}", *messages], record)
     if kind == "stdin":
         import sys
 
-        return line_source(sys.stdin, columns=columns), "standard input", request.units, []
+        return (line_source(sys.stdin, columns=columns), "standard input", request.units, [],
+                SensorRecord("stream", format="standard input", columns=None if columns is None else tuple(columns)))
     if kind == "serial":
         assert request.serial is not None
         if request.baud <= 0:
             raise TrimagInputError(f"`baud` must be positive; got {request.baud}")
         return (serial_source(request.serial, request.baud, columns=columns), f"serial {request.serial}",
-                request.units, [])
+                request.units, [], SensorRecord("stream", format=f"serial {request.serial}",
+                                                columns=None if columns is None else tuple(columns)))
     assert request.mavlink is not None
-    return mavlink_source(request.mavlink), f"MAVLink {request.mavlink}", request.units, []
+    return (mavlink_source(request.mavlink), f"MAVLink {request.mavlink}", request.units, [],
+            SensorRecord("stream", format=f"MAVLink {request.mavlink}"))
 
 
 #: The signals that stop a session (and save it), and the reason each gives.
@@ -132,11 +142,11 @@ def run_live(request: LiveRequest, say: Callable[[str], None] = print, *,
     """
     check_request(request)
     check_method(request)  # an unknown model, or one live cannot feed, fails before serving
-    batches, description, units, messages = _open(request)
+    batches, description, units, messages, record = _open(request)
     for message in messages:
         say(message)
     session = LiveSession(model=request.model, method=request.method, units=units, reference=request.reference,
-                          options=request.options, interval=request.interval, source=description)
+                          options=request.options, interval=request.interval, source=description, sensor=record)
 
     def save() -> dict[str, str]:
         written = session.save(request.out, request.samples_out)

@@ -8,6 +8,7 @@ larger, never blocks the reader or the page. :meth:`LiveSession.status` returns 
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import threading
@@ -21,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..app._checks import check_fitted_field
-from ..calibration import Calibration
+from ..calibration import Calibration, SensorRecord
 from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, TrimagWarning
 from ..fitting import fit
 from ..io.atomic import atomic_write_text
@@ -129,8 +130,11 @@ class LiveSession:
 
     def __init__(self, *, model: str = "ellipsoid", method: str | None = None, units: str | None = None,
                  reference: float | None = None, limits: Mapping[str, float] | None = None, interval: float = 0.25,
-                 options: Mapping[str, Any] | None = None, source: str = "") -> None:
+                 options: Mapping[str, Any] | None = None, source: str = "",
+                 sensor: SensorRecord | None = None) -> None:
         self.model, self.method, self.units = model, method, units
+        #: the sensor the samples come from, recorded in the saved calibration (its unit: the session's)
+        self.sensor = sensor
         self.reference, self.interval = reference, interval
         self.limits = dict(DEFAULT_LIMITS if limits is None else limits)
         self.options = dict(options or {})
@@ -444,6 +448,8 @@ class LiveSession:
                 cal = self.refit(B)
             if cal is not None:
                 cal = cal.with_stats(n_samples=len(B), n_dropped=garbage)
+                if self.sensor is not None:
+                    cal = cal.with_sensor(dataclasses.replace(self.sensor, unit=units))
                 written["calibration"] = str(cal.to_file(out))
             return written
 

@@ -48,6 +48,7 @@ from ..errors import TrimagInputError
 
 __all__ = [
     "ARDUPILOT_ROTATIONS",
+    "COMPLETE_PARAMETER_LIST",
     "FEATURE_NAMES",
     "FIRMWARE_FEATURES",
     "FIRMWARE_TARGETS",
@@ -58,9 +59,11 @@ __all__ = [
     "PX4Magnetometer",
     "Violation",
     "absent_features",
+    "absent_parameters",
     "compass_from_affine",
     "euler_matrix",
     "firmware_class",
+    "instance_names",
     "nearest_rotation",
     "rotation_matrix",
     "without_features",
@@ -133,6 +136,61 @@ def absent_features(target: str, params: Mapping[str, float]) -> tuple[str, ...]
     if offsets not in params:
         return ()
     return tuple(feature for feature, name in features.items() if name not in params)
+
+
+_FIRST_INSTANCE = {
+    "ardupilot": (re.compile(r"\bCOMPASS_(OFS|DIA|ODI|MOT)_"), re.compile(r"\bCOMPASS_(SCALE|ORIENT)\b")),
+    "px4": (re.compile(r"\bCAL_MAG0_"), None),
+}
+
+
+def instance_names(target: str, obj: Any, instance: int) -> Any:
+    """``obj`` (a parameter name, a text, or dicts and lists of them, keys included) with the first compass's
+    parameter names of ``target`` (``COMPASS_OFS_X``, ``COMPASS_SCALE``, ``COMPASS_ORIENT``; ``CAL_MAG0_XOFF``)
+    written as compass ``instance``'s (0-based: ``COMPASS_OFS2_X``, ``COMPASS_SCALE2``; ``CAL_MAG1_XOFF``), the
+    names the firmware loads for it; the parameters every compass shares (``COMPASS_MOTCT``, ``CAL_MAG_COMP_TYP``)
+    are unchanged.
+
+    Examples
+    --------
+    >>> instance_names("ardupilot", {"COMPASS_OFS_X": 1.0, "COMPASS_MOTCT": 2.0}, 1)
+    {'COMPASS_OFS2_X': 1.0, 'COMPASS_MOTCT': 2.0}
+    >>> instance_names("px4", "CAL_MAG0_XOFF held", 2)
+    'CAL_MAG2_XOFF held'
+    """
+    if instance == 0 or target not in _FIRST_INSTANCE:
+        return obj
+    if isinstance(obj, str):
+        matrix, single = _FIRST_INSTANCE[target]
+        if target == "ardupilot":
+            n = str(instance + 1)
+            text = matrix.sub(lambda m: f"COMPASS_{m.group(1)}{n}_", obj)
+            return single.sub(lambda m: f"COMPASS_{m.group(1)}{n}", text) if single is not None else text
+        return matrix.sub(f"CAL_MAG{instance}_", obj)
+    if isinstance(obj, Mapping):
+        return {instance_names(target, k, instance): instance_names(target, v, instance) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(instance_names(target, v, instance) for v in obj)
+    return obj
+
+
+#: A log's parameter list is taken as the firmware's whole list from this many parameters on (ArduPilot and PX4
+#: have several hundred; a telemetry log may hold only the few a ground station asked for).
+COMPLETE_PARAMETER_LIST = 200
+
+
+def absent_parameters(target: str, params: Mapping[str, float], instance: int) -> tuple[str, ...]:
+    """The parameters of compass ``instance`` (0-based; and those every compass shares) that a log's firmware lacks:
+    its parameter list (``params``, which holds every parameter the firmware has) has the instance's offsets but not
+    them (an ArduCopter 3.2 log has ``COMPASS_OFS2_X`` but no ``COMPASS_ORIENT2``, ``COMPASS_DIA2_X`` or
+    ``COMPASS_SCALE2``). A list without the instance's offsets, or shorter than :data:`COMPLETE_PARAMETER_LIST` (a
+    telemetry log that received part of the list), says nothing (empty)."""
+    klass = firmware_class(target)
+    names = klass(motor_type="current").parameters(instance)
+    offsets = list(names)[:3]  # every firmware has them
+    if len(params) < COMPLETE_PARAMETER_LIST or not all(n in params for n in offsets):
+        return ()
+    return tuple(name for name in names if name not in params and name not in offsets)
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> NDArray[np.float64]:

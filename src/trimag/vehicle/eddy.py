@@ -228,7 +228,7 @@ def fit_values(
 
 def streamed_calibrate(
     cal: Any, spec: Mapping[str, Any], data_path: Any, *, fmt: str | None, columns: str | None, var: str | None,
-    chunk_rows: int, sensor: str | int | None = None,
+    chunk_rows: int, sensor: Any = None,
 ) -> tuple[Any, tuple[str, ...]]:
     """The streamed correction (:func:`trimag.io.apply_file`) of a calibration with eddy-current terms:
     ``(calibrate, the columns it reads)``.

@@ -60,6 +60,7 @@ from ..models.firmware import (
     ArduPilotCompass,
     FirmwareCompass,
     firmware_class,
+    instance_names,
     rotation_matrix,
 )
 from ..quality.honesty import correlation_time, count_repeated_rows
@@ -116,11 +117,14 @@ class FirmwareFit:
         One row per level tried: ``level``, ``motor``, ``n_params``, ``rms``, ``heldout_rms``, ``identified``,
         ``within_limits``, ``at_limit`` (parameter names), ``chosen``, ``note``.
     param_std : dict
-        Standard deviation of each fitted firmware parameter (its name at instance 0), firmware unit.
+        Standard deviation of each fitted firmware parameter (by the compass's own name: ``instance``), firmware
+        unit.
     covariance, covariance_order
         The fitted parameters' covariance.
     held : dict
-        Parameters held at the firmware's values (name -> value).
+        The parameters the level did not fit on their own: name -> ``{"value": v, "why": text}`` (keys are the
+        firmware's parameter names; ``why``: held at the log's value, no motor term at this level, or not identified
+        alone and moved only with the identified directions).
     orientation : dict
         How the orientation was decided (``kept``/``chosen``, ``candidates``, ``remaining_angle_deg``, ...).
     residual_kind : str
@@ -142,7 +146,7 @@ class FirmwareFit:
     param_std: dict[str, float]
     covariance: NDArray[np.float64]
     covariance_order: list[str]
-    held: dict[str, float]
+    held: dict[str, dict[str, Any]]
     orientation: dict[str, Any]
     residual_kind: str
     rms_before: float
@@ -160,6 +164,8 @@ class FirmwareFit:
     absent: tuple[str, ...] = ()
     #: the heading check of a heading-free fit (:func:`trimag.vehicle._firmware_heading.heading_check`)
     heading: dict[str, Any] | None = None
+    #: the compass's 0-based instance: every parameter name above is its own (``COMPASS_OFS2_X``, ``CAL_MAG1_XOFF``)
+    instance: int = 0
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -565,7 +571,7 @@ def fit_firmware(
     motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,
     applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
     tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
-    heading_free: ArrayLike | None = None, absent: Collection[str] = (),
+    heading_free: ArrayLike | None = None, absent: Collection[str] = (), instance: int = 0,
 ) -> FirmwareFit:
     """Fit ``target``'s parameters (see the module docstring).
 
@@ -597,6 +603,11 @@ def fit_firmware(
         for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
         chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
         reported.
+    absent : collection of str
+        The parts of the firmware's calibration the log's firmware lacks (:data:`FIRMWARE_FEATURES`): never fitted.
+    instance : int
+        The compass's 0-based instance: the result names its parameters as the firmware does for it
+        (``COMPASS_OFS2_X``, ``CAL_MAG1_XOFF``; :func:`trimag.models.firmware.instance_names`).
 
     Raises
     ------
@@ -683,7 +694,16 @@ def fit_firmware(
                   tilt)
     fit.halves, fit.heading = halves, heading
     fit.absent = tuple(absent)
-    return fit
+    return _named(fit, target, instance)
+
+
+def _named(fit: FirmwareFit, target: str, instance: int) -> FirmwareFit:
+    """``fit`` with every parameter name (keys, lists, texts) the compass's own (``instance``, 0-based)."""
+    if instance == 0:
+        return fit
+    renamed = {name: instance_names(target, getattr(fit, name), instance) for name in
+               ("table", "param_std", "covariance_order", "held", "orientation", "messages", "halves", "heading")}
+    return dataclasses.replace(fit, **renamed, instance=instance)
 
 
 _NEEDS = {("ardupilot", "scale"): "scale", ("ardupilot", "diagonal"): "matrix", ("ardupilot", "full"): "matrix",
@@ -903,17 +923,23 @@ def _adds(c: _Candidate) -> bool:
 
 
 def _held_names(klass: type[FirmwareCompass], level: str, held: FirmwareCompass, motor: str | None,
-                held_motor: bool) -> dict[str, float]:
-    """The parameters the level held at the firmware's values (name at instance 0 -> value)."""
+                held_motor: bool) -> dict[str, dict[str, Any]]:
+    """The parameters the level held (instance 0 names -> ``{"value", "why"}``): the log's values of the parts the
+    level does not fit, and the motor term's (the log's, or zero without one at this level)."""
     params = held.parameters(0)
     keep = {"offsets": ["SCALE", "DIA", "ODI"], "scale": ["DIA", "ODI"], "diagonal": ["ODI"], "full": []}[level]
     if klass.target == "px4":
         keep = {"offsets": ["SCALE", "ODIAG"], "scale": ["ODIAG"], "diagonal": ["ODIAG"], "full": []}[level]
-    out = {k: v for k, v in params.items() if any(t in k for t in keep) and "_MOT" not in k and not k.endswith("COMP")}
+    why = f"held at the log's value (the {level} level does not fit it)"
+    out = {k: {"value": v, "why": why} for k, v in params.items()
+           if any(t in k for t in keep) and "_MOT" not in k and not k.endswith("COMP")}
     if held_motor:
-        out.update({k: v for k, v in params.items() if "_MOT" in k or k.endswith(("COMP", "COMP_TYP"))})
+        out.update({k: {"value": v, "why": "the log's motor term, held"} for k, v in params.items()
+                    if "_MOT" in k or k.endswith(("COMP", "COMP_TYP"))})
     elif motor is None:
-        out["motor term"] = 0.0
+        names = [f"COMPASS_MOT_{a}" for a in "XYZ"] if klass.target == "ardupilot" else \
+            [f"CAL_MAG0_{a}COMP" for a in "XYZ"]
+        out.update({k: {"value": 0.0, "why": "no motor term at this level"} for k in names})
     return out
 
 
@@ -974,8 +1000,8 @@ def _result(
     fitted = chosen.compass.parameters(0)
     for name in chosen.weak:  # the directions the data do not identify, held at the level below's values
         fw = _firmware_name(klass, name)
-        held_values[f"{fw} (not identified alone: moved only with the identified directions)"] = \
-            float(fitted.get(fw, 0.0))
+        held_values[fw] = {"value": float(fitted.get(fw, 0.0)),
+                           "why": "not identified alone: moved only with the identified directions"}
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
@@ -1045,14 +1071,14 @@ def firmware_calibration(
     names = list(fit.param_std)
     uncertainty = make_uncertainty(
         names, covariance=fit.covariance, basis=f"s^2 (J^T J)^-1 of the {fit.level} level's parameters, propagated "
-        "to the firmware's (instance 0 names, firmware unit)", noise_std=fit.noise_std * factor,
+        "to the firmware's (the compass's own names, firmware unit)", noise_std=fit.noise_std * factor,
         inflation=fit.inflation, unit=compass.unit,
     )
     firmware = {**compass.as_dict(), "level": fit.level, "levels": fit.table, "held": fit.held,
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading}
+                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "instance": fit.instance}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
@@ -1061,7 +1087,8 @@ def firmware_calibration(
              "rms_before": fit.rms_before * factor, "rms_after": fit.rms_after * factor,
              "residual": fit.residual_kind}
     return Calibration.from_matrix_offset(
-        W, b_data, units=units, model="affine", method=f"firmware-{compass.target}", params=compass.parameters(0),
+        W, b_data, units=units, model="affine", method=f"firmware-{compass.target}",
+        params=compass.parameters(fit.instance),
         reference=None if reference is None else dict(reference), stats=stats, uncertainty=uncertainty,
         diagnostics=diag, regressors=regressors,
     )

@@ -13,9 +13,16 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from ...calibration import SensorRecord
 from ...errors import TrimagInputError
 
-__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "compass_labels", "mavlink_messages", "require"]
+__all__ = ["Channel", "MagnetometerStream", "SensorChoice", "VehicleLog", "compass_labels", "mavlink_messages",
+           "require"]
+
+#: How a caller names the magnetometer of a log: its compass number, name or device id (text or a number), a
+#: calibration's :class:`~trimag.calibration.SensorRecord` (the same physical compass: :meth:`VehicleLog.choose`),
+#: or None (the one with the most samples).
+SensorChoice = str | int | SensorRecord | None
 
 
 def require(module: str) -> Any:
@@ -143,7 +150,7 @@ class VehicleLog:
     #: other yaw sources than the attitude's (``"XKY0.YC"``: EKF-GSF yaw; ``"GPS.Yaw"``: a GPS heading), degrees
     yaw_sources: dict[str, Channel] = field(default_factory=dict)
 
-    def choose(self, sensor: str | int | None = None) -> MagnetometerStream:
+    def choose(self, sensor: SensorChoice = None) -> MagnetometerStream:
         """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.
 
         Compasses are numbered from 1, as the firmware's parameter names count them (ArduPilot ``COMPASS_OFS``,
@@ -155,6 +162,8 @@ class VehicleLog:
             raise TrimagInputError(f"{self.path}: the log has no magnetometer readings")
         if sensor is None:
             return max(self.magnetometers, key=lambda m: len(m.time_s))
+        if isinstance(sensor, SensorRecord):
+            return self._recorded(sensor)
         text = str(sensor).strip()
         for m in self.magnetometers:
             if text in (str(m.number), m.name, str(m.device_id)):
@@ -168,11 +177,35 @@ class VehicleLog:
         raise TrimagInputError(f"{self.path}: no magnetometer {text!r}; the log has {self.compass_list()} (choose "
                                "with `sensor`)")
 
+    def _recorded(self, record: SensorRecord) -> MagnetometerStream:
+        """The stream of a calibration's sensor: the compass with the record's device id (wherever the log numbers
+        it; of several streams of it, the one of the same name, else of the same number), or, for a record or a log
+        without device ids, the stream of the same name, else of the same number. A log without that device is
+        refused: its compasses are other sensors."""
+        mags = self.magnetometers
+        if record.device_id and any(m.device_id for m in mags):
+            same = [m for m in mags if m.device_id == record.device_id]
+            if not same:
+                listed = ", ".join(f"{m.number} ({m.name}, device id {m.device_id})" for m in mags)
+                raise TrimagInputError(
+                    f"{self.path}: no compass with device id {record.device_id}, the calibration's sensor "
+                    f"({record.describe()}); this log has {listed}: another sensor. Give --sensor N to use this "
+                    "calibration on one of them anyway")
+            return next((m for m in same if m.name == record.name), next(
+                (m for m in same if m.number == record.compass), same[0]))
+        found = next((m for m in mags if m.name == record.name), None) or next(
+            (m for m in mags if m.number == record.compass), None)
+        if found is None:
+            raise TrimagInputError(f"{self.path}: no magnetometer {record.name!r} or compass {record.compass} (the "
+                                   f"calibration's sensor: {record.describe()}); the log has {self.compass_list()}: "
+                                   "choose one with --sensor N")
+        return found
+
     def compass_list(self) -> str:
         """The compasses as the user numbers them: ``"1 (MAG[0]), 2 (MAG[1])"``."""
         return ", ".join(compass_labels([(m.number, m.name) for m in self.magnetometers]))
 
-    def table(self, sensor: str | int | None = None) -> tuple[pd.DataFrame, list[str]]:
+    def table(self, sensor: SensorChoice = None) -> tuple[pd.DataFrame, list[str]]:
         """One row per sample of the chosen magnetometer, with every other stream aligned to its time stamps.
 
         Columns: ``time_s``, ``mag_x``, ``mag_y``, ``mag_z`` (calibration undone), ``mag_logged_x..z``, then
@@ -232,7 +265,7 @@ class VehicleLog:
         df = pd.DataFrame(cols)
         return df, messages
 
-    def summary_lines(self, sensor: str | int | None = None) -> list[str]:
+    def summary_lines(self, sensor: SensorChoice = None) -> list[str]:
         """What the user should know: the magnetometers, what was undone, what else the log offers."""
         chosen = self.choose(sensor)
         lines = [f"{self.format} log with {len(self.magnetometers)} magnetometer(s): "

@@ -27,13 +27,49 @@ from numpy.typing import NDArray
 from ...errors import TrimagInputError
 from .base import Channel, MagnetometerStream, VehicleLog, mavlink_messages, require
 
-__all__ = ["RELATIVE_TIMESTAMP_INVALID", "read_px4log", "read_ulog", "sensor_combined_magnetometer",
-           "undo_px4_legacy"]
+__all__ = ["MAX_CALIBRATION_SLOTS", "RELATIVE_TIMESTAMP_INVALID", "calibration_slots", "read_px4log", "read_ulog",
+           "sensor_combined_magnetometer", "undo_px4_legacy"]
 
 _SLOW_HZ = 5.0
 #: ``sensor_combined``'s ``*_timestamp_relative`` when the row holds no reading of that sensor (PX4
 #: ``msg/sensor_combined.msg``: ``RELATIVE_TIMESTAMP_INVALID = 2147483647``).
 RELATIVE_TIMESTAMP_INVALID = 2147483647
+
+
+#: The calibration slots PX4 searches (``MAX_SENSOR_COUNT`` of ``src/lib/sensor_calibration/Utilities.cpp``).
+MAX_CALIBRATION_SLOTS = 4
+
+
+def calibration_slots(params: dict[str, float]) -> tuple[dict[int, int], list[str]]:
+    """The calibration slot of each device id (``CAL_MAGn_ID``) as PX4 chooses it, and a line per stale duplicate.
+
+    PX4's rule (``calibration::FindCurrentCalibrationIndex``, ``src/lib/sensor_calibration/Utilities.cpp``, used by
+    ``Magnetometer::set_device_id``): the **first** slot ``n`` of ``0 .. MAX_SENSOR_COUNT - 1`` whose ``CAL_MAGn_ID``
+    equals the device id; a device id of 0 has none. A later slot that holds the same id (a stale entry left by an
+    earlier calibration: real v1.14 logs hold the external compass's id in ``CAL_MAG1_ID`` and ``CAL_MAG2_ID``) is
+    never read by the firmware, and writing it changes nothing.
+
+    Returns
+    -------
+    slot_of, notes
+        ``{device_id: slot}`` (0-based) and one line per device id found in more than one slot.
+    """
+    slot_of: dict[int, int] = {}
+    duplicates: dict[int, list[int]] = {}
+    for k in range(MAX_CALIBRATION_SLOTS):
+        dev = int(params.get(f"CAL_MAG{k}_ID", 0) or 0)
+        if not dev:
+            continue
+        if dev in slot_of:
+            duplicates.setdefault(dev, []).append(k)
+        else:
+            slot_of[dev] = k
+    notes = [f"device id {dev} is in CAL_MAG{slot_of[dev]}_ID and again in "
+             + ", ".join(f"CAL_MAG{k}_ID" for k in later)
+             + f": PX4 uses the first slot (CAL_MAG{slot_of[dev]}_*, calibration::FindCurrentCalibrationIndex); "
+             + ", ".join(f"CAL_MAG{k}_*" for k in later) + " is a stale duplicate the firmware never reads"
+             for dev, later in duplicates.items()]
+    return slot_of, notes
 
 
 def _cal(params: dict[str, float], slot: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -84,6 +120,7 @@ def read_ulog(path: Path) -> VehicleLog:
     data = {(d.name, d.multi_id): d.data for d in ulog.data_list}
     mags = _ulog_magnetometers(data, params, _ulog_version_minor(ulog))
     log = VehicleLog(str(path), "PX4 ULog", mags, parameters=params)
+    stale = calibration_slots(params)[1]
     _ulog_channels(log, data)
     log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)) or data.get(("sensor_gps", 0)))
     imu = data.get(("sensor_combined", 0))
@@ -91,11 +128,10 @@ def read_ulog(path: Path) -> VehicleLog:
         log.gyro = Channel(imu["timestamp"].astype(np.float64) * 1e-6,
                            np.column_stack([imu[f"gyro_rad[{i}]"] for i in range(3)]).astype(np.float64), "rad/s",
                            "sensor_combined.gyro_rad")
-    log.messages = [w for w in (_slow_warning(m) for m in mags) if w]
+    log.messages = [w for w in (_slow_warning(m) for m in mags) if w] + stale
     if not mags and imu is not None:
         prime = int(params.get("CAL_MAG_PRIME", 0))
-        slots = [k for k in range(8) if prime and params.get(f"CAL_MAG{k}_ID") == prime]
-        stream, note = sensor_combined_magnetometer(imu, params, slots[0] if slots else 0)
+        stream, note = sensor_combined_magnetometer(imu, params, calibration_slots(params)[0].get(prime, 0))
         log.messages += [note] if note else []
         if stream is not None:
             log.magnetometers.append(stream)
@@ -218,7 +254,7 @@ def _ulog_calibrated_in_log(data: _Topics, vm: Any, prime: int, slot_of: dict[in
 def _ulog_magnetometers(data: _Topics, params: dict[str, float], minor: int | None) -> list[MagnetometerStream]:
     """Every ``sensor_mag`` instance, then the prime ``vehicle_magnetometer``, with the on-board calibration
     undone where the log holds calibrated values."""
-    slot_of = {int(params[f"CAL_MAG{k}_ID"]): k for k in range(8) if params.get(f"CAL_MAG{k}_ID")}
+    slot_of = calibration_slots(params)[0]
     vm = data.get(("vehicle_magnetometer", 0))
     prime = int(params.get("CAL_MAG_PRIME", 0))
     calibrated_in_log = _ulog_calibrated_in_log(data, vm, prime, slot_of, minor)
@@ -323,7 +359,7 @@ def read_px4log(path: Path) -> VehicleLog:
             continue
         logged = arr(rs, ["MagX", "MagY", "MagZ"])
         raw, undone, onboard = undo_px4_legacy(logged, params, slot)
-        dev = params.get(f"CAL_MAG{slot}_ID")
+        dev = params.get(f"CAL_MAG{slot}_ID")  # sdlog2: the IMU's magnetometer n calibrated by slot n
         mags.append(MagnetometerStream(f"{name}.Mag", slot, arr(rs, ["_t"])[:, 0], raw, logged, "G", undone,
                                        int(dev) if dev else None, onboard))
     if not mags:
