@@ -24,7 +24,10 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    the first) and the others fitted; each level is judged by its RMS on :data:`N_FOLDS` contiguous folds, each
    fitted on the others (held-out RMS); ``level="auto"`` picks the simplest level within the firmware's limits whose
    held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says what it held; a level asked for must be
-   identified whole.
+   identified whole. Identification also needs the data's own **excitation**
+   (:mod:`trimag.vehicle._firmware_trust`): a direction the fitted rows barely move is not identified whatever the
+   noise, and offsets that are not all excited (a heading-free fit of a log that never turned: two equations for
+   three offsets) are refused before any level (:class:`~trimag.vehicle._firmware_trust.NotExcited`, exit 3).
 3. **Limits**: a level whose unconstrained solution the firmware cannot load is refitted with bounds (trust-region
    least squares): the parameters at a bound are named; a calibration still outside the limits is refused naming
    the parameter and the limit (:meth:`~trimag.models.firmware.FirmwareCompass.violations`). A scale more than
@@ -67,6 +70,16 @@ from ..units import convert
 from ._firmware_halves import halves_check, halves_message
 from ._firmware_heading import heading_check, heading_decision
 from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
+from ._firmware_trust import (
+    DIRECTION_EXCITATION_MIN,
+    EXCITATION_MIN,
+    Excitation,
+    NotExcited,
+    excitation,
+    heading_free_excitation,
+    not_excited_message,
+    restrict_basis,
+)
 
 __all__ = [
     "AUTO_TOLERANCE",
@@ -385,6 +398,8 @@ class _Candidate:
     held_motor: bool = False
     n_identified: int = 0
     bounds: Any = None
+    #: the data's excitation of the level's directions (:mod:`trimag.vehicle._firmware_trust`)
+    excitation: Excitation | None = None
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -501,6 +516,9 @@ def _fit_level(
     reference = problem.pack(*start) if isinstance(start, tuple) else problem.pack(A_held, o_held, m_held)
     basis, weak = _identified(problem, cov, scales, F, float(np.sqrt(np.mean(sol.residual**2))),
                               sol.theta - reference)
+    exc = excitation(problem, sol.jacobian, F)  # what the rows move at all, whatever the noise (issue 38)
+    basis = restrict_basis(basis, scales, exc)
+    weak = weak + [n for n in exc.unexcited if n not in weak]
     if weak and basis.shape[1] and bounds is None:  # fit what is identified; hold the rest at the log's values
         sol = problem.solve_in(reference, basis, scales)
         compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
@@ -512,7 +530,7 @@ def _fit_level(
     return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
                       [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
-                      basis.shape[1], bounds)
+                      basis.shape[1], bounds, exc)
 
 
 # ------------------------------------------------------------------ the fit
@@ -625,6 +643,8 @@ def fit_firmware(
     tilt = None if heading_free is None else np.asarray(heading_free, dtype=np.float64)
     if tilt is not None and (not vector or tilt.shape != (len(v), 3, 3)):
         raise TrimagInputError(f"`heading_free` needs `field_body` and one 3x3 rotation per sample ({len(v)}, 3, 3)")
+    if tilt is not None:  # before the orientation step: a log that never turned is refused for what it is
+        _require_heading_free_excited(h, tilt, _frame(target, int(held.orientation), applied_orientation), klass, v)
     if vector:
         fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external,
                                                     np.inf if tilt is not None else tolerance_deg, motors)
@@ -757,7 +777,7 @@ def _levels(
                                         omax, v, same_frame, tilt @ fr.P_h, absent)
         try:
             chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, tilt), F)
-        except KeepTheLogs:
+        except (KeepTheLogs, NotExcited):
             raise
         except IdentifiabilityError as exc:
             cone = _cone_deg(v)
@@ -776,8 +796,42 @@ def _levels(
     if tilt is None:
         table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation,
                                         omax, v, same_frame, None, absent)
+        if not vector:  # a vector residual's offsets are always excited (dB/do = A); heading-free: fit_firmware
+            _require_excited(candidates, klass, _cone_deg(v))
         chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, None), F)
     return table, candidates, chosen, tilt
+
+
+def _excitation_row(cand: _Candidate) -> dict[str, Any]:
+    """The level table's record of a candidate's excitation (:mod:`trimag.vehicle._firmware_trust`)."""
+    exc = cand.excitation
+    if exc is None:
+        return {"excitation": None}
+    return {"excitation": exc.weakest, "offsets_excitation": exc.offsets, "unexcited": list(exc.unexcited)}
+
+
+def _require_excited(candidates: list[_Candidate], klass: type[FirmwareCompass], cone: float) -> None:
+    """Refuse (:class:`NotExcited`, exit 3) when no level's offsets are excited by the data (a magnitude
+    residual): nothing identified can be written, whatever the residual (issue 38, item 1)."""
+    excs = [c.excitation for c in candidates if c.excitation is not None]
+    if not excs or any(e.offsets_excited for e in excs):
+        return
+    best = max(excs, key=lambda e: e.offsets)
+    names = [_firmware_name(klass, f"o_{a}") for a in "xyz"]
+    raise NotExcited(not_excited_message(best, names, False, cone))
+
+
+def _require_heading_free_excited(h: NDArray[np.float64], tilt: NDArray[np.float64], fr: _Frame,
+                                  klass: type[FirmwareCompass], raw: NDArray[np.float64]) -> Excitation:
+    """The heading-free offsets' excitation from the reference (:func:`heading_free_excitation`), in the fit's
+    frame ``fr``; refused (:class:`NotExcited`, exit 3) below :data:`EXCITATION_MIN` (issue 38, item 1)."""
+    exc = heading_free_excitation(h, tilt)
+    d = fr.P_h @ exc.offsets_direction  # body -> the fit's frame (where the offsets are the firmware's)
+    exc.offsets_direction = d / max(float(np.linalg.norm(d)), 1e-300)
+    if not exc.offsets_excited:
+        names = [_firmware_name(klass, f"o_{a}") for a in "xyz"]
+        raise NotExcited(not_excited_message(exc, names, True, _cone_deg(raw)))
+    return exc
 
 
 def _refuse_contradicted_scale(scale: float, F: float, klass: type[FirmwareCompass]) -> None:
@@ -827,7 +881,8 @@ def _run_levels(
                           "heldout_rms": cand.heldout_rms, "identified": cand.identified,
                           "n_identified": cand.n_identified,
                           "not_identified": cand.weak, "within_limits": not cand.violations,
-                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False})
+                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False,
+                          **_excitation_row(cand)})
     return table, candidates
 
 
@@ -1007,15 +1062,20 @@ def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[
 def level_table(table: list[dict[str, Any]], unit: str) -> str:
     """The fit report's table of levels: level, parameters, RMS, held-out RMS, identified, limits, chosen."""
     lines = [f"{'level':<10}{'motor':<10}{'params':>7}{'rms':>11}{'held-out':>11}  {'identified':<11}"
-             f"{'limits':<9}chosen   [{unit}]"]
+             f"{'excited':>8}  {'limits':<9}chosen   [{unit}]"]
     for row in table:
         ident = "all" if row["identified"] else (f"{row['n_identified']} of {row['n_params']}" if row.get(
             "n_identified") else "none")
         limits = "ok" if row["within_limits"] else "outside"
         if row["at_limit"]:
             limits = "at limit"
+        excited = f"{row['excitation']:.2f}" if row.get("excitation") is not None else "-"
         lines.append(f"{row['level']:<10}{row['motor'] or '-':<10}{row['n_params']:>7}{row['rms']:>11.4g}"
-                     f"{row['heldout_rms']:>11.4g}  {ident:<11}{limits:<9}{'<--' if row['chosen'] else ''}")
+                     f"{row['heldout_rms']:>11.4g}  {ident:<11}{excited:>8}  {limits:<9}"
+                     f"{'<--' if row['chosen'] else ''}")
+    lines.append(f"(excited: the weakest direction's excitation by the fitted rows, 1 = a turn through all attitudes; "
+                 f"a direction below {DIRECTION_EXCITATION_MIN:g} is not identified, offsets below {EXCITATION_MIN:g} "
+                 "are not written, whatever the residual)")
     return "\n".join(lines)
 
 
