@@ -76,9 +76,12 @@ from ._firmware_trust import (
     Excitation,
     NotExcited,
     excitation,
+    fold_rms,
     heading_free_excitation,
     not_excited_message,
     restrict_basis,
+    unfitted_verdict,
+    verdict_message,
 )
 
 __all__ = [
@@ -173,6 +176,9 @@ class FirmwareFit:
     absent: tuple[str, ...] = ()
     #: the heading check of a heading-free fit (:func:`trimag.vehicle._firmware_heading.heading_check`)
     heading: dict[str, Any] | None = None
+    #: the parameters against the log's calibration on data they were not fitted to
+    #: (:func:`trimag.vehicle._firmware_trust.unfitted_verdict`)
+    verdict: dict[str, Any] | None = None
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -583,7 +589,7 @@ def fit_firmware(
     motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,
     applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
     tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
-    heading_free: ArrayLike | None = None, absent: Collection[str] = (),
+    heading_free: ArrayLike | None = None, absent: Collection[str] = (), unfitted: Mapping[str, Any] | None = None,
 ) -> FirmwareFit:
     """Fit ``target``'s parameters (see the module docstring).
 
@@ -615,6 +621,11 @@ def fit_firmware(
         for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
         chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
         reported.
+    unfitted : mapping, optional
+        Rows of the log the fit is not given (``--rows``/``--where`` left them out): ``raw`` (n, 3, as ``raw``),
+        ``field`` (n, 3 body frame, or (n,) magnitude), ``motors``, ``tilt`` (as ``heading_free``, or None),
+        ``what``. The parameters are judged against ``held`` on them (else on held-out folds): the verdict
+        (:func:`trimag.vehicle._firmware_trust.unfitted_verdict`, :attr:`FirmwareFit.verdict`).
 
     Raises
     ------
@@ -633,6 +644,7 @@ def fit_firmware(
     absent = _check_absent(target, absent, level, motor)
     if "motor" in absent:
         motors = {}
+    held_given = held is not None
     if held is None:
         held = klass(orientation=applied_orientation or 0)
     if not isinstance(held, klass):
@@ -699,9 +711,11 @@ def fit_firmware(
         chosen.compass = dataclasses.replace(
             ArduPilotCompass.from_algebra(A, o, m, orientation=c.orientation, motor_type=c.motor_type, scale=1.0),
             motor=c.motor, scale=0.0)
+    verdict = _verdict(chosen, klass, held, held_given, fr.orientation, same_frame, v, h, motors, tilt,
+                       applied_orientation, unfitted, level, messages)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
-    fit.halves, fit.heading = halves, heading
+    fit.halves, fit.heading, fit.verdict = halves, heading, verdict
     fit.absent = tuple(absent)
     return fit
 
@@ -760,6 +774,47 @@ def _halves(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareComp
     names = [_firmware_name(klass, n) for n in chosen.problem.names()]
     return halves_check(chosen.problem, chosen.solution, chosen.bounds, to_compass, held, raw, field, motors, tilt,
                         applied, names, scales, F, IDENTIFIED)
+
+
+def _verdict(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareCompass, held_given: bool,
+             orientation: int, same_frame: bool, raw: NDArray[np.float64], field: NDArray[np.float64],
+             motors: Mapping[str, NDArray[np.float64]], tilt: NDArray[np.float64] | None, applied: int | None,
+             unfitted: Mapping[str, Any] | None, level: str, messages: list[str]) -> dict[str, Any]:
+    """The parameters to be written against the log's calibration on data they were not fitted to (issue 38, item
+    3): the rows ``unfitted`` when given, else the held-out folds, through the firmware's formula. Worse: refused
+    (:class:`KeepTheLogs`) under ``level="auto"``, a warning for a level asked for; better: one line."""
+    params_held = held if same_frame or chosen.held_motor else None
+
+    def to_compass(sol: LevelSolution) -> FirmwareCompass:
+        return _compass(klass, sol, chosen.level, orientation, chosen.motor, params_held, chosen.held_motor)
+
+    R0 = np.eye(3) if applied is None else rotation_matrix(klass.target, applied)
+    if unfitted is not None:
+        part = dict(unfitted)
+        part["tilt"] = part.get("tilt") if tilt is not None else None  # the fit's own residual
+        if chosen.compass.motor_type and chosen.compass.motor_type not in (part.get("motors") or {}):
+            part = {}  # the rows left out lack the motor channel the fit uses: judged on the folds instead
+    else:
+        part = {}
+    if part:
+        verdict = unfitted_verdict(chosen.compass, held, applied, unfitted=part)
+    else:
+        verdict = unfitted_verdict(
+            chosen.compass, held, applied, raw=raw, field_body=field, motors=motors, tilt=tilt,
+            folds=lambda: fold_rms(chosen.problem, chosen.solution, chosen.bounds, N_FOLDS, to_compass, raw @ R0,
+                                   field, motors, tilt))
+    verdict["against"] = "the log's calibration" if held_given else "no calibration (the raw readings)"
+    text = verdict_message(verdict, klass.unit)
+    if verdict["better"] or not held_given:
+        verdict["decision"] = "better" if verdict["better"] else "worse than the raw readings"
+        messages.append(text)
+    elif level == "auto":
+        verdict["decision"] = "refused"
+        raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
+    else:
+        verdict["decision"] = "warned"
+        messages.append(f"warning: {text}")
+    return verdict
 
 
 def _levels(
@@ -1112,7 +1167,7 @@ def firmware_calibration(
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading}
+                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "verdict": fit.verdict}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
