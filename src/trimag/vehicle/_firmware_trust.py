@@ -184,12 +184,16 @@ def not_excited_message(exc: Excitation, offset_names: list[str], heading_free: 
 
 
 def parameter_status(values: Callable[[NDArray[np.float64]], Mapping[str, float]], theta: NDArray[np.float64],
-                     basis: NDArray[np.float64] | None, scales: NDArray[np.float64] | None) -> dict[str, str]:
+                     jacobian: NDArray[np.float64], n_unidentified: int,
+                     effect: NDArray[np.float64] | None = None) -> dict[str, str]:
     """``{firmware parameter: "fitted" | "held" | "not identified"}`` of a level's solution.
 
-    ``values`` maps a parameter vector to the firmware's parameters; ``basis`` (columns, in parameters over
-    ``scales``) the identified directions (None: all). A parameter no parameter of the level moves is *held*; one
-    that a direction outside ``basis`` moves (by more than 10 % of its total sensitivity) is *not identified*."""
+    ``values`` maps a parameter vector to the firmware's parameters. A parameter no parameter of the level moves is
+    *held*. The directions the data do not identify are the ``n_unidentified`` least excited directions of the
+    level's ``jacobian`` in *effect units* (parameters times ``effect``, :func:`excitation`'s scales, where an offset
+    and a matrix entry are commensurate; near-null directions of the Jacobian, whatever the metric); a parameter
+    whose gradient there has more than 10 % of its length along them moves with what the data do not see: *not
+    identified*."""
     theta = np.asarray(theta, dtype=np.float64)
     base = dict(values(theta))
     names = list(base)
@@ -200,17 +204,19 @@ def parameter_status(values: Callable[[NDArray[np.float64]], Mapping[str, float]
         t[j] += step
         moved = values(t)
         G[:, j] = [(moved[k] - base[k]) / step for k in names]
+    es = np.ones(len(theta)) if effect is None else np.asarray(effect, dtype=np.float64)
+    weak = np.zeros((0, len(theta)))
+    if n_unidentified > 0:
+        _, _, vt = np.linalg.svd(jacobian / es, full_matrices=False)
+        weak = vt[-n_unidentified:]  # rows: the least excited directions, in effect units
     out: dict[str, str] = {}
     for i, name in enumerate(names):
-        g = G[i] * (scales if scales is not None else 1.0)
+        g = G[i] / es  # d parameter / d effect
         total = float(np.linalg.norm(g))
         if total == 0.0:
             out[name] = "held"
-        elif basis is None or basis.shape[1] == len(theta):
-            out[name] = "fitted"
         else:
-            outside = g - basis @ (basis.T @ g)
-            out[name] = "not identified" if np.linalg.norm(outside) > 0.1 * total else "fitted"
+            out[name] = "not identified" if np.linalg.norm(weak @ g) > 0.1 * total else "fitted"
     return out
 
 

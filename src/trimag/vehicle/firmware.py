@@ -79,6 +79,7 @@ from ._firmware_trust import (
     fold_rms,
     heading_free_excitation,
     not_excited_message,
+    parameter_status,
     restrict_basis,
     unfitted_verdict,
     verdict_message,
@@ -179,6 +180,8 @@ class FirmwareFit:
     #: the parameters against the log's calibration on data they were not fitted to
     #: (:func:`trimag.vehicle._firmware_trust.unfitted_verdict`)
     verdict: dict[str, Any] | None = None
+    #: each written parameter (instance 0 names): "fitted", "held", "not identified" (no sigma), "kept"/"chosen"
+    param_status: dict[str, str] = field(default_factory=dict)
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -1075,6 +1078,9 @@ def _result(
 ) -> FirmwareFit:
     names, cov = _param_covariance(chosen, klass, fr.orientation,
                                    held if same_frame or chosen.held_motor else None)
+    status = _parameter_status(chosen, klass, fr.orientation, held if same_frame or chosen.held_motor else None,
+                               orientation)
+    names, cov = _only_fitted(names, cov, status)
     std = dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True))
     rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * chosen.problem.width))
     rms_before = _rms_before(held, raw, target, held_frame, vector, motors, tilt)
@@ -1089,11 +1095,43 @@ def _result(
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
-    return FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
-                       ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
-                       rms_after, fr.P_u, fr.P_h,
-                       float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
-                       messages)
+    out = FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
+                      ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
+                      rms_after, fr.P_u, fr.P_h,
+                      float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
+                      messages)
+    out.param_status = status
+    return out
+
+
+def _parameter_status(chosen: _Candidate, klass: type[FirmwareCompass], orientation: int,
+                      held: FirmwareCompass | None, decision: Mapping[str, Any]) -> dict[str, str]:
+    """Each written parameter's status (:func:`trimag.vehicle._firmware_trust.parameter_status`): fitted, held,
+    not identified; the orientation ``kept`` or ``chosen``; the motor type ``fitted`` with a motor term."""
+    problem, sol = chosen.problem, chosen.solution
+
+    def values(t: NDArray[np.float64]) -> dict[str, float]:
+        A, o, m = problem.unpack(t)
+        moved = dataclasses.replace(sol, A=A, o=o, m=m, theta=t)
+        return _compass(klass, moved, chosen.level, orientation, chosen.motor, held, chosen.held_motor).parameters(0)
+
+    n_weak = problem.n_params - chosen.n_identified if chosen.weak else 0
+    status = parameter_status(values, sol.theta, sol.jacobian, n_weak,
+                              chosen.excitation.scales if chosen.excitation is not None else None)
+    for name in status:
+        if name.endswith(("ORIENT", "_ROT")):
+            status[name] = "chosen" if decision.get("decision") == "chosen" else "kept"
+        elif name in ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP"):
+            status[name] = "fitted" if chosen.motor else "held"
+    return status
+
+
+def _only_fitted(names: list[str], cov: NDArray[np.float64], status: Mapping[str, str]
+                 ) -> tuple[list[str], NDArray[np.float64]]:
+    """The covariance of the parameters the data determine: a held or unidentified one has no sigma (issue 38,
+    item 4)."""
+    keep = [i for i, n in enumerate(names) if status.get(n, "fitted") == "fitted"]
+    return [names[i] for i in keep], cov[np.ix_(keep, keep)]
 
 
 def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[np.float64], hf: _Frame,
@@ -1167,7 +1205,8 @@ def firmware_calibration(
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "verdict": fit.verdict}
+                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "verdict": fit.verdict,
+                "param_status": fit.param_status}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
