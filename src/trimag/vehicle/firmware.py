@@ -15,9 +15,11 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    error); the log's own orientation is kept unless another fits the field at least :data:`SWITCH_RATIO` times
    better. The rotation the standard one leaves (the rotation of the unconstrained affine fit's polar factor) is
    left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two of its
-   standard deviations (inflated by the residuals' correlation time), the fit is refused naming the angle
-   (vector residual; heading-free it is only reported). An internal compass (ArduPilot ``COMPASS_EXTERNALn`` = 0,
-   PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation is kept and a better one reported.
+   standard deviations (inflated by the residuals' correlation time), the fit is refused (exit 3) naming the
+   angle and what to check (the reference, the log's orientation and attitudes), heading-free too (issue 38); a
+   log whose field directions stay within :data:`MIN_CONE_DEG` does not measure it. An internal compass
+   (ArduPilot ``COMPASS_EXTERNALn`` = 0, PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation
+   is kept and a better one reported.
 2. **Levels** (:data:`~trimag.vehicle._firmware_levels.LEVELS`, nested, each without and with each logged motor
    channel): the directions of a level's parameters that the data do not identify (one standard deviation moving
    the field by more than :data:`IDENTIFIED` allows) are held at the level below's solution (the log's values for
@@ -240,7 +242,7 @@ def _polar_angle(G: NDArray[np.float64]) -> float:
 
 def _choose_orientation(
     target: str, raw: NDArray[np.float64], h: NDArray[np.float64], held: FirmwareCompass, applied: int | None,
-    external: bool, tolerance_deg: float, motors: Mapping[str, NDArray[np.float64]],
+    external: bool, tolerance_deg: float, motors: Mapping[str, NDArray[np.float64]], heading_free: bool = False,
 ) -> tuple[_Frame, dict[str, Any], list[str]]:
     """The orientation (step 1 of the module docstring) and what was decided."""
     results = []
@@ -281,20 +283,38 @@ def _choose_orientation(
     info["decision"] = "chosen" if chosen != current else "kept"
     fr = _frame(target, chosen, applied)
     info["value"] = chosen
-    angle, sigma = _remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors)
+    angle, sigma = (_remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors) if cone >= MIN_CONE_DEG else
+                    (None, None))  # a log that barely turned cannot tell a rotation from an affine map (issue 38)
     info["remaining_angle_deg"], info["remaining_angle_sigma_deg"] = angle, sigma
     if angle is not None and sigma is not None:
         messages.append(f"orientation: the nearest standard rotation leaves {angle:.1f} +- {sigma:.1f} deg, left to "
                         "the symmetric matrix (it stays as a heading error of about that size)")
+    elif cone < MIN_CONE_DEG:
+        messages.append(f"orientation: the rotation beyond the nearest standard one is not measured (the field "
+                        f"direction stayed within {cone:.0f} deg)")
     if angle is not None and sigma is not None and angle - 2.0 * sigma > tolerance_deg:
-        chosen_name = type(held)(orientation=chosen).rotation_name
-        raise TrimagInputError(
-            f"the compass is rotated {angle:.1f} deg from the nearest standard orientation {chosen_name} ({chosen}); "
-            f"the symmetric matrix the firmware takes leaves at most {tolerance_deg:g} deg to it: mount the compass "
-            "square to the vehicle (or set a custom rotation: ArduPilot COMPASS_ORIENT 101 with CUST_ROT1_*, PX4 "
-            "CAL_MAGn_ROT 100 with CAL_MAGn_ROLL/PITCH/YAW) and record again"
-        )
+        raise _orientation_refusal(type(held), chosen, angle, sigma, tolerance_deg, heading_free)
     return fr, info, messages
+
+
+def _orientation_refusal(klass: type[FirmwareCompass], chosen: int, angle: float, sigma: float, tolerance_deg: float,
+                         heading_free: bool) -> IdentifiabilityError:
+    """The refusal (exit 3) of a compass the nearest standard rotation leaves more than ``tolerance_deg`` from
+    the field the attitudes and the reference give (issue 38, item 2): the angle and what to check."""
+    chosen_name = klass(orientation=chosen).rotation_name
+    orient = ("COMPASS_ORIENTn, AHRS_ORIENTATION and AHRS_TRIM" if klass.target == "ardupilot" else
+              "CAL_MAGn_ROT, SENS_BOARD_ROT and its SENS_BOARD_X/Y/Z_OFF trims")
+    yaw = (" (the yaw is the EKF's, which used this compass: a compass that disagrees with the other compasses "
+           "turns it too)" if heading_free else "")
+    return IdentifiabilityError(
+        f"the field the log's attitudes and the reference give is rotated {angle:.1f} +- {sigma:.1f} deg from the "
+        f"compass's readings in the nearest standard orientation {chosen_name} ({chosen}); the symmetric matrix the "
+        f"firmware takes holds at most {tolerance_deg:g} deg of it, so the parameters would leave a heading error "
+        f"of that size: check the reference (the site: the log's GPS fix or --igrf), the log's orientation "
+        f"({orient}) and its attitudes{yaw}; if the compass is mounted askew, mount it square to the vehicle (or "
+        "set a custom rotation: ArduPilot COMPASS_ORIENT 101 with CUST_ROT1_*, PX4 CAL_MAGn_ROT 100 with "
+        "CAL_MAGn_ROLL/PITCH/YAW) and record again"
+    )
 
 
 def _cone_deg(raw: NDArray[np.float64]) -> float:
@@ -622,8 +642,8 @@ def fit_firmware(
         With ``field_body``: each sample's roll-and-pitch rotation (body -> level frame). The levels are then fitted
         to the heading-free residual (the field's horizontal and vertical components: the heading does not enter),
         for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
-        chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
-        reported.
+        chosen among the standard rotations with the vector residual (45-degree steps), and what remains beyond
+        ``tolerance_deg`` refused as for the vector residual.
     unfitted : mapping, optional
         Rows of the log the fit is not given (``--rows``/``--where`` left them out): ``raw`` (n, 3, as ``raw``),
         ``field`` (n, 3 body frame, or (n,) magnitude), ``motors``, ``tilt`` (as ``heading_free``, or None),
@@ -633,10 +653,10 @@ def fit_firmware(
     Raises
     ------
     TrimagInputError
-        Bad input, a reference the data contradict, a rotation the firmware cannot hold, or no level within the
-        firmware's limits (exit 2).
+        Bad input, a reference the data contradict, or no level within the firmware's limits (exit 2).
     IdentifiabilityError
-        The data identify no level (or not the one asked for): exit 3, naming what is not identified.
+        The data identify no level (or not the one asked for), a compass rotated beyond ``tolerance_deg`` from every
+        standard orientation: exit 3, naming what is not identified or the angle.
     """
     klass = firmware_class(target)
     if level not in ("auto", *LEVELS):
@@ -662,7 +682,7 @@ def fit_firmware(
         _require_heading_free_excited(h, tilt, _frame(target, int(held.orientation), applied_orientation), klass, v)
     if vector:
         fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external,
-                                                    np.inf if tilt is not None else tolerance_deg, motors)
+                                                    tolerance_deg, motors, tilt is not None)
         messages += more
     else:
         fr = _frame(target, int(held.orientation), applied_orientation)
