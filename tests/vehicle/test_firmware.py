@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from trimag.errors import IdentifiabilityError, TrimagInputError
-from trimag.fields.attitude import body_field
+from trimag.fields.attitude import body_field, from_euler
 from trimag.models.firmware import ArduPilotCompass, FirmwareCompass, PX4Magnetometer
 from trimag.simulate import current_profile, random_attitudes
 from trimag.vehicle.firmware import fit_firmware, level_table
@@ -113,10 +113,20 @@ def test_a_flight_that_mostly_yawed_gives_offsets_and_the_motor_term_and_says_wh
 
 
 def test_a_mounting_rotation_beyond_the_tolerance_is_refused_naming_the_angle():
+    """Exit 3 (the data cannot support a firmware calibration of this mounting; issue 38, item 2: was exit 2), with
+    the angle and what to check; heading-free too, where it was only reported and the parameters written (the
+    real ardusub_small.BIN printed "leaves 150.2 +- 1.5 deg, left to the symmetric matrix" and exited 0)."""
     raw, h, x = simulate(AP_TRUTH, 1500, seed=5)
     tilted = raw @ Rotation.from_euler("X", 12.0, degrees=True).as_matrix().T  # a compass mounted 12 deg off
-    with pytest.raises(TrimagInputError, match=r"rotated 1[12]\.\d deg from the nearest standard orientation"):
+    refusal = (r"rotated 1[12]\.\d \+- \d\.\d deg from the compass's readings in the nearest standard orientation"
+               r".*check the reference .*the log's orientation \(COMPASS_ORIENTn")
+    with pytest.raises(IdentifiabilityError, match=refusal):
         fit_firmware("ardupilot", tilted, field_body=h, motor_values={"current": x})
+    _, logged = flight(1500, seed=5)  # simulate's attitudes: the tilt of each sample, as app/_firmware.py builds it
+    euler = logged.as_euler("ZYX", degrees=True)
+    level = from_euler(np.zeros(len(euler)), euler[:, 1], euler[:, 2]).as_matrix()
+    with pytest.raises(IdentifiabilityError, match=refusal + r".*the yaw is the EKF's"):
+        fit_firmware("ardupilot", tilted, field_body=h, motor_values={"current": x}, heading_free=level)
 
 
 def test_an_internal_compass_keeps_the_boards_orientation_and_says_which_fits_better():

@@ -8,6 +8,8 @@ log's calibration 30 mGauss off the truth (the EKF's yaw stays within a few degr
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from test_firmware import FIELD_NED_mG, NOISE_mG, flight
@@ -15,8 +17,9 @@ from test_firmware import FIELD_NED_mG, NOISE_mG, flight
 from trimag.fields.attitude import body_field, from_euler
 from trimag.models.firmware import ArduPilotCompass
 from trimag.simulate import current_profile
-from trimag.vehicle._firmware_heading import heading_check
-from trimag.vehicle.firmware import KeepTheLogs, firmware_calibration, fit_firmware
+from trimag.vehicle._firmware_heading import heading_check, heading_decision
+from trimag.vehicle._firmware_trust import NotExcited
+from trimag.vehicle.firmware import firmware_calibration, fit_firmware
 
 TRUTH = ArduPilotCompass(orientation=6, offsets=[400.0, -300.0, 100.0], motor=[2.0, -1.5, 3.0], motor_type="current")
 HELD = ArduPilotCompass(orientation=6, offsets=[430.0, -320.0, 110.0])  # the log's calibration, 38 mG off
@@ -36,24 +39,25 @@ def _flight(n: int, seed: int, max_tilt_deg: float, yaw_step_deg: float) -> dict
             "yaw_span_deg": float(np.degrees(np.ptp(np.unwrap(true.as_euler("ZYX")[:, 0]))))}  # the true yaw's
 
 
-def test_a_barely_turning_flight_whose_heading_free_fit_turns_the_heading_is_refused_or_warned():
+def test_a_barely_turning_flight_gets_no_offsets_and_the_heading_check_judges_parameters_that_turn_it():
+    """Before issue 38 this flight's heading-free offsets landed on the far side of the circle (heading RMS 4.4 ->
+    171.7 deg against the logged yaw) and the heading check refused them (auto) or warned (a level asked for). The
+    data's excitation now refuses them before any level (two equations for three offsets: NotExcited, exit 3), asked
+    for or not; the heading check is exercised on parameters that turn the compass's heading (its orientation
+    yawed 180 deg)."""
     kw = _flight(1500, seed=1, max_tilt_deg=3.0, yaw_step_deg=0.1)
     assert kw.pop("yaw_span_deg") < 10.0
-    with pytest.raises(KeepTheLogs, match=r"cannot see the heading.*turns the compass's heading 1[5-7]\d deg.*"
-                                          r"GPS heading.*XKY0.*turn through all headings.*keep the log's"):
-        fit_firmware("ardupilot", **kw)
-    fit = fit_firmware("ardupilot", **kw, level="offsets")  # asked for: written, with the warning
-    h = fit.heading
-    assert h is not None and h["decision"] == "warned"
-    assert h["rms_before_deg"] < 6.0 and h["rms_after_deg"] > 150.0
-    assert np.abs(fit.compass.offsets[:2] - TRUTH.offsets[:2]).max() > 300.0  # the horizontal offsets far off
-    warning = [m for m in fit.messages if m.startswith("warning: the heading-free fit cannot see the heading")]
-    assert len(warning) == 1
-    info = [m for m in fit.messages if m.startswith("heading against the logged yaw")]
-    assert len(info) == 1 and "RMS 4.4 deg (mean -0.9) with the log's calibration -> RMS 171.7" in info[0]
-    cal = firmware_calibration(fit, units="mG")
-    assert cal.diagnostics["firmware"]["heading"]["decision"] == "warned"
-    assert any("cannot see the heading" in w for w in cal.diagnostics["warnings"])
+    for level in ("auto", "offsets"):
+        with pytest.raises(NotExcited, match=r"do not identify the offsets.*--heading.*--level-turn"):
+            fit_firmware("ardupilot", **kw, level=level)
+    reversed_compass = dataclasses.replace(TRUTH, orientation=2)  # its orientation yawed 180 deg from the truth's 270
+    check = heading_check(reversed_compass, HELD, kw["raw"], kw["field_body"], kw["motor_values"],
+                          kw["heading_free"], 6)
+    assert check["rms_before_deg"] < 6.0 and check["rms_after_deg"] > 40.0
+    said, refusal = heading_decision(dict(check), "offsets")
+    assert refusal is None and any(m.startswith("warning: the heading-free fit cannot see the heading") for m in said)
+    said, refusal = heading_decision(dict(check), "auto")
+    assert refusal is not None and "keep the log's calibration" in refusal and "GPS heading" in refusal
 
 
 def test_a_flight_through_all_headings_only_reports_the_heading():

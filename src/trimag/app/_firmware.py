@@ -366,11 +366,12 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     motors = {kind: pd.to_numeric(samples.table[column], errors="coerce").to_numpy(dtype=float)
               for kind, column in columns.items()}
     factor = convert(1.0, unit, klass.unit)
+    unfitted = _unfitted_rows(req, samples, target, factor)
     fit = fit_firmware(target, samples.field * factor, field_body=field_body, magnitude=magnitude,
                        motor_values=motors, held=held, applied_orientation=applied, external=external,
                        level=req.level or "auto", motor=named[0],
                        offsets_max=offsets_max, heading_free=tilt, absent=absent,
-                       instance=_instance(target, info))
+                       instance=_instance(target, info), unfitted=unfitted)
     messages += [m for m in fit.messages if not m.startswith("warning:")]
     kind = fit.compass.motor_type
     channel = columns.get(kind) if kind else None
@@ -391,6 +392,42 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
         messages.append(f"warning: {old}")
         cal = cal.with_diagnostics(readings_rotated=old)
     return samples, _magnitude_stats(cal, samples, regressor_values), regressor_values, messages
+
+
+def _unfitted_rows(req: FitRequest, samples: Samples, target: str, factor: float) -> dict[str, Any] | None:
+    """The log's rows that ``rows``/``where`` left out of the fit, prepared as the fit's own (firmware unit, the
+    field reference, the motor channels, the heading-free tilts) to judge the parameters on (issue 38, item 3); None
+    without a selection or when fewer than :data:`~trimag.vehicle._firmware_trust.UNFITTED_MIN_ROWS` remain."""
+    import pandas as pd
+
+    from ..errors import TrimagError
+    from ..io import read_samples
+    from ..io.tables import select_rows, where_mask
+    from ..vehicle._firmware_trust import UNFITTED_MIN_ROWS
+
+    src = req.input
+    if not (src.rows or src.where) or samples.log_info is None:
+        return None
+    try:
+        full = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, sensor=src.sensor)
+        chosen, _ = select_rows(pd.DataFrame(index=pd.RangeIndex(full.n_total_rows)), src.rows, None)
+        left = ~full.table.index.isin(chosen.index)
+        if src.where:
+            left |= ~where_mask(full.table, src.where)
+        if left.sum() < UNFITTED_MIN_ROWS:
+            return None
+        rest = _keep(full, left)
+        rest, _, columns, _ = _motor_channels(target, rest, rest.log_info)
+        rest, field_body, magnitude, tilt, _, _ = _field_reference(req, rest, firmware_class(target).unit, target)
+    except TrimagError:
+        return None
+    if len(rest.field) < UNFITTED_MIN_ROWS:
+        return None
+    field = field_body if field_body is not None else np.full(len(rest.field), float(magnitude))
+    what = "; ".join(x for x in (f"--rows {src.rows}" if src.rows else "", f"--where {src.where}" if src.where
+                                  else "") if x)
+    return {"raw": rest.field * factor, "field": field, "tilt": tilt, "what": f"left out by {what}",
+            "motors": {kind: rest.table[column].to_numpy(dtype=float) for kind, column in columns.items()}}
 
 
 def _old_px4_rotation(info: dict[str, Any] | None, applied: int | None) -> str | None:

@@ -80,9 +80,14 @@ def params_table(cal: Calibration) -> str:
     unit = cal.units
     lines = [f"{cal.model} parameters (value +- 1 sigma):"]
     kinds = _param_kinds(cal.model)
+    firmware = (cal.diagnostics or {}).get("firmware")
+    status = (firmware.get("param_status") if isinstance(firmware, dict) else None) or {}
     for name, value in cal.params.items():
-        s = std.get(name)
+        s = std.get(name) if status.get(name, "fitted") == "fitted" else None
         pm = f" +- {s:.3g}" if s is not None else ""
+        if status.get(name, "fitted") != "fitted":  # a firmware fit: held, not identified, kept: never a sigma
+            lines.append(f"  {name:12s} = {value:.8g}  ({status[name]})")
+            continue
         if kinds.get(name) == "angle":
             deg = f"  ({math.degrees(value):.5f} deg" + (f" +- {math.degrees(s):.2g}" if s is not None else "") + ")"
             lines.append(f"  {name:12s} = {value:.6g}{pm} rad{deg}")

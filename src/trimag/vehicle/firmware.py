@@ -15,16 +15,21 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    error); the log's own orientation is kept unless another fits the field at least :data:`SWITCH_RATIO` times
    better. The rotation the standard one leaves (the rotation of the unconstrained affine fit's polar factor) is
    left to the symmetric matrix only up to :data:`ORIENTATION_TOLERANCE_DEG`; beyond it by more than two of its
-   standard deviations (inflated by the residuals' correlation time), the fit is refused naming the angle
-   (vector residual; heading-free it is only reported). An internal compass (ArduPilot ``COMPASS_EXTERNALn`` = 0,
-   PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation is kept and a better one reported.
+   standard deviations (inflated by the residuals' correlation time), the fit is refused (exit 3) naming the
+   angle and what to check (the reference, the log's orientation and attitudes), heading-free too (issue 38); a
+   log whose field directions stay within :data:`MIN_CONE_DEG` does not measure it. An internal compass
+   (ArduPilot ``COMPASS_EXTERNALn`` = 0, PX4 ``CAL_MAGn_ROT`` = -1) follows the board's rotation: its orientation
+   is kept and a better one reported.
 2. **Levels** (:data:`~trimag.vehicle._firmware_levels.LEVELS`, nested, each without and with each logged motor
    channel): the directions of a level's parameters that the data do not identify (one standard deviation moving
    the field by more than :data:`IDENTIFIED` allows) are held at the level below's solution (the log's values for
    the first) and the others fitted; each level is judged by its RMS on :data:`N_FOLDS` contiguous folds, each
    fitted on the others (held-out RMS); ``level="auto"`` picks the simplest level within the firmware's limits whose
    held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says what it held; a level asked for must be
-   identified whole.
+   identified whole. Identification also needs the data's own **excitation**
+   (:mod:`trimag.vehicle._firmware_trust`): a direction the fitted rows barely move is not identified whatever the
+   noise, and offsets that are not all excited (a heading-free fit of a log that never turned: two equations for
+   three offsets) are refused before any level (:class:`~trimag.vehicle._firmware_trust.NotExcited`, exit 3).
 3. **Limits**: a level whose unconstrained solution the firmware cannot load is refitted with bounds (trust-region
    least squares): the parameters at a bound are named; a calibration still outside the limits is refused naming
    the parameter and the limit (:meth:`~trimag.models.firmware.FirmwareCompass.violations`). A scale more than
@@ -68,6 +73,20 @@ from ..units import convert
 from ._firmware_halves import halves_check, halves_message
 from ._firmware_heading import heading_check, heading_decision
 from ._firmware_levels import LEVELS, LevelProblem, LevelSolution
+from ._firmware_trust import (
+    DIRECTION_EXCITATION_MIN,
+    EXCITATION_MIN,
+    Excitation,
+    NotExcited,
+    excitation,
+    fold_rms,
+    heading_free_excitation,
+    not_excited_message,
+    parameter_status,
+    restrict_basis,
+    unfitted_verdict,
+    verdict_message,
+)
 
 __all__ = [
     "AUTO_TOLERANCE",
@@ -166,6 +185,11 @@ class FirmwareFit:
     heading: dict[str, Any] | None = None
     #: the compass's 0-based instance: every parameter name above is its own (``COMPASS_OFS2_X``, ``CAL_MAG1_XOFF``)
     instance: int = 0
+    #: the parameters against the log's calibration on data they were not fitted to
+    #: (:func:`trimag.vehicle._firmware_trust.unfitted_verdict`)
+    verdict: dict[str, Any] | None = None
+    #: each written parameter (the compass's own names): "fitted", "held", "not identified" (no sigma), "kept"/"chosen"
+    param_status: dict[str, str] = field(default_factory=dict)
 
     def affine(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``(W, b, m_body)`` with ``B = W (v - b) + m_body x`` for raw input ``v`` (the calibration's form)."""
@@ -224,7 +248,7 @@ def _polar_angle(G: NDArray[np.float64]) -> float:
 
 def _choose_orientation(
     target: str, raw: NDArray[np.float64], h: NDArray[np.float64], held: FirmwareCompass, applied: int | None,
-    external: bool, tolerance_deg: float, motors: Mapping[str, NDArray[np.float64]],
+    external: bool, tolerance_deg: float, motors: Mapping[str, NDArray[np.float64]], heading_free: bool = False,
 ) -> tuple[_Frame, dict[str, Any], list[str]]:
     """The orientation (step 1 of the module docstring) and what was decided."""
     results = []
@@ -265,20 +289,38 @@ def _choose_orientation(
     info["decision"] = "chosen" if chosen != current else "kept"
     fr = _frame(target, chosen, applied)
     info["value"] = chosen
-    angle, sigma = _remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors)
+    angle, sigma = (_remaining_angle(raw @ fr.P_u.T, h @ fr.P_h.T, motors) if cone >= MIN_CONE_DEG else
+                    (None, None))  # a log that barely turned cannot tell a rotation from an affine map (issue 38)
     info["remaining_angle_deg"], info["remaining_angle_sigma_deg"] = angle, sigma
     if angle is not None and sigma is not None:
         messages.append(f"orientation: the nearest standard rotation leaves {angle:.1f} +- {sigma:.1f} deg, left to "
                         "the symmetric matrix (it stays as a heading error of about that size)")
+    elif cone < MIN_CONE_DEG:
+        messages.append(f"orientation: the rotation beyond the nearest standard one is not measured (the field "
+                        f"direction stayed within {cone:.0f} deg)")
     if angle is not None and sigma is not None and angle - 2.0 * sigma > tolerance_deg:
-        chosen_name = type(held)(orientation=chosen).rotation_name
-        raise TrimagInputError(
-            f"the compass is rotated {angle:.1f} deg from the nearest standard orientation {chosen_name} ({chosen}); "
-            f"the symmetric matrix the firmware takes leaves at most {tolerance_deg:g} deg to it: mount the compass "
-            "square to the vehicle (or set a custom rotation: ArduPilot COMPASS_ORIENT 101 with CUST_ROT1_*, PX4 "
-            "CAL_MAGn_ROT 100 with CAL_MAGn_ROLL/PITCH/YAW) and record again"
-        )
+        raise _orientation_refusal(type(held), chosen, angle, sigma, tolerance_deg, heading_free)
     return fr, info, messages
+
+
+def _orientation_refusal(klass: type[FirmwareCompass], chosen: int, angle: float, sigma: float, tolerance_deg: float,
+                         heading_free: bool) -> IdentifiabilityError:
+    """The refusal (exit 3) of a compass the nearest standard rotation leaves more than ``tolerance_deg`` from
+    the field the attitudes and the reference give (issue 38, item 2): the angle and what to check."""
+    chosen_name = klass(orientation=chosen).rotation_name
+    orient = ("COMPASS_ORIENTn, AHRS_ORIENTATION and AHRS_TRIM" if klass.target == "ardupilot" else
+              "CAL_MAGn_ROT, SENS_BOARD_ROT and its SENS_BOARD_X/Y/Z_OFF trims")
+    yaw = (" (the yaw is the EKF's, which used this compass: a compass that disagrees with the other compasses "
+           "turns it too)" if heading_free else "")
+    return IdentifiabilityError(
+        f"the field the log's attitudes and the reference give is rotated {angle:.1f} +- {sigma:.1f} deg from the "
+        f"compass's readings in the nearest standard orientation {chosen_name} ({chosen}); the symmetric matrix the "
+        f"firmware takes holds at most {tolerance_deg:g} deg of it, so the parameters would leave a heading error "
+        f"of that size: check the reference (the site: the log's GPS fix or --igrf), the log's orientation "
+        f"({orient}) and its attitudes{yaw}; if the compass is mounted askew, mount it square to the vehicle (or "
+        "set a custom rotation: ArduPilot COMPASS_ORIENT 101 with CUST_ROT1_*, PX4 CAL_MAGn_ROT 100 with "
+        "CAL_MAGn_ROLL/PITCH/YAW) and record again"
+    )
 
 
 def _cone_deg(raw: NDArray[np.float64]) -> float:
@@ -391,6 +433,8 @@ class _Candidate:
     held_motor: bool = False
     n_identified: int = 0
     bounds: Any = None
+    #: the data's excitation of the level's directions (:mod:`trimag.vehicle._firmware_trust`)
+    excitation: Excitation | None = None
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -507,6 +551,9 @@ def _fit_level(
     reference = problem.pack(*start) if isinstance(start, tuple) else problem.pack(A_held, o_held, m_held)
     basis, weak = _identified(problem, cov, scales, F, float(np.sqrt(np.mean(sol.residual**2))),
                               sol.theta - reference)
+    exc = excitation(problem, sol.jacobian, F)  # what the rows move at all, whatever the noise (issue 38)
+    basis = restrict_basis(basis, scales, exc)
+    weak = weak + [n for n in exc.unexcited if n not in weak]
     if weak and basis.shape[1] and bounds is None:  # fit what is identified; hold the rest at the log's values
         sol = problem.solve_in(reference, basis, scales)
         compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
@@ -518,7 +565,7 @@ def _fit_level(
     return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
                       [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
-                      basis.shape[1], bounds)
+                      basis.shape[1], bounds, exc)
 
 
 # ------------------------------------------------------------------ the fit
@@ -572,6 +619,7 @@ def fit_firmware(
     applied_orientation: int | None = None, external: bool = True, level: str = "auto", motor: str = "auto",
     tolerance_deg: float = ORIENTATION_TOLERANCE_DEG, offsets_max: float | None = None,
     heading_free: ArrayLike | None = None, absent: Collection[str] = (), instance: int = 0,
+    unfitted: Mapping[str, Any] | None = None,
 ) -> FirmwareFit:
     """Fit ``target``'s parameters (see the module docstring).
 
@@ -601,21 +649,26 @@ def fit_firmware(
         With ``field_body``: each sample's roll-and-pitch rotation (body -> level frame). The levels are then fitted
         to the heading-free residual (the field's horizontal and vertical components: the heading does not enter),
         for attitudes whose yaw is not to be trusted (an EKF's that fused this compass); the orientation is still
-        chosen among the standard rotations with the vector residual (45-degree steps), but what remains is only
-        reported.
+        chosen among the standard rotations with the vector residual (45-degree steps), and what remains beyond
+        ``tolerance_deg`` refused as for the vector residual.
     absent : collection of str
         The parts of the firmware's calibration the log's firmware lacks (:data:`FIRMWARE_FEATURES`): never fitted.
     instance : int
         The compass's 0-based instance: the result names its parameters as the firmware does for it
         (``COMPASS_OFS2_X``, ``CAL_MAG1_XOFF``; :func:`trimag.models.firmware.instance_names`).
+    unfitted : mapping, optional
+        Rows of the log the fit is not given (``--rows``/``--where`` left them out): ``raw`` (n, 3, as ``raw``),
+        ``field`` (n, 3 body frame, or (n,) magnitude), ``motors``, ``tilt`` (as ``heading_free``, or None),
+        ``what``. The parameters are judged against ``held`` on them (else on held-out folds): the verdict
+        (:func:`trimag.vehicle._firmware_trust.unfitted_verdict`, :attr:`FirmwareFit.verdict`).
 
     Raises
     ------
     TrimagInputError
-        Bad input, a reference the data contradict, a rotation the firmware cannot hold, or no level within the
-        firmware's limits (exit 2).
+        Bad input, a reference the data contradict, or no level within the firmware's limits (exit 2).
     IdentifiabilityError
-        The data identify no level (or not the one asked for): exit 3, naming what is not identified.
+        The data identify no level (or not the one asked for), a compass rotated beyond ``tolerance_deg`` from every
+        standard orientation: exit 3, naming what is not identified or the angle.
     """
     klass = firmware_class(target)
     if level not in ("auto", *LEVELS):
@@ -626,6 +679,7 @@ def fit_firmware(
     absent = _check_absent(target, absent, level, motor)
     if "motor" in absent:
         motors = {}
+    held_given = held is not None
     if held is None:
         held = klass(orientation=applied_orientation or 0)
     if not isinstance(held, klass):
@@ -636,9 +690,11 @@ def fit_firmware(
     tilt = None if heading_free is None else np.asarray(heading_free, dtype=np.float64)
     if tilt is not None and (not vector or tilt.shape != (len(v), 3, 3)):
         raise TrimagInputError(f"`heading_free` needs `field_body` and one 3x3 rotation per sample ({len(v)}, 3, 3)")
+    if tilt is not None:  # before the orientation step: a log that never turned is refused for what it is
+        _require_heading_free_excited(h, tilt, _frame(target, int(held.orientation), applied_orientation), klass, v)
     if vector:
         fr, orientation, more = _choose_orientation(target, v, h, held, applied_orientation, external,
-                                                    np.inf if tilt is not None else tolerance_deg, motors)
+                                                    tolerance_deg, motors, tilt is not None)
         messages += more
     else:
         fr = _frame(target, int(held.orientation), applied_orientation)
@@ -690,9 +746,11 @@ def fit_firmware(
         chosen.compass = dataclasses.replace(
             ArduPilotCompass.from_algebra(A, o, m, orientation=c.orientation, motor_type=c.motor_type, scale=1.0),
             motor=c.motor, scale=0.0)
+    verdict = _verdict(chosen, klass, held, held_given, fr.orientation, same_frame, v, h, motors, tilt,
+                       applied_orientation, unfitted, level, messages)
     fit = _result(chosen, table, klass, held, fr, held_frame, orientation, vector, v, h, motors, messages, same_frame,
                   tilt)
-    fit.halves, fit.heading = halves, heading
+    fit.halves, fit.heading, fit.verdict = halves, heading, verdict
     fit.absent = tuple(absent)
     return _named(fit, target, instance)
 
@@ -702,7 +760,8 @@ def _named(fit: FirmwareFit, target: str, instance: int) -> FirmwareFit:
     if instance == 0:
         return fit
     renamed = {name: instance_names(target, getattr(fit, name), instance) for name in
-               ("table", "param_std", "covariance_order", "held", "orientation", "messages", "halves", "heading")}
+               ("table", "param_std", "covariance_order", "held", "orientation", "messages", "halves", "heading",
+                "verdict", "param_status")}
     return dataclasses.replace(fit, **renamed, instance=instance)
 
 
@@ -762,6 +821,47 @@ def _halves(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareComp
                         applied, names, scales, F, IDENTIFIED)
 
 
+def _verdict(chosen: _Candidate, klass: type[FirmwareCompass], held: FirmwareCompass, held_given: bool,
+             orientation: int, same_frame: bool, raw: NDArray[np.float64], field: NDArray[np.float64],
+             motors: Mapping[str, NDArray[np.float64]], tilt: NDArray[np.float64] | None, applied: int | None,
+             unfitted: Mapping[str, Any] | None, level: str, messages: list[str]) -> dict[str, Any]:
+    """The parameters to be written against the log's calibration on data they were not fitted to (issue 38, item
+    3): the rows ``unfitted`` when given, else the held-out folds, through the firmware's formula. Worse: refused
+    (:class:`KeepTheLogs`) under ``level="auto"``, a warning for a level asked for; better: one line."""
+    params_held = held if same_frame or chosen.held_motor else None
+
+    def to_compass(sol: LevelSolution) -> FirmwareCompass:
+        return _compass(klass, sol, chosen.level, orientation, chosen.motor, params_held, chosen.held_motor)
+
+    R0 = np.eye(3) if applied is None else rotation_matrix(klass.target, applied)
+    if unfitted is not None:
+        part = dict(unfitted)
+        part["tilt"] = part.get("tilt") if tilt is not None else None  # the fit's own residual
+        if chosen.compass.motor_type and chosen.compass.motor_type not in (part.get("motors") or {}):
+            part = {}  # the rows left out lack the motor channel the fit uses: judged on the folds instead
+    else:
+        part = {}
+    if part:
+        verdict = unfitted_verdict(chosen.compass, held, applied, unfitted=part)
+    else:
+        verdict = unfitted_verdict(
+            chosen.compass, held, applied, raw=raw, field_body=field, motors=motors, tilt=tilt,
+            folds=lambda: fold_rms(chosen.problem, chosen.solution, chosen.bounds, N_FOLDS, to_compass, raw @ R0,
+                                   field, motors, tilt))
+    verdict["against"] = "the log's calibration" if held_given else "no calibration (the raw readings)"
+    text = verdict_message(verdict, klass.unit)
+    if verdict["better"] or not held_given:
+        verdict["decision"] = "better" if verdict["better"] else "worse than the raw readings"
+        messages.append(text)
+    elif level == "auto":
+        verdict["decision"] = "refused"
+        raise KeepTheLogs(f"the calibration in the log is the better one: {text}")
+    else:
+        verdict["decision"] = "warned"
+        messages.append(f"warning: {text}")
+    return verdict
+
+
 def _levels(
     level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
     hh: NDArray[np.float64], h: NDArray[np.float64], v: NDArray[np.float64], klass: type[FirmwareCompass],
@@ -777,7 +877,7 @@ def _levels(
                                         omax, v, same_frame, tilt @ fr.P_h, absent)
         try:
             chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, tilt), F)
-        except KeepTheLogs:
+        except (KeepTheLogs, NotExcited):
             raise
         except IdentifiabilityError as exc:
             cone = _cone_deg(v)
@@ -796,8 +896,42 @@ def _levels(
     if tilt is None:
         table, candidates = _run_levels(level, motor, motors, u, hh, klass, held, A_held, o_held, fr.orientation,
                                         omax, v, same_frame, None, absent)
+        if not vector:  # a vector residual's offsets are always excited (dB/do = A); heading-free: fit_firmware
+            _require_excited(candidates, klass, _cone_deg(v))
         chosen = _choose(level, candidates, _rms_before(held, v, h, held_frame, vector, motors, None), F)
     return table, candidates, chosen, tilt
+
+
+def _excitation_row(cand: _Candidate) -> dict[str, Any]:
+    """The level table's record of a candidate's excitation (:mod:`trimag.vehicle._firmware_trust`)."""
+    exc = cand.excitation
+    if exc is None:
+        return {"excitation": None}
+    return {"excitation": exc.weakest, "offsets_excitation": exc.offsets, "unexcited": list(exc.unexcited)}
+
+
+def _require_excited(candidates: list[_Candidate], klass: type[FirmwareCompass], cone: float) -> None:
+    """Refuse (:class:`NotExcited`, exit 3) when no level's offsets are excited by the data (a magnitude
+    residual): nothing identified can be written, whatever the residual (issue 38, item 1)."""
+    excs = [c.excitation for c in candidates if c.excitation is not None]
+    if not excs or any(e.offsets_excited for e in excs):
+        return
+    best = max(excs, key=lambda e: e.offsets)
+    names = [_firmware_name(klass, f"o_{a}") for a in "xyz"]
+    raise NotExcited(not_excited_message(best, names, False, cone))
+
+
+def _require_heading_free_excited(h: NDArray[np.float64], tilt: NDArray[np.float64], fr: _Frame,
+                                  klass: type[FirmwareCompass], raw: NDArray[np.float64]) -> Excitation:
+    """The heading-free offsets' excitation from the reference (:func:`heading_free_excitation`), in the fit's
+    frame ``fr``; refused (:class:`NotExcited`, exit 3) below :data:`EXCITATION_MIN` (issue 38, item 1)."""
+    exc = heading_free_excitation(h, tilt)
+    d = fr.P_h @ exc.offsets_direction  # body -> the fit's frame (where the offsets are the firmware's)
+    exc.offsets_direction = d / max(float(np.linalg.norm(d)), 1e-300)
+    if not exc.offsets_excited:
+        names = [_firmware_name(klass, f"o_{a}") for a in "xyz"]
+        raise NotExcited(not_excited_message(exc, names, True, _cone_deg(raw)))
+    return exc
 
 
 def _refuse_contradicted_scale(scale: float, F: float, klass: type[FirmwareCompass]) -> None:
@@ -847,7 +981,8 @@ def _run_levels(
                           "heldout_rms": cand.heldout_rms, "identified": cand.identified,
                           "n_identified": cand.n_identified,
                           "not_identified": cand.weak, "within_limits": not cand.violations,
-                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False})
+                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False,
+                          **_excitation_row(cand)})
     return table, candidates
 
 
@@ -991,6 +1126,9 @@ def _result(
 ) -> FirmwareFit:
     names, cov = _param_covariance(chosen, klass, fr.orientation,
                                    held if same_frame or chosen.held_motor else None)
+    status = _parameter_status(chosen, klass, fr.orientation, held if same_frame or chosen.held_motor else None,
+                               orientation)
+    names, cov = _only_fitted(names, cov, status)
     std = dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist(), strict=True))
     rms_after = float(np.sqrt(np.mean(chosen.solution.residual**2) * chosen.problem.width))
     rms_before = _rms_before(held, raw, target, held_frame, vector, motors, tilt)
@@ -1005,11 +1143,43 @@ def _result(
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
-    return FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
-                       ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
-                       rms_after, fr.P_u, fr.P_h,
-                       float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
-                       messages)
+    out = FirmwareFit(chosen.compass, chosen.level, table, std, cov, names, held_values, orientation,
+                      ("heading-free" if tilt is not None else "vector") if vector else "magnitude", rms_before,
+                      rms_after, fr.P_u, fr.P_h,
+                      float(np.mean(x)) if x is not None else 0.0, chosen.inflation, chosen.noise, len(raw),
+                      messages)
+    out.param_status = status
+    return out
+
+
+def _parameter_status(chosen: _Candidate, klass: type[FirmwareCompass], orientation: int,
+                      held: FirmwareCompass | None, decision: Mapping[str, Any]) -> dict[str, str]:
+    """Each written parameter's status (:func:`trimag.vehicle._firmware_trust.parameter_status`): fitted, held,
+    not identified; the orientation ``kept`` or ``chosen``; the motor type ``fitted`` with a motor term."""
+    problem, sol = chosen.problem, chosen.solution
+
+    def values(t: NDArray[np.float64]) -> dict[str, float]:
+        A, o, m = problem.unpack(t)
+        moved = dataclasses.replace(sol, A=A, o=o, m=m, theta=t)
+        return _compass(klass, moved, chosen.level, orientation, chosen.motor, held, chosen.held_motor).parameters(0)
+
+    n_weak = problem.n_params - chosen.n_identified if chosen.weak else 0
+    status = parameter_status(values, sol.theta, sol.jacobian, n_weak,
+                              chosen.excitation.scales if chosen.excitation is not None else None)
+    for name in status:
+        if name.endswith(("ORIENT", "_ROT")):
+            status[name] = "chosen" if decision.get("decision") == "chosen" else "kept"
+        elif name in ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP"):
+            status[name] = "fitted" if chosen.motor else "held"
+    return status
+
+
+def _only_fitted(names: list[str], cov: NDArray[np.float64], status: Mapping[str, str]
+                 ) -> tuple[list[str], NDArray[np.float64]]:
+    """The covariance of the parameters the data determine: a held or unidentified one has no sigma (issue 38,
+    item 4)."""
+    keep = [i for i, n in enumerate(names) if status.get(n, "fitted") == "fitted"]
+    return [names[i] for i in keep], cov[np.ix_(keep, keep)]
 
 
 def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[np.float64], hf: _Frame,
@@ -1033,15 +1203,20 @@ def _rms_before(held: FirmwareCompass, raw: NDArray[np.float64], field: NDArray[
 def level_table(table: list[dict[str, Any]], unit: str) -> str:
     """The fit report's table of levels: level, parameters, RMS, held-out RMS, identified, limits, chosen."""
     lines = [f"{'level':<10}{'motor':<10}{'params':>7}{'rms':>11}{'held-out':>11}  {'identified':<11}"
-             f"{'limits':<9}chosen   [{unit}]"]
+             f"{'excited':>8}  {'limits':<9}chosen   [{unit}]"]
     for row in table:
         ident = "all" if row["identified"] else (f"{row['n_identified']} of {row['n_params']}" if row.get(
             "n_identified") else "none")
         limits = "ok" if row["within_limits"] else "outside"
         if row["at_limit"]:
             limits = "at limit"
+        excited = f"{row['excitation']:.2f}" if row.get("excitation") is not None else "-"
         lines.append(f"{row['level']:<10}{row['motor'] or '-':<10}{row['n_params']:>7}{row['rms']:>11.4g}"
-                     f"{row['heldout_rms']:>11.4g}  {ident:<11}{limits:<9}{'<--' if row['chosen'] else ''}")
+                     f"{row['heldout_rms']:>11.4g}  {ident:<11}{excited:>8}  {limits:<9}"
+                     f"{'<--' if row['chosen'] else ''}")
+    lines.append(f"(excited: the weakest direction's excitation by the fitted rows, 1 = a turn through all attitudes; "
+                 f"a direction below {DIRECTION_EXCITATION_MIN:g} is not identified, offsets below {EXCITATION_MIN:g} "
+                 "are not written, whatever the residual)")
     return "\n".join(lines)
 
 
@@ -1078,7 +1253,8 @@ def firmware_calibration(
                 "orientation_decision": fit.orientation, "residual": fit.residual_kind,
                 "input_orientation": input_orientation, "motor_channel": motor_channel if regressors else None,
                 "param_std": fit.param_std, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "instance": fit.instance}
+                "halves": fit.halves, "absent": list(fit.absent), "heading": fit.heading, "instance": fit.instance,
+                "verdict": fit.verdict, "param_status": fit.param_status}
     warnings = [m[len("warning: "):] for m in fit.messages if m.startswith("warning: ")]
     diag: dict[str, Any] = {"firmware": jsonable(firmware), **(diagnostics or {})}
     if warnings:
