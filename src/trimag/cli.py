@@ -249,6 +249,9 @@ def _add_fit(sub: Any) -> None:
                    help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
                         "this firmware")
     g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
+    g.add_argument("--force", action="store_true",
+                   help="with --export-to: write the parameters even of a compass --policy rejected or whose unit "
+                        "its fit doubted")
     p.add_argument("--deviation-card", metavar="CARD.png",
                    help="with --level-turn or --heading: write the deviation card (heading error against heading, "
                         "before and after) as a figure; its table is printed")
@@ -284,6 +287,9 @@ def _add_export(sub: Any) -> None:
                    help="compass / magnetometer number, 1-based (ArduPilot COMPASS_OFS, OFS2, OFS3; PX4 CAL_MAG0..); "
                         "default: the compass the calibration was fitted to (fit --sensor N), else 1")
     p.add_argument("-o", "--out", required=True, metavar="FILE", help="output file (- for standard output)")
+    p.add_argument("--force", action="store_true",
+                   help="write the parameters even of a calibration its fit rejected (--policy) or whose unit the "
+                        "fit doubted")
     _add_output_options(p)
 
 
@@ -798,6 +804,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
         _say(f"note: {note}", args)
     for v in r["violations"]:
         _err(f"warning: outside the firmware's limits: {v}")
+    for w in r["warnings"]:
+        _err(f"warning: {w}")
     if args.json:
         print(json.dumps(r))
     else:

@@ -27,6 +27,7 @@ from ._checks import (
     refuse_impossible_vector_fit,
     refuse_static_log,
     refuse_unidentified_log,
+    unit_doubt,
     worse_than_raw,
 )
 from ._gyro import angular_rate, gyro_lines, gyro_requested, log_has_gyro
@@ -205,10 +206,18 @@ def _fit_samples(
     if samples.log_info is not None:
         summary["log"] = {"compass": samples.log_info.get("compass"), "name": samples.log_info.get("sensor"),
                           "format": samples.log_info.get("format")}
+    cal = _record_unit_doubt(cal, messages)
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
                      written)
+
+
+def _record_unit_doubt(cal: Calibration, messages: list[str]) -> Calibration:
+    """The fit's doubt of the data's unit kept in the calibration (``diagnostics.unit_doubt``): export refuses it
+    unless forced (issue 41, item 9: µT data declared nT exported offsets 1000x too small)."""
+    doubt = unit_doubt(messages)
+    return cal if doubt is None else cal.with_diagnostics(unit_doubt=doubt)
 
 
 def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
@@ -618,6 +627,7 @@ def _fit_target(req: FitRequest, samples: Samples, unit: str, messages: list[str
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, [], limits, None, False)
     summary["warnings"] = warn_texts
     summary["firmware"] = cal.diagnostics["firmware"]
+    cal = _record_unit_doubt(cal, messages)
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],

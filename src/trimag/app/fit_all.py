@@ -104,8 +104,9 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         from ..io.atomic import atomic_write_text
         from ..io.export_instances import export_instances
 
+        exportable = _exportable(fits, req, messages)
         try:
-            exp = export_instances([(r.calibration, n) for n, r in fits.items()], req.export_to)
+            exp = export_instances([(r.calibration, n) for n, r in exportable.items()], req.export_to)
         except TrimagError:  # no parameter file: nothing of this run is left behind (the command exits 2)
             for r in fits.values():
                 for path in r.written.values():
@@ -119,6 +120,28 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
     for n, why in refused.items():
         messages.append(f"warning: compass {n} not calibrated (its parameters are not written): {why}")
     return AllSensorsResult(fits, refused, comparison, messages, written)
+
+
+def _exportable(fits: dict[int, Any], req: FitRequest, messages: list[str]) -> dict[int, Any]:
+    """The compasses whose parameters go to the parameter file: not one the policy rejected or whose unit its fit
+    doubted, unless ``req.force`` (issue 41, item 9: the file was written when every compass was rejected). Each left
+    out is said in ``messages``; none left: refused (exit 4 for a policy's rejection, else 2), no parameter file."""
+    from .export import refuse_rejected
+
+    kept: dict[int, Any] = {}
+    left_out: list[TrimagError] = []
+    for n, r in fits.items():
+        try:
+            forced = refuse_rejected(r.calibration, f"compass {n}", req.force)
+        except TrimagError as exc:
+            left_out.append(exc)
+            messages.append(f"warning: {exc} (left out of {req.export_out})")
+            continue
+        kept[n] = r
+        messages += [f"warning: compass {n}: {w}" for w in forced]
+    if not kept:
+        raise type(left_out[0])(f"no parameter file written ({req.export_out}): " + "; ".join(map(str, left_out)))
+    return kept
 
 
 def compass_warnings(number: int, fit: Any) -> list[str]:
