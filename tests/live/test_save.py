@@ -194,3 +194,37 @@ def test_a_live_source_whose_fitted_field_contradicts_the_reference_gives_no_cal
     right = LiveSession(units="uT", reference=500.0, source="test")
     right.add(Batch(sensor(uniform_directions(400, seed=17))))
     assert right.refit() is not None
+
+
+@pytest.mark.parametrize("failing", ["cal-samples.csv", "cal.json"])
+def test_a_save_that_fails_keeps_the_recording_and_names_the_file(tmp_path, small_log, capsys, monkeypatch, failing):
+    """Issue 41, item 7: a full disk at the final save said "cannot read or write: No space left on device", named
+    no file and kept nothing. The failed file is named, and the samples are kept in a second, named place (the
+    temporary folder) when their own file fails, or named where they were written when the calibration fails."""
+    import errno
+    import tempfile
+
+    import trimag.live.session as session_module
+
+    real = session_module.atomic_write_text
+
+    def full_disk(path, text):
+        if Path(path).name == failing:
+            raise OSError(errno.ENOSPC, "No space left on device")  # as the write of a full disk raises it
+        return real(path, text)
+
+    monkeypatch.setattr(session_module, "atomic_write_text", full_disk)
+    rescue = tmp_path / "rescue"
+    rescue.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
+    out = tmp_path / "out"
+    code = main(["live", "--replay", str(small_log), "--rate", "1e6", "--exit-at-end", "--no-browser", "--port", "0",
+                 "--units", "counts", "-o", str(out / "cal.json")])
+    _, err = capsys.readouterr()
+    assert code == 2, err
+    line = err.strip().splitlines()[-1]
+    assert str(out / failing) in line and "No space left on device" in line, err
+    kept = out / "cal-samples.csv" if failing == "cal.json" else next(rescue.glob("trimag-live-*samples.csv"))
+    assert str(kept) in line
+    assert np.array_equal(read_samples(kept).field, read_samples(small_log).field)
+    assert not (out / "cal.json").exists()
