@@ -116,6 +116,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                                "`sensor=all` (for one calibration, use trimag export)")
     from ..vehicle.policy import read_policy
 
+    _check_reference_number(req.reference.reference)
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
@@ -568,6 +569,19 @@ def _names_background(given: Any) -> bool:
     """Whether the request names a background vector (or an iron-free run, or a per-sample background)."""
     return any(getattr(given, name) is not None for name in
                ("background_ned", "igrf_spec", "background_run", "background_columns", "igrf_columns"))
+
+
+def _check_reference_number(reference: Any) -> None:
+    """A field magnitude given as a number is finite and positive, whatever fit uses it (issue 41, item 14: ``-5``
+    with ``target`` reached a numpy warning); other forms are read (and checked) where they are used."""
+    if isinstance(reference, bool) or not isinstance(reference, str | int | float):
+        return
+    try:
+        value = float(reference)
+    except ValueError:
+        return
+    if not (np.isfinite(value) and value > 0):
+        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {reference!r}")
 
 
 def _background_scale(given: Any) -> float | None:

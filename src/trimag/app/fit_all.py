@@ -80,6 +80,10 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
 
     if (req.export_to is None) != (req.export_out is None):
         raise TrimagInputError("give both `export_to=ardupilot|px4` and `export_out=FILE` (the parameter file)")
+    if req.export_out is not None and str(req.export_out).strip() == "-":
+        raise TrimagInputError("`export_out` is the parameter file to write; standard output (-) is not one here: "
+                               "give a file name (or write one compass to standard output with trimag export CAL.json "
+                               "-o -)")
     fits: dict[int, Any] = {}
     refused: dict[int, str] = {}
     errors: list[TrimagError] = []
