@@ -23,7 +23,7 @@ from typing import Any
 
 from ..app.requests import LiveRequest
 from ..errors import TrimagInputError
-from ._checks import check_method, check_request, replay_units
+from ._checks import check_method, check_request, output_lock, replay_units
 from .server import LiveServer
 from .session import LiveSession
 from .sources import Batch, _play, line_source, mavlink_source, serial_source
@@ -132,6 +132,13 @@ def run_live(request: LiveRequest, say: Callable[[str], None] = print, *,
     """
     check_request(request)
     check_method(request)  # an unknown model, or one live cannot feed, fails before serving
+    with output_lock(request):  # a second session on the same outputs is refused (exit 2)
+        return _run_locked(request, say, ready)
+
+
+def _run_locked(request: LiveRequest, say: Callable[[str], None],
+                ready: Callable[[LiveServer], None] | None) -> LiveResult:
+    """:func:`run_live` once the request is checked and its outputs locked."""
     batches, description, units, messages = _open(request)
     for message in messages:
         say(message)
