@@ -26,7 +26,7 @@ from ..errors import TrimagInputError
 from ._checks import check_method, check_request, output_lock, replay_units
 from .server import LiveServer
 from .session import LiveSession
-from .sources import Batch, _play, line_source, mavlink_source, serial_source
+from .sources import Batch, _play, bounded_lines, line_source, mavlink_source, serial_source
 
 __all__ = ["LiveResult", "LiveServer", "LiveSession", "open_source", "run_live"]
 
@@ -70,7 +70,8 @@ def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[
     if kind == "stdin":
         import sys
 
-        return line_source(sys.stdin, columns=columns), "standard input", request.units, []
+        return (line_source(bounded_lines(sys.stdin.buffer.readline), columns=columns), "standard input",
+                request.units, [])
     if kind == "serial":
         assert request.serial is not None
         if request.baud <= 0:
