@@ -396,8 +396,9 @@ def _live_stdin_peak_rss_mb(tmp_path: Path, name: str, text_before: bytes, long_
     env = {**os.environ, "MPLBACKEND": "Agg"}
     with feed.open("rb") as stdin, (tmp_path / f"{name}.out").open("wb") as out, \
             (tmp_path / f"{name}.err").open("wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "trimag", "live", "--stdin", "--units", "counts", "--exit-at-end",
-                                 "--json", "--no-browser", "--port", "0", "-o", str(tmp_path / f"{name}.json")],
+        proc = subprocess.Popen([sys.executable, "-m", "trimag", "live", "--stdin", "--units", "counts",
+                                 "--exit-at-end", "--json", "--no-browser", "--port", "0", "-o",
+                                 str(tmp_path / f"{name}.json")],
                                 stdin=stdin, stdout=out, stderr=err, cwd=tmp_path, env=env)
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
