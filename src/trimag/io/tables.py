@@ -541,13 +541,34 @@ def check_sensor(kind: str, sensor: str | int | None, path: str | Path) -> None:
         )
 
 
+def refuse_stream(p: Path) -> None:
+    """Refuse a pipe, a FIFO, a terminal or a device given as a log (issue 41, item 17: ``fit /dev/stdin`` said
+    "cannot read or write: lseek failed", a FIFO hung): trimag reads a log more than once."""
+    import stat
+
+    try:
+        mode = p.stat().st_mode
+    except OSError:
+        return  # the reader says what is wrong with the path
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return
+    kind = "a pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device or terminal"
+    raise TrimagInputError(f"{p} is {kind}, not a file: trimag reads a log more than once (its layout first); save "
+                           "the data to a file (e.g. `my_logger > log.csv`) and give that file (for a live stream: "
+                           "trimag live --stdin)")
+
+
 def read_table(
     path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: str | int | None = None
 ) -> pd.DataFrame:
     """Read a whole log into a DataFrame (text cells stay strings; see :func:`read_samples`)."""
     p = Path(path)
+    if str(path).strip() == "-":
+        raise TrimagInputError("standard input (-) is not read as a log: trimag reads a log more than once (its layout "
+                               "first); save the data to a file (e.g. `my_logger > log.csv`) and give that file")
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
+    refuse_stream(p)
     if fmt is None or fmt in ("csv", "txt"):
         from .normalise import plain_path
 
