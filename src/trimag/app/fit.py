@@ -117,6 +117,9 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     from ..vehicle.policy import read_policy
 
     _check_reference_number(req.reference.reference)
+    if req.rate_hz is not None and not (np.isfinite(float(req.rate_hz)) and float(req.rate_hz) > 0):
+        raise TrimagInputError(f"`rate_hz` is the log's sample rate, a positive number of samples per second; got "
+                               f"{req.rate_hz}")
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
