@@ -301,3 +301,17 @@ def test_a_log_of_a_firmware_without_compass_scale_gets_none_written(tmp_path: P
     assert e.returncode == 0, e.stderr
     p = _param_file(param)
     assert not [k for k in p if k.startswith("COMPASS_SCALE")] and "COMPASS_DIA_X" in p
+
+
+def test_a_gps_fix_off_the_earth_is_named_as_the_log_s(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 41, item 17: a GPS altitude of 2e7 m went into IGRF unnamed. The log's GPS fix is named, with the
+    value, and the way round it (give the site, or the magnitude)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "ALT", 2e7)
+    log = _write_log(tmp_path / "flight.bin")
+    r = run_trimag("fit", log, "-o", tmp_path / "cal.json", timeout=600)
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and "GPS" in line and "2e+07 m" in line and "--igrf" in line, line
+    assert not (tmp_path / "cal.json").exists()

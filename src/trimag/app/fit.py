@@ -433,6 +433,14 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
     src = dataclasses.replace(src, units=check_log_unit(src.units, log_info, src.columns) or log_info["unit"])
     gps = log_info.get("gps")
     if not given.given and gps and gps.get("date"):
+        from ..fields.reference import check_site
+
+        try:  # a GPS fix no place on Earth has is named as the log's (issue 41, item 17)
+            check_site(float(gps["lat_deg"]), float(gps["lon_deg"]), float(gps["alt_m"]), "the log's GPS fix")
+        except TrimagInputError as exc:
+            raise TrimagInputError(f"{exc}: the GPS position logged is wrong, so the field expected there is unknown; "
+                                   "give the site yourself (`igrf_spec=LAT,LON,ALT_M,DATE`) or the field's magnitude "
+                                   "(`reference`)") from None
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
         given = dataclasses.replace(given, igrf_spec=igrf_spec)
         messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
