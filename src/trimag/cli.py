@@ -84,8 +84,9 @@ def _printable(text: str, *, lines: bool = True) -> str:
     return text if lines else text.replace("\n", "\\n")
 
 
-#: the longest line trimag prints for one message; a longer one (a list of 100 000 names) is cut in its middle
-MAX_MESSAGE_CHARS = 1000
+#: the longest line trimag prints for one message (two compasses' refusals take ~1 700 characters); a longer one (a list
+#: of 100 000 names) is cut in its middle
+MAX_MESSAGE_CHARS = 4000
 
 
 def _short(text: str) -> str:
