@@ -122,3 +122,39 @@ def test_repr_rebuilds() -> None:
     rebuilt = eval(repr(cal), {"Calibration": Calibration})
     assert rebuilt.approx_equal(cal, atol=0)
     assert rebuilt.model == "ellipsoid"
+
+
+@pytest.mark.parametrize(("matrix", "offset", "units", "words"), [
+    (np.eye(3), [1e308, 0.0, 0.0], "nT", "offset"),               # applied and exported as 1e+308f (issue 41, item 8)
+    (np.eye(3), [2e7, 0.0, 0.0], "nT", "offset"),                 # 20 mT: no Earth-field magnetometer reads that
+    (np.eye(3), [0.0, 3e5, 0.0], "G", "offset"),
+    (np.eye(3), [1e13, 0.0, 0.0], "counts", "offset"),
+    (1e300 * np.eye(3), [1.0, 2.0, 3.0], "nT", "matrix"),         # overflow warnings on apply
+    (np.diag([1.0, 1.0, 1e-9]), [1.0, 2.0, 3.0], "nT", "matrix"),  # flattens one axis 1e9 times
+    (np.diag([1.0, 1.0, 1e-7]), [1.0, 2.0, 3.0], "uT", "matrix"),  # invertible, condition number 1e7
+])
+def test_a_calibration_file_out_of_physical_range_is_refused_on_load(tmp_path, matrix, offset, units, words) -> None:
+    """Issue 41, item 8: a calibration file's numbers are checked on load (finite, an offset within a magnetometer's
+    range for its unit, a well-conditioned invertible matrix of a plausible gain); the command exits 2 with one line
+    and no numpy warning, nothing written."""
+    from _helpers import run_trimag
+
+    data = json.loads(Calibration.from_matrix_offset(np.eye(3), [1, 2, 3], units=units).to_json())
+    data["matrix"], data["offset"] = np.asarray(matrix, dtype=float).tolist(), list(offset)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(CalibrationFormatError, match=words):
+        Calibration.from_file(path)
+    out = tmp_path / "cal.h"
+    r = run_trimag("export", path, "--to", "c-header", "-o", out)
+    assert r.returncode == 2 and not out.exists(), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Warning" not in r.stderr, r.stderr
+
+
+def test_plausible_calibrations_still_load() -> None:
+    """The bounds leave real calibrations alone: a counts calibration fitted to a unit sphere (gain 1e-6), a
+    weak offset in gauss, a soft iron of condition number 20."""
+    for matrix, offset, units in [(1e-6 * np.eye(3), [5e5, -2e5, 1e6], "counts"), (np.eye(3), [0.4, -0.2, 1.5], "G"),
+                                  (np.diag([2.0, 1.0, 0.1]), [1200.0, -800.0, 300.0], "nT")]:
+        cal = Calibration.from_matrix_offset(matrix, offset, units=units)
+        assert Calibration.from_json(cal.to_json()).approx_equal(cal)

@@ -288,6 +288,51 @@ def _frozen_array(a: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np
     return arr
 
 
+#: the largest offset component a calibration file may hold, nT: 10 mT (100 G), beyond the range of any magnetometer
+#: of the Earth's field (a MEMS compass saturates near 1.6 mT, a fluxgate near 0.1 mT)
+MAX_OFFSET_NT = 1e7
+#: the same for data without a physical unit (``counts``, ``unknown``): beyond a 32-bit reading
+MAX_OFFSET_COUNTS = 1e10
+#: the gains (singular values) a calibration's matrix may have: from a counts-to-unit-sphere scale to its inverse
+GAIN_RANGE = (1e-9, 1e9)
+#: the largest condition number of a calibration's matrix: no soft iron compresses one axis a million times
+MAX_CONDITION = 1e6
+
+
+def check_physical_range(matrix: NDArray[np.float64], offset: NDArray[np.float64], units: str) -> None:
+    """Refuse a calibration file's numbers that no magnetometer's calibration has (issue 41, item 8: an offset of
+    1e308 or a matrix of 1e300 I was applied and exported with overflow warnings).
+
+    ``matrix`` (3, 3) and ``offset`` (3,) in ``units`` (finite already): the offset within :data:`MAX_OFFSET_NT`
+    (:data:`MAX_OFFSET_COUNTS` without a physical unit), the matrix's gains within :data:`GAIN_RANGE` and its
+    condition number at most :data:`MAX_CONDITION`.
+
+    Raises
+    ------
+    CalibrationFormatError
+        Naming the entry, its value and the range.
+    """
+    from .units import UNITS
+
+    per_nT = UNITS.get(units)
+    limit = MAX_OFFSET_COUNTS if per_nT is None else MAX_OFFSET_NT / per_nT
+    worst = float(np.abs(offset).max())
+    edited = "it was edited or corrupted, or not written by trimag"
+    if worst > limit:
+        where = "a 32-bit reading" if per_nT is None else "10 mT, beyond any Earth-field magnetometer's range"
+        raise CalibrationFormatError(f"calibration file's offset has a component of {worst:.3g} {units}, beyond "
+                                     f"{limit:.3g} {units} ({where}): {edited}")
+    gains = np.linalg.svd(matrix, compute_uv=False)
+    lo, hi = GAIN_RANGE
+    if gains[0] > hi or gains[-1] < lo:
+        gain = gains[0] if gains[0] > hi else gains[-1]
+        raise CalibrationFormatError(f"calibration file's matrix has a gain of {gain:.3g}, outside {lo:g} to {hi:g}: "
+                                     f"{edited}")
+    if gains[0] > MAX_CONDITION * gains[-1]:
+        raise CalibrationFormatError(f"calibration file's matrix stretches one direction {gains[0] / gains[-1]:.3g} "
+                                     f"times more than another (at most {MAX_CONDITION:g} in a calibration): {edited}")
+
+
 def check_regressor_terms(terms: Mapping[str, Any]) -> dict[str, Any]:
     """The ``regressors`` entry of a calibration, checked and as plain lists.
 
@@ -647,15 +692,21 @@ class Calibration:
                     f"calibration file has format_version {data.get('format_version')} but no regressor terms"
                 )
             matrix = _frozen_array(data["matrix"], (3, 3), "matrix")
-            if abs(np.linalg.det(matrix)) < 1e-300 or np.linalg.cond(matrix) > 1e12:
+            with np.errstate(all="ignore"):
+                singular = not abs(np.linalg.det(matrix)) >= 1e-300 or not np.linalg.cond(matrix) <= 1e12
+            if singular:
                 raise CalibrationFormatError(
                     "calibration file's matrix is singular: it maps every field onto a plane or a line, which no "
                     "calibration does (it was edited, or not written by trimag)"
                 )
+            offset = _frozen_array(data["offset"], (3,), "offset")
+            units = normalise_unit(data.get("units", "unknown"))
+            with np.errstate(all="ignore"):
+                check_physical_range(matrix, offset, units)
             return cls(
                 matrix=matrix,
-                offset=_frozen_array(data["offset"], (3,), "offset"),
-                units=normalise_unit(data.get("units", "unknown")),
+                offset=offset,
+                units=units,
                 model=str(data.get("model", "affine")),
                 method=str(data.get("method", "given")),
                 params=dict(data.get("params") or {}),

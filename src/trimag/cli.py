@@ -41,7 +41,7 @@ _NEGATIVE_VALUE = re.compile(r"^-\.?\d")
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> Any:  # one line, exit 2
-        sys.stderr.write(f"trimag: error: {message} (see `{self.prog} --help`)\n")
+        sys.stderr.write(f"trimag: error: {_printable(message, lines=False)} (see `{self.prog} --help`)\n")
         raise SystemExit(EXIT_INPUT)
 
     def parse_known_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
@@ -113,15 +113,42 @@ def _register_flags(parser: argparse.ArgumentParser) -> None:
             _FLAGS.setdefault(action.dest, longs[0])
 
 
+#: what a terminal obeys rather than shows: C0 controls but tab and newline, DEL, C1 controls (``\x9b`` is CSI),
+#: and the bidirectional overrides that reorder what is shown
+_CONTROL = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+
+
+def _printable(text: str, *, lines: bool = True) -> str:
+    """``text`` with every control character escaped (``\\x1b``; issue 41, item 13: escape sequences in a CSV
+    header or a calibration file reached the terminal raw); ``lines=False`` escapes newlines too (one line)."""
+    text = _CONTROL.sub(lambda m: f"\\x{ord(m.group()):02x}" if ord(m.group()) < 0x100 else
+                        f"\\u{ord(m.group()):04x}", text)
+    return text if lines else text.replace("\n", "\\n")
+
+
+#: the longest line trimag prints for one message (two compasses' refusals take ~1 700 characters); a longer one (a list
+#: of 100 000 names) is cut in its middle
+MAX_MESSAGE_CHARS = 4000
+
+
+def _short(text: str) -> str:
+    """``text`` within :data:`MAX_MESSAGE_CHARS`, its middle cut and counted (issue 41, item 14: 100 000 regressors
+    made a 1.58 MB error line); the start (what is wrong) and the end (what to do) are kept."""
+    if len(text) <= MAX_MESSAGE_CHARS:
+        return text
+    head, tail = MAX_MESSAGE_CHARS * 2 // 3, MAX_MESSAGE_CHARS // 4
+    return f"{text[:head]} ... [{len(text) - head - tail} more characters] ... {text[-tail:]}"
+
+
 def _err(msg: str) -> None:
-    sys.stderr.write(f"trimag: {_as_flags(msg)}\n")
+    sys.stderr.write(f"trimag: {_short(_printable(_as_flags(msg), lines=False))}\n")
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
     """Human-readable progress/info goes to stderr when --json (or ``-o -``) reserves stdout for the output."""
     stream = sys.stderr if getattr(args, "json", False) or getattr(args, "out", None) == "-" else sys.stdout
     if not getattr(args, "quiet", False):
-        stream.write(_as_flags(msg) + "\n")
+        stream.write(_printable(_as_flags(msg)) + "\n")
 
 
 def _say_sensor(result: dict[str, Any], args: argparse.Namespace) -> None:
@@ -304,6 +331,9 @@ def _add_fit(sub: Any) -> None:
                    help="with --sensor all: write every compass fitted to one parameter file (--export-out) of "
                         "this firmware")
     g.add_argument("--export-out", metavar="FILE", help="with --sensor all: the parameter file (e.g. compass.param)")
+    g.add_argument("--force", action="store_true",
+                   help="with --export-to: write the parameters even of a compass --policy rejected or whose unit "
+                        "its fit doubted")
     p.add_argument("--deviation-card", metavar="CARD.png",
                    help="with --level-turn or --heading: write the deviation card (heading error against heading, "
                         "before and after) as a figure; its table is printed")
@@ -346,6 +376,9 @@ def _add_export(sub: Any) -> None:
     p.add_argument("-o", "--out", metavar="FILE",
                    help="output file (- for standard output; default: CAL.json's name with the target's extension, "
                         "e.g. cal.param, beside it, never over an existing file)")
+    p.add_argument("--force", action="store_true",
+                   help="write the parameters even of a calibration its fit rejected (--policy) or whose unit the "
+                        "fit doubted")
     _add_output_options(p)
 
 
@@ -916,6 +949,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
         _say(f"note: {note}", args)
     for v in r["violations"]:
         _err(f"warning: outside the firmware's limits: {v}")
+    for w in r["warnings"]:
+        _err(f"warning: {w}")
     if args.json:
         print(json.dumps(r))
     else:

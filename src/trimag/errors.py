@@ -76,5 +76,5 @@ class IdentifiabilityWarning(TrimagWarning):
 def out_of_memory_message(what: str = "the data") -> str:
     """The one line for a :class:`MemoryError` while reading or fitting: the machine's memory, not a bug (exit 2)."""
     return (f"not enough memory for {what}: the log is larger than this machine (or its memory limit) can hold while "
-            "reading and fitting it (about 5 bytes per byte of CSV text); fit part of it with `rows=START:STOP`, or "
-            "run on a machine with more memory")
+            "reading and fitting it (2 to 17 bytes per byte of CSV text, the shorter the rows the more); fit part of "
+            "it with `rows=START:STOP`, or run on a machine with more memory")

@@ -312,3 +312,17 @@ def test_a_px4_log_is_not_told_to_log_ardupilots_xky0(tmp_path: Path):
     line = next(x for x in (r.stdout + r.stderr).splitlines() if x.startswith("attitude:") and "heading-free" in x)
     assert r.returncode == 0 and "XKY0" not in line and "ArduPilot" not in line, line
     assert "PX4" in line, line
+
+
+def test_a_gps_fix_off_the_earth_is_named_as_the_log_s(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 41, item 17: a GPS altitude of 2e7 m went into IGRF unnamed. The log's GPS fix is named, with the
+    value, and the way round it (give the site, or the magnitude)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "ALT", 2e7)
+    log = _write_log(tmp_path / "flight.bin")
+    r = run_trimag("fit", log, "-o", tmp_path / "cal.json", timeout=600)
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and "GPS" in line and "2e+07 m" in line and "--igrf" in line, line
+    assert not (tmp_path / "cal.json").exists()

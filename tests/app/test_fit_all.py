@@ -152,3 +152,28 @@ def test_sensor_all_refusals(tmp_path: Path) -> None:
     assert r.returncode == 2 and "autopilot log" in r.stderr
     r = run_trimag("fit", data, "--export-to", "ardupilot", "--export-out", tmp_path / "x.param")
     assert r.returncode == 2 and "--sensor all" in r.stderr
+
+
+def test_the_parameter_file_leaves_out_what_the_policy_rejected(tmp_path: Path) -> None:
+    """Issue 41, item 9: ``--export-to --policy`` wrote the parameter file when every compass was rejected (exit 4,
+    but the parameters of fits trimag itself rejected were ready to load). A rejected compass is left out (named);
+    none left: no parameter file, exit 4, saying ``--force``; ``--force`` writes them all."""
+    log = tmp_path / "boat.tlog"
+    _write_boat_tlog(log)
+    policy = tmp_path / "policy.toml"
+    policy.write_text("[limits]\nmax_offset = 100\n")  # compass 1's offset reaches 120 mG, compass 2's 95
+    param = tmp_path / "compass.param"
+    argv = ["fit", log, "--sensor", "all", "--level-turn", "-o", tmp_path / "cal.json", "--export-to", "ardupilot",
+            "--export-out", param]
+    r = run_trimag(*argv, "--policy", policy)
+    assert r.returncode == 4, r.stderr
+    text = param.read_text()
+    assert "COMPASS_OFS2_X" in text and "COMPASS_OFS_X" not in text  # compass 1 left out
+    assert any("compass 1" in line and "left out" in line for line in r.stderr.splitlines()), r.stderr
+    param.unlink()
+    policy.write_text("[limits]\nmax_offset = 10\n")  # both rejected
+    r = run_trimag(*argv, "--policy", policy)
+    assert r.returncode == 4 and not param.exists(), r.stderr
+    assert "--force" in r.stderr.strip().splitlines()[-1]
+    r = run_trimag(*argv, "--policy", policy, "--force")
+    assert r.returncode == 4 and "COMPASS_OFS_X" in param.read_text() and "COMPASS_OFS2_X" in param.read_text()

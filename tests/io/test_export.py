@@ -127,3 +127,17 @@ def test_cli_export(tmp_path: Path):
     assert "COMPASS_OFS2_X,-120" in out.read_text()
     r = run_trimag("export", cal_path, "--to", "nope", "-o", out)
     assert r.returncode == 2
+
+
+@pytest.mark.parametrize("entry", ["method", "trimag_version"])
+def test_a_trailing_newline_in_method_or_version_cannot_split_the_c_header_comment(tmp_path: Path, entry: str):
+    """Issue 41, item 16: ``"method": "given\\n"`` passed the check (``$`` matches before a final newline) and broke
+    the header's comment line in two, the second half C code."""
+    data = json.loads(_cal().to_json())
+    data[entry] = {"method": "given", "trimag_version": "0.1.0"}[entry] + "\n"
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(data))
+    text = export_calibration(Calibration.from_file(path), "c-header").text
+    lines = text.splitlines()
+    assert lines[0].startswith("/* trimag ") and lines[0].endswith(" */"), lines[:2]
+    assert all(line.startswith(("/*", "#", "static", "    {", "};")) for line in lines), lines

@@ -330,3 +330,17 @@ def test_a_compass_stream_with_a_gap_says_its_span_and_longest_gap():
     assert "10 Hz" in line and "701 s" in line and "628 s" in line, line
     steady = MagnetometerStream("MAG", 0, t[:400], np.zeros((400, 3)), np.zeros((400, 3)), "mG")
     assert "gap" not in steady.describe()
+
+
+@pytest.mark.parametrize("name", ["noise.px4log", "noise.bin"])
+def test_a_damaged_pymavlink_log_gives_one_line_not_a_line_per_byte(tmp_path: Path, name: str) -> None:
+    """Issue 41, item 11: pymavlink's compiled indexer printed "bad header ..." on the process's own stderr for each
+    byte it skipped (128 054 lines for a random 20 MB ``.px4log``), past Python's redirection. One line now."""
+    pytest.importorskip("pymavlink")
+    path = tmp_path / name
+    rng = np.random.default_rng(41)
+    body = rng.integers(0, 256, 200_000, dtype=np.uint8).tobytes()
+    path.write_bytes((b"\xa3\x95" if name.endswith(".bin") else b"") + body)
+    r = run_trimag("fit", path)
+    assert r.returncode == 2, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "bad header" not in r.stderr, r.stderr[:500]

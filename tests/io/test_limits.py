@@ -187,3 +187,23 @@ def test_a_quoted_cell_longer_than_the_csv_module_s_limit_is_input_not_a_bug(
     gz.write_bytes(gzip.compress(b'RDX3\n"' + bytes(range(32, 127)) * 3000))
     assert main(["fit", str(gz), "-q", "-o", str(tmp_path / "cal2.json")]) == 2
     assert "internal error" not in _one_line(capsys.readouterr().err)
+
+
+#: bytes of peak memory per byte of a CSV log, above a small log's fit (issue 41, item 10: 100 MB of `1,2,3` lines
+#: peaked at 3.8 GB, 38 bytes per byte; measured 28.7 before the fix and 16 after on 30 MB, benchmarks/fit_memory.py)
+MAX_BYTES_PER_INPUT_BYTE = {"ones": 22.0, "short": 14.0}
+
+
+@pytest.mark.parametrize("kind", ["ones", "short"])
+def test_fit_memory_is_bounded_by_the_file_s_bytes(tmp_path: Path, baseline_rss_kb: int, kind: str) -> None:
+    """A 12 MB CSV of short rows (every row `1,2,3`, or three integers of a sphere, many repeated): the peak
+    resident memory of `trimag fit` above that of a small log's fit stays within a bound per input byte."""
+    from _helpers import load_benchmark
+
+    bench = load_benchmark("fit_memory")
+    path = tmp_path / f"{kind}.csv"
+    bench.write_log(path, kind, 12.0)
+    r = _measured("fit", path, "-q")
+    assert r["rc"] in (0, 3), r["err"]  # all-equal rows: read, then refused as a stuck sensor (exit 3)
+    per_byte = (r["maxrss_kb"] - baseline_rss_kb) * 1024 / path.stat().st_size
+    assert per_byte < MAX_BYTES_PER_INPUT_BYTE[kind], (per_byte, r["maxrss_kb"], baseline_rss_kb)

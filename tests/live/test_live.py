@@ -398,3 +398,40 @@ def test_the_advice_names_the_sensors_own_axes_not_a_vector():
     assert "[" not in text and "sensor's -y axis, tilted towards -x" in text and "+z" in text, text
     geometry["never_seen_axis"] = [0.0, 0.0, -1.0]
     assert "-z axis" in next_orientations(geometry)
+
+
+def _live_stdin_peak_rss_mb(tmp_path: Path, name: str, text_before: bytes, long_line_bytes: int,
+                            text_after: bytes) -> tuple[int, dict]:
+    """``live --stdin --exit-at-end --json`` fed ``text_before``, one line of ``long_line_bytes`` digits, and
+    ``text_after``; its peak resident memory (MB, of that process alone: os.wait4) and its final JSON."""
+    feed = tmp_path / f"{name}.txt"
+    with feed.open("wb") as fh:
+        fh.write(text_before)
+        for _ in range(long_line_bytes // (1 << 20)):
+            fh.write(b"1" * (1 << 20))
+        fh.write(b"\n" + text_after)
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    with feed.open("rb") as stdin, (tmp_path / f"{name}.out").open("wb") as out, \
+            (tmp_path / f"{name}.err").open("wb") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "trimag", "live", "--stdin", "--units", "counts",
+                                 "--exit-at-end", "--json", "--no-browser", "--port", "0", "-o",
+                                 str(tmp_path / f"{name}.json")],
+                                stdin=stdin, stdout=out, stderr=err, cwd=tmp_path, env=env)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    assert proc.returncode == 0, (tmp_path / f"{name}.err").read_text()
+    final = json.loads((tmp_path / f"{name}.out").read_text().strip().splitlines()[-1])
+    return usage.ru_maxrss // 1024, final
+
+
+def test_a_huge_line_on_stdin_is_skipped_and_counted_in_bounded_memory(tmp_path):
+    """Issue 41, item 12: one 500 MB line on ``--stdin`` took 1.58 GB. A line longer than the bound
+    (MAX_LINE_BYTES) is read in pieces, skipped and counted as a line not understood; the samples around it are
+    kept. Measured as the process's peak memory against the same session without the long line."""
+    raw = sensor(uniform_directions(600, seed=9))
+    before = ("x,y,z\n" + "".join(f"{x:.3f},{y:.3f},{z:.3f}\n" for x, y, z in raw[:300])).encode()
+    after = "".join(f"{x:.3f},{y:.3f},{z:.3f}\n" for x, y, z in raw[300:]).encode()
+    base_mb, base = _live_stdin_peak_rss_mb(tmp_path, "short", before, 0, after)
+    long_mb, final = _live_stdin_peak_rss_mb(tmp_path, "long", before, 100 << 20, after)
+    assert final["n_samples"] == 600 and final["n_garbage"] == base["n_garbage"] + 1, (final, base)
+    assert long_mb - base_mb < 40, (long_mb, base_mb)  # the line is 100 MB

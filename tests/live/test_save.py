@@ -194,3 +194,66 @@ def test_a_live_source_whose_fitted_field_contradicts_the_reference_gives_no_cal
     right = LiveSession(units="uT", reference=500.0, source="test")
     right.add(Batch(sensor(uniform_directions(400, seed=17))))
     assert right.refit() is not None
+
+
+@pytest.mark.parametrize("failing", ["cal-samples.csv", "cal.json"])
+def test_a_save_that_fails_keeps_the_recording_and_names_the_file(tmp_path, small_log, capsys, monkeypatch, failing):
+    """Issue 41, item 7: a full disk at the final save said "cannot read or write: No space left on device", named
+    no file and kept nothing. The failed file is named, and the samples are kept in a second, named place (the
+    temporary folder) when their own file fails, or named where they were written when the calibration fails."""
+    import errno
+    import tempfile
+
+    import trimag.live.session as session_module
+
+    real = session_module.atomic_write_text
+
+    def full_disk(path, text):
+        if Path(path).name == failing:
+            raise OSError(errno.ENOSPC, "No space left on device")  # as the write of a full disk raises it
+        return real(path, text)
+
+    monkeypatch.setattr(session_module, "atomic_write_text", full_disk)
+    rescue = tmp_path / "rescue"
+    rescue.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
+    out = tmp_path / "out"
+    code = main(["live", "--replay", str(small_log), "--rate", "1e6", "--exit-at-end", "--no-browser", "--port", "0",
+                 "--units", "counts", "-o", str(out / "cal.json")])
+    _, err = capsys.readouterr()
+    assert code == 2, err
+    line = err.strip().splitlines()[-1]
+    assert str(out / failing) in line and "No space left on device" in line, err
+    kept = out / "cal-samples.csv" if failing == "cal.json" else next(rescue.glob("trimag-live-*samples.csv"))
+    assert str(kept) in line
+    assert np.array_equal(read_samples(kept).field, read_samples(small_log).field)
+    assert not (out / "cal.json").exists()
+
+
+def test_a_second_session_with_the_same_output_is_refused(tmp_path, small_log, capsys):
+    """Issue 41, item 15: two sessions with the same ``-o`` each saved, leaving one's calibration beside the other's
+    samples. The first session locks its outputs; a second one exits 2 naming them, before serving anything; the
+    lock goes with the first session (no lock file left)."""
+    log = write_log(tmp_path / "slow.csv", sensor(uniform_directions(5000, seed=16)))
+    out = tmp_path / "out" / "cal.json"
+    out.parent.mkdir()
+    proc, _ = start_live("--replay", str(log), "--rate", "50", "--units", "counts", "-o", str(out), cwd=tmp_path)
+    try:
+        for samples_out in (None, str(out.with_name("cal-samples.csv"))):  # the same calibration; the same samples
+            argv = ["live", "--replay", str(small_log), "--rate", "1e6", "--exit-at-end", "--no-browser", "--port",
+                    "0", "--units", "counts", "-o", str(out if samples_out is None else tmp_path / "other.json")]
+            code = main(argv + ([] if samples_out is None else ["--samples-out", samples_out]))
+            captured = capsys.readouterr()
+            assert code == 2, captured.err
+            assert len(captured.err.strip().splitlines()) == 1 and "another" in captured.err, captured.err
+            assert "the page is at" not in captured.out
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    except BaseException:
+        proc.kill()
+        raise
+    assert proc.returncode in (0, 3), err
+    assert sorted(p.name for p in out.parent.iterdir()) in (["cal-samples.csv", "cal.json"], ["cal-samples.csv"])
+    # the first session's lock is gone with it: a new session may write there
+    assert main(["live", "--replay", str(small_log), "--rate", "1e6", "--exit-at-end", "--no-browser", "--port", "0",
+                 "--units", "counts", "-o", str(out)]) == 0

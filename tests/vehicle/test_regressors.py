@@ -335,3 +335,18 @@ def test_uncertainty_has_the_fields_of_every_estimator(fitted) -> None:
     cal = fitted[0]
     assert set(UNCERTAINTY_FIELDS) <= set(cal.uncertainty)
     assert list(cal.uncertainty["param_std"]) == cal.uncertainty["covariance_order"]
+
+
+def test_a_regressor_that_is_the_reading_itself_is_explained_not_condition_number_inf(tmp_path, capsys) -> None:
+    """Issue 41, item 17: a regressor column equal to the magnetometer's x said "condition number inf"."""
+    from trimag.cli import main
+
+    from _helpers import simulate_ellipsoid
+
+    raw = simulate_ellipsoid(400, noise=20.0, seed=8)
+    path = tmp_path / "lab.csv"
+    np.savetxt(path, np.column_stack([raw, raw[:, 0]]), delimiter=",", header="x,y,z,c1", comments="", fmt="%.3f")
+    assert main(["fit", str(path), "--columns", "x,y,z", "--units", "nT", "--regressors", "c1", "-q"]) == 3
+    err = capsys.readouterr().err
+    assert "inf" not in err.replace("information", "") and "do not determine at all" in err, err
+    assert "magnetometer's own reading" in err

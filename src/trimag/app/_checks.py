@@ -187,6 +187,19 @@ def check_fitted_field(cal: Calibration, unit: str, *, autopilot_log: bool = Fal
     return [f"warning: {text}: check the unit and the sensor's scale, or give the field's magnitude (`reference`)"]
 
 
+#: the words of a fit's warning that its numbers look like another unit (:func:`check_fitted_field`)
+UNIT_DOUBT = "the numbers look like"
+
+
+def unit_doubt(messages: list[str]) -> str | None:
+    """The fit's warning that its numbers look like another unit (recorded in the calibration as
+    ``diagnostics.unit_doubt``, so that ``export`` refuses it: issue 41, item 9), or None."""
+    for message in messages:
+        if message.startswith("warning:") and UNIT_DOUBT in message:
+            return message.removeprefix("warning:").strip()
+    return None
+
+
 def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_spec: str | None) -> dict[str, Any]:
     """The acceptance policy's verdict (:func:`trimag.vehicle.policy.check_policy`) with the site's inclination
     and F."""

@@ -134,7 +134,12 @@ def parse_regressor_names(names: Any) -> tuple[str, ...] | None:
     if not out:
         raise TrimagInputError("`regressors` names no column; give COL[,COL...]")
     if len(set(out)) != len(out):
-        raise TrimagInputError(f"`regressors` names a column twice: {', '.join(out)}")
+        from collections import Counter
+
+        from ..validation import listed
+
+        twice = sorted(n for n, k in Counter(out).items() if k > 1)
+        raise TrimagInputError(f"`regressors` names a column more than once: {listed(twice)}")
     return out
 
 

@@ -29,6 +29,8 @@ _HEADING_KEYS = ("scale_sigma", "inclination_sigma_deg", "declination_sigma_deg"
 def large_mode(req: FitRequest) -> str | None:
     """``"level_turn"``, ``"heading"`` or None; a combination that cannot work is refused."""
     heading = req.heading is not None or req.heading_column is not None
+    if req.heading is not None and not (np.isfinite(float(req.heading)) and -360.0 <= float(req.heading) <= 360.0):
+        raise TrimagInputError(f"`heading` is the vehicle's true heading in degrees, -360 to 360; got {req.heading}")
     if req.heading is not None and req.heading_column is not None:
         raise TrimagInputError("give the heading once: `heading=DEG` (one, for the whole log) or "
                                "`heading_column=NAME` (one per sample)")

@@ -20,8 +20,8 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     Returns
     -------
     dict
-        ``target``, ``out`` (the path written), ``parameters``, ``notes`` (what the conversion did) and
-        ``violations`` (values outside the firmware's limits).
+        ``target``, ``out`` (the path written), ``parameters``, ``notes`` (what the conversion did),
+        ``violations`` (values outside the firmware's limits) and ``warnings`` (what ``force`` let through).
     """
     from ..io.export import export_calibration, write_export
 
@@ -35,6 +35,7 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
         raise TrimagInputError(f"-o {req.out} is the calibration being exported: writing it would destroy it; give "
                                "another output file")
     cal = _read_calibration(req.calibration, req.target)
+    forced = refuse_rejected(cal, str(req.calibration), req.force)
     instance, note = _instance(cal, req.instance)
     exp = export_calibration(cal, req.target, instance=instance - 1)
     exp.notes[:0] = note
@@ -47,7 +48,33 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     else:
         path = write_export(exp, req.out)
     return {"target": exp.target, "out": str(path), "parameters": exp.parameters, "notes": exp.notes,
-            "violations": exp.violations}
+            "violations": exp.violations, "warnings": forced}
+
+
+def refuse_rejected(cal: Calibration, name: str, force: bool) -> list[str]:
+    """Refuse to export a calibration its own fit rejected (issue 41, item 9), unless ``force``: one the acceptance
+    policy rejected (:class:`~trimag.vehicle.policy.PolicyRejected`, exit 4) or one whose numbers the fit said look
+    like another unit (``diagnostics.unit_doubt``; :class:`TrimagInputError`, exit 2). ``name`` names it in the
+    message. Returns the warnings of what ``force`` let through (empty when nothing was doubted)."""
+    from ..vehicle.policy import PolicyRejected, failed_rules
+
+    verdict = cal.diagnostics.get("acceptance")
+    rejected = isinstance(verdict, dict) and verdict.get("accepted") is False
+    doubt = cal.diagnostics.get("unit_doubt")
+    notes: list[str] = []
+    if rejected:
+        rules = "; ".join(failed_rules(verdict or {})) or "no rule could be evaluated"
+        if not force:
+            raise PolicyRejected(f"{name} was rejected by the acceptance policy when it was fitted ({rules}): its "
+                                 "parameters are not written; record and fit again, or give `force` to write them "
+                                 "anyway")
+        notes.append(f"written although the acceptance policy rejected it ({rules}; `force`)")
+    if isinstance(doubt, str) and doubt:
+        if not force:
+            raise TrimagInputError(f"{name}'s fit doubted the data's unit ({doubt}): its parameters are not written; "
+                                   "fit again with the right unit, or give `force` to write them anyway")
+        notes.append(f"written although its fit doubted the data's unit ({doubt}; `force`)")
+    return notes
 
 
 def _instance(cal: Calibration, given: int | None) -> tuple[int, list[str]]:

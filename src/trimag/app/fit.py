@@ -27,6 +27,7 @@ from ._checks import (
     refuse_impossible_vector_fit,
     refuse_static_log,
     refuse_unidentified_log,
+    unit_doubt,
     worse_than_raw,
 )
 from ._gyro import angular_rate, gyro_lines, gyro_requested, log_has_gyro
@@ -121,6 +122,10 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
         from .._core.extras import require
 
         require("plotly", "an HTML report (report.html)")  # before the fit: a missing extra is said at once
+    _check_reference_number(req.reference.reference)
+    if req.rate_hz is not None and not (np.isfinite(float(req.rate_hz)) and float(req.rate_hz) > 0):
+        raise TrimagInputError(f"`rate_hz` is the log's sample rate, a positive number of samples per second; got "
+                               f"{req.rate_hz}")
     limits = read_policy(req.policy) if req.policy is not None else None
     regressor_names = parse_regressor_names(req.regressors)
     if regressor_names is not None:
@@ -251,6 +256,7 @@ def _fit_samples(
     if samples.log_info is not None:
         summary["log"] = {"compass": samples.log_info.get("compass"), "name": samples.log_info.get("sensor"),
                           "format": samples.log_info.get("format")}
+    cal = _record_unit_doubt(cal, messages)
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],
@@ -267,6 +273,13 @@ def _rows_as_attitude_stream(req: FitRequest) -> FitRequest:
     if not sync or not in_rows or att.attitude_file is not None or gyro_requested(req) or _phone_export(req):
         return req
     return dataclasses.replace(req, attitude=dataclasses.replace(att, attitude_file=req.input.path))
+
+
+def _record_unit_doubt(cal: Calibration, messages: list[str]) -> Calibration:
+    """The fit's doubt of the data's unit kept in the calibration (``diagnostics.unit_doubt``): export refuses it
+    unless forced (issue 41, item 9: µT data declared nT exported offsets 1000x too small)."""
+    doubt = unit_doubt(messages)
+    return cal if doubt is None else cal.with_diagnostics(unit_doubt=doubt)
 
 
 def _split_options(req: FitRequest, mode: str | None = None) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
@@ -476,6 +489,14 @@ def _log_defaults(req: FitRequest, samples: Samples, estimator: Any, mode: str |
     src = dataclasses.replace(src, units=check_log_unit(src.units, log_info, src.columns) or log_info["unit"])
     gps = log_info.get("gps")
     if not given.given and gps and gps.get("date"):
+        from ..fields.reference import check_site
+
+        try:  # a GPS fix no place on Earth has is named as the log's (issue 41, item 17)
+            check_site(float(gps["lat_deg"]), float(gps["lon_deg"]), float(gps["alt_m"]), "the log's GPS fix")
+        except TrimagInputError as exc:
+            raise TrimagInputError(f"{exc}: the GPS position logged is wrong, so the field expected there is unknown; "
+                                   "give the site yourself (`igrf_spec=LAT,LON,ALT_M,DATE`) or the field's magnitude "
+                                   "(`reference`)") from None
         igrf_spec = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
         given = dataclasses.replace(given, igrf_spec=igrf_spec)
         messages.append(f"field reference: IGRF at the log's GPS fix {igrf_spec}")
@@ -617,6 +638,19 @@ def _names_background(given: Any) -> bool:
                ("background_ned", "igrf_spec", "background_run", "background_columns", "igrf_columns"))
 
 
+def _check_reference_number(reference: Any) -> None:
+    """A field magnitude given as a number is finite and positive, whatever fit uses it (issue 41, item 14: ``-5``
+    with ``target`` reached a numpy warning); other forms are read (and checked) where they are used."""
+    if isinstance(reference, bool) or not isinstance(reference, str | int | float):
+        return
+    try:
+        value = float(reference)
+    except ValueError:
+        return
+    if not (np.isfinite(value) and value > 0):
+        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {reference!r}")
+
+
 def _background_scale(given: Any) -> float | None:
     """The magnitude ``reference=F`` gives a fitted background (None: not given, or ``"mean"``)."""
     if given.reference_column is not None:
@@ -675,6 +709,7 @@ def _fit_target(req: FitRequest, samples: Samples, unit: str, messages: list[str
     cal, summary, finish_messages = _finish(req, cal, samples, ref, regressor_values, [], limits, None, False)
     summary["warnings"] = warn_texts
     summary["firmware"] = cal.diagnostics["firmware"]
+    cal = _record_unit_doubt(cal, messages)
     cal, written = write_fit_outputs(cal, samples, req, regressor_values)
     summary["outputs"] = written
     return FitResult(cal, samples, summary, messages + finish_messages + [f"warning: {w}" for w in warn_texts],

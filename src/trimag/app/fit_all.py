@@ -80,6 +80,10 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
 
     if (req.export_to is None) != (req.export_out is None):
         raise TrimagInputError("give both `export_to=ardupilot|px4` and `export_out=FILE` (the parameter file)")
+    if req.export_out is not None and str(req.export_out).strip() == "-":
+        raise TrimagInputError("`export_out` is the parameter file to write; standard output (-) is not one here: "
+                               "give a file name (or write one compass to standard output with trimag export CAL.json "
+                               "-o -)")
     compasses = _compasses(req)
     fits, refused, errors = _fit_each(req, compasses, fit_file)
     messages: list[str] = []
@@ -101,8 +105,9 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         from ..io.atomic import atomic_write_text
         from ..io.export_instances import export_instances
 
+        exportable = _exportable(fits, req, messages)
         try:
-            exp = export_instances([(r.calibration, n) for n, r in fits.items()], req.export_to)
+            exp = export_instances([(r.calibration, n) for n, r in exportable.items()], req.export_to)
         except TrimagError:  # no parameter file: nothing of this run is left behind (the command exits 2)
             for r in fits.values():
                 for path in r.written.values():
@@ -177,6 +182,28 @@ def _one_motor_channel(req: FitRequest, compasses: list[tuple[int, str]], fits: 
         f"one motor channel for the vehicle (the firmware's motor channel is one parameter for every compass): "
         f"fitted alone the compasses preferred different ones ({prefer}); {best} serves them best (summed held-out "
         f"RMS {sums} {unit}): every compass is fitted with the motor term on {best} (or none)")}
+
+
+def _exportable(fits: dict[int, Any], req: FitRequest, messages: list[str]) -> dict[int, Any]:
+    """The compasses whose parameters go to the parameter file: not one the policy rejected or whose unit its fit
+    doubted, unless ``req.force`` (issue 41, item 9: the file was written when every compass was rejected). Each left
+    out is said in ``messages``; none left: refused (exit 4 for a policy's rejection, else 2), no parameter file."""
+    from .export import refuse_rejected
+
+    kept: dict[int, Any] = {}
+    left_out: list[TrimagError] = []
+    for n, r in fits.items():
+        try:
+            forced = refuse_rejected(r.calibration, f"compass {n}", req.force)
+        except TrimagError as exc:
+            left_out.append(exc)
+            messages.append(f"warning: {exc} (left out of {req.export_out})")
+            continue
+        kept[n] = r
+        messages += [f"warning: compass {n}: {w}" for w in forced]
+    if not kept:
+        raise type(left_out[0])(f"no parameter file written ({req.export_out}): " + "; ".join(map(str, left_out)))
+    return kept
 
 
 def compass_warnings(number: int, fit: Any) -> list[str]:

@@ -129,6 +129,8 @@ class FitRequest:
     #: ``export_to`` (``"ardupilot"`` or ``"px4"``) with every compass fitted
     export_to: str | None = None
     export_out: str | Path | None = None
+    #: with ``export_to``: write the parameters even of a compass the policy rejected or whose unit its fit doubted
+    force: bool = False
     #: the gyro-aided fit (``method=gyro``, docs/method-gyro.md): the gyroscope's columns ``"GX,GY,GZ"`` in the same
     #: rows (with ``attitude.time_column`` or ``rate_hz``) or in ``gyro_file`` (its own clock: ``gyro_time_column``,
     #: default ``attitude.time_column``), in ``gyro_unit`` (``"rad/s"``, ``"deg/s"``; default from the column names,
@@ -248,6 +250,8 @@ class ExportRequest:
     target: str
     out: str | Path
     instance: int | None = None
+    #: write the parameters even of a calibration its fit rejected (the policy) or whose unit it doubted
+    force: bool = False
 
 
 @dataclass(frozen=True)

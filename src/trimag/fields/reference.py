@@ -174,7 +174,26 @@ def parse_igrf_spec(spec: str) -> tuple[float, float, float, str]:
     except ValueError:
         raise TrimagInputError(f"`igrf_spec`: latitude, longitude and altitude must be numbers; got {spec!r}") from None
     _parse_date(parts[3])
+    check_site(lat, lon, alt)
     return lat, lon, alt, parts[3]
+
+
+#: the altitudes a site may have, m: the Dead Sea's shore (-430 m) less a margin, to a low orbit (IGRF's model holds
+#: above the surface; 1000 km is well beyond any vehicle trimag calibrates)
+ALTITUDE_RANGE_M = (-12_000.0, 1_000_000.0)
+
+
+def check_site(latitude_deg: float, longitude_deg: float, altitude_m: float, what: str = "`igrf_spec`") -> None:
+    """Refuse a site no place on Earth has (issue 41, item 14: a longitude of 1e308 was accepted): latitude -90..90,
+    longitude -360..360 degrees, altitude within :data:`ALTITUDE_RANGE_M`; ``what`` names where it came from."""
+    lo, hi = ALTITUDE_RANGE_M
+    if not -90.0 <= latitude_deg <= 90.0:
+        raise TrimagInputError(f"{what}: the latitude {latitude_deg:g} is not within -90..90 degrees")
+    if not -360.0 <= longitude_deg <= 360.0:
+        raise TrimagInputError(f"{what}: the longitude {longitude_deg:g} is not within -360..360 degrees (east)")
+    if not lo <= altitude_m <= hi:
+        raise TrimagInputError(f"{what}: the altitude {altitude_m:g} m is not within {lo:g} to {hi:g} m (metres "
+                               "above sea level)")
 
 
 @dataclass(frozen=True)

@@ -102,8 +102,8 @@ _METHOD = re.compile(r"^[A-Za-z0-9_.:+-]{1,40}( [A-Za-z0-9_.:+-]{1,40}){0,4}$")
 
 def _provenance(cal: Calibration) -> str:
     """One line from validated fields only (never free text of the file)."""
-    version = cal.trimag_version if _VERSION.match(cal.trimag_version or "") else "(unknown version)"
-    method = cal.method if _METHOD.match(cal.method or "") else "(not shown)"
+    version = cal.trimag_version if _VERSION.fullmatch(cal.trimag_version or "") else "(unknown version)"
+    method = cal.method if _METHOD.fullmatch(cal.method or "") else "(not shown)"
     try:
         created = _dt.datetime.fromisoformat(cal.created).isoformat(timespec="seconds")
     except (TypeError, ValueError):

@@ -1,7 +1,7 @@
 """Limits on what a text file may make trimag hold in memory, whoever wrote the file (issue 33, item 4).
 
-Reading a log costs memory in proportion to its size (docs/performance.md: about 5 bytes per byte of CSV text). Two
-things break that proportion, and both are bounded here:
+Reading a log costs memory in proportion to its size (docs/performance.md: 2 to 17 bytes per byte of CSV text, the
+shorter the rows the more). Two things break that proportion, and both are bounded here:
 
 - **fields per line**: a 2 MB line of a million fields became a table of a million columns (6.3 GB). A line of
   more than ``max_fields`` fields, or longer than ``max_fields * 100`` bytes (at least 1 MB), among the lines the

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io as _stdio
+import math
 import re
 import warnings
 from collections.abc import Sequence
@@ -522,6 +523,26 @@ def _npz_size(path: Path) -> int:
         return 0  # np.load names the damage
 
 
+def _check_npy_size(path: Path) -> None:
+    """Refuse an NPY file whose header declares more data than the file holds (issue 41, item 17: a 368-byte file
+    claiming 240 GB said "not enough memory ... fit part of it"): it is truncated or damaged."""
+    from numpy.lib import format as npy_format
+
+    try:
+        with open(path, "rb") as fh:
+            version = npy_format.read_magic(fh)
+            read_header = npy_format.read_array_header_1_0 if version == (1, 0) else npy_format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+            data_bytes = path.stat().st_size - fh.tell()
+    except (OSError, ValueError):
+        return  # np.load names the damage
+    declared = math.prod(int(d) for d in shape) * dtype.itemsize
+    if declared > data_bytes:
+        raise TrimagInputError(f"{path}: its header declares an array of shape {tuple(shape)} "
+                               f"({declared / 1e6:.4g} MB) but the file holds {data_bytes} bytes of data: the file is "
+                               "truncated or damaged")
+
+
 def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
     from .limits import current_limits
 
@@ -529,6 +550,7 @@ def _read_npz(path: Path, var: str | None) -> pd.DataFrame:
         raise current_limits().too_large(str(path), "its arrays are decompressed")
     try:
         if path.suffix.lower() == ".npy":
+            _check_npy_size(path)
             return _array_table(np.load(path, allow_pickle=False), "array", path)
         with np.load(path, allow_pickle=False) as data:
             candidates = {k: data[k] for k in data.files}
@@ -591,13 +613,34 @@ def check_sensor(kind: str, sensor: SensorChoice, path: str | Path) -> None:
 _LIVE_UNIT = re.compile(r"^#\s*trimag live recording\b.*;\s*unit\s+(nT|uT|G|mG|counts)\s*$")
 
 
+def refuse_stream(p: Path) -> None:
+    """Refuse a pipe, a FIFO, a terminal or a device given as a log (issue 41, item 17: ``fit /dev/stdin`` said
+    "cannot read or write: lseek failed", a FIFO hung): trimag reads a log more than once."""
+    import stat
+
+    try:
+        mode = p.stat().st_mode
+    except OSError:
+        return  # the reader says what is wrong with the path
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return
+    kind = "a pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device or terminal"
+    raise TrimagInputError(f"{p} is {kind}, not a file: trimag reads a log more than once (its layout first); save "
+                           "the data to a file (e.g. `my_logger > log.csv`) and give that file (for a live stream: "
+                           "trimag live --stdin)")
+
+
 def read_table(
     path: str | Path, *, fmt: str | None = None, var: str | None = None, sensor: SensorChoice = None
 ) -> pd.DataFrame:
     """Read a whole log into a DataFrame (text cells stay strings; see :func:`read_samples`)."""
     p = Path(path)
+    if str(path).strip() == "-":
+        raise TrimagInputError("standard input (-) is not read as a log: trimag reads a log more than once (its layout "
+                               "first); save the data to a file (e.g. `my_logger > log.csv`) and give that file")
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
+    refuse_stream(p)
     if fmt is None or fmt in ("csv", "txt"):
         from .normalise import plain_path
 

@@ -24,10 +24,10 @@ from typing import Any
 from ..app.requests import LiveRequest
 from ..calibration import SensorRecord
 from ..errors import TrimagInputError
-from ._checks import check_method, check_request, replay_units
+from ._checks import check_method, check_request, output_lock, replay_units
 from .server import LiveServer
 from .session import LiveSession
-from .sources import Batch, _play, line_source, mavlink_source, serial_source
+from .sources import Batch, _play, bounded_lines, line_source, mavlink_source, serial_source
 
 __all__ = ["LiveResult", "LiveServer", "LiveSession", "open_source", "run_live"]
 
@@ -77,7 +77,8 @@ def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[
     if kind == "stdin":
         import sys
 
-        return (line_source(sys.stdin, columns=columns), "standard input", request.units, [],
+        return (line_source(bounded_lines(sys.stdin.buffer.readline), columns=columns), "standard input",
+                request.units, [],
                 SensorRecord("stream", format="standard input", columns=None if columns is None else tuple(columns)))
     if kind == "serial":
         assert request.serial is not None
@@ -142,6 +143,13 @@ def run_live(request: LiveRequest, say: Callable[[str], None] = print, *,
     """
     check_request(request)
     check_method(request)  # an unknown model, or one live cannot feed, fails before serving
+    with output_lock(request):  # a second session on the same outputs is refused (exit 2)
+        return _run_locked(request, say, ready)
+
+
+def _run_locked(request: LiveRequest, say: Callable[[str], None],
+                ready: Callable[[LiveServer], None] | None) -> LiveResult:
+    """:func:`run_live` once the request is checked and its outputs locked."""
     batches, description, units, messages, record = _open(request)
     for message in messages:
         say(message)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from ..app._checks import check_fitted_field, check_log_unit, check_unit
@@ -131,3 +133,34 @@ def _check_replayed_field(samples: Samples, units: str, request: LiveRequest) ->
     except (TrimagError, ValueError, np.linalg.LinAlgError, FloatingPointError):
         return
     check_fitted_field(cal, units)
+
+
+@contextmanager
+def output_lock(request: LiveRequest) -> Iterator[None]:
+    """Hold an exclusive lock on the session's outputs (the calibration and the samples file) while it runs (issue
+    41, item 15: two sessions with the same ``out`` left one's calibration beside the other's samples); a second
+    session on either output is refused (exit 2) before anything starts. The lock is ``fcntl.flock`` on a hidden
+    ``.NAME.lock`` beside each output, removed when the session ends (the kernel drops the lock of a killed one)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock (the outputs are still written atomically)
+        yield
+        return
+    held: list[tuple[Path, int]] = []
+    try:
+        for path in (Path(request.out), samples_path(request.out, request.samples_out)):
+            lock = path.with_name(f".{path.name}.lock")
+            lock.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                raise TrimagInputError(f"another trimag live session is writing {path} (it holds {lock}): give "
+                                       "another -o (and --samples-out), or stop that session first") from None
+            held.append((lock, fd))
+        yield
+    finally:
+        for lock, fd in reversed(held):
+            lock.unlink(missing_ok=True)
+            os.close(fd)

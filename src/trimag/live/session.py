@@ -441,7 +441,15 @@ class LiveSession:
             names = ",".join(f"{axis}_{units}" if units != "unknown" else axis for axis in "xyz")  # x_G: the unit
             text.write(f"# trimag live recording ({self.source}); unit {units}\n{names}\n")
             np.savetxt(text, B, delimiter=",", fmt="%.17g")
-            written = {"samples": str(atomic_write_text(target, text.getvalue()))}
+            try:
+                written = {"samples": str(atomic_write_text(target, text.getvalue()))}
+            except OSError as exc:  # a full disk: the recording is kept elsewhere, and both places named
+                kept = _rescue(text.getvalue())
+                where = (f"the {len(B)} samples are kept in {kept}" if kept is not None else
+                         f"the {len(B)} samples could not be kept anywhere (the temporary folder and the home folder "
+                         "failed too)")
+                raise TrimagInputError(f"cannot write the samples to {target}: {exc.strerror or exc}; {where}; free "
+                                       "some space (or give another -o) and fit them with trimag fit") from None
             with self._lock:
                 cal, n = self._latest
             if cal is None or n != len(B):  # samples only grow: the same count is the same samples
@@ -450,8 +458,35 @@ class LiveSession:
                 cal = cal.with_stats(n_samples=len(B), n_dropped=garbage)
                 if self.sensor is not None:
                     cal = cal.with_sensor(dataclasses.replace(self.sensor, unit=units))
-                written["calibration"] = str(cal.to_file(out))
+                try:
+                    written["calibration"] = str(atomic_write_text(out, cal.to_json() + "\n"))
+                except OSError as exc:
+                    raise TrimagInputError(f"cannot write the calibration to {out}: {exc.strerror or exc}; the "
+                                           f"{len(B)} samples are in {target}: fit them again with trimag fit "
+                                           f"{target}") from None
             return written
+
+
+def _rescue(text: str) -> Path | None:
+    """Write a recording's samples (CSV ``text``) to a new file in the temporary folder, else the home folder, when
+    their own file cannot be written (issue 41, item 7: a full disk lost the recording); the path, or None when
+    neither place takes them."""
+    import os
+    import tempfile
+
+    for folder in (tempfile.gettempdir(), str(Path.home())):
+        try:
+            fd, name = tempfile.mkstemp(prefix=f"trimag-live-{time.strftime('%Y%m%d-%H%M%S')}-",
+                                        suffix="-samples.csv", dir=folder)
+        except OSError:
+            continue
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(text)
+            return Path(name)
+        except OSError:
+            Path(name).unlink(missing_ok=True)
+    return None
 
 
 def samples_path(out: str | Path, samples_out: str | Path | None = None) -> Path:

@@ -117,11 +117,37 @@ class LineParser:
         return x, y, z
 
 
-def line_source(lines: Iterable[str | bytes], *, columns: Sequence[str] | None = None) -> Iterator[Batch]:
+#: The longest line a line source takes (bytes): a line of x, y, z is under 100 bytes and a CSV header a few
+#: thousand; a longer line is read in pieces of this size, skipped and counted as a line not understood (issue 41,
+#: item 12: one 500 MB line on standard input took 1.58 GB).
+MAX_LINE_BYTES = 1 << 16
+
+
+def bounded_lines(readline: Callable[[int], bytes], limit: int = MAX_LINE_BYTES) -> Iterator[bytes | None]:
+    """The lines ``readline(size)`` gives (a binary stream's ``readline``: at most ``size`` bytes, ending at a
+    newline), each at most ``limit`` bytes; a longer line is read to its end in pieces and given as None (held in
+    memory: ``limit`` bytes at a time). Ends at the end of the stream."""
+    while True:
+        line = readline(limit + 1)
+        if not line:
+            return
+        if len(line) <= limit or line.endswith(b"\n"):
+            yield line
+            continue
+        while line and not line.endswith(b"\n"):  # the rest of the long line, a piece at a time
+            line = readline(limit)
+        yield None
+
+
+def line_source(lines: Iterable[str | bytes | None], *, columns: Sequence[str] | None = None) -> Iterator[Batch]:
     """Samples from lines of text (``x,y,z`` or a CSV header, :class:`LineParser`), one batch per line (a line
-    source blocks between lines, so nothing waits in a buffer); undecodable or malformed lines count as garbage."""
+    source blocks between lines, so nothing waits in a buffer); undecodable or malformed lines count as garbage, and
+    so does a None (a line too long: :func:`bounded_lines`)."""
     parser = LineParser(columns)
     for raw in lines:
+        if raw is None:
+            yield Batch(n_garbage=1)
+            continue
         try:
             line = raw.decode("utf-8") if isinstance(raw, bytes) else raw
         except UnicodeDecodeError:
@@ -170,12 +196,10 @@ def serial_source(port: str, baud: int = 115200, *, columns: Sequence[str] | Non
     except (OSError, ValueError, serial.SerialException) as exc:
         raise TrimagInputError(f"cannot open the serial port {port!r} at {baud} baud: {exc}") from None
 
-    def lines() -> Iterator[bytes]:
+    def lines() -> Iterator[bytes | None]:
         with conn:
-            while True:
-                line = conn.readline()
-                if line:
-                    yield line
+            while True:  # a second without a byte gives an empty read, not the end: read on
+                yield from bounded_lines(conn.readline)
 
     return line_source(lines(), columns=columns)
 

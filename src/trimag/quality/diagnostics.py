@@ -425,6 +425,14 @@ def weak_directions(
     return weak
 
 
+def condition_words(cond: float) -> str:
+    """A condition number as the user reads it: ``"condition number 3.2e+08"``, or for a singular design (infinite
+    or NaN) what it means (issue 41, item 17: "condition number inf")."""
+    if np.isfinite(cond):
+        return f"condition number {cond:.3g}"
+    return "a combination of the parameters that the data do not determine at all: a singular design"
+
+
 def check_condition(
     cond: float,
     *,
@@ -437,7 +445,7 @@ def check_condition(
     """Raise :class:`IdentifiabilityError` above ``error``; warn above ``warn``."""
     weak_txt = f" (poorly determined: {', '.join(weak)})" if weak else ""
     if not np.isfinite(cond) or cond > error:
-        raise IdentifiabilityError(f"the data cannot identify {what}: condition number {cond:.3g}{weak_txt}; {hint}")
+        raise IdentifiabilityError(f"the data cannot identify {what}: {condition_words(cond)}{weak_txt}; {hint}")
     if cond > warn:
         warnings.warn(
             f"{what} is poorly identified: condition number {cond:.3g}{weak_txt}; {hint}",

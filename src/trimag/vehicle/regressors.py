@@ -38,7 +38,7 @@ from .._core.solve import gauss_newton_then_lm
 from ..calibration import Calibration, make_uncertainty
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..quality.crlb import UPPER, UPPER_NAMES
-from ..quality.diagnostics import CONDITION_ERROR
+from ..quality.diagnostics import CONDITION_ERROR, condition_words
 from ..quality.honesty import correlation_time
 
 __all__ = ["SIGNIFICANCE_ALPHA", "check_regressors", "fit_regressors", "ranking_table"]
@@ -164,8 +164,10 @@ def _covariance(J: NDArray[np.float64], sigma2: float, names: Sequence[str]) -> 
     if not np.sqrt(cond) < CONDITION_ERROR:
         weak = [names[int(k)] for k in np.flatnonzero(np.abs(vec[:, 0]) > 0.3)]
         raise IdentifiabilityError(
-            f"the data cannot identify the regressor terms together with the calibration (condition number "
-            f"{np.sqrt(cond):.3g}; weakest: {', '.join(weak)}); record the vehicle turning while the regressors vary"
+            f"the data cannot identify the regressor terms together with the calibration "
+            f"({condition_words(np.sqrt(cond))}; weakest: {', '.join(weak)}); a regressor that follows the "
+            "magnetometer's own reading cannot be told from the calibration: record the vehicle turning while the "
+            "regressors vary"
         )
     return np.asarray(sigma2 * np.linalg.inv(A) / np.outer(d, d), dtype=np.float64)
 

@@ -32,6 +32,35 @@ def require(module: str) -> Any:
     return require_extra(module, "reading autopilot logs")
 
 
+@contextlib.contextmanager
+def native_output_discarded() -> Any:
+    """The process's own standard output and error (file descriptors 1 and 2) sent to the null device meanwhile:
+    pymavlink's compiled log indexer prints "bad header ..." there for each damaged byte it skips, past Python's
+    ``sys.stderr`` (issue 41, item 11: 128 054 lines for a random 20 MB ``.px4log``). Python's own streams are
+    flushed first, so nothing of theirs is lost."""
+    import os
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    try:
+        saved = [(fd, os.dup(fd)) for fd in (1, 2)]
+    except OSError:  # no such descriptors (an embedding without them): nothing to discard
+        yield
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd, _ in saved:
+            os.dup2(null, fd)
+        yield
+    finally:
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(null)
+
+
 def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
     """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error.
 
@@ -42,8 +71,9 @@ def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> A
     quiet = io.StringIO()
     with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
         try:
-            conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
-                mavutil.mavlink_connection(str(path))
+            with native_output_discarded():  # the compiled indexer's line per damaged byte
+                conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
+                    mavutil.mavlink_connection(str(path))
         except Exception as exc:  # pymavlink raises many kinds on a damaged file
             raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
         try:
