@@ -146,3 +146,44 @@ def test_not_a_trimag_subcommand_any_more(capsys: pytest.CaptureFixture[str]) ->
     with pytest.raises(SystemExit) as exc:
         main(["bench", "speed"])
     assert exc.value.code == 2 and "invalid choice: 'bench'" in capsys.readouterr().err
+
+
+def test_a_verdict_without_a_peer_is_not_measured_and_names_the_missing_peers(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 42 item 3: asked to compare with peers that are not installed, the run printed "MET every method >= 5x
+    faster than the fastest equally accurate peer" from no peer measurement at all."""
+    monkeypatch.setattr(speed, "_peers", lambda only=None: {})  # as on a machine without the peers
+    summary = speed.run(tmp_path, sizes=[1e4], repeats=1, accuracy_sets=1, skip=("apply", "batch"),
+                        estimators=["ellipsoid-fit", "magcal", "circuitpython-mag-cal"])
+    text = summary["text"]
+    assert "MET" not in text and "MISS" not in text, text
+    assert "not measured" in text, text
+    assert "magcal" in text and "circuitpython-mag-cal" in text and "not installed" in text, text
+    target = next(v for k, v in summary["targets"].items() if "5x faster" in k)
+    assert target["met"] is None and sorted(target["missing_peers"]) == ["circuitpython-mag-cal", "magcal"]
+
+
+def test_a_verdict_comes_only_from_the_peers_that_ran() -> None:
+    """A peer measured at some sizes only: the sizes without one are 'not measured', never counted as met."""
+    rows = [{"estimator": "ellipsoid-fit", "kind": "trimag", "model": "ellipsoid", "n": n, "median_s": 0.01,
+             "param_rms_error": 1e-4} for n in (10_000, 100_000)]
+    rows.append({"estimator": "magcal", "kind": "peer", "model": "ellipsoid", "n": 10_000, "median_s": 0.1,
+                 "param_rms_error": 1e-4})
+    rows.append({"estimator": "magcal", "kind": "peer", "model": "ellipsoid", "n": 100_000,
+                 "error": "MemoryError: "})
+    verdict = speed.peer_verdict(speed.speed_ratios(rows), missing=[])
+    assert verdict["met"] is True and verdict["met_at"] == ["ellipsoid-fit@1e+04 10x"]
+    assert verdict["not_measured_at"] == ["ellipsoid-fit@1e+05"]
+    assert speed.peer_verdict(speed.speed_ratios(rows[:2]), missing=["magcal"])["met"] is None
+
+
+def test_the_gyro_aided_fit_is_timed_on_data_with_a_gyroscope() -> None:
+    """Issue 42 item 3: ``speed.py --quick`` printed ``gyro ... ERROR TrimagInputError: the gyro-aided fit needs the
+    gyroscope's angular rate``: it was given the ellipsoid group's samples, without one."""
+    logged: list[str] = []
+    rows, _ = fit_benchmark([1000], repeats=1, budget=10.0, seed=0, estimators=["gyro"], profile_at=None,
+                            log=logged.append, accuracy_sets=1)
+    (row,) = rows
+    assert "error" not in row, row
+    assert row["median_s"] > 0 and row["model"] == "gyro (own sensor)"
+    assert not any("ERROR" in line for line in logged), logged

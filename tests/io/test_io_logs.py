@@ -344,3 +344,23 @@ def test_a_damaged_pymavlink_log_gives_one_line_not_a_line_per_byte(tmp_path: Pa
     r = run_trimag("fit", path)
     assert r.returncode == 2, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "bad header" not in r.stderr, r.stderr[:500]
+
+
+def test_reading_a_dataflash_log_reports_its_progress(monkeypatch: pytest.MonkeyPatch):
+    """Issue 40 item 3: a large log's page says what it is doing while it reads. ``read_log(progress=...)`` is called
+    with the fraction of the file scanned (every ``PROGRESS_BYTES``, here made small) and 1.0 at the end; the log read
+    is the same as without it."""
+    import trimag.io.logs.dataflash as dataflash
+
+    monkeypatch.setattr(dataflash, "PROGRESS_BYTES", 32_768)  # the 294 kB log in ~9 steps
+    seen: list[tuple[float, str]] = []
+    log = read_log(LOGS / "ardusub_small.BIN", progress=lambda fraction, what: seen.append((fraction, what)))
+    fractions = [f for f, _ in seen]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and len(fractions) >= 8
+    assert fractions == sorted(fractions) and all(0.0 <= f <= 1.0 for f in fractions)
+    assert any("scanning the log" in what for _, what in seen)
+    plain = read_log(LOGS / "ardusub_small.BIN")
+    assert [len(m.time_s) for m in log.magnetometers] == [len(m.time_s) for m in plain.magnetometers]
+    seen.clear()
+    read_log(LOGS / "pyulog_sample_log_small.ulg", progress=lambda fraction, what: seen.append((fraction, what)))
+    assert [f for f, _ in seen] == [0.0, 1.0]  # every format says when it starts and ends

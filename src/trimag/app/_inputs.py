@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
 from ..errors import TrimagInputError
@@ -20,6 +19,9 @@ from ..io.tables import strict_refusal
 from ..units import convert
 from ..validation import check_nesting
 from .requests import AttitudeSpec, ReferenceSpec
+
+if TYPE_CHECKING:  # scipy.spatial (~0.1 s to import) only for fits with attitudes, which import it themselves
+    from scipy.spatial.transform import Rotation
 
 
 def parse_options(items: list[str] | None) -> dict[str, Any]:

@@ -718,6 +718,8 @@ def _fit_target(req: FitRequest, samples: Samples, unit: str, messages: list[str
 
 def _input_orientation(cal: Calibration, samples: Samples) -> Calibration:
     """An autopilot log's fit records the sensor rotation its readings carry (what ``export`` writes from)."""
+    if not samples.log_info:  # a table: nothing to record (and the firmware models are not imported for it)
+        return cal
     from ._firmware import _held, _log_firmware
 
     target = _log_firmware(samples.log_info)

@@ -515,12 +515,12 @@ def _check_turned(B: NDArray[np.float64], std: NDArray[np.float64]) -> None:
     sample-to-sample noise (:func:`sample_noise_std`) and :data:`STILL_MAX_DEG` seen from the origin: the sensor did
     not turn, and its noise must not be described as a turn or as a sphere of directions (the unmoved HMC5883L logs
     of hmc5883l-sunsided were, review 2)."""
-    noise = sample_noise_std(B)
-    if noise is None or not noise > 0 or std[0] >= STILL_NOISE_RATIO * noise:
-        return
     norm = float(np.linalg.norm(B[diagnostic_subsample(len(B))].mean(axis=0)))
     turned = float(np.degrees(np.arctan2(std[0], norm)))
-    if not turned < STILL_MAX_DEG:
+    if not turned < STILL_MAX_DEG:  # first: it is cheap, and every sensor that turned stops here
+        return
+    noise = sample_noise_std(B)
+    if noise is None or not noise > 0 or std[0] >= STILL_NOISE_RATIO * noise:
         return
     raise IdentifiabilityError(
         f"the sensor did not turn: its samples spread only {std[0]:.4g} RMS at most (principal spreads "

@@ -238,8 +238,8 @@ def drift_check(cal: Calibration, X: NDArray[np.float64], reference: Any = None)
     F_whole = float((cal.reference or {}).get("value") or np.mean(np.linalg.norm(cal.apply(X[:: max(1, n // 2000)]),
                                                                                 axis=1)))
     fits = []
-    for part in (np.arange(n // 2), np.arange(n // 2, n)):
-        idx = part[np.linspace(0, len(part) - 1, min(len(part), _HALF_SAMPLES)).astype(np.int64)]
+    for start, stop in ((0, n // 2), (n // 2, n)):  # evenly spread rows of each half, without indexing all of them
+        idx = start + np.linspace(0, stop - start - 1, min(stop - start, _HALF_SAMPLES)).astype(np.int64)
         fits.append(_refit_half(W0, b0, X[idx], ref[idx] if per_sample else F_whole))
     if fits[0] is None or fits[1] is None:
         undetermined = [k for k, fit in zip(("first", "second"), fits, strict=True) if fit is None]

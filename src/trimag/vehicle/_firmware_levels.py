@@ -20,8 +20,10 @@ nested in the next), the parameters the firmware loads; the others are *held* at
 
 With a vector residual every level is a linear least-squares problem in ``(A, c = A o, m)``: its solution is the
 start (and, away from the firmware's limits, the answer); with a magnitude residual the start is the level below's
-solution (or an algebraic sphere fit), refined by Levenberg-Marquardt (:func:`trimag._core.solve.levenberg_marquardt`;
-bounded trust-region steps when a limit is active).
+solution (or an algebraic sphere fit), refined by Gauss-Newton on the normal equations with the Jacobian in closed
+form (:meth:`LevelProblem.jacobian`), MINPACK's Levenberg-Marquardt where a step stalls or the equations are barely
+determined (:data:`MAX_NORMAL_COND`; :func:`trimag._core.solve.levenberg_marquardt`), bounded trust-region steps when
+a limit is active. The held-out folds start from the whole log's solution (:meth:`LevelProblem.fold_refitter`).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._core.solve import levenberg_marquardt
+from .._core.solve import GaussNewtonResult, gauss_newton_rule, levenberg_marquardt
 from ..errors import IdentifiabilityError
 
 __all__ = ["LEVELS", "LevelProblem", "LevelSolution"]
@@ -41,6 +43,19 @@ __all__ = ["LEVELS", "LevelProblem", "LevelSolution"]
 LEVELS = ("offsets", "scale", "diagonal", "full")
 
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _rotate(T: list[NDArray[np.float64]], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_n B_n`` for rotations given by their rows ``T`` (3 arrays (n, 3)) and vectors ``B`` (n, 3)."""
+    L = np.empty_like(B)
+    for i in range(3):
+        np.einsum("nj,nj->n", T[i], B, out=L[:, i])
+    return L
+
+
+def _all(rows: Any) -> bool:
+    """Whether ``rows`` selects every row (``slice(None)``)."""
+    return isinstance(rows, slice) and rows == slice(None)
 
 
 def _sym(a: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -92,6 +107,9 @@ class LevelProblem:
                  target: NDArray[np.float64], A_held: NDArray[np.float64], o_held: NDArray[np.float64],
                  fixed: NDArray[np.float64] | None = None, tilt: NDArray[np.float64] | None = None) -> None:
         self.u, self.level, self.x, self.target, self.fixed, self.tilt = u, level, motor, target, fixed, tilt
+        #: the tilt's three rows, each contiguous (n, 3): the residual's products read them at full speed
+        self._tilt_rows = None if tilt is None else [np.ascontiguousarray(tilt[:, i, :]) for i in range(3)]
+        self._last: tuple[Any, ...] | None = None  # (theta, rows, B, L) of the last residual (see _field)
         self.vector = target.ndim == 2 and tilt is None
         #: residuals per sample: 3 (vector), 2 (heading-free), 1 (magnitude)
         self.width = 3 if self.vector else (2 if tilt is not None else 1)
@@ -148,14 +166,16 @@ class LevelProblem:
 
     def residual(self, theta: NDArray[np.float64], rows: Any = slice(None)) -> NDArray[np.float64]:
         """Vector residuals (3 n,), heading-free residuals (2 n,) or magnitude residuals (n,) of the rows."""
-        B = self.predict(theta, rows)
+        B, L = self._field(theta, rows)
         if self.vector:
             return np.asarray((B - self.target[rows]).ravel(), dtype=np.float64)
-        if self.tilt is not None:
-            L = np.einsum("nij,nj->ni", self.tilt[rows], B)
-            out = np.column_stack([np.hypot(L[:, 0], L[:, 1]), L[:, 2]]) - self.target[rows]
-            return np.asarray(out.ravel(), dtype=np.float64)
-        return np.asarray(np.linalg.norm(B, axis=1) - self.target[rows], dtype=np.float64)
+        if L is not None:
+            out = np.empty((len(B), 2))
+            np.hypot(L[:, 0], L[:, 1], out=out[:, 0])
+            out[:, 1] = L[:, 2]
+            out -= self.target[rows]
+            return out.ravel()
+        return np.asarray(np.sqrt(np.einsum("ni,ni->n", B, B)) - self.target[rows], dtype=np.float64)
 
     def _field_jacobian(self, theta: NDArray[np.float64], rows: Any) -> NDArray[np.float64]:
         """``dB~/dtheta``, shape (n, 3, p)."""
@@ -180,23 +200,56 @@ class LevelProblem:
                 J[:, j, k + 3 + j] = self.x[rows]
         return J
 
-    def jacobian(self, theta: NDArray[np.float64], rows: Any = slice(None)) -> NDArray[np.float64]:
-        """Jacobian of :meth:`residual`, shape (3 n, p) or (n, p)."""
-        J = self._field_jacobian(theta, rows)
-        if self.vector:
-            return J.reshape(-1, self.n_params)
+    def _field(self, theta: NDArray[np.float64], rows: Any) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """``B~`` of the rows and, heading-free, its level-frame ``L = T B~``; the last pair is kept, for the
+        Jacobian at the point whose residual was just evaluated (what a Gauss-Newton step does next)."""
+        last = self._last
+        if last is not None and (last[1] is rows or (_all(last[1]) and _all(rows))) and np.array_equal(last[0], theta):
+            return last[2], last[3]
         B = self.predict(theta, rows)
-        if self.tilt is not None:
-            T = self.tilt[rows]
-            L = np.einsum("nij,nj->ni", T, B)
-            JL = np.einsum("nij,njp->nip", T, J)
+        L = None
+        if self._tilt_rows is not None:
+            L = _rotate([t[rows] for t in self._tilt_rows] if not _all(rows) else self._tilt_rows, B)
+        self._last = (np.array(theta, dtype=np.float64), rows, B, L)
+        return B, L
+
+    def _contract(self, q: NDArray[np.float64], w: NDArray[np.float64], A: NDArray[np.float64],
+                  x: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """``q_n . dB~_n/dtheta`` in closed form, shape (n, p), for row vectors ``q`` (n, 3) (``w = u + o`` of the
+        rows, ``x`` the motor channel's): what :meth:`_field_jacobian` gives, without its (n, 3, p) array."""
+        n, k = len(q), self.n_A
+        out = np.empty((n, self.n_params))
+        if self.level == "scale":
+            out[:, 0] = np.einsum("ni,ni->n", q, w @ self.A_held.T)
+        elif self.level == "diagonal":
+            np.multiply(q, w, out=out[:, :3])
+        elif self.level == "full":
+            for col, (i, j) in enumerate(_SYM):
+                out[:, col] = q[:, i] * w[:, j] + q[:, j] * w[:, i] if i != j else q[:, i] * w[:, j]
+        out[:, k:k + 3] = q @ A  # dB/do = A
+        if x is not None:
+            np.multiply(q, x[:, None], out=out[:, k + 3:k + 6])
+        return out
+
+    def jacobian(self, theta: NDArray[np.float64], rows: Any = slice(None)) -> NDArray[np.float64]:
+        """Jacobian of :meth:`residual`, shape (3 n, p) or (n, p); in closed form, row by row (the chain rule
+        through the residual's unit vector of each sample)."""
+        if self.vector:
+            return self._field_jacobian(theta, rows).reshape(-1, self.n_params)
+        A, o, _ = self.unpack(theta)
+        w = self.u[rows] + o
+        x = self.x[rows] if self.x is not None else None
+        B, L = self._field(theta, rows)
+        if L is not None and self._tilt_rows is not None:  # the horizontal length through the tilt's first two
+            T = self._tilt_rows if _all(rows) else [t[rows] for t in self._tilt_rows]  # rows, the vertical its third
             horizontal = np.hypot(L[:, 0], L[:, 1])[:, None]
+            q_h = (L[:, 0:1] * T[0] + L[:, 1:2] * T[1]) / horizontal
             out = np.empty((len(B), 2, self.n_params))
-            out[:, 0] = (L[:, 0:1] * JL[:, 0] + L[:, 1:2] * JL[:, 1]) / horizontal
-            out[:, 1] = JL[:, 2]
+            out[:, 0] = self._contract(q_h, w, A, x)
+            out[:, 1] = self._contract(T[2], w, A, x)
             return out.reshape(-1, self.n_params)
-        unit = B / np.linalg.norm(B, axis=1, keepdims=True)
-        return np.asarray(np.einsum("nj,njp->np", unit, J), dtype=np.float64)
+        unit = B / np.sqrt(np.einsum("ni,ni->n", B, B))[:, None]
+        return self._contract(unit, w, A, x)
 
     # ------------------------------------------------------------------ starts and the solve
     def linear_start(self, rows: Any = slice(None)) -> NDArray[np.float64]:
@@ -251,14 +304,17 @@ class LevelProblem:
                                       method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
             span = np.where(np.isfinite(hi - lo), np.maximum(hi - lo, 1e-12), 1.0)
             at = [k for k in range(len(p0)) if min(res.x[k] - lo[k], hi[k] - res.x[k]) < 1e-6 * span[k]]
-        else:
-            res = levenberg_marquardt(lambda p: self.residual(p, rows), p0, jac=lambda p: self.jacobian(p, rows),
-                                      method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200)
+        else:  # Gauss-Newton on the normal equations; MINPACK's LM where it stalls (see _gauss_newton)
+            res = self._gauss_newton(p0, rows)
+            if res is None:
+                res = levenberg_marquardt(lambda p: self.residual(p, rows), p0,
+                                          jac=lambda p: self.jacobian(p, rows), method="lm", xtol=1e-12,
+                                          ftol=1e-12, max_nfev=200)
             at = []
         theta = np.asarray(res.x, dtype=np.float64)
         A, o, m = self.unpack(theta)
-        return LevelSolution(A, o.copy(), m.copy(), theta, self.residual(theta, rows), self.jacobian(theta, rows),
-                             bool(res.success), int(res.nfev), at)
+        return LevelSolution(A, o.copy(), m.copy(), theta, np.asarray(res.fun, dtype=np.float64),
+                             np.asarray(res.jac, dtype=np.float64), bool(res.success), int(res.nfev), at)
 
     def solve_in(self, theta_ref: NDArray[np.float64], basis: NDArray[np.float64], scales: NDArray[np.float64],
                  rows: Any = slice(None), max_steps: int = 50) -> LevelSolution:
@@ -269,8 +325,7 @@ class LevelProblem:
         cost = float(r @ r)
         steps = 0
         for steps in range(1, max_steps + 1):  # noqa: B007
-            Jc = (self.jacobian(theta, rows) * scales) @ basis
-            dc, *_ = np.linalg.lstsq(Jc, -r, rcond=None)
+            dc = _normal_step((self.jacobian(theta, rows) * scales) @ basis, r)
             step = scales * (basis @ dc)
             for _ in range(20):
                 trial = theta + step
@@ -286,3 +341,112 @@ class LevelProblem:
         A, o, m = self.unpack(theta)
         return LevelSolution(A, o.copy(), m.copy(), theta, r, self.jacobian(theta, rows), True, steps, [], basis,
                              np.asarray(theta_ref, dtype=np.float64), scales)
+
+    def _gauss_newton(self, p0: NDArray[np.float64], rows: Any, ftol: float = 1e-12,
+                      xtol: float = 1e-12) -> Any:
+        """Gauss-Newton from ``p0`` (:func:`trimag._core.solve.gauss_newton_rule`: the Jacobi-scaled normal
+        equations, a step that raises the cost halved up to 5 times) to the tolerances MINPACK's LM had here: a
+        step that lowers the cost by at most ``ftol`` of it, or a relative step at most ``xtol``. The result as
+        ``least_squares`` gives it (``x``, ``fun``, ``jac``, ``nfev``, ``success``), or None when it stalls."""
+
+        def evaluate(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+            r = self.residual(p, rows)
+            return r, float(r @ r)
+
+        def converged(p_new: NDArray[np.float64], step: float, cost: float, cost_new: float, _f: float) -> bool:
+            return cost - cost_new <= ftol * cost or step <= xtol * (1.0 + float(np.linalg.norm(p_new)))
+
+        def direction(r: NDArray[np.float64], J: NDArray[np.float64]) -> NDArray[np.float64] | None:
+            step = _solve_normal(J.T @ J, J.T @ r)
+            return None if step is None else -step
+
+        run = gauss_newton_rule(evaluate, lambda p, r: self.jacobian(p, rows), direction, p0, max_steps=100,
+                                converged=converged, halvings=5)
+        if not run.converged:
+            return None
+        return GaussNewtonResult(x=run.p, fun=run.state, jac=run.model, nfev=run.nfev, success=True)
+
+    # ------------------------------------------------------------------ held-out folds
+    def subset(self, rows: NDArray[np.int64]) -> LevelProblem:
+        """The same level on the samples ``rows`` only."""
+        def part(a: NDArray[np.float64] | None) -> Any:
+            return None if a is None else a[rows]
+
+        return LevelProblem(self.u[rows], self.level, part(self.x), self.target[rows], self.A_held, self.o_held,
+                            part(self.fixed), part(self.tilt))
+
+    def fold_refitter(self, sol: LevelSolution, xtol: float = 1e-10, ftol: float = 1e-10,
+                      max_steps: int = 30) -> Any:
+        """A function ``refit(a, b)`` -> the parameters fitted to every sample but ``a:b`` (a contiguous fold), or None
+        (the caller then solves as before), as :meth:`solve` / :meth:`solve_in` would from ``sol``.
+
+        Gauss-Newton from the whole log's solution ``sol`` (within its directions ``sol.basis``, if any), to the
+        relative step ``xtol`` or a step that lowers the cost by at most ``ftol`` of it (the held-out RMS is quoted to
+        4 digits): the fold's minimum is near it. Its first step reuses the whole log's normal
+        equations at ``sol`` less the fold's rows (no pass over the other samples); each further step evaluates the
+        training rows once. None when a step raises the cost (far from the minimum) or the system is singular."""
+        J, r = sol.jacobian, sol.residual
+        N_all, g_all, w, n = J.T @ J, J.T @ r, self.width, len(self.u)
+        P = None if sol.basis is None or sol.scales is None else sol.scales[:, None] * sol.basis
+
+        def refit(a: int, b: int) -> NDArray[np.float64] | None:
+            Jk, rk = J[a * w:b * w], r[a * w:b * w]
+            N, g = N_all - Jk.T @ Jk, g_all - Jk.T @ rk
+            keep = np.concatenate([np.arange(a), np.arange(b, n)])
+            train = self.subset(keep)  # the training rows copied once, not at every evaluation
+            rows = slice(None)
+            theta = np.asarray(sol.theta, dtype=np.float64).copy()
+            cost = float(r @ r) - float(rk @ rk)
+            for _ in range(max_steps):
+                if P is None:
+                    step = _solve_normal(N, g)
+                else:
+                    c = _solve_normal(P.T @ N @ P, P.T @ g)
+                    step = None if c is None else P @ c
+                if step is None:
+                    return None
+                trial = theta - step
+                r_trial = train.residual(trial, rows)
+                cost_trial = float(r_trial @ r_trial)
+                relative = float(np.linalg.norm(step)) / (1.0 + float(np.linalg.norm(trial)))
+                if not np.isfinite(cost_trial) or cost_trial > cost * (1.0 + 1e-12):
+                    return theta if relative <= 1e-8 else None  # the cost rose by rounding only: converged
+                theta, cost, cost_before = trial, cost_trial, cost
+                if relative <= xtol or cost_before - cost <= ftol * cost_before:
+                    return theta
+                Jt = train.jacobian(theta, rows)
+                N, g = Jt.T @ Jt, Jt.T @ r_trial
+            return None
+
+        return refit
+
+
+#: Largest condition number of the Jacobi-scaled normal equations a Gauss-Newton step is taken from: beyond it a
+#: direction is barely determined (a log that barely turned), and MINPACK's Levenberg-Marquardt takes over, as the
+#: fit always did there (the minimum along a flat valley depends on the path).
+MAX_NORMAL_COND = 1e5
+
+
+def _solve_normal(N: NDArray[np.float64], g: NDArray[np.float64],
+                  max_cond: float = MAX_NORMAL_COND) -> NDArray[np.float64] | None:
+    """``N^-1 g`` by the Jacobi-scaled normal equations, or None when their condition number exceeds ``max_cond``."""
+    d = np.sqrt(np.diag(N))
+    if not np.all(np.isfinite(d)) or np.any(d == 0):
+        return None
+    scaled = N / np.outer(d, d)
+    if not np.linalg.cond(scaled) < max_cond:
+        return None
+    return np.asarray(np.linalg.solve(scaled, g / d) / d, dtype=np.float64)
+
+
+def _normal_step(J: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The least-squares step ``argmin |J d + r|`` from the Jacobi-scaled normal equations (k x k: one BLAS product
+    over the rows, where an SVD of the (n, k) Jacobian costs many); by SVD when they are singular."""
+    G = J.T @ J
+    d = np.sqrt(np.diag(G))
+    if np.all(np.isfinite(d)) and np.all(d > 0):
+        scaled = G / np.outer(d, d)
+        if np.linalg.cond(scaled) < 1e10:
+            return np.asarray(-np.linalg.solve(scaled, (J.T @ r) / d) / d, dtype=np.float64)
+    step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+    return np.asarray(step, dtype=np.float64)

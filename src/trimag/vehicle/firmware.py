@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._core.threads import one_blas_thread
 from ..calibration import Calibration, jsonable, make_uncertainty
 from ..errors import IdentifiabilityError, TrimagInputError
 from ..models.firmware import (
@@ -227,15 +228,30 @@ def _unique_rotations(target: str) -> list[int]:
     return out
 
 
-def _scale_rms(u: NDArray[np.float64], h: NDArray[np.float64]) -> tuple[float, float]:
-    """RMS of ``l u + c - h`` at its least-squares ``(l, c)`` (the orientation test), and ``l``."""
-    n = len(u)
-    design = np.zeros((n, 3, 4))
-    design[:, :, 0] = u
-    design[:, :, 1:] = np.eye(3)
-    X, *_ = np.linalg.lstsq(design.reshape(3 * n, 4), h.ravel(), rcond=None)
-    r = design.reshape(3 * n, 4) @ X - h.ravel()
-    return float(np.sqrt(np.mean(r**2) * 3)), float(X[0])
+class _ScaleFit:
+    """RMS of ``l P_u u + c - P_h h`` at its least-squares ``(l, c)`` (the orientation test) for any rotations, in
+    closed form from one pass over the samples.
+
+    With ``a = u - mean(u)`` and ``b = h - mean(h)`` the least-squares ``c`` is ``mean(P_h h) - l mean(P_u u)``, and
+    ``l = trace(P_h^T P_u C) / S_uu`` with ``C = sum a b^T``; rotations keep ``S_uu = sum |a|^2`` and
+    ``S_hh = sum |b|^2``, so the residual's sum of squares is ``S_hh - l^2 S_uu`` for every orientation: the search
+    over a firmware's rotations costs one cross-covariance, not one regression over every sample per rotation."""
+
+    def __init__(self, u: NDArray[np.float64], h: NDArray[np.float64]) -> None:
+        a = u - u.mean(axis=0)
+        b = h - h.mean(axis=0)
+        self.n = len(u)
+        self.C = a.T @ b
+        self.S_uu = float(np.einsum("ni,ni->", a, a))
+        self.S_hh = float(np.einsum("ni,ni->", b, b))
+
+    def rms(self, P_u: NDArray[np.float64], P_h: NDArray[np.float64]) -> tuple[float, float]:
+        """``(rms, l)`` of the fit of ``P_h h`` by ``l P_u u + c``."""
+        if self.S_uu <= 0:
+            return float(np.sqrt(self.S_hh / self.n)), 0.0
+        S_uh = float(np.trace(P_h.T @ P_u @ self.C))
+        scale = S_uh / self.S_uu
+        return float(np.sqrt(max(self.S_hh - scale * S_uh, 0.0) / self.n)), scale
 
 
 def _polar_angle(G: NDArray[np.float64]) -> float:
@@ -253,9 +269,10 @@ def _choose_orientation(
     """The orientation (step 1 of the module docstring) and what was decided."""
     results = []
     scales = {}
+    scale_fit = _ScaleFit(raw, h)  # every rotation's one-scale fit from one pass over the samples
     for value in _unique_rotations(target):
         fr = _frame(target, value, applied)
-        rms, scales[value] = _scale_rms(raw @ fr.P_u.T, h @ fr.P_h.T)
+        rms, scales[value] = scale_fit.rms(fr.P_u, fr.P_h)
         results.append((rms if scales[value] > 0 else np.inf, value))
     results.sort()
     best_rms, best = results[0]
@@ -498,16 +515,18 @@ def _heldout(problem: LevelProblem, sol: LevelSolution, bounds: Any) -> float:
     if n < 5 * N_FOLDS:
         return float("nan")
     errors = []
+    refit = problem.fold_refitter(sol) if bounds is None else None  # Gauss-Newton from the whole log's solution
     for fold in _folds(n):
-        train = np.setdiff1d(np.arange(n), fold)
+        train = np.concatenate([np.arange(fold[0]), np.arange(fold[-1] + 1, n)])  # the folds are contiguous
         try:
-            if sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
-                part = problem.solve_in(sol.theta_ref, sol.basis, sol.scales, rows=train)
-            else:
-                part = problem.solve(sol.theta, rows=train, bounds=bounds)
+            theta = refit(int(fold[0]), int(fold[-1]) + 1) if refit is not None else None
+            if theta is None and sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
+                theta = problem.solve_in(sol.theta_ref, sol.basis, sol.scales, rows=train).theta
+            elif theta is None:
+                theta = problem.solve(sol.theta, rows=train, bounds=bounds).theta
         except (np.linalg.LinAlgError, ValueError):
             return float("inf")
-        r = problem.residual(part.theta, rows=fold)
+        r = problem.residual(theta, rows=fold)
         errors.append(r.reshape(-1, problem.width))
     e = np.concatenate(errors)
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
@@ -613,6 +632,7 @@ def _motor_choices(motor: str, motors: Mapping[str, NDArray[np.float64]]) -> lis
     return [motor]
 
 
+@one_blas_thread()  # small BLAS products only: a second thread would spin-wait (trimag._core.threads)
 def fit_firmware(
     target: str, raw: ArrayLike, *, field_body: ArrayLike | None = None, magnitude: ArrayLike | None = None,
     motor_values: Mapping[str, ArrayLike] | None = None, held: FirmwareCompass | None = None,

@@ -15,6 +15,7 @@ slerp) and counts what it dropped.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from ...errors import TrimagInputError
@@ -97,9 +98,24 @@ def _check_dataflash_head(path: Path) -> None:
         )
 
 
-def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False) -> VehicleLog:
+def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False,
+             progress: Callable[[float, str], None] | None = None) -> VehicleLog:
     """Read an autopilot log (format from ``fmt`` or the extension). ``gyro``: also read a DataFlash log's ``IMU``
-    messages (the gyroscope, ``VehicleLog.gyro``; the other formats always give theirs, at no extra cost)."""
+    messages (the gyroscope, ``VehicleLog.gyro``; the other formats always give theirs, at no extra cost).
+
+    ``progress``, when given, is called as ``progress(fraction, what)`` while the log is read (a page showing a
+    large log's reading): a binary DataFlash log reports every few MB of its scan (fraction of its bytes, 0..1);
+    every format reports 0.0 at the start and 1.0 when read."""
+    if progress is not None:
+        progress(0.0, f"reading {Path(path).name}")
+    log = _read_log(path, fmt, gyro=gyro, progress=progress)
+    if progress is not None:
+        progress(1.0, f"read {Path(path).name}: {len(log.magnetometers)} magnetometer(s)")
+    return log
+
+
+def _read_log(path: str | Path, fmt: str | None, *, gyro: bool,
+              progress: Callable[[float, str], None] | None) -> VehicleLog:
     p = Path(path)
     kind = log_format(p, fmt)
     if not p.exists():
@@ -119,7 +135,7 @@ def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False) ->
 
         if kind == "dataflash":
             _check_dataflash_head(p)
-        return read_ardupilot(p, kind, gyro=gyro)
+        return read_ardupilot(p, kind, gyro=gyro, progress=progress)
     if kind == "ulog":
         from .px4 import read_ulog
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import re
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -94,7 +95,8 @@ Columns = dict[str, dict[str, NDArray[Any]]]
 Meta = dict[str, dict[str, Any]]
 
 
-def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[str, float], Meta]:
+def _collect(path: Path, kind: str, gyro: bool = False,
+             progress: Callable[[float, str], None] | None = None) -> tuple[Columns, dict[str, float], Meta]:
     """Every wanted message type as columns, the parameters (first value of each) and each type's field formats
     and units; ``gyro``: also ``IMU``."""
     types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES + (["IMU"] if gyro else [])
@@ -105,7 +107,7 @@ def _collect(path: Path, kind: str, gyro: bool = False) -> tuple[Columns, dict[s
             from .dataflash import field_units, read_dataflash
 
             formats: dict[str, tuple[int, str, list[str]]] = {}
-            cols = read_dataflash(path, types, formats)
+            cols = read_dataflash(path, types, formats, progress)
             params: dict[str, float] = {}
             parm = cols.pop("PARM", None)
             if parm is not None:
@@ -383,10 +385,12 @@ def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     return log
 
 
-def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False) -> VehicleLog:
+def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False,
+                   progress: Callable[[float, str], None] | None = None) -> VehicleLog:
     """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log; ``gyro``: also the first
-    IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked)."""
-    rows, params, meta = _collect(path, kind, gyro)
+    IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked);
+    ``progress``: :func:`trimag.io.logs.read_log`'s."""
+    rows, params, meta = _collect(path, kind, gyro, progress)
     log = _dataflash(path, rows, params, meta) if kind == "dataflash" else _tlog(path, rows, params)
     imu = rows.get("IMU")
     if gyro and _n(imu) and imu is not None and "GyrX" in imu:

@@ -12,6 +12,7 @@ Field formats and scales follow pymavlink's ``DFReader`` (``c``/``C``/``e``/``E`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,11 +43,14 @@ def _parse_fmt(payload: bytes) -> tuple[int, int, str, str, list[str]]:
 
 def read_dataflash(
     path: str | Path, types: list[str], formats: dict[str, tuple[int, str, list[str]]] | None = None,
+    progress: Callable[[float, str], None] | None = None,
 ) -> dict[str, dict[str, NDArray[np.generic]]]:
     """Columns of every message of the named ``types`` in a binary DataFlash log.
 
     ``formats``, when given, receives every message type's ``(type number, format characters, column names)`` from
-    the log's FMT messages (what the units of a field depend on: :func:`field_units`).
+    the log's FMT messages (what the units of a field depend on: :func:`field_units`). ``progress``, when given,
+    is called as ``progress(fraction, what)`` every :data:`PROGRESS_BYTES` of the scan (fraction of the file's
+    bytes, 0..1) and once more at the end (1.0).
 
     Returns
     -------
@@ -59,7 +63,7 @@ def read_dataflash(
         data = np.memmap(p, dtype=np.uint8, mode="r")
     except (OSError, ValueError) as exc:
         raise TrimagInputError(f"{p}: cannot read the log ({exc})") from None
-    lengths, found, starts = _scan(data, set(types))
+    lengths, found, starts = _scan(data, set(types), progress)
     if not found:
         raise TrimagInputError(f"{p}: not a binary DataFlash log (no FMT messages)")
     if formats is not None:
@@ -72,11 +76,17 @@ def read_dataflash(
         fields = _decode(p, data, name, fmt, cols, positions, lengths[mtype])
         if fields is not None:
             out[name] = fields
+    if progress is not None:
+        progress(1.0, f"read {len(data) / 1e6:.0f} MB")
     return out
 
 
+#: How often (bytes of the log scanned) :func:`read_dataflash` reports its progress.
+PROGRESS_BYTES = 4 << 20
+
+
 def _scan(
-    data: NDArray[np.uint8], wanted_names: set[str]
+    data: NDArray[np.uint8], wanted_names: set[str], progress: Callable[[float, str], None] | None = None,
 ) -> tuple[list[int], dict[int, tuple[str, str, list[str]]], dict[int, list[int]]]:
     """One pass over the log's messages: each type's length and ``(name, format, columns)`` from the FMT messages,
     and the byte offsets of the messages of the wanted types. Bytes that do not start a known message are
@@ -89,7 +99,11 @@ def _scan(
     wanted: set[int] = set()
     starts: dict[int, list[int]] = {}
     pos = 0
+    report = PROGRESS_BYTES if progress is not None else n + 1
     while pos + 3 <= n:
+        if pos >= report:
+            progress(pos / n, f"scanning the log: {pos / 1e6:.0f} of {n / 1e6:.0f} MB")  # type: ignore[misc]
+            report += PROGRESS_BYTES
         if raw[pos] != 0xA3 or raw[pos + 1] != 0x95:
             pos += 1
             continue
