@@ -25,7 +25,7 @@ def require(module: str) -> Any:
     return require_extra(module, "reading autopilot logs")
 
 
-def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
+def mavlink_messages(path: Path, types: list[str]) -> Any:
     """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error.
 
     pymavlink prints a line for each damaged byte it skips ("bad header ..."): its output goes to a buffer while
@@ -35,8 +35,7 @@ def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> A
     quiet = io.StringIO()
     with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
         try:
-            conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
-                mavutil.mavlink_connection(str(path))
+            conn = mavutil.mavlink_connection(str(path))
         except Exception as exc:  # pymavlink raises many kinds on a damaged file
             raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
         try:
