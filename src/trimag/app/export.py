@@ -22,6 +22,7 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
         ``target``, ``out`` (the path written), ``parameters``, ``notes`` (what the conversion did) and
         ``violations`` (values outside the firmware's limits).
     """
+    from ..io.atomic import check_distinct_outputs
     from ..io.export import export_calibration, write_export
 
     req = request if request is not None else ExportRequest(**arguments)
@@ -30,6 +31,7 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     if req.instance is not None and not 1 <= req.instance <= 8:  # counted from 1, as the firmware's names do
         raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
                                f"{req.instance}")
+    check_distinct_outputs({"the calibration": req.calibration}, {"out": req.out})
     cal = _read_calibration(req.calibration, req.target)
     instance, note = _instance(cal, req.instance)
     exp = export_calibration(cal, req.target, instance=instance - 1)
