@@ -301,3 +301,36 @@ def test_a_log_of_a_firmware_without_compass_scale_gets_none_written(tmp_path: P
     assert e.returncode == 0, e.stderr
     p = _param_file(param)
     assert not [k for k in p if k.startswith("COMPASS_SCALE")] and "COMPASS_DIA_X" in p
+
+
+def test_a_quick_recalibration_of_a_firmware_fit_keeps_its_orientation_level_and_motor_term(tmp_path: Path):
+    """Issue 41 item 2: ``fit --prior`` of a ``--target ardupilot`` fit dropped the firmware record: ``export`` then
+    wrote no COMPASS_ORIENT (the 270 deg yaw lost with a "note": 90 deg of heading error through ArduPilot's
+    formula), offsets in the rotated frame and SCALE 1. The prior's orientation, level and motor term are kept and
+    its offsets recomputed: the exported parameters correct a new flight at the noise floor."""
+    fw, quick, param = tmp_path / "fw.json", tmp_path / "quick.json", tmp_path / "quick.param"
+    assert run_trimag("fit", _write_log(tmp_path / "first.bin"), "--target", "ardupilot", "-o", fw).returncode == 0
+    r = run_trimag("fit", _write_log(tmp_path / "second.bin", seed=9), "--prior", fw, "-o", quick)
+    assert r.returncode == 0, r.stderr
+    said = r.stdout
+    r = run_trimag("export", quick, "--to", "ardupilot", "-o", param)
+    assert r.returncode == 0, r.stderr
+    assert "does not determine" not in r.stderr
+    params = _param_file(param)
+    first = _param_file(_export(fw, tmp_path / "fw.param"))
+    assert params["COMPASS_ORIENT"] == 6 and params["COMPASS_MOTCT"] == 2
+    for name in ("COMPASS_SCALE", "COMPASS_DIA_X", "COMPASS_ODI_Z", "COMPASS_MOT_Y"):
+        assert params[name] == pytest.approx(first[name], rel=1e-6), name
+    exported = ArduPilotCompass.from_parameters({**params, "COMPASS_EXTERNAL": 1.0}, 0)
+    _, logged, amps, raw = _flight(2500, seed=30)
+    h = body_field(logged, NED_mG)
+    floor = np.sqrt(np.mean(np.sum((TRUTH.correct(raw, amps) - h) ** 2, axis=1)))
+    got = np.sqrt(np.mean(np.sum((exported.correct(raw, amps) - h) ** 2, axis=1)))
+    assert got <= 1.5 * floor, (got, floor)
+    assert "orientation ROTATION_YAW_270" in said  # and the fit says what it kept
+
+
+def _export(cal: Path, out: Path) -> Path:
+    r = run_trimag("export", cal, "--to", "ardupilot", "-o", out)
+    assert r.returncode == 0, r.stderr
+    return out
