@@ -187,3 +187,15 @@ def test_a_quoted_cell_longer_than_the_csv_module_s_limit_is_input_not_a_bug(
     gz.write_bytes(gzip.compress(b'RDX3\n"' + bytes(range(32, 127)) * 3000))
     assert main(["fit", str(gz), "-q", "-o", str(tmp_path / "cal2.json")]) == 2
     assert "internal error" not in _one_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("flag, value", [("--max-fields", "99999999999999999999"),
+                                         ("--max-decompressed-mb", "1e308")])
+def test_a_limit_too_large_to_size_anything_is_refused(tmp_path: Path, capsys, flag: str, value: str):
+    """Issue 41 item 4: `--max-fields 99999999999999999999` ended in `OverflowError` (exit 1)."""
+    data = tmp_path / "log.csv"
+    data.write_text("x,y,z\n" + "".join(f"{i},{-i},{i % 7}\n" for i in range(50)))
+    code = main(["fit", str(data), flag, value])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert ("at most" in err or "to 1e+08" in err) and "internal error" not in err, err

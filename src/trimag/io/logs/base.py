@@ -15,7 +15,8 @@ from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
 
-__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "compass_labels", "mavlink_messages", "require"]
+__all__ = ["Channel", "MagnetometerStream", "VehicleLog", "compass_labels", "forward_in_time", "mavlink_messages",
+           "require"]
 
 
 def require(module: str) -> Any:
@@ -54,6 +55,23 @@ def mavlink_messages(path: Path, types: list[str]) -> Any:
             close = getattr(conn, "close", None)
             if callable(close):
                 close()
+
+
+def forward_in_time(time_s: NDArray[np.float64], *, strictly: bool = False) -> NDArray[np.bool_]:
+    """The rows whose time stamp is finite and does not go back: not earlier than any row before it (``strictly``:
+    later), shape (N,). Of the two readings of a stamp that jumps, the one keeping more rows wins: rows stamped too
+    early are dropped, or a row stamped too late (then the rows after it are kept and it is dropped)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    finite = np.isfinite(t)
+    if len(t) == 0:
+        return finite
+    before = np.maximum.accumulate(np.concatenate([[-np.inf], np.where(finite, t, -np.inf)[:-1]]))
+    after = np.minimum.accumulate(np.concatenate([np.where(finite, t, np.inf)[1:], [np.inf]])[::-1])[::-1]
+    if strictly:
+        forward, backward = finite & (t > before), finite & (t < after)
+    else:
+        forward, backward = finite & (t >= before), finite & (t <= after)
+    return forward if forward.sum() >= backward.sum() else backward
 
 
 @dataclass
@@ -185,13 +203,20 @@ class VehicleLog:
         from scipy.spatial.transform import Rotation, Slerp
 
         mag = self.choose(sensor)
+        messages: list[str] = []
+        ahead = forward_in_time(mag.time_s)
+        if not ahead.all():  # a clock that jumped back, a damaged stamp: the sample's attitude would be another's
+            messages.append(f"warning: dropped {int((~ahead).sum())} of {len(ahead)} {mag.name} samples whose time "
+                            "stamp is missing or goes back (earlier than a sample before it: a damaged log or a "
+                            "clock reset)")
+            mag = dataclasses.replace(mag, time_s=mag.time_s[ahead], field=mag.field[ahead],
+                                      logged=mag.logged[ahead])
         t = mag.time_s
         cols: dict[str, NDArray[np.float64]] = {"time_s": t}
         for k, a in enumerate("xyz"):
             cols[f"mag_{a}"] = mag.field[:, k]
         for k, a in enumerate("xyz"):
             cols[f"mag_logged_{a}"] = mag.logged[:, k]
-        messages: list[str] = []
         outside: dict[str, int] = {}
         at = self.attitude
         ta = np.zeros(0)
