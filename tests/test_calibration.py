@@ -158,3 +158,19 @@ def test_plausible_calibrations_still_load() -> None:
                                   (np.diag([2.0, 1.0, 0.1]), [1200.0, -800.0, 300.0], "nT")]:
         cal = Calibration.from_matrix_offset(matrix, offset, units=units)
         assert Calibration.from_json(cal.to_json()).approx_equal(cal)
+
+
+def test_a_number_of_5000_digits_in_a_calibration_file_is_refused_in_the_users_words(tmp_path):
+    """Issue 41 item 4: Python refuses integers of more than 4300 digits with a ValueError that was not JSON's
+    (exit 1, "use sys.set_int_max_str_digits()")."""
+    from trimag.cli import main
+
+    cal = Calibration.from_matrix_offset(np.eye(3), np.zeros(3), units="uT")
+    text = cal.to_json().replace('"offset": [', '"offset": [' + "1" * 5000 + ", ", 1)
+    assert text != cal.to_json()
+    path = tmp_path / "cal.json"
+    path.write_text(text)
+    with pytest.raises(CalibrationFormatError, match="a number with more than 4300 digits"):
+        Calibration.from_file(path)
+    assert main(["export", str(path), "--to", "ardupilot", "-o", str(tmp_path / "x.param")]) == 2
+    assert not (tmp_path / "x.param").exists()

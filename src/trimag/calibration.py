@@ -731,10 +731,12 @@ class Calibration:
         from .validation import check_nesting
 
         check_nesting(text, "calibration file", CalibrationFormatError)
+        from .validation import json_error
+
         try:
             data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise CalibrationFormatError(f"calibration file is not valid JSON: {exc}") from None
+        except ValueError as exc:  # JSONDecodeError, or an integer of more than 4300 digits
+            raise CalibrationFormatError(f"calibration file is not valid JSON: {json_error(exc)}") from None
         return cls.from_dict(data)
 
     @classmethod

@@ -577,12 +577,14 @@ def _split_list(text: str | None) -> list[str] | None:
 def _cmd_fit_tolles_lawson(args: argparse.Namespace) -> int:
     from .app import parse_options
     from .app.tolles_lawson import TollesLawsonFitRequest, fit_compensation_file, parse_segments
+    from .io.atomic import check_distinct_outputs
 
     if not args.columns or not args.scalar_column:
         raise TrimagInputError("model tolles-lawson needs --columns FX,FY,FZ (vector magnetometer) and "
                                "--scalar-column S (scalar magnetometer)")
     if args.out is not None:
         _check_writable(args.out)
+        check_distinct_outputs({"the input": args.data}, {"out": args.out})
     request = TollesLawsonFitRequest(
         data=Path(args.data), vector_columns=_split_list(args.columns) or [], scalar_column=args.scalar_column,
         time_column=args.time_column, rate_hz=args.rate, segments=parse_segments(args.segments), fmt=args.fmt,

@@ -199,8 +199,18 @@ def load_json(text: str, what: str, error: type[TrimagInputError] = TrimagInputE
     check_nesting(text, what, error)
     try:
         return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise error(f"{what}: not valid JSON ({exc})") from None
+    except ValueError as exc:  # JSONDecodeError, or an integer of more than 4300 digits
+        raise error(f"{what}: not valid JSON ({json_error(exc)})") from None
+
+
+def json_error(exc: ValueError) -> str:
+    """What is wrong with a JSON text ``json.loads`` refused, in the user's words (Python refuses to read an integer
+    of more than ``sys.get_int_max_str_digits()`` digits, and says so in its own terms)."""
+    import sys
+
+    if "integer string conversion" in str(exc):
+        return f"a number with more than {sys.get_int_max_str_digits()} digits"
+    return str(exc)
 
 
 def load_toml(text: str, what: str) -> dict[str, Any]:

@@ -51,7 +51,7 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 
 
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
-               second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = ()) -> Path:
+               second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -61,6 +61,8 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
     t_us = 10_000_000 + np.arange(n) * 100_000  # 10 Hz
     mag = np.trunc(ONBOARD.correct(raw))  # the firmware logs its corrected field as int16
     rows = [(int(t), 0, *map(int, m), 10, 5, -3, 0, 0, 0, 1, int(t)) for t, m in zip(t_us, mag, strict=True)]
+    for k in range(n // 2, n // 2 + early_mag):  # MAG rows stamped 50 s early (a clock that jumped back)
+        rows[k] = (rows[k][0] - 50_000_000, *rows[k][1:])
     if second:  # compass 2 sees the same flight through its own errors; the log holds no calibration for it
         raw2 = SECOND.uncorrect(body_field(true, NED_mG), amps) + np.random.default_rng(seed + 7).normal(0, 2.0, (n, 3))
         rows += [(int(t) + 500, 1, *map(int, m), 0, 0, 0, 0, 0, 0, 1, int(t)) for t, m in
@@ -326,3 +328,64 @@ def test_a_gps_fix_off_the_earth_is_named_as_the_log_s(tmp_path: Path, monkeypat
     line = r.stderr.strip()
     assert len(line.splitlines()) == 1 and "GPS" in line and "2e+07 m" in line and "--igrf" in line, line
     assert not (tmp_path / "cal.json").exists()
+
+
+def test_a_quick_recalibration_of_a_firmware_fit_keeps_its_orientation_level_and_motor_term(tmp_path: Path):
+    """Issue 41 item 2: ``fit --prior`` of a ``--target ardupilot`` fit dropped the firmware record: ``export`` then
+    wrote no COMPASS_ORIENT (the 270 deg yaw lost with a "note": 90 deg of heading error through ArduPilot's
+    formula), offsets in the rotated frame and SCALE 1. The prior's orientation, level and motor term are kept and
+    its offsets recomputed: the exported parameters correct a new flight at the noise floor."""
+    fw, quick, param = tmp_path / "fw.json", tmp_path / "quick.json", tmp_path / "quick.param"
+    assert run_trimag("fit", _write_log(tmp_path / "first.bin"), "--target", "ardupilot", "-o", fw).returncode == 0
+    r = run_trimag("fit", _write_log(tmp_path / "second.bin", seed=9), "--prior", fw, "-o", quick)
+    assert r.returncode == 0, r.stderr
+    said = r.stdout
+    r = run_trimag("export", quick, "--to", "ardupilot", "-o", param)
+    assert r.returncode == 0, r.stderr
+    assert "does not determine" not in r.stderr
+    params = _param_file(param)
+    first = _param_file(_export(fw, tmp_path / "fw.param"))
+    assert params["COMPASS_ORIENT"] == 6 and params["COMPASS_MOTCT"] == 2
+    for name in ("COMPASS_SCALE", "COMPASS_DIA_X", "COMPASS_ODI_Z", "COMPASS_MOT_Y"):
+        assert params[name] == pytest.approx(first[name], rel=1e-6), name
+    exported = ArduPilotCompass.from_parameters({**params, "COMPASS_EXTERNAL": 1.0}, 0)
+    _, logged, amps, raw = _flight(2500, seed=30)
+    h = body_field(logged, NED_mG)
+    floor = np.sqrt(np.mean(np.sum((TRUTH.correct(raw, amps) - h) ** 2, axis=1)))
+    got = np.sqrt(np.mean(np.sum((exported.correct(raw, amps) - h) ** 2, axis=1)))
+    assert got <= 1.5 * floor, (got, floor)
+    assert "orientation ROTATION_YAW_270" in said  # and the fit says what it kept
+
+
+def _export(cal: Path, out: Path) -> Path:
+    r = run_trimag("export", cal, "--to", "ardupilot", "-o", out)
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_magnetometer_rows_stamped_early_are_dropped_and_counted(tmp_path: Path):
+    """Issue 41 item 6: 100 of 2500 MAG rows stamped 50 s early took the attitude of another moment, silently (the
+    heading error 1.48 -> 4.03 deg). They are dropped, counted and said; the fit is the undamaged log's."""
+    import json
+
+    fits = {}
+    for name, early in (("clean", 0), ("early", 100)):
+        cal = tmp_path / f"{name}.json"
+        r = run_trimag("fit", _write_log(tmp_path / f"{name}.bin", early_mag=early), "--target", "ardupilot", "-o",
+                       cal)
+        assert r.returncode == 0, r.stderr
+        fits[name] = (json.loads(cal.read_text()), r.stdout + r.stderr)
+    clean, early = (np.array(fits[k][0]["diagnostics"]["firmware"]["offsets"]) for k in ("clean", "early"))
+    assert np.abs(early - clean).max() < 1.0, (early, clean)  # mG
+    assert "dropped 100 of 2500 MAG[0] samples whose time stamp is missing or goes back" in fits["early"][1]
+    assert "goes back" not in fits["clean"][1]
+
+
+def test_a_fixed_heading_on_a_log_that_turned_is_refused(tmp_path: Path):
+    """Issue 41 item 5: `--heading DEG` on a flight that turned wrote offsets that made the heading worse (its own
+    deviation card 45.9 -> 67.5 deg, exit 0) although the samples missed the expected field by 70 %."""
+    out = tmp_path / "cal.json"
+    r = run_trimag("fit", _write_log(tmp_path / "flight.bin", n=1500), "--heading", "90", "-o", out)
+    assert r.returncode == 3, r.stderr
+    assert "contradict a fixed heading" in r.stderr and "--level-turn" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not out.exists()

@@ -202,3 +202,49 @@ def test_a_lag_between_columns_of_the_same_rows_is_fitted(tmp_path):
         assert g["lag_estimated"] and abs(abs(g["lag_s"]) - shift * dt) < 4 * sigma + 1e-3, (g["lag_s"], sigma)
         assert g["vector_rms"] < 0.9 * json.loads(held.stdout)["diagnostics"]["gyro"]["vector_rms"]  # 0.52 vs 0.63
         assert cal.stats["n_used"] < 6000 - shift - 2 * 0.2 / dt + 2
+
+
+def test_a_gyro_file_whose_stamps_go_back_is_said_and_its_rows_dropped(files, tmp_path):
+    """Issue 41 item 6: 100 gyroscope rows stamped 5 s early were sorted into another moment, silently (the fit
+    refused, or with a smaller jump gave a bias 5 sigma off). They are dropped and counted, the magnetometer samples
+    in the gap they leave too, and the bias stays within 3 sigma of the truth."""
+    table = pd.read_csv(files["gyro"])
+    t = table["tg"].to_numpy().copy()
+    t[3000:3100] -= 5.0
+    table["tg"] = t
+    back = tmp_path / "gyro_back.csv"
+    table.to_csv(back, index=False)
+    out = tmp_path / "back.json"
+    proc = run_trimag("fit", files["mag"], "--columns", "mx,my,mz", "--units", "uT", "--gyro-file", back,
+                      "--gyro-columns", "gx_dps,gy_dps,gz_dps", "--gyro-time-column", "tg", "--time-column", "t",
+                      "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    cal = Calibration.from_file(out)
+    std = cal.uncertainty["param_std"]
+    for k, axis in enumerate("xyz"):
+        assert abs(cal.diagnostics["gyro"]["bias_rad_s"][k] - files["truth_two"].gyro_bias[k]) < 3 * std[
+            f"gyro_bias_{axis}"]
+    assert "100 whose time stamp is missing, repeats or goes back" in proc.stderr
+    assert "magnetometer samples inside gaps of the gyroscope's stream" in proc.stdout
+
+
+@pytest.mark.parametrize("where", ["columns", "file"])
+def test_a_gyro_rate_of_1e300_is_dropped_and_counted(files, tmp_path, where):
+    """Issue 41 item 4: one gyroscope row of 1e300 ended in `LinAlgError: Eigenvalues did not converge` (exit 1)."""
+    if where == "columns":
+        table = pd.read_csv(files["cone"])
+        table.loc[100, "gx"] = 1e300
+        path = tmp_path / "cone.csv"
+        table.to_csv(path, index=False)
+        args = [path, "--gyro-columns", "gx,gy,gz", "--reference", "49.2"]
+    else:
+        table = pd.read_csv(files["gyro"])
+        table.loc[200, "gx_dps"] = 1e300
+        path = tmp_path / "gyro.csv"
+        table.to_csv(path, index=False)
+        args = [files["mag"], "--gyro-file", path, "--gyro-columns", "gx_dps,gy_dps,gz_dps", "--gyro-time-column",
+                "tg"]
+    proc = run_trimag("fit", *args, "--columns", "mx,my,mz", "--units", "uT", "--time-column", "t")
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "RuntimeWarning" not in proc.stderr
+    assert "beyond 10000 rad/s" in proc.stdout + proc.stderr or "within 10000 rad/s" in proc.stderr

@@ -83,6 +83,41 @@ def test_tlog_streams_share_one_clock():
     assert np.isfinite(df["current_A"]).mean() > 0.95 and np.isfinite(df["yaw_deg"]).mean() > 0.95
 
 
+@requires_flight_logs
+def test_a_two_byte_damage_of_a_tlog_is_read_in_one_pass(tmp_path: Path):
+    """Issue 41 item 1: bytes 65683 and 65795 set to 24 and 233 made pymavlink re-scan the rest of the log from
+    every later message (849 s instead of 0.9 s). Read once: the fit ends as on the undamaged log, and the damage
+    costs two messages, counted."""
+    data = bytearray((FLIGHT / "ardusub_small.tlog").read_bytes())
+    data[65683], data[65795] = 24, 233
+    bad = tmp_path / "damaged.tlog"
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "cal.json"
+    r = run_trimag("fit", bad, "-o", out, timeout=90)  # was 849 s
+    assert r.returncode == 3 and "barely turned" in r.stderr, r.stderr  # as the undamaged log (it is static)
+    assert len(r.stderr.strip().splitlines()) == 1 and not out.exists()
+    good, damaged = read_log(FLIGHT / "ardusub_small.tlog"), read_log(bad)
+    for a, b in zip(good.magnetometers, damaged.magnetometers, strict=True):
+        assert len(a.time_s) - 2 <= len(b.time_s) <= len(a.time_s)
+    assert any("damaged byte" in m for m in damaged.messages) and not good.messages
+
+
+def test_the_tlog_reader_gives_pymavlinks_messages(tmp_path: Path):
+    """The linear telemetry reader (io/logs/tlog.py) gives the messages, fields and receipt times pymavlink gives."""
+    from trimag.io.logs.ardupilot import _TLOG_TYPES
+    from trimag.io.logs.base import mavlink_messages
+    from trimag.io.logs.tlog import read_tlog_messages
+
+    path = tmp_path / "sim.tlog"
+    rng = np.random.default_rng(3)
+    _write_tlog(path, rng.normal(scale=300.0, size=(200, 3)), {"COMPASS_OFS_X": 5.0}, 1.7e9, 52.5, 13.4)
+    ours = read_tlog_messages(path, _TLOG_TYPES)
+    theirs = list(mavlink_messages(path, _TLOG_TYPES))
+    assert len(ours.messages) == len(theirs) == 221 and ours.skipped_bytes == ours.bad_time == 0
+    for a, b in zip(ours.messages, theirs, strict=True):
+        assert a.to_dict() == b.to_dict() and a._timestamp == b._timestamp
+
+
 @pytest.mark.parametrize("name", ["ardusub_small.BIN", "pyulog_sample_log_small.ulg", "px4tools_01_07_59.px4log"])
 def test_fit_on_real_logs_refuses_with_what_to_record(name: str, tmp_path: Path):
     out = tmp_path / "cal.json"

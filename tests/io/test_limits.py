@@ -207,3 +207,15 @@ def test_fit_memory_is_bounded_by_the_file_s_bytes(tmp_path: Path, baseline_rss_
     assert r["rc"] in (0, 3), r["err"]  # all-equal rows: read, then refused as a stuck sensor (exit 3)
     per_byte = (r["maxrss_kb"] - baseline_rss_kb) * 1024 / path.stat().st_size
     assert per_byte < MAX_BYTES_PER_INPUT_BYTE[kind], (per_byte, r["maxrss_kb"], baseline_rss_kb)
+
+
+@pytest.mark.parametrize("flag, value", [("--max-fields", "99999999999999999999"),
+                                         ("--max-decompressed-mb", "1e308")])
+def test_a_limit_too_large_to_size_anything_is_refused(tmp_path: Path, capsys, flag: str, value: str):
+    """Issue 41 item 4: `--max-fields 99999999999999999999` ended in `OverflowError` (exit 1)."""
+    data = tmp_path / "log.csv"
+    data.write_text("x,y,z\n" + "".join(f"{i},{-i},{i % 7}\n" for i in range(50)))
+    code = main(["fit", str(data), flag, value])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert ("at most" in err or "to 1e+08" in err) and "internal error" not in err, err

@@ -173,3 +173,18 @@ def test_a_prior_with_regressor_terms_is_refused(tmp_path) -> None:
     pd.DataFrame(boat["raw"], columns=list("xyz")).to_csv(tmp_path / "still.csv", index=False)
     with pytest.raises(TrimagInputError, match="regressor terms"):
         fit_file(tmp_path / "still.csv", units="mG", igrf_spec=BOAT_SITE, heading=137.0, prior=tmp_path / "prior.json")
+
+
+def test_samples_that_contradict_a_fixed_heading_are_refused() -> None:
+    """Issue 41 item 5: a boat that turned two circles, fitted as if it had held one heading, gave offsets that made
+    its heading worse (exit 0). The data contradict the heading: refused (IdentifiabilityError, exit 3), while a
+    still boat with a few percent of soft iron is still fitted."""
+    from trimag.errors import IdentifiabilityError
+
+    boat = simulate_boat(seed=3, n=400, matrix=HARD_ONLY)
+    with pytest.raises(IdentifiabilityError, match="contradict a fixed heading"):
+        fit_fixed_heading(boat["raw"], (F, INCLINATION, DECLINATION), 90.0, units="mG")
+    still = _still(seed=4, matrix=np.diag([1.05, 0.96, 1.02]))
+    cal = fit_fixed_heading(still["raw"], (F, INCLINATION, DECLINATION), 137.0, pitch_deg=still["ypr"][:, 1],
+                            roll_deg=still["ypr"][:, 2], units="mG")
+    assert np.isfinite(cal.offset).all()

@@ -15,11 +15,15 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..fields.gyro import AngularRate, rate_in_rad_s
 from ..io import Samples
+from ..io.logs.base import forward_in_time
 from .requests import FitRequest
 
 #: RMS rate (rad/s) above which rates said to be in rad/s are flagged as probably deg/s (a hand turns a phone at
 #: 1-5 rad/s; 20 rad/s is over 3 turns a second, sustained).
 IMPLAUSIBLE_RAD_S = 20.0
+#: A rate beyond this (rad/s, on any axis) is no gyroscope's reading in either unit (MEMS gyroscopes saturate at
+#: 35-70 rad/s; deg/s read as rad/s stays below 4 000): the row is dropped and counted.
+MAX_RATE_RAD_S = 1e4
 
 
 def gyro_requested(req: FitRequest) -> bool:
@@ -137,6 +141,7 @@ def angular_rate(
         tg, rate, source = _own_stream(req, samples, messages)
         margin = max_lag if estimate_lag is not False else 0.0
         ok = np.isfinite(t) & (t >= tg[0] + margin) & (t <= tg[-1] - margin)
+        bridged = _in_gyro_gaps(t, tg) & ok
         if not ok.any():
             raise TrimagInputError(f"none of the magnetometer's samples ({np.nanmin(t):.6g}..{np.nanmax(t):.6g} s) "
                                    f"lies inside the gyroscope's span ({tg[0]:.6g}..{tg[-1]:.6g} s): check the time "
@@ -144,6 +149,10 @@ def angular_rate(
         if (~ok).sum():
             messages.append(f"dropped {int((~ok).sum())} of {len(t)} magnetometer samples outside the gyroscope's "
                             f"span ({tg[0]:.6g}..{tg[-1]:.6g} s, less the lag search's {margin:g} s)")
+        if bridged.any():  # (the integration would bridge the gap: the fit's segments end at a gap in t instead)
+            messages.append(f"dropped {int(bridged.sum())} magnetometer samples inside gaps of the gyroscope's "
+                            "stream (its rows dropped or missing there)")
+            ok &= ~bridged
         samples = _keep(samples, ok)
         gyro = AngularRate(t[ok], tg, rate, 0.0, True, source)
     else:
@@ -152,12 +161,13 @@ def angular_rate(
         names = [req.gyro_columns.strip()] if stored is not None else _names(req.gyro_columns, "gyro_columns")
         unit = _unit(req, names, messages)
         values = stored if stored is not None else _values(samples.table, names, req.input.path, "gyro_columns")
-        ok = np.isfinite(values).all(axis=1) & np.isfinite(t)
+        ok = _rate_ok(rate_in_rad_s(values, unit)) & np.isfinite(t)
         if (~ok).sum():
             if req.input.strict:
-                raise TrimagInputError(f"{int((~ok).sum())} rows have a missing gyroscope value or time; drop "
-                                       "`strict` to skip and count them")
-            messages.append(f"dropped {int((~ok).sum())} rows whose gyroscope value or time is missing")
+                raise TrimagInputError(f"{int((~ok).sum())} rows have a missing gyroscope value or time, or a rate "
+                                       f"beyond {MAX_RATE_RAD_S:g} rad/s; drop `strict` to skip and count them")
+            messages.append(f"dropped {int((~ok).sum())} rows whose gyroscope value or time is missing, or whose "
+                            f"rate is beyond {MAX_RATE_RAD_S:g} rad/s")
         samples = _keep(samples, ok)
         source = (f"variable {names[0]} ({unit})" if stored is not None else f"columns {', '.join(names)} ({unit})")
         messages.append(f"gyroscope: {source}, in the magnetometer's rows")
@@ -204,16 +214,41 @@ def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple
         tg = time_values(table, column, f"{req.gyro_file} (`gyro_file`)")
         rate = rate_in_rad_s(_values(table, names, req.gyro_file, "gyro_columns"), unit)
         source = f"{req.gyro_file}: {', '.join(names)} ({unit}), time {column}"
-    ok = np.isfinite(tg) & np.isfinite(rate).all(axis=1)
-    order = np.argsort(tg[ok], kind="stable")
-    tg, rate = tg[ok][order], rate[ok][order]
-    keep = np.concatenate([[True], np.diff(tg) > 0])
+    ok = _rate_ok(rate)
+    tg, rate = tg[ok], rate[ok]
+    keep = forward_in_time(tg, strictly=True)  # not sorted: a row stamped out of order is another moment's rate
     if keep.sum() < 3:
         raise TrimagInputError("the gyroscope has fewer than 3 samples with a finite time and rate")
-    n_bad = int((~ok).sum() + (~keep).sum())
-    messages.append(f"gyroscope: {source}, {int(keep.sum())} samples over {tg[0]:.6g}..{tg[-1]:.6g} s"
-                    + (f" ({n_bad} rows without a finite value or repeating a time stamp dropped)" if n_bad else ""))
-    return tg[keep], rate[keep], source
+    dropped = [f"{n} {what}" for n, what in ((int((~ok).sum()), "without a finite rate within "
+                                              f"{MAX_RATE_RAD_S:g} rad/s"),
+                                             (int((~keep).sum()), "whose time stamp is missing, repeats or goes back "
+                                              "(earlier than a row before it)")) if n]
+    tg, rate = tg[keep], rate[keep]
+    messages.append(f"gyroscope: {source}, {len(tg)} samples over {tg[0]:.6g}..{tg[-1]:.6g} s")
+    if dropped:
+        messages.append(f"warning: gyroscope rows dropped: {'; '.join(dropped)}")
+    return tg, rate, source
+
+
+def _in_gyro_gaps(t: np.ndarray, tg: np.ndarray) -> np.ndarray:
+    """The magnetometer samples (time stamps ``t``) that fall inside a gap of the gyroscope's stamps ``tg`` longer
+    than the gyro fit's gap rule (:data:`trimag.estimators.gyro.GAP_INTERVALS` median intervals)."""
+    from ..estimators.gyro import GAP_INTERVALS
+
+    dt = np.diff(tg)
+    gaps = np.flatnonzero(dt > GAP_INTERVALS * float(np.median(dt))) if len(dt) else np.zeros(0, dtype=int)
+    inside = np.zeros(len(t), dtype=bool)
+    if len(gaps):
+        k = np.searchsorted(tg, t, side="right") - 1  # the gyroscope row before each sample
+        with np.errstate(invalid="ignore"):
+            inside = np.isin(k, gaps) & (t > tg[np.clip(k, 0, len(tg) - 1)])
+    return inside
+
+
+def _rate_ok(rate: np.ndarray) -> np.ndarray:
+    """The rows (N,) of a rate (N, 3) that are finite and within :data:`MAX_RATE_RAD_S` on every axis."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(rate).all(axis=1) & (np.abs(rate) <= MAX_RATE_RAD_S).all(axis=1)
 
 
 def _plausible(gyro: AngularRate, messages: list[str]) -> None:

@@ -12,6 +12,7 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
+from ..io.export import keep_firmware_record
 from ..units import normalise_unit
 from ._inputs import (
     attitudes_of,
@@ -105,6 +106,13 @@ def refit_prior(
     )
     cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
                                               "prior", "unit": unit})
+    cal = keep_firmware_record(prior, cal)  # the orientation, firmware level and motor term of a firmware fit
+    fw = cal.diagnostics.get("firmware")
+    if isinstance(fw, dict) and fw.get("target"):
+        messages.append(f"kept from {req.prior}: the {fw['target']} fit's {fw.get('level')} level, orientation "
+                        f"{fw.get('orientation_name') or fw.get('orientation')}"
+                        + (f" and {fw['motor_type']} motor term" if fw.get("motor_type") else "")
+                        + "; its offsets recomputed for the firmware's formula")
     d = cal.diagnostics["prior"]
     by_reference = []
     for name, c in d["components"].items():

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..io import apply_file
+from ..io.atomic import check_distinct_outputs
 from ._sensor import input_for, sensor_line
 from .requests import ApplyRequest, as_request
 
@@ -31,6 +32,7 @@ def apply_to_file(
     """
     req = as_request(ApplyRequest, request, paths, arguments)
     src = req.input
+    check_distinct_outputs({"the calibration": req.calibration, "the input": src.path}, {"out": req.out})
     cal = Calibration.from_file(req.calibration)
     if src.units is not None:
         cal.check_units(src.units)

@@ -34,7 +34,7 @@ from typing import Any
 import pandas as pd
 
 from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, out_of_memory_message
-from ..io.atomic import atomic_path, atomic_write_text
+from ..io.atomic import atomic_path, atomic_write_text, check_distinct_outputs
 from ..io.limits import InputLimits, current_limits, input_limits
 from .requests import FitRequest
 
@@ -339,8 +339,11 @@ def fit_batch(
         read_policy(request.policy)
     files = expand_inputs(patterns)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     jobs = [(str(f), str(out / f"{name}.json")) for f, name in zip(files, calibration_names(files), strict=True)]
+    check_distinct_outputs({f"the input file {k + 1}": f for k, f in enumerate(files)},
+                           {**{f"calibration of {f}": o for f, o in jobs}, "summary.csv": out / "summary.csv",
+                            "summary.parquet": out / "summary.parquet"})
+    out.mkdir(parents=True, exist_ok=True)
     scratch = tempfile.mkdtemp(prefix="trimag-batch-")  # this process's: removed even when a worker is killed
     task = partial(fit_one, request=request, limits=current_limits(), scratch=scratch)
     t0 = time.perf_counter()

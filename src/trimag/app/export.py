@@ -23,6 +23,7 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
         ``target``, ``out`` (the path written), ``parameters``, ``notes`` (what the conversion did),
         ``violations`` (values outside the firmware's limits) and ``warnings`` (what ``force`` let through).
     """
+    from ..io.atomic import check_distinct_outputs
     from ..io.export import export_calibration, write_export
 
     req = request if request is not None else ExportRequest(**arguments)
@@ -31,9 +32,7 @@ def export_to_file(request: ExportRequest | None = None, **arguments: Any) -> di
     if req.instance is not None and not 1 <= req.instance <= 8:  # counted from 1, as the firmware's names do
         raise TrimagInputError(f"`instance` must be 1..8 (COMPASS_OFS, COMPASS_OFS2 ...; CAL_MAG0 is 1); got "
                                f"{req.instance}")
-    if str(req.out) != "-" and Path(req.out).exists() and Path(req.out).resolve() == Path(req.calibration).resolve():
-        raise TrimagInputError(f"-o {req.out} is the calibration being exported: writing it would destroy it; give "
-                               "another output file")
+    check_distinct_outputs({"the calibration": req.calibration}, {"out": req.out})
     cal = _read_calibration(req.calibration, req.target)
     forced = refuse_rejected(cal, str(req.calibration), req.force)
     instance, note = _instance(cal, req.instance)

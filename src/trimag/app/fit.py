@@ -17,6 +17,7 @@ from ..errors import IdentifiabilityError, TrimagInputError, TrimagWarning
 from ..estimators import make_estimator
 from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
+from ..io.atomic import check_distinct_outputs
 from ..units import normalise_unit
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
@@ -62,6 +63,13 @@ class FitResult:
     summary: dict[str, Any]
     messages: list[str] = field(default_factory=list)
     written: dict[str, str] = field(default_factory=dict)
+
+
+def fit_inputs(req: FitRequest) -> dict[str, str | Path | None]:
+    """The files a fit reads, by their option's name (what its outputs must not replace)."""
+    return {"the input": req.input.path, "the `prior`": req.prior, "the `attitude_file`": req.attitude.attitude_file,
+            "the `gyro_file`": req.gyro_file, "the `background_run`": req.reference.background_run,
+            "the `policy`": None if req.policy == "default" else req.policy}
 
 
 def fit_summary(cal: Calibration, samples: Samples | None = None) -> dict[str, Any]:
@@ -116,6 +124,8 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
     if req.export_to is not None or req.export_out is not None:
         raise TrimagInputError("`export_to` and `export_out` write every compass of a log to one file: give "
                                "`sensor=all` (for one calibration, use trimag export)")
+    check_distinct_outputs(fit_inputs(req), {"out": req.out, "report": req.report,
+                                             "deviation_card": req.deviation_card})
     from ..vehicle.policy import read_policy
 
     if req.report is not None and Path(req.report).suffix.lower() in (".html", ".htm"):

@@ -76,7 +76,8 @@ def _compasses(req: FitRequest) -> list[tuple[int, str]]:
 def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
     """Fit every compass of the log ``req.input.path`` (module docstring); ``req.export_to`` / ``export_out``
     write one parameter file with every compass fitted."""
-    from .fit import fit_file
+    from ..io.atomic import check_distinct_outputs
+    from .fit import fit_file, fit_inputs
 
     if (req.export_to is None) != (req.export_out is None):
         raise TrimagInputError("give both `export_to=ardupilot|px4` and `export_out=FILE` (the parameter file)")
@@ -85,6 +86,11 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
                                "give a file name (or write one compass to standard output with trimag export CAL.json "
                                "-o -)")
     compasses = _compasses(req)
+    outputs: dict[str, str | Path | None] = {"export_out": req.export_out}
+    for number, _ in compasses:  # every file this run can write, before it writes one
+        outputs.update({f"{what} of compass {number}": numbered(getattr(req, what), number)
+                        for what in ("out", "report", "deviation_card")})
+    check_distinct_outputs(fit_inputs(req), outputs)
     fits, refused, errors = _fit_each(req, compasses, fit_file)
     messages: list[str] = []
     channel = _one_motor_channel(req, compasses, fits, fit_file)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import TrimagInputError
-from ..io.atomic import atomic_write_text
+from ..io.atomic import atomic_write_text, check_distinct_outputs
 from ..units import normalise_unit
 from ..validation import load_json
 from .requests import SimulateRequest
@@ -33,6 +33,7 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
     from ..simulate import simulate
 
     p = Path(req.params_path)
+    check_distinct_outputs({"the parameter file": p}, {"out": req.out, "truth": req.truth})
     if not p.is_file():
         raise TrimagInputError(f"{p}: no such parameter file (JSON object of model parameters)")
     params = load_json(p.read_text(encoding="utf-8"), str(p))

@@ -271,6 +271,9 @@ def apply_compensation_file(
     columns: Sequence[str] | None = None, scalar_column: str | None = None, units: str | None = None,
 ) -> dict[str, Any]:
     """Write every input column unchanged plus ``<scalar>_compensated`` (nT) to ``out`` (CSV, Parquet or NPZ)."""
+    from ..io.atomic import check_distinct_outputs
+
+    check_distinct_outputs({"the compensation": comp_path, "the input": data}, {"out": out})
     comp = ScalarCompensation.from_file(comp_path)
     data_p, out_p = Path(data), Path(out)
     out_kind = guess_format(out_p) if out_p.suffix else "csv"

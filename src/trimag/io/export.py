@@ -57,7 +57,7 @@ from ..models.firmware import (
 from ..units import convert
 
 __all__ = ["EXPORT_TARGETS", "Export", "export_calibration", "export_calibrations", "firmware_compass",
-           "symmetric_polar", "write_export"]
+           "keep_firmware_record", "symmetric_polar", "write_export"]
 
 EXPORT_TARGETS = ("ardupilot", "px4", "qgc", "c-header", "json", "ros-yaml", "matlab")
 
@@ -201,8 +201,10 @@ def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, li
     if isinstance(fw, dict) and fw.get("target") == target:
         compass = FirmwareCompass.from_dict(fw)
         _check_formula(cal, compass, _input_orientation(cal, target), factor)
-        return compass, [f"the {fw.get('level')} level of the {target} fit (fit --target), written as fitted"], True, \
-            fw.get("offsets_max")
+        note = f"the {fw.get('level')} level of the {target} fit (fit --target), written as fitted"
+        if fw.get("offsets_refitted"):
+            note += f", its offsets refitted by a {fw['offsets_refitted']}"
+        return compass, [note], True, fw.get("offsets_max")
     b, motor = _motor_term(cal, target, factor)
     applied = _input_orientation(cal, target)
     # the rotation is determined by a fit with attitudes: a vector model, or the other firmware's fit whose
@@ -224,6 +226,51 @@ def firmware_compass(cal: Calibration, target: str) -> tuple[FirmwareCompass, li
             "yourself for an external compass"
         )
     return compass, notes, False, None
+
+
+#: What a calibration records of the firmware and frame it was fitted in, kept by a quick recalibration (``--prior``).
+FRAME_RECORDS = ("firmware", "input_orientation", "readings_rotated", "alignment")
+
+
+def keep_firmware_record(prior: Calibration, cal: Calibration) -> Calibration:
+    """``cal``, a quick recalibration of ``prior`` (its matrix and regressor terms kept, its offset refitted), with
+    what ``prior`` records of its firmware and frame (:data:`FRAME_RECORDS`): the orientation, the firmware fit's
+    level and motor term, with the firmware's offsets recomputed so that its formula gives ``cal.apply``; the
+    parameters named in ``cal.params`` follow. Refused (:class:`TrimagInputError`) when the firmware's parameters
+    cannot hold the new calibration."""
+    import dataclasses
+
+    kept = {k: prior.diagnostics[k] for k in FRAME_RECORDS if k in prior.diagnostics and k not in cal.diagnostics}
+    fw = kept.get("firmware")
+    params = dict(cal.params)
+    if isinstance(fw, dict) and fw.get("target") in ("ardupilot", "px4"):
+        target = str(fw["target"])
+        compass = FirmwareCompass.from_dict(fw)
+        factor = _unit_factor(cal, compass.unit)
+        applied = _input_orientation(prior, target)
+        R0 = np.eye(3) if applied is None else rotation_matrix(target, applied)
+        v = np.zeros((1, 3))
+        x = np.zeros(1)
+        terms = {cal.regressors["names"][0]: x} if cal.regressors is not None else None
+        wanted = cal.apply(v, regressors=terms)[0] * factor
+
+        def corrected(offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+            moved = dataclasses.replace(compass, offsets=offsets)
+            return moved.correct((v * factor) @ R0, x if compass.motor_type else None)[0]
+
+        c0 = corrected(np.zeros(3))  # the formula is affine in the offsets
+        J = np.column_stack([corrected(e) - c0 for e in np.eye(3)])
+        compass = dataclasses.replace(compass, offsets=np.linalg.solve(J, wanted - c0))
+        shown = dataclasses.replace(cal, diagnostics={**cal.diagnostics, **kept})
+        try:
+            _check_formula(shown, compass, applied, factor)
+        except RuntimeError:
+            raise TrimagInputError(
+                f"the prior calibration's {target} parameters cannot hold the refitted offset (its matrix or motor "
+                "term is not the one kept): refit the full calibration instead of `prior`") from None
+        kept["firmware"] = {**fw, **compass.as_dict(), "offsets_refitted": "quick recalibration (prior)"}
+        params.update({k: v for k, v in compass.parameters(0).items() if k in params})
+    return dataclasses.replace(cal, diagnostics={**cal.diagnostics, **kept}, params=params)
 
 
 def _check_formula(cal: Calibration, compass: FirmwareCompass, applied: int | None, factor: float) -> None:

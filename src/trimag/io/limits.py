@@ -29,6 +29,12 @@ from ..errors import TrimagInputError
 __all__ = ["InputLimits", "current_limits", "input_limits", "read_head_lines"]
 
 
+#: The largest limits that can be set: 10^8 fields per line (a 10 GB line) and 10^9 MB (a petabyte) decompressed;
+#: beyond them a limit only overflows the integers it sizes.
+MAX_FIELDS_LIMIT = 10**8
+MAX_DECOMPRESSED_MB_LIMIT = 1e9
+
+
 @dataclass(frozen=True)
 class InputLimits:
     """What one input file may make trimag hold.
@@ -45,11 +51,15 @@ class InputLimits:
     max_decompressed_mb: float = 1024.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_fields, bool) or not isinstance(self.max_fields, int) or self.max_fields < 3:
-            raise TrimagInputError(f"`max_fields` must be an integer >= 3 (x, y, z); got {self.max_fields!r}")
+        if isinstance(self.max_fields, bool) or not isinstance(self.max_fields, int) or \
+                not 3 <= self.max_fields <= MAX_FIELDS_LIMIT:
+            raise TrimagInputError(f"`max_fields` must be an integer from 3 (x, y, z) to {MAX_FIELDS_LIMIT:.0e}; got "
+                                   f"{self.max_fields!r}")
         mb = self.max_decompressed_mb
-        if isinstance(mb, bool) or not isinstance(mb, int | float) or not (math.isfinite(mb) and mb > 0):
-            raise TrimagInputError(f"`max_decompressed_mb` must be a positive number of megabytes; got {mb!r}")
+        if isinstance(mb, bool) or not isinstance(mb, int | float) or not (math.isfinite(mb) and
+                                                                          0 < mb <= MAX_DECOMPRESSED_MB_LIMIT):
+            raise TrimagInputError(f"`max_decompressed_mb` must be a positive number of megabytes, at most "
+                                   f"{MAX_DECOMPRESSED_MB_LIMIT:.0e}; got {mb!r}")
 
     @property
     def max_line_bytes(self) -> int:

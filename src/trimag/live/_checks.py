@@ -19,6 +19,7 @@ from ..app._checks import check_fitted_field, check_log_unit, check_unit
 from ..app.requests import LiveRequest
 from ..errors import TrimagInputError
 from ..io import Samples
+from ..io.atomic import same_file
 from ..units import normalise_unit
 from .server import check_port
 from .session import samples_path
@@ -36,10 +37,10 @@ def check_request(request: LiveRequest) -> None:
     normalise_unit(request.units)
     out = Path(request.out)
     samples = samples_path(request.out, request.samples_out)
-    if _same_file(out, samples):
+    if same_file(out, samples):
         raise TrimagInputError(f"`out` and `samples_out` are the same file ({out}); give two names")
     for what, path in (("out", out), ("samples_out", samples)):
-        if request.replay is not None and _same_file(path, Path(request.replay)):
+        if request.replay is not None and same_file(path, Path(request.replay)):
             named = f"`{what}`" if what == "out" or request.samples_out is not None else (
                 "the samples file (`samples_out`, by default beside `out`)")
             raise TrimagInputError(f"{named} would replace the replayed log {request.replay}; give another name")
@@ -75,16 +76,6 @@ def _check_numbers(request: LiveRequest) -> None:
     if request.serial is not None and request.baud <= 0:
         raise TrimagInputError(f"`baud` must be positive; got {request.baud}")
     check_port(request.port)
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name the same file (through links, ``.`` and ``..``)."""
-    try:
-        if a.exists() and b.exists():
-            return os.path.samefile(a, b)
-        return a.resolve() == b.resolve()
-    except OSError:
-        return False
 
 
 def _check_writable(path: Path, what: str) -> None:

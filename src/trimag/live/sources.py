@@ -215,11 +215,29 @@ def mavlink_source(url: str, *, message: str | None = None, timeout: float = 5.0
     ``message``), in its unit (``RAW_IMU`` in the sensor's own unit). The stream ends after ``timeout`` seconds
     without a reading."""
     mavutil = require("pymavlink.mavutil", "trimag live --mavlink")
+    if Path(url).is_file():  # a telemetry log: trimag's linear reader (pymavlink's can stall on damage)
+        return _mavlink_batches(_TlogFile(Path(url)), True, message, timeout)
     try:
         conn = mavutil.mavlink_connection(url)
     except Exception as exc:  # pymavlink raises anything from OSError to its own errors
         raise TrimagInputError(f"cannot open the MAVLink stream {url!r}: {exc}") from None
     return _mavlink_batches(conn, Path(url).is_file(), message, timeout)
+
+
+class _TlogFile:
+    """A ``.tlog`` file read by :func:`trimag.io.logs.tlog.read_tlog_messages`, with the one method of a pymavlink
+    connection that :func:`_mavlink_readings` calls."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._messages: Iterator[Any] | None = None
+
+    def recv_match(self, type: list[str], blocking: bool = False, timeout: float | None = None) -> Any:
+        if self._messages is None:
+            from ..io.logs.tlog import read_tlog_messages
+
+            self._messages = iter(read_tlog_messages(self.path, list(MAVLINK_MESSAGES)).messages)
+        return next((m for m in self._messages if m.get_type() in type), None)
 
 
 def _mavlink_batches(conn: Any, from_file: bool, message: str | None, timeout: float) -> Iterator[Batch]:

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration, make_uncertainty
-from ..errors import TrimagInputError
+from ..errors import IdentifiabilityError, TrimagInputError
 from ..quality.honesty import correlation_time
 
 __all__ = ["DEFAULTS", "field_ned", "fit_fixed_heading"]
@@ -48,6 +48,10 @@ DEFAULTS = {"scale_sigma": 0.005, "inclination_sigma_deg": 0.2, "declination_sig
             "heading_sigma_deg": 1.0, "attitude_sigma_deg": 0.5}
 #: Residuals above this fraction of the field (RMS) say that the held matrix does not fit the data.
 MISFIT_FRACTION = 0.02
+#: Residuals above this fraction of the field (RMS) contradict the headings given: the vehicle turned (or the
+#: heading or the field is wrong), and offsets taken from them would make the heading worse (issue 41, item 5: a log
+#: that turned, with `--heading`, missed the field by 70 % and its offsets raised the deviation 45.9 -> 67.5 deg).
+CONTRADICTION_FRACTION = 0.2
 
 
 def field_ned(magnitude: float, inclination_deg: float, declination_deg: float) -> NDArray[np.float64]:
@@ -126,6 +130,17 @@ def fit_fixed_heading(
     e = X - expected
     b = e.mean(axis=0)
     resid = e - b
+    rms_resid = float(np.sqrt(np.mean(np.sum(resid**2, axis=1))))
+    if rms_resid > CONTRADICTION_FRACTION * F:
+        one = bool(np.ptp(np.mod(ypr[:, 0] - ypr[0, 0] + 180.0, 360.0)) < 1.0)
+        raise IdentifiabilityError(
+            f"the {n} samples differ from the field expected at the {'heading' if one else 'headings'} given by "
+            f"{rms_resid:.4g} {units} RMS ({100 * rms_resid / F:.0f} % of the field; above "
+            f"{100 * CONTRADICTION_FRACTION:.0f} % the data contradict "
+            f"{'a fixed heading' if one else 'the headings given'}): the vehicle turned, or the heading or the "
+            "field is wrong, and offsets from them would make the heading worse. For a vehicle that turned, fit "
+            "with `level_turn` (or a full calibration); give each sample's heading with `heading_column`"
+        )
     tau = max(max(correlation_time(resid[:, k]) for k in range(3)), 1.0) if n >= 20 else 1.0
     cov_data = (np.cov(resid.T) if n > 1 else np.zeros((3, 3))) * tau / n
     theta0 = np.array([1.0, incl, decl, 0.0, 0.0, 0.0])

@@ -15,10 +15,13 @@ slerp) and counts what it dropped.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from pathlib import Path
 
-from ...errors import TrimagInputError
+import numpy as np
+
+from ...errors import TrimagError, TrimagInputError
 from .base import Channel, MagnetometerStream, VehicleLog
 
 __all__ = [
@@ -98,6 +101,12 @@ def _check_dataflash_head(path: Path) -> None:
         )
 
 
+#: What a reader raises on a damaged log whose structure it trusted (an FMT without a field the firmware always
+#: writes, a parameter's type name, a singular logged matrix, a number out of range): said as damage, exit 2.
+_DAMAGE = (KeyError, IndexError, ValueError, TypeError, AttributeError, ArithmeticError, EOFError, UnicodeError,
+           np.linalg.LinAlgError, struct.error)
+
+
 def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False,
              progress: Callable[[float, str], None] | None = None) -> VehicleLog:
     """Read an autopilot log (format from ``fmt`` or the extension). ``gyro``: also read a DataFlash log's ``IMU``
@@ -116,12 +125,28 @@ def read_log(path: str | Path, fmt: str | None = None, *, gyro: bool = False,
 
 def _read_log(path: str | Path, fmt: str | None, *, gyro: bool,
               progress: Callable[[float, str], None] | None) -> VehicleLog:
+    """:func:`read_log` without its progress ends. A log whose damage breaks what its reader expects of the format
+    (fuzzed copies, issue 41 item 4) raises :class:`TrimagInputError` naming what was wrong, never a reader's own
+    exception."""
     p = Path(path)
     kind = log_format(p, fmt)
     if not p.exists():
         raise TrimagInputError(f"{p}: no such file")
     if p.is_dir() and kind != "rosbag":
         raise TrimagInputError(f"{p}: is a folder; give a log file")
+    try:
+        return _read(p, kind, gyro, progress)
+    except TrimagError:
+        raise
+    except _DAMAGE as exc:
+        what = f"a message lacks its field {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else \
+            f"{type(exc).__name__}: {str(exc)[:120]}"
+        raise TrimagInputError(f"{p}: the log is damaged or not as its firmware writes it ({what}); read a copy "
+                               "taken straight from the vehicle, or another log") from None
+
+
+def _read(p: Path, kind: str | None, gyro: bool, progress: Callable[[float, str], None] | None) -> VehicleLog:
+    """The log ``p`` read by the reader of its format ``kind``."""
     if kind == "rosbag":
         from .ros import read_ros
 

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from ...errors import TrimagInputError
 from .base import Channel, MagnetometerStream, VehicleLog, mavlink_messages
+from .tlog import read_tlog_messages
 
 __all__ = ["onboard_matrix", "read_ardupilot", "undo_ardupilot"]
 
@@ -95,10 +96,10 @@ Columns = dict[str, dict[str, NDArray[Any]]]
 Meta = dict[str, dict[str, Any]]
 
 
-def _collect(path: Path, kind: str, gyro: bool = False,
-             progress: Callable[[float, str], None] | None = None) -> tuple[Columns, dict[str, float], Meta]:
-    """Every wanted message type as columns, the parameters (first value of each) and each type's field formats
-    and units; ``gyro``: also ``IMU``."""
+def _collect(path: Path, kind: str, gyro: bool = False, progress: Callable[[float, str], None] | None = None
+             ) -> tuple[Columns, dict[str, float], Meta, list[str]]:
+    """Every wanted message type as columns, the parameters (first value of each), each type's field formats
+    and units, and what was skipped as damage; ``gyro``: also ``IMU``."""
     types = _TLOG_TYPES if kind == "tlog" else _DF_TYPES + (["IMU"] if gyro else [])
     if kind == "dataflash":
         with path.open("rb") as fh:
@@ -116,11 +117,18 @@ def _collect(path: Path, kind: str, gyro: bool = False,
             units = field_units(cols, formats)
             found: Meta = {name: {"format": dict(zip(c, f, strict=False)), "units": units.get(name, {})}
                            for name, (_, f, c) in formats.items()}
-            return cols, params, found
+            return cols, params, found, []
     rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
     params = {}
     meta: Meta = {}
-    for msg in mavlink_messages(path, types, robust=kind == "tlog"):
+    notes: list[str] = []
+    if kind == "tlog":  # pymavlink's reader can take quadratic time on a damaged tlog (tlog.py)
+        read = read_tlog_messages(path, types)
+        messages: Any = read.messages
+        notes = read.notes()
+    else:
+        messages = mavlink_messages(path, types)
+    for msg in messages:
         name = msg.get_type()
         if name == "PARM":
             params.setdefault(str(msg.Name), float(msg.Value))
@@ -133,7 +141,7 @@ def _collect(path: Path, kind: str, gyro: bool = False,
             fmt = getattr(msg, "fmt", None)  # a text DataFlash message's FMT (a telemetry message has none)
             if name not in meta and fmt is not None and hasattr(fmt, "format"):
                 meta[name] = {"format": dict(zip(fmt.columns, fmt.format, strict=False)), "units": {}}
-    return {name: _columns(rs) for name, rs in rows.items()}, params, meta
+    return {name: _columns(rs) for name, rs in rows.items()}, params, meta, notes
 
 
 def _physical(meta: Meta, name: str, field: str, values: NDArray[Any]) -> tuple[NDArray[np.float64], str]:
@@ -390,8 +398,9 @@ def read_ardupilot(path: Path, kind: str = "dataflash", *, gyro: bool = False,
     """Read an ArduPilot DataFlash (``kind="dataflash"``) or telemetry (``"tlog"``) log; ``gyro``: also the first
     IMU's gyroscope (``IMU.GyrX..Z``, rad/s; DataFlash only: the messages are many, so read only when asked);
     ``progress``: :func:`trimag.io.logs.read_log`'s."""
-    rows, params, meta = _collect(path, kind, gyro, progress)
+    rows, params, meta, notes = _collect(path, kind, gyro, progress)
     log = _dataflash(path, rows, params, meta) if kind == "dataflash" else _tlog(path, rows, params)
+    log.messages += notes
     imu = rows.get("IMU")
     if gyro and _n(imu) and imu is not None and "GyrX" in imu:
         if "I" in imu:

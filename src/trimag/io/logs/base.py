@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 from ...calibration import SensorRecord
 from ...errors import TrimagInputError
 
-__all__ = ["Channel", "MagnetometerStream", "SensorChoice", "VehicleLog", "compass_labels", "mavlink_messages",
-           "require"]
+__all__ = ["Channel", "MagnetometerStream", "SensorChoice", "VehicleLog", "compass_labels", "forward_in_time",
+           "mavlink_messages", "require"]
 
 #: How a caller names the magnetometer of a log: its compass number, name or device id (text or a number), a
 #: calibration's :class:`~trimag.calibration.SensorRecord` (the same physical compass: :meth:`VehicleLog.choose`),
@@ -61,7 +61,7 @@ def native_output_discarded() -> Any:
         os.close(null)
 
 
-def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> Any:
+def mavlink_messages(path: Path, types: list[str]) -> Any:
     """The messages of ``types`` in a pymavlink-readable log, in order; damage gives one clear error.
 
     pymavlink prints a line for each damaged byte it skips ("bad header ..."): its output goes to a buffer while
@@ -72,8 +72,7 @@ def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> A
     with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
         try:
             with native_output_discarded():  # the compiled indexer's line per damaged byte
-                conn = mavutil.mavlink_connection(str(path), robust_parsing=True) if robust else \
-                    mavutil.mavlink_connection(str(path))
+                conn = mavutil.mavlink_connection(str(path))
         except Exception as exc:  # pymavlink raises many kinds on a damaged file
             raise TrimagInputError(f"{path}: not a readable log ({type(exc).__name__}: {exc})") from None
         try:
@@ -92,6 +91,23 @@ def mavlink_messages(path: Path, types: list[str], *, robust: bool = False) -> A
             close = getattr(conn, "close", None)
             if callable(close):
                 close()
+
+
+def forward_in_time(time_s: NDArray[np.float64], *, strictly: bool = False) -> NDArray[np.bool_]:
+    """The rows whose time stamp is finite and does not go back: not earlier than any row before it (``strictly``:
+    later), shape (N,). Of the two readings of a stamp that jumps, the one keeping more rows wins: rows stamped too
+    early are dropped, or a row stamped too late (then the rows after it are kept and it is dropped)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    finite = np.isfinite(t)
+    if len(t) == 0:
+        return finite
+    before = np.maximum.accumulate(np.concatenate([[-np.inf], np.where(finite, t, -np.inf)[:-1]]))
+    after = np.minimum.accumulate(np.concatenate([np.where(finite, t, np.inf)[1:], [np.inf]])[::-1])[::-1]
+    if strictly:
+        forward, backward = finite & (t > before), finite & (t < after)
+    else:
+        forward, backward = finite & (t >= before), finite & (t <= after)
+    return forward if forward.sum() >= backward.sum() else backward
 
 
 @dataclass
@@ -249,13 +265,20 @@ class VehicleLog:
         from scipy.spatial.transform import Rotation, Slerp
 
         mag = self.choose(sensor)
+        messages: list[str] = []
+        ahead = forward_in_time(mag.time_s)
+        if not ahead.all():  # a clock that jumped back, a damaged stamp: the sample's attitude would be another's
+            messages.append(f"warning: dropped {int((~ahead).sum())} of {len(ahead)} {mag.name} samples whose time "
+                            "stamp is missing or goes back (earlier than a sample before it: a damaged log or a "
+                            "clock reset)")
+            mag = dataclasses.replace(mag, time_s=mag.time_s[ahead], field=mag.field[ahead],
+                                      logged=mag.logged[ahead])
         t = mag.time_s
         cols: dict[str, NDArray[np.float64]] = {"time_s": t}
         for k, a in enumerate("xyz"):
             cols[f"mag_{a}"] = mag.field[:, k]
         for k, a in enumerate("xyz"):
             cols[f"mag_logged_{a}"] = mag.logged[:, k]
-        messages: list[str] = []
         outside: dict[str, int] = {}
         at = self.attitude
         ta = np.zeros(0)
