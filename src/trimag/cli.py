@@ -383,8 +383,8 @@ def _add_export(sub: Any) -> None:
 
 
 #: the extension of ``trimag export``'s default output, per target (issue 42)
-_EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "c-header": ".h", "json": "-export.json",
-                   "ros-yaml": ".yaml", "matlab": ".m"}
+_EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "qgc": "-qgc.params", "c-header": ".h",
+                    "json": "-export.json", "ros-yaml": ".yaml", "matlab": ".m"}
 
 
 def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:

@@ -124,8 +124,10 @@ def _write(path, boat, attitude: bool = False) -> None:
 def test_cli_a_boat_was_refused_and_fits_with_level_turn(tmp_path) -> None:
     boat = simulate_boat(seed=6)
     _write(tmp_path / "boat.csv", boat)
-    r = run_trimag("fit", tmp_path / "boat.csv", "--units", "mG", "--igrf", BOAT_SITE)
-    assert r.returncode == 3  # a level turn cannot identify a 3-D calibration (before: the end of the road)
+    r = run_trimag("fit", tmp_path / "boat.csv", "--units", "mG", "--igrf", BOAT_SITE, "--json")
+    # a level turn cannot identify a 3-D calibration: with the site, the default fit is the level turn (issue 38
+    # item 7; before: exit 3, the end of the road)
+    assert r.returncode == 0 and json.loads(r.stdout)["method"] == "level-turn", r.stderr
     out = tmp_path / "cal.json"
     r = run_trimag("fit", tmp_path / "boat.csv", "--units", "mG", "--igrf", BOAT_SITE, "--level-turn", "-o", out,
                    "--json")

@@ -191,6 +191,9 @@ def test_cli_level_log_without_prior_is_refused(files) -> None:
     proc = run_trimag("fit", files["level"], "--units", "nT", "--reference", str(F))
     assert proc.returncode == 3, proc.stderr
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    # a magnitude alone cannot decide the level turn's vertical offset sign: refused naming the level turn and what
+    # it needs (issue 38 item 7), not fitted on a guess
+    assert "--level-turn" in proc.stderr and "--igrf" in proc.stderr, proc.stderr
 
 
 def test_cli_quick_recalibration(files) -> None:

@@ -12,7 +12,6 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..io.export import keep_firmware_record
 from ..units import normalise_unit
 from ._inputs import (
     attitudes_of,
@@ -106,6 +105,8 @@ def refit_prior(
     )
     cal = dataclasses.replace(cal, reference={"value": float(np.mean(F)), "source": ref.source if ref.known else
                                               "prior", "unit": unit})
+    from ..io.export import keep_firmware_record  # the firmware models: only a --prior fit imports them
+
     cal = keep_firmware_record(prior, cal)  # the orientation, firmware level and motor term of a firmware fit
     fw = cal.diagnostics.get("firmware")
     if isinstance(fw, dict) and fw.get("target"):

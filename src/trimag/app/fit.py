@@ -186,9 +186,12 @@ def _level_only(req: FitRequest, samples: Samples, exc: IdentifiabilityError) ->
     given = req.reference
     reference = given.igrf_spec is not None or given.reference_column is not None or (
         given.reference is not None and str(given.reference).strip().lower() != "mean")
+    # the level turn's vertical offset needs the field's inclination (IGRF's, or given): from a magnitude alone its
+    # sign is a guess, so such a log is refused naming the level turn rather than fitted on a guess
+    inclination = given.igrf_spec is not None or "inclination_deg" in (req.options or {})
     default = (req.model == "ellipsoid" and req.method is None and req.target is None and not req.regressors
                and req.accel_columns is None and req.attitude.attitude_file is None and not gyro_requested(req))
-    if reference and default:
+    if reference and default and inclination:
         try:
             result = fit_file(dataclasses.replace(req, level_turn=True))
         except (IdentifiabilityError, TrimagInputError) as level_exc:
@@ -199,6 +202,11 @@ def _level_only(req: FitRequest, samples: Samples, exc: IdentifiabilityError) ->
                                   "asks (the horizontal offsets and scales from the turn, the vertical offset from "
                                   "the field's magnitude and inclination)")
         return result
+    if reference and default:
+        raise IdentifiabilityError(f"the samples turned about one axis only (a vehicle that turns level): fit it "
+                                   f"with `level_turn` and the site (`igrf_spec=LAT,LON,ALT_M,DATE`) or the field's "
+                                   f"inclination (`option inclination_deg=DEG`), which decide the vertical offset's "
+                                   f"sign; {exc}") from None
     if reference:
         asked = f"model {req.model}" + (f" with method {req.method}" if req.method else "")
         raise IdentifiabilityError(f"the samples turned about one axis only (a vehicle that turns level): fit it "

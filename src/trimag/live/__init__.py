@@ -151,8 +151,6 @@ def _run_locked(request: LiveRequest, say: Callable[[str], None],
                 ready: Callable[[LiveServer], None] | None) -> LiveResult:
     """:func:`run_live` once the request is checked and its outputs locked."""
     batches, description, units, messages, record = _open(request)
-    for message in messages:
-        say(message)
     session = LiveSession(model=request.model, method=request.method, units=units, reference=request.reference,
                           options=request.options, interval=request.interval, source=description, sensor=record)
 
@@ -167,6 +165,8 @@ def _run_locked(request: LiveRequest, say: Callable[[str], None],
         try:
             session.start(batches)
             say(f"trimag live: {description}; the page is at {server.url} (Ctrl-C saves and stops)")
+            for message in messages:  # after the address, which a caller reads on the first line
+                say(message)
             if request.open_browser:
                 webbrowser.open(server.url)
             if ready is not None:
