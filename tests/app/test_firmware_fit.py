@@ -51,7 +51,8 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 
 
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
-               second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0) -> Path:
+               second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0,
+               parameters: dict[str, float] | None = None) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -72,6 +73,7 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
     params = {**ONBOARD.parameters(0), "COMPASS_EXTERNAL": 1.0, "COMPASS_DIA_X": 1.0, "COMPASS_DIA_Y": 1.0,
               "COMPASS_DIA_Z": 1.0, "COMPASS_MOTCT": 0.0, "COMPASS_USE": 1.0}
     params = {k: v for k, v in params.items() if not k.startswith(drop)}  # an older firmware's parameter list
+    params.update(parameters or {})  # more of the vehicle's parameters (device ids, compass 2's neutral ones)
     extra = {}
     if gsf:  # EKF3's GSF yaw: the true yaw with 2 deg of noise, sigma 1 deg (logged at 10 Hz here)
         yaw = (true.as_euler("ZYX", degrees=True)[:, 0] + np.random.default_rng(seed + 5).normal(0, 2.0, n)) % 360

@@ -22,7 +22,7 @@ from trimag import Calibration
 from trimag.calibration import SensorRecord
 from trimag.cli import main
 
-from _helpers import TESTS_DIR, run_trimag, simulate_ellipsoid
+from _helpers import run_trimag, simulate_ellipsoid
 
 
 @dataclass
@@ -63,8 +63,12 @@ def _log_raw(path: Path, record: SensorRecord) -> np.ndarray:
     return read_log(path).choose(record).field
 
 
-def _bundled_bin(folder: Path) -> Path:
-    return TESTS_DIR / "data" / "logs" / "ardusub_small.BIN"
+def _two_compass_flight(folder: Path) -> Path:
+    """A simulated two-compass DataFlash flight that turns and tilts (the bundled ``ardusub_small.BIN`` sat still:
+    ``fit --target`` refuses it, issue 38 item 1)."""
+    from _two_compass_flight import write_two_compass_flight
+
+    return write_two_compass_flight(folder / "two.BIN")
 
 
 def _duplicate_slot_ulog(folder: Path) -> Path:
@@ -74,18 +78,20 @@ def _duplicate_slot_ulog(folder: Path) -> Path:
 
 
 def cases() -> list[Case]:
-    site = "48.386140,-124.630574,0.1,2023-05-04"
+    from _two_compass_flight import DEVICE_ID_2, SITE
+
     return [
         Case("lab table, second magnetometer", _lab_table, ["--columns", "b_x,b_y,b_z", "--units", "nT",
                                                             "--reference", "48000"],
              ["--columns", "b_x,b_y,b_z", "--units", "nT"], "nT",
              "sensor: columns b_x, b_y, b_z of lab.csv: the calibration's", _table_raw,
              ("json", [], []), {"kind": "table", "columns": ("b_x", "b_y", "b_z")}),
-        Case("DataFlash, compass 2", _bundled_bin, ["--sensor", "2", "--target", "ardupilot", "--igrf", site],
+        Case("DataFlash, compass 2", _two_compass_flight, ["--sensor", "2", "--target", "ardupilot", "--igrf", SITE,
+                                                                 "--motor", "none"],
              ["--sensor", "2"], "mG",
-             "sensor: compass 2 of ardusub_small.BIN (MAG[1], device id 1245450), mG: the calibration's", _log_raw,
+             f"sensor: compass 2 of two.BIN (MAG[1], device id {DEVICE_ID_2}), mG: the calibration's", _log_raw,
              ("ardupilot", ["COMPASS_OFS2_X"], ["COMPASS_OFS_X"]),
-             {"kind": "log", "compass": 2, "slot": 1, "device_id": 1245450}),
+             {"kind": "log", "compass": 2, "slot": 1, "device_id": DEVICE_ID_2}),
         Case("PX4 ULog, a device id in two slots", _duplicate_slot_ulog, ["--sensor", "2", "--reference", "0.5"],
              ["--sensor", "2"], "G",
              "sensor: compass 2 of dup.ulg (sensor_mag[1], device id 592905), G: the calibration's", _log_raw,

@@ -203,12 +203,11 @@ def test_the_html_report_opens_offline_and_holds_every_figure(tmp_path: Path) ->
         driver.quit()
 
 
-def test_a_real_log_shows_its_compasses_the_refusal_of_one_and_the_parameters_of_the_other(tmp_path: Path) -> None:
-    """ardusub_small.BIN (MIT, a copy of ../shared/data/flight-logs/ardusub_small.BIN): 24 s, static, no GPS fix;
-    compass 1's heading-free fit would turn the heading 35 deg with nothing to support it (refused), compass 2's
-    offsets fit."""
-    downloads = tmp_path / "downloads"
-    downloads.mkdir()
+def test_a_real_static_log_shows_both_compasses_refused_and_offers_no_parameters(tmp_path: Path) -> None:
+    """ardusub_small.BIN (MIT, a copy of ../shared/data/flight-logs/ardusub_small.BIN): 24 s, static, no GPS fix.
+    Neither compass turned: compass 1's heading-free fit would turn the heading with nothing to support it, and
+    compass 2's offsets are not excited by the data (issue 38 item 1: two equations for three offsets). The page
+    shows both compasses, says why, and offers no parameter file (the server refuses one too)."""
     driver = chrome(tmp_path / "profile")
     try:
         proc, url = start_review(str(LOGS / "ardusub_small.BIN"), "--igrf", "47.6,-122.3,0,2021-06-01", cwd=tmp_path)
@@ -216,22 +215,16 @@ def test_a_real_log_shows_its_compasses_the_refusal_of_one_and_the_parameters_of
         driver.quit()
         raise
     try:
-        driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
         driver.get(url)
         _wait_fits(driver, 1)
         table = driver.find_element("id", "compasses").text
-        assert "MAG[0]" in table and "MAG[1]" in table and "keep the log's calibration" in table
-        assert driver.find_elements("id", "dl-ardupilot-1") == []  # nothing to download for the refused one
-        with pytest.raises(urllib.error.HTTPError) as refused:
-            urllib.request.urlopen(url + "download?what=ardupilot&compass=1", timeout=30)
-        assert refused.value.code == 400
-        cal_json = _download(driver, "dl-json-2", downloads, ".json")
-        param = _download(driver, "dl-ardupilot-2", downloads, ".param")
-        exported = tmp_path / "exported.param"
-        r = run_trimag("export", cal_json, "--to", "ardupilot", "-o", exported)
-        assert r.returncode == 0, r.stderr
-        assert exported.read_bytes() == param.read_bytes()
-        assert "COMPASS_OFS2_X" in param.read_text()
+        assert "MAG[0]" in table and "MAG[1]" in table, table
+        assert "--heading" in table or "keep the log's calibration" in table, table
+        for n in (1, 2):
+            assert driver.find_elements("id", f"dl-ardupilot-{n}") == []  # nothing to download for a refusal
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(url + f"download?what=ardupilot&compass={n}", timeout=30)
+            assert refused.value.code == 400
     finally:
         driver.quit()
         _stop(proc)

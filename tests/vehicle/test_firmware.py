@@ -232,3 +232,21 @@ def test_a_level_whose_added_parameters_are_none_identified_is_not_chosen():
     assert _choose("auto", [plain, unidentified_motor]) is plain
     identified_motor = cand("offsets", "throttle", 20.0, ["m_z"], 6)
     assert _choose("auto", [plain, identified_motor]) is identified_motor
+
+
+@pytest.mark.parametrize(("target", "unit", "first", "own"), [("ardupilot", 1.0, "COMPASS_OFS_", "COMPASS_OFS2_"),
+                                                              ("px4", 1e-3, "CAL_MAG0_", "CAL_MAG1_")])
+def test_a_refusal_names_the_compass_s_own_parameters(target: str, unit: float, first: str, own: str):
+    """Issue 39, item 2 (one naming everywhere): a vehicle that never turned is refused (NotExcited, exit 3)
+    naming the second compass's parameters, as its result would; the same type, so the exit code stays."""
+    from trimag.vehicle._firmware_trust import NotExcited
+
+    h = np.tile([200.0, 0.0, 400.0], (300, 1))  # mG: the field never moved in the compass
+    raw = h + np.array([50.0, -20.0, 10.0]) + np.random.default_rng(0).normal(0, 1.0, h.shape)
+    level = np.tile(np.eye(3), (300, 1, 1))
+    with pytest.raises(NotExcited) as second:
+        fit_firmware(target, raw * unit, field_body=h * unit, heading_free=level, instance=1)
+    assert own in str(second.value) and first not in str(second.value)
+    with pytest.raises(NotExcited) as one:
+        fit_firmware(target, raw * unit, field_body=h * unit, heading_free=level, instance=0)
+    assert first in str(one.value)

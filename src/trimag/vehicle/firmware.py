@@ -49,16 +49,17 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Collection, Mapping
+import functools
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ParamSpec
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._core.threads import one_blas_thread
 from ..calibration import Calibration, jsonable, make_uncertainty
-from ..errors import IdentifiabilityError, TrimagInputError
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError
 from ..models.firmware import (
     FEATURE_NAMES,
     FIRMWARE_FEATURES,
@@ -632,6 +633,34 @@ def _motor_choices(motor: str, motors: Mapping[str, NDArray[np.float64]]) -> lis
     return [motor]
 
 
+_P = ParamSpec("_P")
+
+
+def _instance_named_errors(fit: Callable[_P, FirmwareFit]) -> Callable[_P, FirmwareFit]:
+    """``fit`` whose refusals name the compass's own parameters, as its result does (:func:`_named`; issue 39,
+    item 2: one naming everywhere): a :class:`~trimag.errors.TrimagError` raised for compass ``instance`` is raised
+    again, the same type with the same attributes, its message in the names the firmware loads for that compass
+    (``COMPASS_OFS2_X``, not compass 1's ``COMPASS_OFS_X``)."""
+
+    @functools.wraps(fit)
+    def named(*args: _P.args, **kwargs: _P.kwargs) -> FirmwareFit:
+        try:
+            return fit(*args, **kwargs)
+        except TrimagError as exc:
+            target, instance = kwargs.get("target", args[0] if args else None), kwargs.get("instance", 0)
+            if not isinstance(target, str) or not isinstance(instance, int) or instance == 0:
+                raise
+            text = instance_names(target, str(exc), instance)
+            if text == str(exc):
+                raise
+            renamed = type(exc)(text)
+            renamed.__dict__.update(vars(exc))
+            raise renamed from None
+
+    return named
+
+
+@_instance_named_errors
 @one_blas_thread()  # small BLAS products only: a second thread would spin-wait (trimag._core.threads)
 def fit_firmware(
     target: str, raw: ArrayLike, *, field_body: ArrayLike | None = None, magnitude: ArrayLike | None = None,
@@ -689,6 +718,8 @@ def fit_firmware(
     IdentifiabilityError
         The data identify no level (or not the one asked for), a compass rotated beyond ``tolerance_deg`` from every
         standard orientation: exit 3, naming what is not identified or the angle.
+
+    Every refusal names compass ``instance``'s parameters, as the result does.
     """
     klass = firmware_class(target)
     if level not in ("auto", *LEVELS):
