@@ -161,7 +161,7 @@ def test_export_never_writes_over_the_calibration_it_exports(compass2: Path, tmp
     copy = tmp_path / "cal.json"
     copy.write_bytes(compass2.read_bytes())
     r = run_trimag("export", copy, "--to", "json", "-o", copy)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "destroy" in r.stderr
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "would replace" in r.stderr
     assert copy.read_bytes() == compass2.read_bytes()
 
 
