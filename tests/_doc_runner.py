@@ -22,7 +22,8 @@ The convention, for whoever writes a doc (stated for users at the top of docs/in
   TEXT, e.g. a number the prose quotes), ``<!-- doc-test: file=NAME -->`` (the block's text is written to NAME in the
   folder, for the commands after it), ``<!-- doc-test: synopsis -->`` (an unmarked block of ``trimag`` grammar, not
   a command: the runner refuses unmarked blocks of ``trimag`` lines without it).
-* A command that names ``../shared/`` is skipped, with that reason, when the shared data are absent.
+* A command that names ``../shared/`` is skipped, with that reason, when the shared data are absent; so is every
+  command of a block marked ``<!-- doc-test: shared -->`` (it reads what an earlier command made from them).
 
 ``python -m pytest -q tests/test_docs.py`` prints the counts of executed, skipped and failing doc commands (``-v``
 lists the skipped ones); a failure names the doc, the line, the command, and what differed.
@@ -71,6 +72,7 @@ class Step:
     timeout_s: float = DEFAULT_TIMEOUT_S
     expected: list[tuple[int, str]] = field(default_factory=list)  # (doc line, expected output line)
     filename: str | None = None
+    shared: bool = False  # reads what an earlier command made from ../shared/data: skipped when that is absent
 
 
 @dataclass
@@ -82,6 +84,7 @@ class Annotations:
     output: bool = False
     synopsis: bool = False
     filename: str | None = None
+    shared: bool = False
     expect: list[str] = field(default_factory=list)
 
 
@@ -120,6 +123,8 @@ def _parse_annotations(comments: list[tuple[int, str]], doc: str) -> Annotations
                     notes.output = True
                 elif key == "synopsis":
                     notes.synopsis = True
+                elif key == "shared":
+                    notes.shared = True
                 elif key == "file":
                     notes.filename = value
                 elif key == "expect":
@@ -129,7 +134,7 @@ def _parse_annotations(comments: list[tuple[int, str]], doc: str) -> Annotations
             except ValueError:
                 raise DocFormatError(f"{doc}:{line}: unknown or malformed doc-test annotation {part!r} (tests/"
                                      "_doc_runner.py lists them: skip REASON, exit=N, rtol=X, timeout=S, output, "
-                                     "expect TEXT, file=NAME, synopsis)") from None
+                                     "expect TEXT, file=NAME, synopsis, shared)") from None
     return notes
 
 
@@ -184,7 +189,8 @@ def parse_doc(path: Path, text: str | None = None) -> list[Step]:
 
 
 def _block_steps(doc: str, fence_line: int, info: str, body: list[tuple[int, str]], notes: Annotations) -> list[Step]:
-    common = dict(doc=doc, exit_code=notes.exit_code, skip=notes.skip, rtol=notes.rtol, timeout_s=notes.timeout_s)
+    common = dict(doc=doc, exit_code=notes.exit_code, skip=notes.skip, rtol=notes.rtol, timeout_s=notes.timeout_s,
+                  shared=notes.shared)
     if notes.filename:
         return [Step(line=fence_line, kind="file", text="\n".join(t for _, t in body) + "\n",
                      filename=notes.filename, **common)]  # type: ignore[arg-type]
@@ -402,7 +408,7 @@ def run_doc(steps: list[Step], root: Path, shared_data: Path) -> list[Outcome]:
             outcomes.append(Outcome(step, "skipped", step.skip))
             last = None
             continue
-        if "../shared/" in step.text and not shared_data.is_dir():
+        if ("../shared/" in step.text or step.shared) and not shared_data.is_dir():
             outcomes.append(Outcome(step, "skipped", "../shared/data absent (the larger real logs are not in the "
                                                      "repository)"))
             last = None

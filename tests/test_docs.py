@@ -136,6 +136,19 @@ def test_runner_reports_exit_codes_outputs_and_shared_skips(tmp_path: Path) -> N
     assert (tmp_path / "repo" / "made.txt").is_file() and not (REPO_DIR / "made.txt").exists()
 
 
+def test_a_block_marked_shared_is_skipped_without_the_shared_data(tmp_path: Path) -> None:
+    """A command that reads what an earlier command made from ../shared/data (README's `export broad.json`) failed
+    on a clone without ../shared ("broad.json does not exist"): a block marked `shared` is skipped there."""
+    steps = _steps(
+        "<!-- doc-test: shared -->\n"
+        "```bash\n"
+        "trimag export made-from-shared.json --to json -o out.json\n"
+        "```\n"
+    )
+    outcomes = run_doc(steps, tmp_path, tmp_path / "no-shared-data")
+    assert [o.status for o in outcomes] == ["skipped"] and "../shared/data absent" in outcomes[0].message
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # what the docs say (issue 42, item 2)
 
