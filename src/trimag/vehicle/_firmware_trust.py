@@ -183,6 +183,21 @@ def not_excited_message(exc: Excitation, offset_names: list[str], heading_free: 
             "level with `--level-turn`, or record a calibration turn through all headings, pitched and rolled")
 
 
+def parameter_gradient(values: Callable[[NDArray[np.float64]], Mapping[str, float]], theta: NDArray[np.float64],
+                       names: list[str]) -> NDArray[np.float64]:
+    """d(parameter)/d(theta), shape (len(names), len(theta)): forward differences of the firmware parameters
+    ``values(theta)`` (name -> value) named in ``names`` (a step of 1e-6 relative, at least 1e-6)."""
+    base = values(theta)
+    G = np.zeros((len(names), len(theta)))
+    for j in range(len(theta)):  # one step per fitted parameter (at most ~16), not per sample
+        step = 1e-6 * max(1.0, abs(theta[j]))
+        t = theta.copy()
+        t[j] += step
+        moved = values(t)
+        G[:, j] = [(moved[k] - base[k]) / step for k in names]
+    return G
+
+
 def parameter_status(values: Callable[[NDArray[np.float64]], Mapping[str, float]], theta: NDArray[np.float64],
                      jacobian: NDArray[np.float64], n_unidentified: int,
                      effect: NDArray[np.float64] | None = None) -> dict[str, str]:
@@ -195,15 +210,8 @@ def parameter_status(values: Callable[[NDArray[np.float64]], Mapping[str, float]
     whose gradient there has more than 10 % of its length along them moves with what the data do not see: *not
     identified*."""
     theta = np.asarray(theta, dtype=np.float64)
-    base = dict(values(theta))
-    names = list(base)
-    G = np.zeros((len(names), len(theta)))
-    for j in range(len(theta)):
-        step = 1e-6 * max(1.0, abs(theta[j]))
-        t = theta.copy()
-        t[j] += step
-        moved = values(t)
-        G[:, j] = [(moved[k] - base[k]) / step for k in names]
+    names = list(values(theta))
+    G = parameter_gradient(values, theta, names)
     es = np.ones(len(theta)) if effect is None else np.asarray(effect, dtype=np.float64)
     weak = np.zeros((0, len(theta)))
     if n_unidentified > 0:

@@ -84,6 +84,7 @@ from ._firmware_trust import (
     fold_rms,
     heading_free_excitation,
     not_excited_message,
+    parameter_gradient,
     parameter_status,
     restrict_basis,
     unfitted_verdict,
@@ -1156,13 +1157,7 @@ def _param_covariance(cand: _Candidate, klass: type[FirmwareCompass], orientatio
     base = values(theta)
     names = [k for k in base if not k.endswith("ORIENT") and not k.endswith("_ROT") and k not in
              ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP")]
-    G = np.zeros((len(names), len(theta)))
-    for j in range(len(theta)):
-        step = 1e-6 * max(1.0, abs(theta[j]))
-        t = theta.copy()
-        t[j] += step
-        moved = values(t)
-        G[:, j] = [(moved[k] - base[k]) / step for k in names]
+    G = parameter_gradient(values, theta, names)
     cov = G @ cand.covariance @ G.T
     fitted = [i for i, k in enumerate(names) if np.any(G[i] != 0)]
     return [names[i] for i in fitted], cov[np.ix_(fitted, fitted)]
