@@ -46,8 +46,11 @@ def _magfit_script() -> Path:
     return Path(pymavlink.__file__).parent / "tools" / "magfit_WMM.py"
 
 
-def _first_half_copy(log: Path, t_mid_us: float, out: Path) -> None:
-    """The log up to ``t_mid_us`` (MAG time), without the MAG messages of compasses other than instance 0."""
+def _first_half_copy(log: Path, t_mid_us: float, out: Path) -> bool:
+    """The log up to ``t_mid_us`` (MAG time), without the MAG messages of compasses other than instance 0.
+
+    Returns whether the log's MAG messages carry an instance field (ArduPilot 4.1+: one MAG for every compass),
+    which MAGFit reads as one compass (its ``--mag N`` reads the ``MAGN`` messages of older logs)."""
     from trimag.io.logs.dataflash import _decode, _scan
 
     data = np.memmap(log, dtype=np.uint8, mode="r")
@@ -68,6 +71,7 @@ def _first_half_copy(log: Path, t_mid_us: float, out: Path) -> None:
         start = p + lengths[mag_type]
     pieces.append(bytes(data[start:cut]))
     out.write_bytes(b"".join(pieces))
+    return "I" in fields
 
 
 def _params(path: Path) -> dict[str, float]:
@@ -79,16 +83,17 @@ def _params(path: Path) -> dict[str, float]:
     return out
 
 
-def _run_magfit(half: Path, params: dict[str, float], has_current: bool) -> dict[str, dict[str, float]]:
+def _run_magfit(half: Path, params: dict[str, float], has_current: bool,
+                mag: int = 1) -> dict[str, dict[str, float]]:
     variants = {"default": [], "elliptical": ["--elliptical"]}
     if has_current:
         variants["elliptical+cmot"] = ["--elliptical", "--cmot"]
-    base = ["--save-params", "--iter", "300"]
+    base = ["--save-params", "--iter", "300", "--mag", str(mag)]
     if "AHRS_EKF_TYPE" not in params:
         base += ["--att-source", "ATT"]
     out = {}
     for name, flags in variants.items():
-        target = half.with_name(half.stem + "-magfit-mag-1.param")
+        target = half.with_name(half.stem + f"-magfit-mag-{mag}.param")
         target.unlink(missing_ok=True)
         proc = subprocess.run([sys.executable, str(_magfit_script()), *base, *flags, str(half)],
                               capture_output=True, text=True, env={**os.environ, "MPLBACKEND": "Agg"}, timeout=1800)
@@ -122,7 +127,12 @@ def _errors(compass: Any, raw: np.ndarray, motor: np.ndarray | None, att_deg: np
     return float(err.mean()), float(np.sqrt(np.mean(np.sum((B - h) ** 2, axis=1))))
 
 
-def compare(log: Path, work: Path) -> dict[str, Any]:
+def compare(log: Path, work: Path, compass: int = 1) -> dict[str, Any]:
+    """Compass ``compass`` (1-based) of ``log``: fitted by MAGFit and trimag on its first half, judged on the second.
+
+    The row also has trimag's exit code (``trimag_exit``), its verdict against the log's calibration on the rows it
+    did not fit (``trimag_verdict``), the heading turned through on the fitted half (``yaw_span_deg``, unwrapped) and
+    the largest tilt (``tilt_max_deg``)."""
     from pymavlink import mavextra
 
     from trimag.fields.reference import igrf
@@ -130,18 +140,23 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
     from trimag.models.firmware import ArduPilotCompass, absent_features, without_features
 
     vlog = read_log(log)
-    mag = vlog.choose("1")
-    df, _ = vlog.table("1")
+    mag = vlog.choose(str(compass))
+    df, _ = vlog.table(str(compass))
     ok = np.isfinite(df[["yaw_deg", "pitch_deg", "roll_deg"]].to_numpy()).all(axis=1)
     n = len(df)
     half = n // 2
     params = vlog.parameters
     gps = vlog.gps
-    row: dict[str, Any] = {"log": log.name, "vehicle": vlog.vehicle, "n_fit": half, "n_heldout": n - half}
+    row: dict[str, Any] = {"log": log.name, "vehicle": vlog.vehicle, "compass": compass, "n_fit": half,
+                           "n_heldout": n - half}
+    yaw = df["yaw_deg"].to_numpy()[:half]
+    yaw = yaw[np.isfinite(yaw)]
+    row["yaw_span_deg"] = float(np.degrees(np.ptp(np.unwrap(np.radians(yaw))))) if len(yaw) else 0.0
+    row["tilt_max_deg"] = float(np.nanmax(np.abs(df[["pitch_deg", "roll_deg"]].to_numpy()))) if ok.any() else 0.0
     if gps is None or n < 60 or not ok.any():
         row["note"] = "no GPS fix, attitude or too few samples"
         return row
-    held = ArduPilotCompass.from_parameters(params, 0)
+    held = ArduPilotCompass.from_parameters(params, compass - 1)
     R0 = held.rotation
     for column in ("current_A", "throttle"):  # rows where a motor channel is missing cannot be corrected by it
         if column in df:
@@ -163,15 +178,20 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
 
     def judge(p: dict[str, float]) -> tuple[float, float]:
         p = without_features("ardupilot", p, absent)
-        compass = ArduPilotCompass.from_parameters({**params, **p}, 0)
-        return _errors(compass, raw_chip, channels.get(compass.motor_type or ""), att, ned, magfit_field,
+        loaded = ArduPilotCompass.from_parameters({**params, **p}, compass - 1)
+        return _errors(loaded, raw_chip, channels.get(loaded.motor_type or ""), att, ned, magfit_field,
                        declination)
 
     row["before"] = judge({})
     t_mid = float(mag.time_s[half]) * 1e6
     cut = work / f"{log.stem}-half.bin"
-    _first_half_copy(log, t_mid, cut)
-    results = _run_magfit(cut, params, "current_A" in df and np.ptp(df["current_A"].dropna()) > 0)
+    instanced = _first_half_copy(log, t_mid, cut)
+    if instanced and compass > 1:  # MAGFit reads MAGn messages: a 4.1+ log's other instances are not its to fit
+        results: dict[str, dict[str, float]] = {}
+        row["magfit_note"] = "MAGFit fits only instance 0 of a 4.1+ log (MAG with an instance field)"
+    else:
+        results = _run_magfit(cut, params, "current_A" in df and np.ptp(df["current_A"].dropna()) > 0,
+                              mag=1 if instanced else compass)
     best = None
     for name, p in results.items():
         if "_failed" in p:
@@ -183,12 +203,14 @@ def compare(log: Path, work: Path) -> dict[str, Any]:
             best = (name, e)
     row["magfit_best"] = best
     cal, param = work / f"{log.stem}-trimag.json", work / f"{log.stem}-trimag.param"
-    fit = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", "1", "--target", "ardupilot",
-                          "--rows", f"0:{half}", "--json", "-o", str(cal)], capture_output=True, text=True)
+    fit = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", str(compass), "--target",
+                          "ardupilot", "--rows", f"0:{half}", "--json", "-o", str(cal)], capture_output=True, text=True)
+    row["trimag_exit"] = fit.returncode
     if fit.returncode != 0:
         row["trimag"] = fit.stderr.strip().splitlines()[-1]
         return row
     summary = json.loads(fit.stdout)
+    row["trimag_verdict"] = summary.get("firmware", {}).get("verdict")
     exp = subprocess.run([sys.executable, "-m", "trimag", "export", str(cal), "--to", "ardupilot", "-o", str(param)],
                          capture_output=True, text=True)
     if exp.returncode != 0:
