@@ -90,6 +90,7 @@ def main() -> None:
     parser.add_argument("dir", type=Path, help="the directory holding the manifest's logs")
     parser.add_argument("--manifest", type=Path, default=HERE / "heldout_logs.toml")
     parser.add_argument("--only", nargs="*", help="only these files of the manifest")
+    parser.add_argument("--no-magfit", action="store_true", help="leave MAGFit out (an A/B of trimag alone)")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     entries = tomllib.loads(args.manifest.read_text())["log"]
@@ -103,7 +104,7 @@ def main() -> None:
                 print(f"skipped {entry['file']}: absent or not the manifest's sha256", file=sys.stderr)
                 continue
             for compass in _compasses(log):
-                row = compare(log, Path(tmp), compass)
+                row = compare(log, Path(tmp), compass, magfit=not args.no_magfit)
                 if "note" in row:  # nothing to judge against: trimag's own answer only
                     row = {**row, **_fit_only(log, compass)}
                 print(json.dumps(row, default=str), flush=True)

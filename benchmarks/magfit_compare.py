@@ -127,12 +127,12 @@ def _errors(compass: Any, raw: np.ndarray, motor: np.ndarray | None, att_deg: np
     return float(err.mean()), float(np.sqrt(np.mean(np.sum((B - h) ** 2, axis=1))))
 
 
-def compare(log: Path, work: Path, compass: int = 1) -> dict[str, Any]:
+def compare(log: Path, work: Path, compass: int = 1, magfit: bool = True) -> dict[str, Any]:
     """Compass ``compass`` (1-based) of ``log``: fitted by MAGFit and trimag on its first half, judged on the second.
 
     The row also has trimag's exit code (``trimag_exit``), its verdict against the log's calibration on the rows it
     did not fit (``trimag_verdict``), the heading turned through on the fitted half (``yaw_span_deg``, unwrapped) and
-    the largest tilt (``tilt_max_deg``)."""
+    the largest tilt (``tilt_max_deg``); ``magfit=False`` leaves MAGFit out (trimag's A/B runs)."""
     from pymavlink import mavextra
 
     from trimag.fields.reference import igrf
@@ -186,7 +186,10 @@ def compare(log: Path, work: Path, compass: int = 1) -> dict[str, Any]:
     t_mid = float(mag.time_s[half]) * 1e6
     cut = work / f"{log.stem}-half.bin"
     instanced = _first_half_copy(log, t_mid, cut)
-    if instanced and compass > 1:  # MAGFit reads MAGn messages: a 4.1+ log's other instances are not its to fit
+    if not magfit:
+        results = {}
+        row["magfit_note"] = "not run"
+    elif instanced and compass > 1:  # MAGFit reads MAGn messages: a 4.1+ log's other instances are not its to fit
         results: dict[str, dict[str, float]] = {}
         row["magfit_note"] = "MAGFit fits only instance 0 of a 4.1+ log (MAG with an instance field)"
     else:
