@@ -44,8 +44,10 @@ def _fit_only(log: Path, compass: int) -> dict[str, Any]:
     from trimag.io.logs import read_log
 
     n = len(read_log(log).table(str(compass))[0])
-    proc = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", str(compass), "--target",
-                           "ardupilot", "--rows", f"0:{n // 2}", "-o", "/dev/null"], capture_output=True, text=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", str(compass), "--target",
+                               "ardupilot", "--rows", f"0:{n // 2}", "-o", str(Path(tmp) / "cal.json")],
+                              capture_output=True, text=True)
     return {"log": log.name, "compass": compass, "n_fit": n // 2, "n_heldout": n - n // 2,
             "trimag_exit": proc.returncode, "trimag": (proc.stderr.strip().splitlines() or [""])[-1]}
 
