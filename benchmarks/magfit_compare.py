@@ -131,7 +131,8 @@ def compare(log: Path, work: Path, compass: int = 1, magfit: bool = True) -> dic
     """Compass ``compass`` (1-based) of ``log``: fitted by MAGFit and trimag on its first half, judged on the second.
 
     The row also has trimag's exit code (``trimag_exit``), its verdict against the log's calibration on the rows it
-    did not fit (``trimag_verdict``), the heading turned through on the fitted half (``yaw_span_deg``, unwrapped) and
+    did not fit (``trimag_verdict``), the heading turned through on the fitted half (``yaw_span_deg``: unwrapped, 5th
+    to 95th percentile) and
     the largest tilt (``tilt_max_deg``); ``magfit=False`` leaves MAGFit out (trimag's A/B runs)."""
     from pymavlink import mavextra
 
@@ -151,7 +152,8 @@ def compare(log: Path, work: Path, compass: int = 1, magfit: bool = True) -> dic
                            "n_heldout": n - half}
     yaw = df["yaw_deg"].to_numpy()[:half]
     yaw = yaw[np.isfinite(yaw)]
-    row["yaw_span_deg"] = float(np.degrees(np.ptp(np.unwrap(np.radians(yaw))))) if len(yaw) else 0.0
+    unwrapped = np.degrees(np.unwrap(np.radians(yaw))) if len(yaw) else np.zeros(1)
+    row["yaw_span_deg"] = float(np.ptp(np.percentile(unwrapped, [5, 95])))  # an EKF's yaw reset is not a turn
     row["tilt_max_deg"] = float(np.nanmax(np.abs(df[["pitch_deg", "roll_deg"]].to_numpy()))) if ok.any() else 0.0
     if gps is None or n < 60 or not ok.any():
         row["note"] = "no GPS fix, attitude or too few samples"
