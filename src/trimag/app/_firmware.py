@@ -159,12 +159,19 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
     source = info.get("attitude_source") or "the log's attitude"
     if target == "ardupilot":
         instance = int(info.get("instance") or 0)
-        use = params.get("COMPASS_USE" if instance == 0 else f"COMPASS_USE{instance + 1}", 1.0)
+        use_name = "COMPASS_USE" if instance == 0 else f"COMPASS_USE{instance + 1}"
+        use = params.get(use_name, 1.0)
         yaw_src = params.get("EK3_SRC1_YAW")
-        if not use or yaw_src in (2.0, 8.0):
-            return False, (f"attitude: {source} (the EKF's yaw did not use this compass: COMPASS_USE = {use:g}, "
-                           f"EK3_SRC1_YAW = {yaw_src if yaw_src is not None else 'n/a'})")
-        why = f"COMPASS_USE = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
+        src_text = f"EK3_SRC1_YAW = {yaw_src if yaw_src is not None else 'n/a'}"
+        if yaw_src in (2.0, 8.0):  # a GPS heading or the GSF yaw: no compass in it
+            return False, (f"attitude: {source} (the EKF's yaw did not use this compass: {use_name} = {use:g}, "
+                           f"{src_text})")
+        if not use:  # the EKF's yaw is the compass it did use (issue 38: held-out logs that never turned)
+            return False, (f"attitude: {source}: the EKF's yaw did not use this compass ({use_name} = {use:g}, "
+                           f"{src_text}) but is another compass's heading, taken here as the truth: this compass's "
+                           "offsets and orientation are only as good as that compass's calibration, and on a log that "
+                           "barely turned they rest on its heading alone")
+        why = f"{use_name} = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
     else:
         why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none"
     advice = ("Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly with a GPS heading to fit the full vector"
