@@ -81,7 +81,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         else:
             verdict = _short(str(r.get("trimag", r.get("note", ""))))
         span = (f"{r['yaw_span_deg']:.0f} deg, {r['tilt_max_deg']:.0f} deg" if "yaw_span_deg" in r else "-")
-        lines.append(f"| {r['log']} | {r.get('vehicle', '-')} | {r['compass']} | {r['n_fit']} / {r['n_heldout']} | "
+        lines.append(f"| {r['log']} | {r.get('vehicle') or '-'} | {r['compass']} | {r['n_fit']} / {r['n_heldout']} | "
                      f"{span} | {_cell(r.get('before', '-'))} | {mf} | {tr} | {verdict} | "
                      f"{r.get('trimag_exit', '-')} |")
     return "\n".join(lines)
