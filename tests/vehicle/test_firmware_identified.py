@@ -8,8 +8,9 @@ so a matrix or motor term is "identified" whatever its sigma.
 The two tests marked ``xfail(strict=True)`` reproduce that fault on the current code. The fix (the covariance of the
 effects, ``cov * outer(scales, scales)``, its identified directions mapped back to parameters over scales) was A/B'd
 on the held-out real logs (``benchmarks/heldout_logs.py``, docs/autopilot.md "Held-out real logs") and made two of
-the nine fitted compasses worse on their unfitted half, because the directions it newly holds are held at the log's
-own calibration: it is not landed; when it is, these tests pass and strict xfail fails, to be removed with the fix.
+the nine fitted compasses worse on their unfitted half (the directions it newly holds, held at the level below's
+solution, predicted worse than their noisy fit): it is not landed; when it is, these tests pass and strict xfail
+fails, to be removed with the fix.
 """
 
 from __future__ import annotations
