@@ -77,3 +77,43 @@ def test_a_flights_png_report_draws_the_field_against_time(tmp_path: Path) -> No
     assert fit_report(shifted, shown).axes[0].get_xlabel() == "sample"
     with pytest.raises(TrimagInputError, match="time stamp per sample"):
         fit_report(shifted, shown, time_s=t[:-1])
+
+
+def test_each_levels_candidate_is_drawn_beside_the_chosen_one(tmp_path: Path) -> None:
+    """Issue 40: expected against measured "for the log's calibration and each candidate calibration": every row of
+    the level table is drawn (the ones not chosen in the legend, a click away), the chosen one marked; the chosen
+    row's candidate is exactly the calibration's own field."""
+    import numpy as np
+
+    from trimag.app.review import report_html
+    from trimag.vehicle.firmware import candidate_field
+
+    log = _write_log(tmp_path / "flight.bin", n=900, seed=7)
+    review = FlightReview(log)
+    result = review.fit(compasses=[1])[1]
+    cal = result.calibration
+    assert cal is not None
+    rows = cal.diagnostics["firmware"]["levels"]
+    assert len(rows) >= 3 and sum(r["chosen"] for r in rows) == 1
+    judged = review.judged(1)
+    assert [lv["label"] for lv in judged["levels"]] == [r["level"] + (f" + {r['motor']}" if r["motor"] else "")
+                                                         for r in rows]
+    chosen = next(lv for lv in judged["levels"] if lv["chosen"])
+    assert np.allclose(chosen["field"], judged["candidate"], atol=1e-9 * np.abs(judged["candidate"]).max())
+    others = [lv for lv in judged["levels"] if not lv["chosen"]]
+    assert any(not np.allclose(lv["field"], judged["candidate"]) for lv in others)
+    out = review.compass_result(1)
+    for name in ("field", "magnitude", "heading"):
+        traces = out["figures"][name]["data"]
+        drawn = [t["name"] for t in traces if t.get("showlegend", True)]
+        assert sum("(chosen)" in n for n in drawn) <= 1
+        for lv in others:
+            assert any(lv["label"] in n and t.get("visible") == "legendonly" for t in traces
+                       for n in [t["name"]]), (name, lv["label"], drawn)
+    assert any("(chosen)" in t["name"] for t in out["figures"]["field"]["data"])
+    assert len(out["statistics"]["levels"]) == len(rows)
+    html = report_html(review, [1])
+    assert all(f"candidate: {lv['label']}" in html for lv in others)
+    with pytest.raises(TrimagInputError, match="motor channel"):
+        spec = next(r["compass"] for r in rows if r["compass"]["motor_type"])
+        candidate_field(spec, np.zeros((2, 3)), "mG")

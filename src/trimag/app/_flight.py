@@ -310,6 +310,7 @@ class FlightLog:
             out["candidate"] = cal.apply(samples.field, regressors=regressors)
             if regressors:
                 out["motor"] = (name, regressors[name])
+            out["levels"] = _level_candidates(cal, samples.field, table)
         for name in ("current_A", "throttle"):
             if "motor" not in out and name in table.columns:
                 out["motor"] = (name, table[name].to_numpy(dtype=float))
@@ -326,11 +327,16 @@ class FlightLog:
             down[finite] = body_field(rotation, np.array([0.0, 0.0, -1.0]))  # the specific force at rest
             decl = float(np.degrees(np.arctan2(ned[1], ned[0])))
             yaw = table["yaw_deg"].to_numpy(dtype=float)
+            def heading_of(field_body: NDArray[np.float64]) -> NDArray[np.float64]:
+                heading = np.full(len(t), np.nan)
+                heading[finite] = tilt_compensated_heading(field_body[finite], down[finite], declination_deg=decl)
+                return np.asarray(heading_difference(heading, yaw), dtype=np.float64)
+
             for key in ("logged", "candidate"):
                 if key in out:
-                    heading = np.full(len(t), np.nan)
-                    heading[finite] = tilt_compensated_heading(out[key][finite], down[finite], declination_deg=decl)
-                    out[f"heading_{key}"] = heading_difference(heading, yaw)
+                    out[f"heading_{key}"] = heading_of(out[key])
+            for level in out.get("levels", []):
+                level["heading"] = heading_of(level["field"])
             out["yaw_source"] = samples.log_info.get("attitude_source")
         if result is not None and result.rows:
             a, b = (int(x) for x in result.rows.split(":"))
@@ -354,6 +360,16 @@ class FlightLog:
                 e = err[mask & np.isfinite(err)]
                 stats[f"{key}_{part}_rms"] = float(np.sqrt(np.mean(e ** 2))) if len(e) else None
                 stats[f"{part}_rows"] = len(e)
+        levels = []
+        for level in judged.get("levels", []):
+            err = np.linalg.norm(level["field"] - judged["expected"], axis=1)
+            row = {"label": level["label"], "chosen": level["chosen"]}
+            for part, mask in (("fitted", fitted), ("held_out", ~fitted)):
+                e = err[mask & np.isfinite(err)]
+                row[f"{part}_rms"] = float(np.sqrt(np.mean(e ** 2))) if len(e) else None
+            levels.append(row)
+        if levels:
+            stats["levels"] = levels
         return stats
 
     def compass_figures(self, number: int) -> dict[str, dict[str, Any]]:
@@ -365,6 +381,11 @@ class FlightLog:
         colours = {"expected": "#444444", "logged": "#d62728", "candidate": "#1f77b4"}
         names = {"expected": "expected (IGRF rotated by the attitude)", "logged": "the log's calibration",
                  "candidate": "this fit"}
+        levels = j.get("levels", [])
+        chosen = next((lv["label"] for lv in levels if lv["chosen"]), None)
+        if chosen is not None:
+            names["candidate"] = f"this fit: {chosen} (chosen)"
+        others = [lv for lv in levels if not lv["chosen"]]  # each other candidate: in the legend, drawn on a click
         field_traces = []
         for axis, _letter in enumerate("XYZ"):
             for key in ("expected", "logged", "candidate"):
@@ -372,6 +393,11 @@ class FlightLog:
                     field_traces.append(_line(t[k], j[key][k, axis], f"{names[key]}", xaxis="x",
                                               yaxis=f"y{axis + 1 if axis else ''}", legendgroup=key,
                                               showlegend=axis == 0, line={"width": 1, "color": colours[key]}))
+            for i, lv in enumerate(others):
+                field_traces.append(_line(t[k], lv["field"][k, axis], f"candidate: {lv['label']}", xaxis="x",
+                                          yaxis=f"y{axis + 1 if axis else ''}", legendgroup=f"level{i}",
+                                          showlegend=axis == 0, visible="legendonly",
+                                          line={"width": 1, "color": _LEVEL_COLOURS[i % len(_LEVEL_COLOURS)]}))
         field_fig = _figure(field_traces, f"compass {number}: body field X / Y / Z ({unit})", height=520,
                             grid={"rows": 3, "columns": 1, "pattern": "coupled"},
                             yaxis={"title": {"text": f"X ({unit})"}}, yaxis2={"title": {"text": f"Y ({unit})"}},
@@ -381,6 +407,10 @@ class FlightLog:
             if key in j:
                 mag_traces.append(_line(t[k], np.linalg.norm(j[key][k], axis=1), f"|B| {names[key]}",
                                         line={"width": 1, "color": colours[key]}))
+        for i, lv in enumerate(others):
+            mag_traces.append(_line(t[k], np.linalg.norm(lv["field"][k], axis=1), f"|B| candidate: {lv['label']}",
+                                    visible="legendonly",
+                                    line={"width": 1, "color": _LEVEL_COLOURS[i % len(_LEVEL_COLOURS)]}))
         if "motor" in j:
             name, values = j["motor"]
             mag_traces.append(_line(t[k], values[k], name, yaxis="y2", line={"width": 1, "color": "#2ca02c"}))
@@ -401,6 +431,14 @@ class FlightLog:
             head_traces.append(_line(t[k], _unwrapped_breaks(change[k]),
                                      "heading change: this fit - the log's calibration",
                                      line={"width": 1, "color": "#9467bd", "dash": "dot"}))
+            for i, lv in enumerate(others):
+                if "heading" in lv:
+                    change = heading_difference(lv["heading"], j["heading_logged"])
+                    head_traces.append(_line(t[k], _unwrapped_breaks(change[k]),
+                                             f"heading change: candidate {lv['label']} - the log's calibration",
+                                             visible="legendonly", line={"width": 1, "dash": "dot",
+                                                                         "color": _LEVEL_COLOURS[i % len(
+                                                                             _LEVEL_COLOURS)]}))
         head_fig = _figure(head_traces, f"compass {number}: tilt-compensated heading against the attitude's yaw "
                            f"({j.get('yaw_source') or 'no attitude'})", xaxis={"title": {"text": "time (s)"}},
                            yaxis={"title": {"text": "deg"}})
@@ -459,6 +497,38 @@ class FlightLog:
         exp = export_instances([(fitted[n], n) for n in numbers], target)
         which = "all" if len(numbers) > 1 else f"compass{numbers[0]}"
         return f"{stem}-{which}{suffix}", exp.text
+
+
+#: The colours of the candidates the fit did not choose (the chosen one is "this fit", blue).
+_LEVEL_COLOURS = ("#ff7f0e", "#17becf", "#bcbd22", "#8c564b", "#e377c2", "#7f7f7f", "#2ca02c", "#9467bd")
+
+
+def _level_candidates(cal: Calibration, raw: NDArray[np.float64], table: Any) -> list[dict[str, Any]]:
+    """Each level's candidate of the fit (a row of ``diagnostics["firmware"]["levels"]``): its label (level and
+    motor term), whether it was chosen, and the field it makes of ``raw`` (:func:`trimag.vehicle.firmware.
+    candidate_field`); a candidate whose motor channel the table lacks is left out."""
+    from ..vehicle.firmware import candidate_field
+
+    fw = cal.diagnostics.get("firmware") or {}
+    chosen_channel = fw.get("motor_channel")
+    out = []
+    for row in fw.get("levels") or []:
+        spec = row.get("compass")
+        if not spec:  # a calibration written before the level table held each candidate's parameters
+            continue
+        kind = spec.get("motor_type")
+        column = None
+        if kind is not None:
+            column = chosen_channel if chosen_channel and spec.get("motor_type") == fw.get("motor_type") else \
+                {"current": "current_A", "throttle": "throttle"}.get(kind)
+            if column not in table.columns:
+                continue
+        values = None if column is None else table[column].to_numpy(dtype=float)
+        label = str(row["level"]) + (f" + {row['motor']}" if row.get("motor") else "")
+        out.append({"label": label, "chosen": bool(row.get("chosen")),
+                    "field": candidate_field(spec, raw, cal.units, motor_values=values,
+                                             input_orientation=fw.get("input_orientation"))})
+    return out
 
 
 def _parameters(cal: Calibration, target: str, number: int) -> dict[str, float] | str:
