@@ -260,9 +260,10 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                         "(default) fits it when it improves the held-out RMS; a table's current or throttle column is "
                         "found by its usual names (current, curr, battery_current, throttle, thr, ...) or named: "
                         "current=COLUMN")
-    p.add_argument("--yaw-source", choices=["auto", "attitude", "gsf", "gps"],
-                   help="--target's yaw for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else the "
-                        "log's attitude), attitude (the log's; heading-free where its EKF used this compass), gsf, gps")
+    p.add_argument("--yaw-source", choices=["auto", "attitude", "dcm", "gsf", "gps"],
+                   help="--target's attitude for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else "
+                        "the log's attitude), attitude (the log's EKF attitude ATT; heading-free where its EKF used "
+                        "this compass), dcm (roll, pitch and yaw of ArduPilot's DCM, AHR2; heading-free), gsf, gps")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "

@@ -117,3 +117,43 @@ def test_each_levels_candidate_is_drawn_beside_the_chosen_one(tmp_path: Path) ->
     with pytest.raises(TrimagInputError, match="motor channel"):
         spec = next(r["compass"] for r in rows if r["compass"]["motor_type"])
         candidate_field(spec, np.zeros((2, 3)), "mG")
+
+
+def test_the_dcm_attitude_and_the_altitude_are_shown_and_the_dcm_is_a_choice_the_cli_fits_too(tmp_path: Path) -> None:
+    """Issue 40: "choose the attitude source where the log has several (EKF, DCM/AHR2, GSF yaw)" and the flight's
+    altitude. A DataFlash log with AHR2 and BARO: the flight draws both; `dcm` is offered, and the page's fit with it
+    is the command line's `fit --yaw-source dcm` (roll, pitch and yaw from AHR2, heading-free: DCM's yaw fuses the
+    compass). A log without AHR2 refuses `--yaw-source dcm` in one line."""
+    from trimag.io.logs import read_log
+
+    log = _write_log(tmp_path / "dcm.bin", n=900, seed=6, dcm=True)
+    vehicle = read_log(log)
+    assert "AHR2" in vehicle.attitudes and vehicle.altitude is not None
+    assert vehicle.altitude.source.startswith("BARO.Alt") and 9.0 < float(vehicle.altitude.values.max()) - 20.0 <= 10.0
+    review = FlightReview(log)
+    assert review.yaw_sources() == ["auto", "attitude", "dcm"]
+    overview = review.overview()
+    names = [t["name"] for t in overview["flight"]["data"]]
+    assert any("AHR2" in n for n in names) and any(n.startswith("altitude (BARO.Alt") for n in names), names
+    titles = [v["title"]["text"] for k, v in overview["flight"]["layout"].items() if k.startswith("yaxis")]
+    assert "altitude (m)" in titles, titles
+    dcm = review.fit(level="offsets", yaw_source="dcm", compasses=[1])[1]
+    assert dcm.calibration is not None, dcm.error
+    assert any("AHR2" in m and "yaw_source=dcm" in m for m in dcm.messages), dcm.messages
+    assert any("DCM's, which fuses" in m for m in dcm.messages)
+    assert dcm.calibration.diagnostics["firmware"]["residual"] == "heading-free"
+    assert "--yaw-source dcm" in dcm.command
+    assert "AHR2" in review.compass_result(1)["figures"]["heading"]["layout"]["title"]["text"]
+    out = tmp_path / "cli.json"
+    words = dcm.command.split()
+    r = run_trimag(*words[1:-2], "-o", out)
+    assert r.returncode == 0, r.stderr
+    cli = json.loads(out.read_text())["diagnostics"]["firmware"]
+    page = dcm.calibration.diagnostics["firmware"]
+    assert cli["offsets"] == page["offsets"] and cli["residual"] == "heading-free"
+    ekf = review.fit(level="offsets", yaw_source="attitude", compasses=[1])[1].calibration
+    assert ekf is not None and ekf.diagnostics["firmware"]["offsets"] != page["offsets"]  # another attitude
+    plain = _write_log(tmp_path / "plain.bin", n=300, seed=6)
+    r = run_trimag("fit", plain, "--target", "ardupilot", "--yaw-source", "dcm")
+    assert r.returncode == 2 and "no DCM attitude" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "dcm" not in FlightReview(plain).yaw_sources()

@@ -188,9 +188,22 @@ class FlightLog:
         if log.attitude is not None:
             t, v = log.attitude.time_s, log.attitude.values
             k = _shown(len(t))
-            panels.append(("attitude (deg)", [_line(t[k], v[k, j], f"{name} ({log.attitude.source})")
-                                              for j, name in enumerate(("yaw", "pitch", "roll"))]))
-        for name, label in (("altitude_m", "altitude (m)"), ("throttle", "throttle"), ("current_A", "current (A)")):
+            colours = ("#1f77b4", "#ff7f0e", "#2ca02c")
+            lines = [_line(t[k], v[k, j], f"{name} ({log.attitude.source})", legendgroup=name,
+                           line={"width": 1, "color": colours[j]})
+                     for j, name in enumerate(("yaw", "pitch", "roll"))]
+            for other in log.attitudes.values():  # DCM (AHR2): dotted, beside the EKF's
+                t2, v2 = other.time_s, other.values
+                k2 = _shown(len(t2))
+                lines += [_line(t2[k2], np.mod(v2[k2, j], 360.0) if j == 0 else v2[k2, j], f"{name} ({other.source})",
+                                legendgroup=name, line={"width": 1, "color": colours[j], "dash": "dot"})
+                          for j, name in enumerate(("yaw", "pitch", "roll"))]
+            panels.append(("attitude (deg)", lines))
+        if log.altitude is not None and len(log.altitude.time_s):
+            k = _shown(len(log.altitude.time_s))
+            panels.append(("altitude (m)", [_line(log.altitude.time_s[k], log.altitude.values[k],
+                                                  f"altitude ({log.altitude.source})")]))
+        for name, label in (("throttle", "throttle"), ("current_A", "current (A)")):
             ch = log.channels.get(name)
             if ch is not None and len(ch.time_s):
                 k = _shown(len(ch.time_s))
@@ -224,6 +237,8 @@ class FlightLog:
             "path": self.path.name, "format": self.log.format, "vehicle": self.log.vehicle, "target": self.target,
             "gps": self.log.gps, "span_s": [lo, hi], "compasses": self.compasses(),
             "attitude_source": None if self.log.attitude is None else self.log.attitude.source,
+            "attitude_sources": {name: ch.source for name, ch in self.log.attitudes.items()},
+            "altitude_source": None if self.log.altitude is None else self.log.altitude.source,
             "yaw_sources": sorted(self.log.yaw_sources), "channels": sorted(self.log.channels),
             "levels": list(LEVELS), "motors": list(MOTORS), "yaw_choices": self.yaw_sources(),
             "flight": self.flight_figure(),
@@ -233,6 +248,7 @@ class FlightLog:
     def yaw_sources(self) -> list[str]:
         """The yaw sources this log offers a firmware fit (``fit --yaw-source``)."""
         out = ["auto", "attitude"] if self.log.attitude is not None else ["auto"]
+        out += ["dcm"] if "AHR2" in self.log.attitudes else []
         return out + [name for name, key in (("gsf", "XKY0.YC"), ("gps", "GPS.Yaw")) if key in self.log.yaw_sources]
 
     # ------------------------------------------------------------------ the fit
@@ -296,6 +312,13 @@ class FlightLog:
 
         samples = self._table(number)
         table = samples.table
+        dcm = ["yaw_dcm_deg", "pitch_dcm_deg", "roll_dcm_deg"]
+        if self.choice.get("yaw_source") == "dcm" and set(dcm) <= set(table.columns):  # judged by the fit's attitude
+            table = table.drop(columns=["yaw_deg", "pitch_deg", "roll_deg"], errors="ignore").rename(
+                columns=dict(zip(dcm, ["yaw_deg", "pitch_deg", "roll_deg"], strict=True)))
+            name = (samples.log_info.get("attitude_sources") or {}).get("AHR2", "AHR2 (DCM)")
+            samples = dataclasses.replace(samples, table=table, log_info={**samples.log_info, "attitude_source": name,
+                                                                          "has_attitude": True})
         unit = samples.log_info["unit"]
         t = table["time_s"].to_numpy(dtype=float)
         logged = table[["mag_logged_x", "mag_logged_y", "mag_logged_z"]].to_numpy(dtype=float)

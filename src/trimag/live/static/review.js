@@ -156,9 +156,14 @@ async function init() {
     `parameters for ${overview.target}; ${overview.compasses.length} compass(es)`;
   $("level").innerHTML = overview.levels.map((l) => `<option>${text(l)}</option>`).join("");
   $("motor").innerHTML = overview.motors.map((m) => `<option>${text(m)}</option>`).join("");
-  $("yaw").innerHTML = overview.yaw_choices.map((y) => `<option>${text(y)}</option>`).join("");
+  const yawLabels = { auto: "auto", attitude: `EKF (${overview.attitude_source})`, gsf: "EKF-GSF yaw (XKY0)",
+                      gps: "GPS heading", dcm: `DCM (${(overview.attitude_sources || {}).AHR2 || "AHR2"})` };
+  $("yaw").innerHTML = overview.yaw_choices.map((y) => `<option value="${text(y)}">${text(yawLabels[y] || y)}</option>`)
+    .join("");
   $("attitude").textContent = `(attitude: ${overview.attitude_source || "none"}` +
-    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")})` : ")");
+    Object.values(overview.attitude_sources || {}).map((s) => `; also ${s}`).join("") +
+    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")}` : "") +
+    (overview.altitude_source ? `; altitude: ${overview.altitude_source})` : ")");
   $("start").value = overview.span_s[0].toFixed(1);
   $("stop").value = overview.span_s[1].toFixed(1);
   $("compasses").innerHTML = compassTable([]);
