@@ -49,11 +49,65 @@ def test_the_range_is_the_command_lines_rows_and_the_rest_is_held_out(tmp_path: 
         review.fit(hi, lo)
 
 
-def test_a_table_is_not_a_flight(tmp_path: Path) -> None:
-    table = tmp_path / "t.csv"
-    table.write_text("x,y,z\n1,2,3\n")
-    with pytest.raises(TrimagInputError, match="autopilot log"):
-        FlightReview(table)
+def test_a_table_with_attitudes_is_reviewed_as_the_command_line_fits_it(tmp_path: Path) -> None:
+    """Issue 40: review takes "any log trimag reads: ... CSV with attitudes". A CSV of a flight (time, the raw
+    field, yaw/pitch/roll, current) is one compass: the flight, the expected field, the fit of a dragged range with
+    the rest held out, exactly `trimag fit FILE --units mG --attitude-columns yaw,pitch,roll --target ardupilot
+    --igrf SITE --rows A:B`. Without --target, --units or --igrf the page shows what it can and says what is not
+    available; a table without attitudes is shown too (a magnitude fit)."""
+    import numpy as np
+    import pandas as pd
+
+    from trimag.io import read_samples
+    from trimag.io.logs import read_log
+
+    log = _write_log(tmp_path / "flight.bin", n=900, seed=7)
+    s = read_samples(log, sensor="1")
+    t = s.table
+    csv = tmp_path / "flight.csv"
+    pd.DataFrame({"time_s": t["time_s"], "x": s.field[:, 0], "y": s.field[:, 1], "z": s.field[:, 2],
+                  "yaw": t["yaw_deg"], "pitch": t["pitch_deg"], "roll": t["roll_deg"],
+                  "current": t["current_A"]}).to_csv(csv, index=False)
+    gps = read_log(log).gps
+    assert gps is not None
+    site = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
+    review = FlightReview(csv, target="ardupilot", units="mG", igrf_spec=site)
+    overview = review.overview()
+    assert overview["table"] and overview["unavailable"] == [] and len(overview["compasses"]) == 1
+    names = [tr["name"] for tr in overview["flight"]["data"]]
+    assert any("yaw,pitch,roll" in n for n in names) and any(n.startswith("current_A (current)") for n in names)
+    lo, hi = review.span_s
+    result = review.fit(lo + 20.0, hi - 20.0, level="offsets")[1]
+    assert result.calibration is not None, result.error
+    assert result.rows == "200:700" and "--attitude-columns yaw,pitch,roll" in result.command
+    assert "--units mG" in result.command and "--target ardupilot" in result.command
+    out = review.compass_result(1)
+    assert out["statistics"]["held_out_rows"] == 400
+    assert out["statistics"]["candidate_held_out_rms"] < out["statistics"]["logged_held_out_rms"]
+    assert any("expected" in tr["name"] for tr in out["figures"]["field"]["data"])
+    cli = tmp_path / "cli.json"
+    r = run_trimag(*result.command.split()[1:-2], "-o", cli)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(cli.read_text())["diagnostics"]["firmware"]["offsets"] == \
+        result.calibration.diagnostics["firmware"]["offsets"]
+    report = tmp_path / "table.html"  # the same figures in one file, for a table too
+    r = run_trimag(*result.command.split()[1:-2], "--report", report, "-q")
+    assert r.returncode == 0, r.stderr
+    html = report.read_text()
+    assert 'id="compass1-field"' in html.replace("'", '"') and "the readings as recorded" in html
+    bare = FlightReview(csv)  # no --target, --units, --igrf: shown, and said
+    said = " ".join(bare.unavailable())
+    assert "--target" in said and "--units" in said and "--igrf" in said, said
+    refused = bare.fit()[1]
+    assert refused.calibration is None and refused.exit_code == 2 and "--target" in str(refused.error)
+    assert bare.compass_result(1)["figures"]["field"]["data"]  # the readings, drawn
+    plain = tmp_path / "plain.csv"
+    plain.write_text("x,y,z\n" + "".join(f"{np.cos(k / 9):.4f},{np.sin(k / 9):.4f},0.3\n" for k in range(40)))
+    no_attitude = FlightReview(plain, target="px4", units="G", igrf_spec=site)
+    assert any("no attitude" in line and "row number" not in line for line in no_attitude.unavailable())
+    assert any("row number" in line for line in no_attitude.unavailable())
+    with pytest.raises(TrimagInputError, match="no column 'hdg'"):
+        FlightReview(csv, attitude_columns="hdg,pitch,roll")
 
 
 def test_a_flights_png_report_draws_the_field_against_time(tmp_path: Path) -> None:

@@ -234,7 +234,7 @@ def test_review_refuses_what_cannot_work_in_one_line(tmp_path: Path) -> None:
     table = tmp_path / "table.csv"
     table.write_text("x,y,z\n1,2,3\n4,5,6\n")
     for args, words in (((str(tmp_path / "missing.bin"),), "no such file"),
-                        ((str(table),), "review reads an autopilot log")):
+                        ((str(table), "--attitude-columns", "yaw,pitch,roll"), "no column 'yaw'")):
         r = run_trimag("review", *args, "--no-browser", "--port", "0")
         assert r.returncode == 2, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1 and words in r.stderr, r.stderr

@@ -149,7 +149,9 @@ def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
     from . import _StopSignals
 
     plotly_js()  # a missing review extra is said before the log is read
-    review = FlightReview(request.log, fmt=request.fmt, target=request.target, igrf_spec=request.igrf_spec)
+    review = FlightReview(request.log, fmt=request.fmt, target=request.target, igrf_spec=request.igrf_spec,
+                          units=request.units, columns=request.columns, attitude_columns=request.attitude_columns,
+                          time_column=request.time_column)
     server = ReviewServer(review, request.port)
     server.start()
     result = ReviewResult(server.url)

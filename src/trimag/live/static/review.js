@@ -164,6 +164,7 @@ async function init() {
     Object.values(overview.attitude_sources || {}).map((s) => `; also ${s}`).join("") +
     (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")}` : "") +
     (overview.altitude_source ? `; altitude: ${overview.altitude_source})` : ")");
+  $("unavailable").innerHTML = (overview.unavailable || []).map((line) => `<div>${text(line)}</div>`).join("");
   $("start").value = overview.span_s[0].toFixed(1);
   $("stop").value = overview.span_s[1].toFixed(1);
   $("compasses").innerHTML = compassTable([]);
