@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,18 +114,24 @@ class FlightLog:
     Parameters
     ----------
     path : str or Path
-        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``).
+        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``), or a table with its
+        attitude columns (one compass).
     fmt : str, optional
         The log's format when its extension does not say.
     target : str, optional
         ``"ardupilot"`` or ``"px4"``; default: the log's own firmware.
     igrf_spec : str, optional
         ``LAT,LON,ALT_M,DATE`` for a log without a GPS fix.
+    units, columns, attitude_columns, time_column : str, optional
+        A table's unit and columns (:func:`_read_table`).
+    progress : callable, optional
+        ``progress(fraction, what)`` while the log is read (:func:`trimag.io.logs.read_log`).
     """
 
     def __init__(self, path: str | Path, *, fmt: str | None = None, target: str | None = None,
                  igrf_spec: str | None = None, units: str | None = None, columns: str | None = None,
-                 attitude_columns: str | None = None, time_column: str | None = None) -> None:
+                 attitude_columns: str | None = None, time_column: str | None = None,
+                 progress: Callable[[float, str], None] | None = None) -> None:
         from ..io.logs import log_format, read_log
 
         self.path = Path(path)
@@ -134,10 +140,14 @@ class FlightLog:
         self.fmt = fmt
         self.table_input: TableInput | None = None
         if log_format(self.path, fmt) is None:  # a table (CSV, ...): its columns as a one-compass flight
+            if progress is not None:
+                progress(0.0, f"reading the table {self.path.name}")
             self.table_input = _read_table(self.path, fmt, units, columns, attitude_columns, time_column)
             self.log = self.table_input.log
+            if progress is not None:
+                progress(1.0, f"read the table {self.path.name}: {len(self.log.magnetometers[0].time_s)} rows")
         else:
-            self.log = read_log(self.path, fmt)
+            self.log = read_log(self.path, fmt, progress=progress)
         if not self.log.magnetometers:
             raise TrimagInputError(f"{path}: the log has no magnetometer readings")
         fw = self.log.format

@@ -151,7 +151,16 @@ async function fit() {
 }
 
 async function init() {
-  overview = await ask("overview");
+  for (;;) {  // the server reads the log first: the page says how far it is (GET /overview answers 503 meanwhile)
+    const r = await fetch("overview", { cache: "no-store" });
+    const body = await r.json().catch(() => ({}));
+    if (r.ok) { overview = body; break; }
+    if (r.status !== 503) throw new Error(body.error || `HTTP ${r.status}`);
+    document.body.dataset.reading = "1";
+    $("progress").textContent = body.progress || "reading the log";
+    await new Promise((resolve) => setTimeout(resolve, 300));
+  }
+  document.body.dataset.reading = "0";
   $("log").textContent = `${overview.path}: ${overview.format}${overview.vehicle ? ", " + overview.vehicle : ""}; ` +
     `parameters for ${overview.target}; ${overview.compasses.length} compass(es)`;
   $("level").innerHTML = overview.levels.map((l) => `<option>${text(l)}</option>`).join("");
