@@ -183,9 +183,9 @@ def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
     """Read the log, serve the review page until SIGINT (Ctrl-C) or SIGTERM; the whole flight is fitted at once
     (the page refits on the user's choice). What cannot work (an unreadable log, a busy port, no plotly) is refused
     before anything is served."""
-    from . import _StopSignals
-
     from pathlib import Path
+
+    from . import _StopSignals
 
     plotly_js()  # a missing review extra is said before the log is read
     if not Path(request.log).is_file():
