@@ -181,8 +181,9 @@ class ReviewResult:
 def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
                ready: Callable[[ReviewServer], None] | None = None) -> ReviewResult:
     """Read the log, serve the review page until SIGINT (Ctrl-C) or SIGTERM; the whole flight is fitted at once
-    (the page refits on the user's choice). What cannot work (an unreadable log, a busy port, no plotly) is refused
-    before anything is served."""
+    (the page refits on the user's choice). The page is served first and says how far the reading is
+    (:meth:`ReviewServer.read`); a missing file, a busy port or no plotly is refused before anything is served, a log
+    that cannot be read once the reading fails (the server stops; the command says it in one line)."""
     from pathlib import Path
 
     from . import _StopSignals

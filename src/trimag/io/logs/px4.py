@@ -386,7 +386,7 @@ def read_px4log(path: Path) -> VehicleLog:
         log.attitude = Channel(arr(att, ["_t"])[:, 0], np.degrees(arr(att, ["Yaw", "Pitch", "Roll"])), "deg", "ATT")
     if rows.get("GPOS") and "Alt" in rows["GPOS"][0]:
         log.altitude = Channel(arr(rows["GPOS"], ["_t"])[:, 0], arr(rows["GPOS"], ["Alt"])[:, 0], "m",
-                               "GPOS.Alt (m above sea level)")
+                               "GPOS.Alt (m, the position estimate)")
     if rows.get("BATT"):
         b = rows["BATT"]
         log.channels["current_A"] = Channel(arr(b, ["_t"])[:, 0], arr(b, ["C"])[:, 0], "A", "BATT.C")
