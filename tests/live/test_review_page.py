@@ -113,13 +113,26 @@ def _parameter_lines(text: str) -> list[str]:
     return [line for line in text.splitlines() if line and not line.startswith("#")]
 
 
+def serve_review(log: Path):  # type: ignore[no-untyped-def]
+    """The review server of ``log`` in this process, as ``run_review`` serves it (read with the page's progress, then
+    the whole flight fitted): no second Python to start (the command itself: the static log's test)."""
+    from trimag.app.review import FlightReview
+    from trimag.live.review import ReviewServer
+
+    server = ReviewServer(None, 0).start()
+    server.read(lambda progress: FlightReview(log, progress=progress))
+    server.start_fit({})
+    return server
+
+
 def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # type: ignore[no-untyped-def]
-                             kinds: tuple[str, ...], extra: tuple[str, ...] = ()) -> dict:
+                             kinds: tuple[str, ...]) -> dict:
     """The page of ``log``: drag, level, refit, download ``kinds`` and the JSON; compare with the command line.
     Returns the page's results."""
     downloads = tmp_path / "downloads"
     downloads.mkdir()
-    proc, url = start_review(str(log), *extra, cwd=tmp_path)
+    server = serve_review(log)
+    url = server.url
     try:
         driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
         driver.get(url)
@@ -171,7 +184,7 @@ def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # 
             driver.save_screenshot(os.environ["TRIMAG_REVIEW_SCREENSHOTS"] + f"/review-{log.stem}.png")
         return results
     finally:
-        _stop(proc)
+        server.shutdown()
 
 
 def test_the_review_page_of_a_dataflash_flight_in_a_real_browser(browser, flight_log: Path,  # type: ignore[no-untyped-def]
