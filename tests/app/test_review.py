@@ -100,6 +100,7 @@ def test_a_table_with_attitudes_is_reviewed_as_the_command_line_fits_it(tmp_path
     assert "--target" in said and "--units" in said and "--igrf" in said, said
     refused = bare.fit()[1]
     assert refused.calibration is None and refused.exit_code == 2 and "--target" in str(refused.error)
+    assert bare.compass_result(1)["verdict"].startswith("not fitted: ")  # not the data's refusal
     assert bare.compass_result(1)["figures"]["field"]["data"]  # the readings, drawn
     plain = tmp_path / "plain.csv"
     plain.write_text("x,y,z\n" + "".join(f"{np.cos(k / 9):.4f},{np.sin(k / 9):.4f},0.3\n" for k in range(40)))

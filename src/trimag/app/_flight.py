@@ -707,8 +707,8 @@ def _verdict(result: CompassResult | None, stats: dict[str, Any]) -> str:
     """One line: what to do with this compass."""
     if result is None:
         return "not fitted yet"
-    if result.calibration is None:
-        return f"keep the log's calibration: {result.error}"
+    if result.calibration is None:  # exit 2: something the user gives is missing; else the data refused one
+        return f"not fitted: {result.error}" if result.exit_code == 2 else f"keep the log's calibration: {result.error}"
     cal = result.calibration
     fw = cal.diagnostics.get("firmware") or {}
     unit = fw.get("unit", cal.units)
