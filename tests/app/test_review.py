@@ -174,6 +174,7 @@ def test_each_levels_candidate_is_drawn_beside_the_chosen_one(tmp_path: Path) ->
         candidate_field(spec, np.zeros((2, 3)), "mG")
 
 
+
 def test_the_dcm_attitude_and_the_altitude_are_shown_and_the_dcm_is_a_choice_the_cli_fits_too(tmp_path: Path) -> None:
     """Issue 40: "choose the attitude source where the log has several (EKF, DCM/AHR2, GSF yaw)" and the flight's
     altitude. A DataFlash log with AHR2 and BARO: the flight draws both; `dcm` is offered, and the page's fit with it

@@ -22,7 +22,9 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 from _live_helpers import chrome
 
@@ -126,9 +128,9 @@ def serve_review(log: Path):  # type: ignore[no-untyped-def]
 
 
 def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # type: ignore[no-untyped-def]
-                             kinds: tuple[str, ...]) -> dict:
+                             kinds: tuple[str, ...]) -> Any:
     """The page of ``log``: drag, level, refit, download ``kinds`` and the JSON; compare with the command line.
-    Returns the page's results."""
+    Returns the review the server answered from."""
     downloads = tmp_path / "downloads"
     downloads.mkdir()
     server = serve_review(log)
@@ -182,7 +184,7 @@ def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # 
         if os.environ.get("TRIMAG_REVIEW_SCREENSHOTS"):
             driver.set_window_size(1400, 2400)
             driver.save_screenshot(os.environ["TRIMAG_REVIEW_SCREENSHOTS"] + f"/review-{log.stem}.png")
-        return results
+        return server.review
     finally:
         server.shutdown()
 
@@ -206,7 +208,10 @@ def test_the_review_page_of_a_px4_ulog_flight_in_a_real_browser(browser, tmp_pat
     from _ulog_flight import DEVICE_ID, write_px4_flight
 
     log = write_px4_flight(tmp_path / "px4-flight.ulg")
-    _review_fit_and_download(browser, tmp_path, log, "px4", ("qgc", "px4"))
+    review = _review_fit_and_download(browser, tmp_path, log, "px4", ("qgc", "px4"))
+    judged = review.judged(1)  # PX4's frame (the rotation after the correction): the chosen candidate's field drawn
+    chosen = next(lv for lv in judged["levels"] if lv["chosen"])  # is exactly the calibration's
+    assert np.allclose(chosen["field"], judged["candidate"], rtol=0, atol=1e-12)
     qgc = next((tmp_path / "downloads").glob("*.params")).read_text()
     assert f"1\t1\tCAL_MAG0_ID\t{DEVICE_ID}\t6" in qgc.splitlines()
 
