@@ -169,6 +169,8 @@ def test_each_levels_candidate_is_drawn_beside_the_chosen_one(tmp_path: Path) ->
     assert len(out["statistics"]["levels"]) == len(rows)
     html = report_html(review, [1])
     assert all(f"candidate: {lv['label']}" in html for lv in others)
+    vector = [f"{v['fitted_rms']:.4g}" for v in out["statistics"]["levels"]]  # the whole flight: none held out
+    assert len(set(vector)) > 1 and all(f"<td>{v}</td>" in html for v in vector)  # in the levels table
     with pytest.raises(TrimagInputError, match="motor channel"):
         spec = next(r["compass"] for r in rows if r["compass"]["motor_type"])
         candidate_field(spec, np.zeros((2, 3)), "mG")

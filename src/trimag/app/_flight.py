@@ -737,14 +737,22 @@ def report_html(review: FlightLog, numbers: Sequence[int] | None = None, title: 
         r = review.compass_result(n)
         for name, fig in r["figures"].items():
             figures.append((f"compass{n}-{name}", fig))
+        vector = {v["label"]: v for v in r["statistics"].get("levels") or []}
+
+        def rms(row: dict[str, Any], part: str, vector: dict[str, Any] = vector) -> str:
+            value = vector.get(str(row["level"]) + (f" + {row['motor']}" if row.get("motor") else ""), {}).get(part)
+            return "-" if value is None else f"{value:.4g}"
+
         rows = "".join(
             f"<tr><td>{row['level']}</td><td>{row['motor'] or '-'}</td><td>{row['n_params']}</td>"
             f"<td>{row['rms']:.4g}</td><td>{row['heldout_rms']:.4g}</td>"
             f"<td>{'all' if row['identified'] else row.get('n_identified')}</td>"
-            f"<td>{'ok' if row['within_limits'] else 'outside'}</td><td>{'&larr;' if row['chosen'] else ''}</td></tr>"
+            f"<td>{'ok' if row['within_limits'] else 'outside'}</td><td>{rms(row, 'fitted_rms')}</td>"
+            f"<td>{rms(row, 'held_out_rms')}</td><td>{'&larr;' if row['chosen'] else ''}</td></tr>"
             for row in r.get("levels") or [])
         table = (f"<table><tr><th>level</th><th>motor</th><th>params</th><th>rms</th><th>held-out</th>"
-                 f"<th>identified</th><th>limits</th><th>chosen</th></tr>{rows}</table>" if rows else "")
+                 f"<th>identified</th><th>limits</th><th>vector RMS, fitted rows</th><th>held-out rows</th>"
+                 f"<th>chosen</th></tr>{rows}</table>" if rows else "")
         sections.append(
             f"<h2>compass {n}</h2><p class='verdict'>{_html.escape(str(r['verdict']))}</p>{table}"
             f"<pre>{_html.escape(chr(10).join(r.get('messages') or []))}</pre>"

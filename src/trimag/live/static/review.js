@@ -60,14 +60,21 @@ function compassTable(results) {
     "</table>";
 }
 
-function levelsTable(levels) {
+function levelsTable(levels, stats) {
   if (!levels) return "";
-  const rows = levels.map((l) => `<tr${l.chosen ? ' style="font-weight:600"' : ""}><td>${text(l.level)}</td>` +
-    `<td>${text(l.motor || "-")}</td><td class="num">${l.n_params}</td><td class="num">${num(l.rms)}</td>` +
-    `<td class="num">${num(l.heldout_rms)}</td><td>${l.identified ? "all" : `${l.n_identified} of ${l.n_params}`}</td>` +
-    `<td>${l.within_limits ? "ok" : "outside"}</td><td>${l.chosen ? "&larr; chosen" : ""}</td></tr>`).join("");
+  // each candidate's vector RMS against the expected field (the server's statistics), by its label
+  const vector = Object.fromEntries(((stats && stats.levels) || []).map((v) => [v.label, v]));
+  const rows = levels.map((l) => {
+    const v = vector[l.level + (l.motor ? ` + ${l.motor}` : "")] || {};
+    return `<tr${l.chosen ? ' style="font-weight:600"' : ""}><td>${text(l.level)}</td>` +
+      `<td>${text(l.motor || "-")}</td><td class="num">${l.n_params}</td><td class="num">${num(l.rms)}</td>` +
+      `<td class="num">${num(l.heldout_rms)}</td><td>${l.identified ? "all" : `${l.n_identified} of ${l.n_params}`}</td>` +
+      `<td>${l.within_limits ? "ok" : "outside"}</td>` +
+      `<td class="num">${num(v.fitted_rms)} / ${num(v.held_out_rms)}</td><td>${l.chosen ? "&larr;" : ""}</td></tr>`;
+  }).join("");
   return "<table><tr><th>level</th><th>motor</th><th>params</th><th>rms</th><th>held-out</th><th>identified</th>" +
-    `<th>limits</th><th></th></tr>${rows}</table>`;
+    `<th>limits</th><th title="against the expected field (IGRF rotated by the attitude): on the fitted rows / on ` +
+    `the held-out rows">vs expected</th><th>chosen</th></tr>${rows}</table>`;
 }
 
 function checks(r) {
@@ -97,7 +104,7 @@ function render(results) {
   const holder = $("per-compass");
   holder.style.gridTemplateColumns = `repeat(${Math.max(1, results.compasses.length)}, minmax(0, 1fr))`;
   holder.innerHTML = results.compasses.map((r) => `<section id="compass-${r.number}"><h2>compass ${r.number}</h2>` +
-    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>${checks(r)}${levelsTable(r.levels)}` +
+    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>${checks(r)}${levelsTable(r.levels, r.statistics)}` +
     `<h3>the same fit on the command line</h3><pre>${text(r.command)}</pre>` +
     `<h3>what the fit said</h3><pre>${text((r.messages || []).join("\n") || r.error || "")}</pre>` +
     Object.keys(r.figures).map((name) => `<div class="fig" id="fig-${r.number}-${name}"></div>`).join("") +
