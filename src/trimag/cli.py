@@ -260,9 +260,10 @@ def _add_fit_steps(p: argparse.ArgumentParser) -> None:
                         "(default) fits it when it improves the held-out RMS; a table's current or throttle column is "
                         "found by its usual names (current, curr, battery_current, throttle, thr, ...) or named: "
                         "current=COLUMN")
-    p.add_argument("--yaw-source", choices=["auto", "attitude", "gsf", "gps"],
-                   help="--target's yaw for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else the "
-                        "log's attitude), attitude (the log's; heading-free where its EKF used this compass), gsf, gps")
+    p.add_argument("--yaw-source", choices=["auto", "attitude", "dcm", "gsf", "gps"],
+                   help="--target's attitude for a log: auto (default: a GPS heading, else the EKF-GSF yaw XKY0, else "
+                        "the log's attitude), attitude (the log's EKF attitude ATT; heading-free where its EKF used "
+                        "this compass), dcm (roll, pitch and yaw of ArduPilot's DCM, AHR2; heading-free), gsf, gps")
     g = p.add_argument_group("vehicles that cannot be tumbled (boats, rovers, large multicopters; docs/autopilot.md)")
     g.add_argument("--level-turn", action="store_true",
                    help="the vehicle turned but did not tilt: fit the horizontal offsets and scales from its turns, "
@@ -507,9 +508,17 @@ def _add_review(sub: Any) -> None:
                                    "range to fit, choose the level and the motor term, download the parameter files "
                                    "(exactly what `trimag export` writes) and the calibration JSON (docs/review.md; "
                                    "needs the review extra: pip install \"trimag[review]\").")
-    p.add_argument("log", metavar="LOG", help="an autopilot log: DataFlash .bin/.log, .tlog, ULog .ulg, .px4log")
+    p.add_argument("log", metavar="LOG", help="an autopilot log (DataFlash .bin/.log, .tlog, ULog .ulg, .px4log) or "
+                                              "a table with attitudes (CSV, ...: one compass)")
     p.add_argument("--format", dest="fmt", help="the log's format when its extension does not say")
-    p.add_argument("--target", choices=["ardupilot", "px4"], help="whose parameters (default: the log's firmware)")
+    p.add_argument("--target", choices=["ardupilot", "px4"],
+                   help="whose parameters (default: the log's firmware; a table names none)")
+    g = p.add_argument_group("a table (as trimag fit reads it)")
+    g.add_argument("--units", help="the table's unit (mG, G, uT, nT): the firmware's parameters need it")
+    g.add_argument("--columns", metavar="X,Y,Z", help="the field's columns (default: found by name)")
+    g.add_argument("--attitude-columns", metavar="YAW,PITCH,ROLL",
+                   help="Euler angles in degrees (Z-Y-X, NED); default: yaw,pitch,roll or yaw_deg,pitch_deg,roll_deg")
+    g.add_argument("--time-column", metavar="NAME", help="time in seconds (default: time_s, time, t; else the row)")
     p.add_argument("--igrf", dest="igrf_spec", metavar="LAT,LON,ALT_M,DATE",
                    help="where and when the log was flown, for a log without a GPS fix")
     p.add_argument("--port", type=int, default=8765, help="local port of the page (default 8765; 0: a free one)")

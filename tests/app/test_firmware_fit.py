@@ -52,7 +52,7 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
                second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0,
-               parameters: dict[str, float] | None = None) -> Path:
+               parameters: dict[str, float] | None = None, dcm: bool = False) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -79,6 +79,13 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
         yaw = (true.as_euler("ZYX", degrees=True)[:, 0] + np.random.default_rng(seed + 5).normal(0, 2.0, n)) % 360
         extra["XKY0"] = ("QBffffffffffff", "TimeUS,C,YC,YCS,Y0,Y1,Y2,Y3,Y4,W0,W1,W2,W3,W4",
                          [(int(t), 0, float(y), 1.0, *([0.0] * 10)) for t, y in zip(t_us, yaw, strict=True)])
+    if dcm:  # ArduPilot's DCM (AHR2: the logged attitude with 1 deg of its own noise) and the barometer (BARO)
+        noisy = ypr + np.random.default_rng(seed + 9).normal(0, 1.0, (n, 3))
+        extra["AHR2"] = ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4",
+                         [(int(t), r, p, y % 360.0, 20.0, LAT, LON, 1.0, 0.0, 0.0, 0.0)
+                          for t, (y, p, r) in zip(t_us, noisy, strict=True)])
+        extra["BARO"] = ("QBff", "TimeUS,I,Alt,Press", [(int(t), 0, 20.0 + 10.0 * np.sin(k / 100.0), 101000.0)
+                                                         for k, t in enumerate(t_us)])
     return write_dataflash(path, {
         **extra,
         "MSG": ("QZ", "TimeUS,Message", [(1000, "ArduCopter V4.3.6 (simulated)")]),

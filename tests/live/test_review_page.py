@@ -22,7 +22,9 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 from _live_helpers import chrome
 
@@ -35,11 +37,22 @@ pytestmark = pytest.mark.slow
 LOGS = TESTS_DIR / "data" / "logs"
 
 
-def _flight_log(tmp_path: Path) -> Path:
+@pytest.fixture(scope="module")
+def flight_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The simulated two-compass DataFlash flight, written once for the module (its AHR2 and BARO too)."""
     sys.path.insert(0, str(TESTS_DIR / "app"))
     from test_firmware_fit import _write_log
 
-    return _write_log(tmp_path / "flight.bin", n=1200, seed=4, second=True)
+    return _write_log(tmp_path_factory.mktemp("flight") / "flight.bin", n=800, seed=4, second=True, dcm=True)
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    """One headless Chromium for the module (a start costs seconds), with no network at all but the loopback: every
+    host name is unresolvable, so the page and the report can fetch nothing."""
+    driver = chrome(tmp_path_factory.mktemp("profile"), "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1")
+    yield driver
+    driver.quit()
 
 
 def start_review(*args: str, cwd: Path) -> tuple[subprocess.Popen, str]:
@@ -102,17 +115,26 @@ def _parameter_lines(text: str) -> list[str]:
     return [line for line in text.splitlines() if line and not line.startswith("#")]
 
 
-def _review_fit_and_download(tmp_path: Path, log: Path, target: str, kinds: tuple[str, ...],
-                             extra: tuple[str, ...] = ()) -> None:
-    """The page of ``log``: drag, level, refit, download ``kinds`` and the JSON; compare with the command line."""
+def serve_review(log: Path):  # type: ignore[no-untyped-def]
+    """The review server of ``log`` in this process, as ``run_review`` serves it (read with the page's progress, then
+    the whole flight fitted): no second Python to start (the command itself: the static log's test)."""
+    from trimag.app.review import FlightReview
+    from trimag.live.review import ReviewServer
+
+    server = ReviewServer(None, 0).start()
+    server.read(lambda progress: FlightReview(log, progress=progress))
+    server.start_fit({})
+    return server
+
+
+def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # type: ignore[no-untyped-def]
+                             kinds: tuple[str, ...]) -> Any:
+    """The page of ``log``: drag, level, refit, download ``kinds`` and the JSON; compare with the command line.
+    Returns the review the server answered from."""
     downloads = tmp_path / "downloads"
     downloads.mkdir()
-    driver = chrome(tmp_path / "profile")
-    try:
-        proc, url = start_review(str(log), *extra, cwd=tmp_path)
-    except BaseException:
-        driver.quit()
-        raise
+    server = serve_review(log)
+    url = server.url
     try:
         driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
         driver.get(url)
@@ -136,6 +158,10 @@ def _review_fit_and_download(tmp_path: Path, log: Path, target: str, kinds: tupl
         assert "level offsets" in driver.find_element("id", "compass-1").text
         for name in ("field", "magnitude", "heading"):
             assert driver.execute_script(f"return document.querySelectorAll('#fig-1-{name} .main-svg').length") > 0
+        legend = driver.execute_script(
+            "return [...document.querySelectorAll('#fig-1-field .legendtext')].map((e) => e.textContent)")
+        assert any("(chosen)" in n for n in legend), legend  # the chosen candidate and the others, a click away
+        assert any(n.startswith("candidate: ") for n in legend) or len(first["levels"]) == 1, legend
         cal_json = _download(driver, "dl-json-1", downloads, ".json")
         suffixes = {"ardupilot": ".param", "qgc": ".params", "px4": ".txt"}
         files = {kind: _download(driver, f"dl-{kind}-1", downloads, suffixes[kind]) for kind in kinds}
@@ -158,62 +184,70 @@ def _review_fit_and_download(tmp_path: Path, log: Path, target: str, kinds: tupl
         if os.environ.get("TRIMAG_REVIEW_SCREENSHOTS"):
             driver.set_window_size(1400, 2400)
             driver.save_screenshot(os.environ["TRIMAG_REVIEW_SCREENSHOTS"] + f"/review-{log.stem}.png")
+        return server.review
     finally:
-        driver.quit()
-        _stop(proc)
+        server.shutdown()
 
 
-def test_the_review_page_of_a_dataflash_flight_in_a_real_browser(tmp_path: Path) -> None:
-    _review_fit_and_download(tmp_path, _flight_log(tmp_path), "ardupilot", ("ardupilot",))
+def test_the_review_page_of_a_dataflash_flight_in_a_real_browser(browser, flight_log: Path,  # type: ignore[no-untyped-def]
+                                                                  tmp_path: Path) -> None:
+    _review_fit_and_download(browser, tmp_path, flight_log, "ardupilot", ("ardupilot",))
+    from selenium.webdriver.support.ui import Select
+
+    sources = [o.get_attribute("value") for o in Select(browser.find_element("id", "yaw")).options]
+    assert sources == ["auto", "attitude", "dcm"], sources  # the DCM (AHR2) beside the EKF
+    flight = browser.execute_script(
+        "return [...document.querySelectorAll('#flight .legendtext')].map((e) => e.textContent)")
+    assert any("AHR2" in n for n in flight) and any(n.startswith("altitude (BARO.Alt") for n in flight), flight
 
 
-def test_the_review_page_of_a_px4_ulog_flight_in_a_real_browser(tmp_path: Path) -> None:
+def test_the_review_page_of_a_px4_ulog_flight_in_a_real_browser(browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """A simulated PX4 v1.13 flight written as a ULog on pyulog's sample (tests/live/_ulog_flight.py): the
     QGroundControl file (CAL_MAG0_ID the log's device id) and the param-set script, byte for byte."""
     pytest.importorskip("pyulog", reason="pyulog (the logs extra) is not installed")
     from _ulog_flight import DEVICE_ID, write_px4_flight
 
     log = write_px4_flight(tmp_path / "px4-flight.ulg")
-    _review_fit_and_download(tmp_path, log, "px4", ("qgc", "px4"))
+    review = _review_fit_and_download(browser, tmp_path, log, "px4", ("qgc", "px4"))
+    judged = review.judged(1)  # PX4's frame (the rotation after the correction): the chosen candidate's field drawn
+    chosen = next(lv for lv in judged["levels"] if lv["chosen"])  # is exactly the calibration's
+    assert np.allclose(chosen["field"], judged["candidate"], rtol=0, atol=1e-12)
     qgc = next((tmp_path / "downloads").glob("*.params")).read_text()
     assert f"1\t1\tCAL_MAG0_ID\t{DEVICE_ID}\t6" in qgc.splitlines()
 
 
-def test_the_html_report_opens_offline_and_holds_every_figure(tmp_path: Path) -> None:
-    log = _flight_log(tmp_path)
+def test_the_html_report_opens_offline_and_holds_every_figure(browser, flight_log: Path,  # type: ignore[no-untyped-def]
+                                                              tmp_path: Path) -> None:
     report = tmp_path / "report.html"
-    r = run_trimag("fit", log, "--target", "ardupilot", "--sensor", "2", "--report", report, "-q")
+    r = run_trimag("fit", flight_log, "--target", "ardupilot", "--sensor", "2", "--report", report, "-q")
     assert r.returncode == 0, r.stderr
     html = report.read_text()
     assert not re.search(r"<(script|link|img|iframe)\b[^>]*\b(src|href)\s*=", html)  # nothing to fetch
-    driver = chrome(tmp_path / "profile", "--host-resolver-rules=MAP * ~NOTFOUND")  # no network at all
-    try:
-        driver.get(report.as_uri())
-        for _ in range(100):
-            if driver.execute_script("return document.body.dataset.drawn"):
-                break
-            time.sleep(0.1)
-        figures = ["flight", "compass2-field", "compass2-magnitude", "compass2-heading"]
-        assert driver.execute_script("return document.body.dataset.drawn") == str(len(figures))
-        for name in figures:
-            assert driver.execute_script(f"return document.querySelectorAll('#{name} .main-svg').length") > 0, name
-        assert driver.execute_script("return performance.getEntriesByType('resource').length") == 0
-        assert "compass 2" in driver.find_element("tag name", "body").text
-    finally:
-        driver.quit()
+    driver = browser  # no network at all: every host name unresolvable
+    driver.get(report.as_uri())
+    for _ in range(100):
+        if driver.execute_script("return document.body.dataset.drawn"):
+            break
+        time.sleep(0.1)
+    figures = ["flight", "compass2-field", "compass2-magnitude", "compass2-heading"]
+    assert driver.execute_script("return document.body.dataset.drawn") == str(len(figures))
+    for name in figures:
+        assert driver.execute_script(f"return document.querySelectorAll('#{name} .main-svg').length") > 0, name
+    assert driver.execute_script("return performance.getEntriesByType('resource').length") == 0
+    assert "compass 2" in driver.find_element("tag name", "body").text
+    legend = driver.execute_script(
+        "return [...document.querySelectorAll('#compass2-field .legendtext')].map((e) => e.textContent)")
+    assert any("(chosen)" in n for n in legend) and any(n.startswith("candidate: ") for n in legend), legend
 
 
-def test_a_real_static_log_shows_both_compasses_refused_and_offers_no_parameters(tmp_path: Path) -> None:
+def test_a_real_static_log_shows_both_compasses_refused_and_offers_no_parameters(browser,  # type: ignore[no-untyped-def]
+                                                                                tmp_path: Path) -> None:
     """ardusub_small.BIN (MIT, a copy of ../shared/data/flight-logs/ardusub_small.BIN): 24 s, static, no GPS fix.
     Neither compass turned: compass 1's heading-free fit would turn the heading with nothing to support it, and
     compass 2's offsets are not excited by the data (issue 38 item 1: two equations for three offsets). The page
     shows both compasses, says why, and offers no parameter file (the server refuses one too)."""
-    driver = chrome(tmp_path / "profile")
-    try:
-        proc, url = start_review(str(LOGS / "ardusub_small.BIN"), "--igrf", "47.6,-122.3,0,2021-06-01", cwd=tmp_path)
-    except BaseException:
-        driver.quit()
-        raise
+    driver = browser
+    proc, url = start_review(str(LOGS / "ardusub_small.BIN"), "--igrf", "47.6,-122.3,0,2021-06-01", cwd=tmp_path)
     try:
         driver.get(url)
         _wait_fits(driver, 1)
@@ -226,7 +260,6 @@ def test_a_real_static_log_shows_both_compasses_refused_and_offers_no_parameters
                 urllib.request.urlopen(url + f"download?what=ardupilot&compass={n}", timeout=30)
             assert refused.value.code == 400
     finally:
-        driver.quit()
         _stop(proc)
 
 
@@ -234,7 +267,7 @@ def test_review_refuses_what_cannot_work_in_one_line(tmp_path: Path) -> None:
     table = tmp_path / "table.csv"
     table.write_text("x,y,z\n1,2,3\n4,5,6\n")
     for args, words in (((str(tmp_path / "missing.bin"),), "no such file"),
-                        ((str(table),), "review reads an autopilot log")):
+                        ((str(table), "--attitude-columns", "yaw,pitch,roll"), "no column 'yaw'")):
         r = run_trimag("review", *args, "--no-browser", "--port", "0")
         assert r.returncode == 2, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1 and words in r.stderr, r.stderr

@@ -104,7 +104,7 @@ def _absent(target: str, log_info: dict[str, Any] | None) -> tuple[tuple[str, ..
 
 
 #: The yaw sources a firmware fit of a log may be told to take (``fit --yaw-source``).
-YAW_SOURCES = ("auto", "attitude", "gsf", "gps")
+YAW_SOURCES = ("auto", "attitude", "dcm", "gsf", "gps")
 
 
 def _yaw_source(samples: Samples, choice: str | None = None) -> tuple[Samples, str, str | None, list[str]]:
@@ -118,6 +118,22 @@ def _yaw_source(samples: Samples, choice: str | None = None) -> tuple[Samples, s
         raise TrimagInputError(f"`yaw_source` must be one of {', '.join(YAW_SOURCES)}; got {choice!r}")
     if choice == "attitude":
         return samples, "yaw_deg", None, [f"attitude: {source}, as asked (`yaw_source=attitude`)"]
+    if choice == "dcm":  # the whole attitude from ArduPilot's DCM (AHR2), whose yaw fuses the compass too
+        dcm = ["yaw_dcm_deg", "pitch_dcm_deg", "roll_dcm_deg"]
+        if not set(dcm) <= set(table.columns):
+            raise TrimagInputError("`yaw_source=dcm`: the log has no DCM attitude (AHR2 of an ArduPilot DataFlash log, "
+                                   "AHRS2 of a telemetry log); choose auto, attitude, gsf or gps")
+        ok = np.isfinite(table[dcm].to_numpy(dtype=float)).all(axis=1)
+        if not ok.any():
+            raise TrimagInputError("`yaw_source=dcm`: the DCM attitude (AHR2) covers none of this compass's samples; "
+                                   "choose auto or attitude")
+        kept = _keep(samples, ok)
+        swapped = kept.table.drop(columns=["yaw_deg", "pitch_deg", "roll_deg"], errors="ignore").rename(
+            columns=dict(zip(dcm, ["yaw_deg", "pitch_deg", "roll_deg"], strict=True)))
+        name = (info.get("attitude_sources") or {}).get("AHR2", "AHR2 (DCM)")
+        more = f"; {int((~ok).sum())} samples outside it dropped" if not ok.all() else ""
+        return (dataclasses.replace(kept, table=swapped, log_info={**info, "attitude_source": name}), "yaw_deg", None,
+                [f"attitude: roll, pitch and yaw from {name}, as asked (`yaw_source=dcm`){more}"])
     if choice == "gps" and not ("yaw_gps_deg" in table.columns and np.isfinite(table["yaw_gps_deg"]).any()):
         raise TrimagInputError("`yaw_source=gps`: the log has no GPS heading (GPS.Yaw of a moving-baseline GPS); "
                                "choose auto, attitude or gsf")
@@ -157,6 +173,11 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
     """Whether the log's EKF yaw used this compass, and what that means, in one line."""
     params = info.get("parameters") or {}
     source = info.get("attitude_source") or "the log's attitude"
+    if str(source).startswith(("AHR2", "AHRS2")):  # AP_AHRS_DCM::drift_correction_yaw: the compass, whatever the EKF
+        return True, (f"attitude: {source}; its yaw is the DCM's, which fuses the primary compass (the GPS course "
+                      "only without one): a fit to it would partly see its own heading, so the levels are fitted "
+                      "heading-free (the field's horizontal and vertical components under the DCM's roll and "
+                      "pitch) and the orientation only among the standard rotations")
     if target == "ardupilot":
         instance = int(info.get("instance") or 0)
         use_name = "COMPASS_USE" if instance == 0 else f"COMPASS_USE{instance + 1}"
@@ -304,7 +325,7 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
         if info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg":
             samples, yaw_column, yaw_name, messages = _yaw_source(samples, req.yaw_source)
             if yaw_name is None:
-                circular, line = _circularity(target, info)
+                circular, line = _circularity(target, samples.log_info or info)
                 messages.append(line)
         samples, rotation, trim_note = _attitudes(samples, att, yaw_column)
         messages += trim_note

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,8 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from .requests import AttitudeSpec, FitRequest, InputSpec, ReferenceSpec
 
-__all__ = ["DISPLAY_POINTS", "LEVELS", "MOTORS", "CompassResult", "FlightLog", "plotly_js", "report_html"]
+__all__ = ["DISPLAY_POINTS", "LEVELS", "MOTORS", "CompassResult", "FlightLog", "TableInput", "plotly_js",
+           "report_html"]
 
 #: At most this many points of a series are drawn (evenly spaced rows; the fit always takes every row).
 DISPLAY_POINTS = 3000
@@ -113,42 +114,67 @@ class FlightLog:
     Parameters
     ----------
     path : str or Path
-        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``).
+        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``), or a table with its
+        attitude columns (one compass).
     fmt : str, optional
         The log's format when its extension does not say.
     target : str, optional
         ``"ardupilot"`` or ``"px4"``; default: the log's own firmware.
     igrf_spec : str, optional
         ``LAT,LON,ALT_M,DATE`` for a log without a GPS fix.
+    units, columns, attitude_columns, time_column : str, optional
+        A table's unit and columns (:func:`_read_table`).
+    progress : callable, optional
+        ``progress(fraction, what)`` while the log is read (:func:`trimag.io.logs.read_log`).
     """
 
     def __init__(self, path: str | Path, *, fmt: str | None = None, target: str | None = None,
-                 igrf_spec: str | None = None) -> None:
+                 igrf_spec: str | None = None, units: str | None = None, columns: str | None = None,
+                 attitude_columns: str | None = None, time_column: str | None = None,
+                 progress: Callable[[float, str], None] | None = None) -> None:
         from ..io.logs import log_format, read_log
 
         self.path = Path(path)
         if not self.path.is_file():
             raise TrimagInputError(f"{path}: no such file")
-        kind = log_format(self.path, fmt)
-        if kind is None:
-            raise TrimagInputError(f"{path}: review reads an autopilot log (DataFlash .bin/.log, .tlog, ULog .ulg, "
-                                   ".px4log); fit a table with `trimag fit FILE --report report.html`")
         self.fmt = fmt
-        self.log = read_log(self.path, fmt)
+        self.table_input: TableInput | None = None
+        if log_format(self.path, fmt) is None:  # a table (CSV, ...): its columns as a one-compass flight
+            if progress is not None:
+                progress(0.0, f"reading the table {self.path.name}")
+            self.table_input = _read_table(self.path, fmt, units, columns, attitude_columns, time_column)
+            self.log = self.table_input.log
+            if progress is not None:
+                progress(1.0, f"read the table {self.path.name}: {len(self.log.magnetometers[0].time_s)} rows")
+        else:
+            self.log = read_log(self.path, fmt, progress=progress)
         if not self.log.magnetometers:
             raise TrimagInputError(f"{path}: the log has no magnetometer readings")
         fw = self.log.format
         own = "ardupilot" if fw.startswith(("ArduPilot", "MAVLink")) else "px4" if fw.startswith("PX4") else None
-        chosen = target or own
-        if chosen not in ("ardupilot", "px4"):
-            raise TrimagInputError(f"{path} is a {fw} log: give the firmware whose parameters to fit (`target` "
-                                   "ardupilot or px4)")
-        self.target: str = str(chosen)
+        #: the firmware whose parameters are fitted; "" when neither the log nor the user says (nothing is fitted:
+        #: every compass says why, the rest is shown)
+        self.target: str = str(target or own or "")
         self.igrf_spec = igrf_spec
         self.results: dict[int, CompassResult] = {}
         self.choice: dict[str, Any] = {}
         self._tables: dict[int, Any] = {}
         self._lock = threading.Lock()
+
+    def unavailable(self) -> list[str]:
+        """What this log cannot show or fit, one line each (the page and the report say it)."""
+        out = []
+        if not self.target:
+            out.append(f"no parameters are fitted: a {self.log.format} names no firmware; give --target ardupilot or "
+                       "--target px4")
+        if self.log.attitude is None:
+            out.append("no attitude: the expected field, the heading and a vector fit need one (a table's yaw, pitch "
+                       "and roll columns: --attitude-columns YAW,PITCH,ROLL); a fit uses the field's magnitude")
+        if self.log.gps is None and self.igrf_spec is None:
+            out.append("no GPS fix: the expected field and a fit need the Earth's field (--igrf LAT,LON,ALT_M,DATE)")
+        if self.table_input is not None:
+            out += self.table_input.notes
+        return out
 
     # ------------------------------------------------------------------ the log as it is
     @property
@@ -188,9 +214,22 @@ class FlightLog:
         if log.attitude is not None:
             t, v = log.attitude.time_s, log.attitude.values
             k = _shown(len(t))
-            panels.append(("attitude (deg)", [_line(t[k], v[k, j], f"{name} ({log.attitude.source})")
-                                              for j, name in enumerate(("yaw", "pitch", "roll"))]))
-        for name, label in (("altitude_m", "altitude (m)"), ("throttle", "throttle"), ("current_A", "current (A)")):
+            colours = ("#1f77b4", "#ff7f0e", "#2ca02c")
+            lines = [_line(t[k], v[k, j], f"{name} ({log.attitude.source})", legendgroup=name,
+                           line={"width": 1, "color": colours[j]})
+                     for j, name in enumerate(("yaw", "pitch", "roll"))]
+            for other in log.attitudes.values():  # DCM (AHR2): dotted, beside the EKF's
+                t2, v2 = other.time_s, other.values
+                k2 = _shown(len(t2))
+                lines += [_line(t2[k2], np.mod(v2[k2, j], 360.0) if j == 0 else v2[k2, j], f"{name} ({other.source})",
+                                legendgroup=name, line={"width": 1, "color": colours[j], "dash": "dot"})
+                          for j, name in enumerate(("yaw", "pitch", "roll"))]
+            panels.append(("attitude (deg)", lines))
+        if log.altitude is not None and len(log.altitude.time_s):
+            k = _shown(len(log.altitude.time_s))
+            panels.append(("altitude (m)", [_line(log.altitude.time_s[k], log.altitude.values[k],
+                                                  f"altitude ({log.altitude.source})")]))
+        for name, label in (("throttle", "throttle"), ("current_A", "current (A)")):
             ch = log.channels.get(name)
             if ch is not None and len(ch.time_s):
                 k = _shown(len(ch.time_s))
@@ -224,15 +263,21 @@ class FlightLog:
             "path": self.path.name, "format": self.log.format, "vehicle": self.log.vehicle, "target": self.target,
             "gps": self.log.gps, "span_s": [lo, hi], "compasses": self.compasses(),
             "attitude_source": None if self.log.attitude is None else self.log.attitude.source,
+            "attitude_sources": {name: ch.source for name, ch in self.log.attitudes.items()},
+            "altitude_source": None if self.log.altitude is None else self.log.altitude.source,
             "yaw_sources": sorted(self.log.yaw_sources), "channels": sorted(self.log.channels),
             "levels": list(LEVELS), "motors": list(MOTORS), "yaw_choices": self.yaw_sources(),
             "flight": self.flight_figure(),
-            "messages": list(self.log.messages),
+            "messages": list(self.log.messages), "unavailable": self.unavailable(),
+            "table": self.table_input is not None,
         })
 
     def yaw_sources(self) -> list[str]:
-        """The yaw sources this log offers a firmware fit (``fit --yaw-source``)."""
+        """The yaw sources this log offers a firmware fit (``fit --yaw-source``; a table: its columns only)."""
+        if self.table_input is not None:
+            return ["auto"]
         out = ["auto", "attitude"] if self.log.attitude is not None else ["auto"]
+        out += ["dcm"] if "AHR2" in self.log.attitudes else []
         return out + [name for name, key in (("gsf", "XKY0.YC"), ("gps", "GPS.Yaw")) if key in self.log.yaw_sources]
 
     # ------------------------------------------------------------------ the fit
@@ -241,28 +286,46 @@ class FlightLog:
         from ..io import read_samples
 
         if number not in self._tables:
-            self._tables[number] = read_samples(self.path, fmt=self.fmt, sensor=str(number))
+            if self.table_input is not None:
+                self._tables[number] = self.table_input.samples
+            else:
+                self._tables[number] = read_samples(self.path, fmt=self.fmt, sensor=str(number))
         return self._tables[number]
 
     def rows_of(self, number: int, start_s: float, stop_s: float) -> tuple[int, int]:
         """The compass's rows in ``[start_s, stop_s]``: ``(START, STOP)`` of ``fit --rows START:STOP``."""
         t = self.log.choose(number).time_s
-        return int(np.searchsorted(t, start_s, "left")), int(np.searchsorted(t, stop_s, "right"))
+        a, b = int(np.searchsorted(t, start_s, "left")), int(np.searchsorted(t, stop_s, "right"))
+        if self.table_input is not None:  # the kept rows' numbers in the file (`--rows` counts the file's data rows)
+            index = self.table_input.rows
+            return (int(index[a]) if a < len(index) else int(index[-1]) + 1), (int(index[b - 1]) + 1 if b > 0 else 0)
+        return a, b
 
     def request(self, number: int, start_s: float, stop_s: float, level: str = "auto", motor: str = "auto",
                 yaw_source: str = "auto", out: str | Path | None = None,
                 report: str | Path | None = None) -> FitRequest:
         """The :class:`FitRequest` of one compass over the time range: exactly what the command line fits."""
         a, b = self.rows_of(number, start_s, stop_s)
-        return FitRequest(input=InputSpec(self.path, fmt=self.fmt, rows=f"{a}:{b}", sensor=str(number)),
-                          reference=ReferenceSpec(igrf_spec=self.igrf_spec), target=self.target,
+        ti = self.table_input
+        if ti is not None:
+            inp = InputSpec(self.path, fmt=self.fmt, columns=ti.columns, units=ti.units, rows=f"{a}:{b}")
+            attitude = AttitudeSpec(attitude_columns=ti.attitude_columns)
+        else:
+            inp, attitude = InputSpec(self.path, fmt=self.fmt, rows=f"{a}:{b}", sensor=str(number)), AttitudeSpec()
+        return FitRequest(input=inp, attitude=attitude,
+                          reference=ReferenceSpec(igrf_spec=self.igrf_spec), target=self.target or None,
                           level=None if level == "auto" else level, motor=None if motor == "auto" else motor,
                           yaw_source=None if yaw_source == "auto" else yaw_source, out=out, report=report)
 
     def command(self, req: FitRequest) -> str:
         """The command line of ``req`` (what the page shows beside the result)."""
-        words = ["trimag", "fit", str(self.path), "--target", str(req.target), "--sensor", str(req.input.sensor),
-                 "--rows", str(req.input.rows)]
+        words = ["trimag", "fit", str(self.path)]
+        for flag, value in (("--format", req.input.fmt), ("--columns", req.input.columns), ("--units", req.input.units),
+                            ("--attitude-columns", req.attitude.attitude_columns), ("--target", req.target),
+                            ("--sensor", req.input.sensor)):
+            if value:
+                words += [flag, str(value)]
+        words += ["--rows", str(req.input.rows)]
         if req.level:
             words += ["--level", req.level]
         if req.motor:
@@ -271,7 +334,7 @@ class FlightLog:
             words += ["--yaw-source", req.yaw_source]
         if req.reference.igrf_spec:
             words += ["--igrf", req.reference.igrf_spec]
-        return " ".join([*words, "-o", f"compass{req.input.sensor}.json"])
+        return " ".join([*words, "-o", f"compass{req.input.sensor or 1}.json"])
 
     # ------------------------------------------------------------------ what is judged and drawn
     def _ned(self, unit: str) -> NDArray[np.float64] | None:
@@ -296,6 +359,13 @@ class FlightLog:
 
         samples = self._table(number)
         table = samples.table
+        dcm = ["yaw_dcm_deg", "pitch_dcm_deg", "roll_dcm_deg"]
+        if self.choice.get("yaw_source") == "dcm" and set(dcm) <= set(table.columns):  # judged by the fit's attitude
+            table = table.drop(columns=["yaw_deg", "pitch_deg", "roll_deg"], errors="ignore").rename(
+                columns=dict(zip(dcm, ["yaw_deg", "pitch_deg", "roll_deg"], strict=True)))
+            name = (samples.log_info.get("attitude_sources") or {}).get("AHR2", "AHR2 (DCM)")
+            samples = dataclasses.replace(samples, table=table, log_info={**samples.log_info, "attitude_source": name,
+                                                                          "has_attitude": True})
         unit = samples.log_info["unit"]
         t = table["time_s"].to_numpy(dtype=float)
         logged = table[["mag_logged_x", "mag_logged_y", "mag_logged_z"]].to_numpy(dtype=float)
@@ -310,6 +380,7 @@ class FlightLog:
             out["candidate"] = cal.apply(samples.field, regressors=regressors)
             if regressors:
                 out["motor"] = (name, regressors[name])
+            out["levels"] = _level_candidates(cal, samples.field, table)
         for name in ("current_A", "throttle"):
             if "motor" not in out and name in table.columns:
                 out["motor"] = (name, table[name].to_numpy(dtype=float))
@@ -326,14 +397,21 @@ class FlightLog:
             down[finite] = body_field(rotation, np.array([0.0, 0.0, -1.0]))  # the specific force at rest
             decl = float(np.degrees(np.arctan2(ned[1], ned[0])))
             yaw = table["yaw_deg"].to_numpy(dtype=float)
+            def heading_of(field_body: NDArray[np.float64]) -> NDArray[np.float64]:
+                heading = np.full(len(t), np.nan)
+                heading[finite] = tilt_compensated_heading(field_body[finite], down[finite], declination_deg=decl)
+                return np.asarray(heading_difference(heading, yaw), dtype=np.float64)
+
             for key in ("logged", "candidate"):
                 if key in out:
-                    heading = np.full(len(t), np.nan)
-                    heading[finite] = tilt_compensated_heading(out[key][finite], down[finite], declination_deg=decl)
-                    out[f"heading_{key}"] = heading_difference(heading, yaw)
+                    out[f"heading_{key}"] = heading_of(out[key])
+            for level in out.get("levels", []):
+                level["heading"] = heading_of(level["field"])
             out["yaw_source"] = samples.log_info.get("attitude_source")
         if result is not None and result.rows:
             a, b = (int(x) for x in result.rows.split(":"))
+            if self.table_input is not None:  # `--rows` counts the file's data rows: the kept rows' positions
+                a, b = (int(v) for v in np.searchsorted(self.table_input.rows, [a, b]))
             fitted = np.zeros(len(t), dtype=bool)
             fitted[a:b] = True
             out["fitted_rows"] = fitted
@@ -354,6 +432,16 @@ class FlightLog:
                 e = err[mask & np.isfinite(err)]
                 stats[f"{key}_{part}_rms"] = float(np.sqrt(np.mean(e ** 2))) if len(e) else None
                 stats[f"{part}_rows"] = len(e)
+        levels = []
+        for level in judged.get("levels", []):
+            err = np.linalg.norm(level["field"] - judged["expected"], axis=1)
+            row = {"label": level["label"], "chosen": level["chosen"]}
+            for part, mask in (("fitted", fitted), ("held_out", ~fitted)):
+                e = err[mask & np.isfinite(err)]
+                row[f"{part}_rms"] = float(np.sqrt(np.mean(e ** 2))) if len(e) else None
+            levels.append(row)
+        if levels:
+            stats["levels"] = levels
         return stats
 
     def compass_figures(self, number: int) -> dict[str, dict[str, Any]]:
@@ -363,8 +451,13 @@ class FlightLog:
         t, unit = j["t"], j["unit"]
         k = _shown(len(t))
         colours = {"expected": "#444444", "logged": "#d62728", "candidate": "#1f77b4"}
-        names = {"expected": "expected (IGRF rotated by the attitude)", "logged": "the log's calibration",
-                 "candidate": "this fit"}
+        names = {"expected": "expected (IGRF rotated by the attitude)", "logged": "the log's calibration"
+                 if self.table_input is None else "the readings as recorded", "candidate": "this fit"}
+        levels = j.get("levels", [])
+        chosen = next((lv["label"] for lv in levels if lv["chosen"]), None)
+        if chosen is not None:
+            names["candidate"] = f"this fit: {chosen} (chosen)"
+        others = [lv for lv in levels if not lv["chosen"]]  # each other candidate: in the legend, drawn on a click
         field_traces = []
         for axis, _letter in enumerate("XYZ"):
             for key in ("expected", "logged", "candidate"):
@@ -372,6 +465,11 @@ class FlightLog:
                     field_traces.append(_line(t[k], j[key][k, axis], f"{names[key]}", xaxis="x",
                                               yaxis=f"y{axis + 1 if axis else ''}", legendgroup=key,
                                               showlegend=axis == 0, line={"width": 1, "color": colours[key]}))
+            for i, lv in enumerate(others):
+                field_traces.append(_line(t[k], lv["field"][k, axis], f"candidate: {lv['label']}", xaxis="x",
+                                          yaxis=f"y{axis + 1 if axis else ''}", legendgroup=f"level{i}",
+                                          showlegend=axis == 0, visible="legendonly",
+                                          line={"width": 1, "color": _LEVEL_COLOURS[i % len(_LEVEL_COLOURS)]}))
         field_fig = _figure(field_traces, f"compass {number}: body field X / Y / Z ({unit})", height=520,
                             grid={"rows": 3, "columns": 1, "pattern": "coupled"},
                             yaxis={"title": {"text": f"X ({unit})"}}, yaxis2={"title": {"text": f"Y ({unit})"}},
@@ -381,6 +479,10 @@ class FlightLog:
             if key in j:
                 mag_traces.append(_line(t[k], np.linalg.norm(j[key][k], axis=1), f"|B| {names[key]}",
                                         line={"width": 1, "color": colours[key]}))
+        for i, lv in enumerate(others):
+            mag_traces.append(_line(t[k], np.linalg.norm(lv["field"][k], axis=1), f"|B| candidate: {lv['label']}",
+                                    visible="legendonly",
+                                    line={"width": 1, "color": _LEVEL_COLOURS[i % len(_LEVEL_COLOURS)]}))
         if "motor" in j:
             name, values = j["motor"]
             mag_traces.append(_line(t[k], values[k], name, yaxis="y2", line={"width": 1, "color": "#2ca02c"}))
@@ -401,6 +503,14 @@ class FlightLog:
             head_traces.append(_line(t[k], _unwrapped_breaks(change[k]),
                                      "heading change: this fit - the log's calibration",
                                      line={"width": 1, "color": "#9467bd", "dash": "dot"}))
+            for i, lv in enumerate(others):
+                if "heading" in lv:
+                    change = heading_difference(lv["heading"], j["heading_logged"])
+                    head_traces.append(_line(t[k], _unwrapped_breaks(change[k]),
+                                             f"heading change: candidate {lv['label']} - the log's calibration",
+                                             visible="legendonly", line={"width": 1, "dash": "dot",
+                                                                         "color": _LEVEL_COLOURS[i % len(
+                                                                             _LEVEL_COLOURS)]}))
         head_fig = _figure(head_traces, f"compass {number}: tilt-compensated heading against the attitude's yaw "
                            f"({j.get('yaw_source') or 'no attitude'})", xaxis={"title": {"text": "time (s)"}},
                            yaxis={"title": {"text": "deg"}})
@@ -461,6 +571,128 @@ class FlightLog:
         return f"{stem}-{which}{suffix}", exp.text
 
 
+#: The usual names of a table's attitude columns (yaw, pitch, roll in degrees) and time column (s), compared in
+#: lower case with a unit in brackets dropped (``Yaw (deg)`` is ``yaw``).
+ATTITUDE_NAMES = (("yaw_deg", "pitch_deg", "roll_deg"), ("yaw", "pitch", "roll"), ("heading", "pitch", "roll"))
+TIME_NAMES = ("time_s", "time", "t", "timestamp_s", "seconds", "time_sec")
+
+
+@dataclass
+class TableInput:
+    """A table reviewed as a one-compass flight: how it is read (the ``trimag fit`` flags), the rows kept, the
+    flight built of its columns, and what it cannot give."""
+
+    log: Any
+    samples: Any
+    rows: NDArray[np.int64]
+    units: str | None
+    columns: str | None
+    attitude_columns: str | None
+    notes: list[str] = field(default_factory=list)
+
+
+def _read_table(path: Path, fmt: str | None, units: str | None, columns: str | None, attitude_columns: str | None,
+                time_column: str | None) -> TableInput:
+    """A table ``trimag fit`` reads, with its attitude (``attitude_columns`` or the usual names), time (``time_column``
+    or the usual names; else the row number) and motor columns, as a :class:`~trimag.io.logs.VehicleLog` of one
+    compass (the readings as recorded: no calibration undone) and the :class:`~trimag.io.Samples` the figures use."""
+    from ..io import read_samples
+    from ..io.logs.base import Channel, MagnetometerStream, VehicleLog
+    from ..units import normalise_unit
+    from ._firmware import MOTOR_COLUMN_NAMES, _plain_name
+
+    samples = read_samples(path, fmt=fmt, columns=columns)
+    table = samples.table
+    plain = {_plain_name(c): str(c) for c in reversed(list(table.columns))}
+    notes: list[str] = []
+
+    def given(names: str, flag: str) -> list[str]:
+        out = [n.strip() for n in names.split(",")]
+        missing = [n for n in out if n not in table.columns]
+        if missing:
+            raise TrimagInputError(f"{path}: no column {missing[0]!r} (named by {flag}); the columns are "
+                                   f"{', '.join(map(str, table.columns))}")
+        return out
+
+    if attitude_columns:
+        att = given(attitude_columns, "--attitude-columns")
+        if len(att) != 3:
+            raise TrimagInputError(f"--attitude-columns takes YAW,PITCH,ROLL; got {attitude_columns!r}")
+    else:
+        att = next(([plain[n] for n in names] for names in ATTITUDE_NAMES if all(n in plain for n in names)), [])
+    if time_column:
+        time_name: str | None = given(time_column, "--time-column")[0]
+    else:
+        time_name = next((plain[n] for n in TIME_NAMES if n in plain), None)
+    unit = normalise_unit(units) if units else "unknown"
+    if unit == "unknown":
+        notes.append("the table's unit is not given: the firmware's parameters need it (--units mG, G, uT or nT)")
+    n = len(table)
+    if time_name is not None:
+        t = table[time_name].to_numpy(dtype=float)
+        if not (np.isfinite(t).all() and np.all(np.diff(t) >= 0)):
+            raise TrimagInputError(f"{path}: the time column {time_name!r} must be finite and not go back (seconds); "
+                                   "name another with --time-column")
+    else:
+        t = np.arange(n, dtype=float)
+        notes.append("no time column (time_s, time, t, ...; --time-column NAME): the time axis is the row number")
+    field_ = np.asarray(samples.field, dtype=np.float64)
+    name = ",".join(map(str, samples.columns))
+    mag = MagnetometerStream(name, 0, t, field_, field_, unit,
+                             ["a table: no onboard calibration to undo (the readings as recorded)"])
+    log = VehicleLog(str(path), "table", [mag])
+    extra: dict[str, Any] = {"time_s": t}
+    extra.update({f"mag_logged_{a}": field_[:, k] for k, a in enumerate("xyz")})
+    if att:
+        angles = table[att].to_numpy(dtype=float)
+        log.attitude = Channel(t, angles, "deg", f"the table's {','.join(att)}")
+        extra.update({"yaw_deg": np.mod(angles[:, 0], 360.0), "pitch_deg": angles[:, 1], "roll_deg": angles[:, 2]})
+    for kind, own in (("current", "current_A"), ("throttle", "throttle")):
+        col = next((plain[n] for n in MOTOR_COLUMN_NAMES[kind] if n in plain), None)
+        if col is not None:
+            log.channels[own] = Channel(t, table[col].to_numpy(dtype=float), "A" if kind == "current" else "", col)
+            extra.setdefault(own, table[col].to_numpy(dtype=float))
+    shown = table.drop(columns=[c for c in extra if c in table.columns]).assign(**extra)
+    info: dict[str, Any] = {"unit": unit, "has_attitude": bool(att),
+                            "attitude_source": log.attitude.source if log.attitude is not None else None,
+            "parameters": {}, "format": "table"}
+    kept = dataclasses.replace(samples, table=shown, log_info=info)
+    return TableInput(log, kept, np.asarray(table.index, dtype=np.int64), units, columns,
+                      ",".join(att) if att else None, notes)
+
+
+#: The colours of the candidates the fit did not choose (the chosen one is "this fit", blue).
+_LEVEL_COLOURS = ("#ff7f0e", "#17becf", "#bcbd22", "#8c564b", "#e377c2", "#7f7f7f", "#2ca02c", "#9467bd")
+
+
+def _level_candidates(cal: Calibration, raw: NDArray[np.float64], table: Any) -> list[dict[str, Any]]:
+    """Each level's candidate of the fit (a row of ``diagnostics["firmware"]["levels"]``): its label (level and
+    motor term), whether it was chosen, and the field it makes of ``raw`` (:func:`trimag.vehicle.firmware.
+    candidate_field`); a candidate whose motor channel the table lacks is left out."""
+    from ..vehicle.firmware import candidate_field
+
+    fw = cal.diagnostics.get("firmware") or {}
+    chosen_channel = fw.get("motor_channel")
+    out = []
+    for row in fw.get("levels") or []:
+        spec = row.get("compass")
+        if not spec:  # a calibration written before the level table held each candidate's parameters
+            continue
+        kind = spec.get("motor_type")
+        column = None
+        if kind is not None:
+            column = chosen_channel if chosen_channel and spec.get("motor_type") == fw.get("motor_type") else \
+                {"current": "current_A", "throttle": "throttle"}.get(kind)
+            if column not in table.columns:
+                continue
+        values = None if column is None else table[column].to_numpy(dtype=float)
+        label = str(row["level"]) + (f" + {row['motor']}" if row.get("motor") else "")
+        out.append({"label": label, "chosen": bool(row.get("chosen")),
+                    "field": candidate_field(spec, raw, cal.units, motor_values=values,
+                                             input_orientation=fw.get("input_orientation"))})
+    return out
+
+
 def _parameters(cal: Calibration, target: str, number: int) -> dict[str, float] | str:
     """The parameters ``trimag export`` writes for ``cal`` (or why it will not)."""
     from ..io.export import export_calibration
@@ -475,8 +707,8 @@ def _verdict(result: CompassResult | None, stats: dict[str, Any]) -> str:
     """One line: what to do with this compass."""
     if result is None:
         return "not fitted yet"
-    if result.calibration is None:
-        return f"keep the log's calibration: {result.error}"
+    if result.calibration is None:  # exit 2: something the user gives is missing; else the data refused one
+        return f"not fitted: {result.error}" if result.exit_code == 2 else f"keep the log's calibration: {result.error}"
     cal = result.calibration
     fw = cal.diagnostics.get("firmware") or {}
     unit = fw.get("unit", cal.units)
@@ -505,14 +737,22 @@ def report_html(review: FlightLog, numbers: Sequence[int] | None = None, title: 
         r = review.compass_result(n)
         for name, fig in r["figures"].items():
             figures.append((f"compass{n}-{name}", fig))
+        vector = {v["label"]: v for v in r["statistics"].get("levels") or []}
+
+        def rms(row: dict[str, Any], part: str, vector: dict[str, Any] = vector) -> str:
+            value = vector.get(str(row["level"]) + (f" + {row['motor']}" if row.get("motor") else ""), {}).get(part)
+            return "-" if value is None else f"{value:.4g}"
+
         rows = "".join(
             f"<tr><td>{row['level']}</td><td>{row['motor'] or '-'}</td><td>{row['n_params']}</td>"
             f"<td>{row['rms']:.4g}</td><td>{row['heldout_rms']:.4g}</td>"
             f"<td>{'all' if row['identified'] else row.get('n_identified')}</td>"
-            f"<td>{'ok' if row['within_limits'] else 'outside'}</td><td>{'&larr;' if row['chosen'] else ''}</td></tr>"
+            f"<td>{'ok' if row['within_limits'] else 'outside'}</td><td>{rms(row, 'fitted_rms')}</td>"
+            f"<td>{rms(row, 'held_out_rms')}</td><td>{'&larr;' if row['chosen'] else ''}</td></tr>"
             for row in r.get("levels") or [])
         table = (f"<table><tr><th>level</th><th>motor</th><th>params</th><th>rms</th><th>held-out</th>"
-                 f"<th>identified</th><th>limits</th><th>chosen</th></tr>{rows}</table>" if rows else "")
+                 f"<th>identified</th><th>limits</th><th>vector RMS, fitted rows</th><th>held-out rows</th>"
+                 f"<th>chosen</th></tr>{rows}</table>" if rows else "")
         sections.append(
             f"<h2>compass {n}</h2><p class='verdict'>{_html.escape(str(r['verdict']))}</p>{table}"
             f"<pre>{_html.escape(chr(10).join(r.get('messages') or []))}</pre>"
@@ -533,6 +773,7 @@ pre{{white-space:pre-wrap;font-size:85%}}</style>
 <p>{_html.escape(str(overview['format']))} {_html.escape(str(overview['vehicle'] or ''))}; target {review.target};
 fitted {choice.get('start_s', 0):.1f}..{choice.get('stop_s', 0):.1f} s, level {choice.get('level')}, motor
 {choice.get('motor')}</p>
+{''.join(f"<p class='unavailable'>{_html.escape(line)}</p>" for line in overview['unavailable'])}
 <table><tr><th>compass</th><th>name</th><th>device id</th><th>samples</th><th>rate (Hz)</th><th>gaps</th>
 <th>unit</th></tr>{compass_rows}</table>
 <div class='fig' id='flight'></div>

@@ -66,20 +66,28 @@ def _html_report(cal: Calibration, samples: Samples, req: FitRequest) -> Path:
     from ._flight import CompassResult, FlightLog, report_html
 
     info = samples.log_info
-    if info is None or req.target is None or info.get("compass") is None:
-        raise TrimagInputError("an HTML report (report.html) shows a flight's firmware fit: give an autopilot log "
-                               "and `target`; for other data write report.png")
-    review = FlightLog(req.input.path, fmt=req.input.fmt, target=req.target, igrf_spec=req.reference.igrf_spec)
-    number = int(info["compass"])
-    n = len(review.log.choose(number).time_s)
-    rows = req.input.rows or f"0:{n}"
-    start, stop = (int(x) if x.strip() else None for x in rows.split(":"))
+    if req.target is None or (info is not None and info.get("compass") is None):
+        raise TrimagInputError("an HTML report (report.html) shows a flight's firmware fit: give an autopilot log, or "
+                               "a table with its attitude columns, and `target`; for other data write report.png")
+    review = FlightLog(req.input.path, fmt=req.input.fmt, target=req.target, igrf_spec=req.reference.igrf_spec,
+                       units=req.input.units, columns=req.input.columns,
+                       attitude_columns=req.attitude.attitude_columns, time_column=req.attitude.time_column)
+    number = 1 if info is None else int(info["compass"])
     t = review.log.choose(number).time_s
-    start_s = float(t[start or 0]) if n else 0.0
-    stop_s = float(t[min(stop if stop is not None else n, n) - 1]) if n else 0.0
+    n = len(t)
+    rows = req.input.rows or ""
+    start, stop = (int(x) if x.strip() else None for x in (rows.split(":") if rows else ("", "")))
+    first, end = start or 0, min(stop if stop is not None else n, n)
+    fitted = f"{first}:{end}"
+    if review.table_input is not None:  # the file's data rows -> the kept rows' positions
+        kept = review.table_input.rows
+        fitted = f"{first}:{stop if stop is not None else int(kept[-1]) + 1}"
+        first = int(np.searchsorted(kept, first))
+        end = int(np.searchsorted(kept, stop)) if stop is not None else n
+    start_s = float(t[min(first, n - 1)]) if n else 0.0
+    stop_s = float(t[max(end - 1, 0)]) if n else 0.0
     fw = cal.diagnostics.get("firmware") or {}
-    review.results[number] = CompassResult(number, cal, rows=f"{start or 0}:{min(stop if stop is not None else n, n)}",
-                                           command="")
+    review.results[number] = CompassResult(number, cal, rows=fitted, command="")
     review.choice = {"start_s": start_s, "stop_s": stop_s, "level": fw.get("level", req.level or "auto"),
                      "motor": fw.get("motor_type") or req.motor or "auto"}
     title = f"trimag fit of {Path(req.input.path).name}: compass {number}, {req.target} level {fw.get('level')}"

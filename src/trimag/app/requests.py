@@ -275,7 +275,7 @@ class SimulateRequest:
 
 @dataclass(frozen=True)
 class ReviewRequest:
-    """One flight review (``trimag review``, :func:`trimag.live.review.run_review`): the autopilot ``log`` (its
+    """One flight review (``trimag review``, :func:`trimag.live.review.run_review`): the autopilot ``log`` or table (its
     format ``fmt`` when the extension does not say), fitted for ``target`` (default: the log's own firmware) with
     the field at ``igrf_spec`` when the log has no GPS fix, served on ``port`` (127.0.0.1 only; 0 picks a free one),
     the browser opened unless ``open_browser`` is false."""
@@ -286,6 +286,11 @@ class ReviewRequest:
     igrf_spec: str | None = None
     port: int = 8765
     open_browser: bool = True
+    #: a table's unit and columns (``fit``'s ``--units``, ``--columns``, ``--attitude-columns``) and time column (s)
+    units: str | None = None
+    columns: str | None = None
+    attitude_columns: str | None = None
+    time_column: str | None = None
 
 
 #: The sources of ``trimag live`` (the :class:`LiveRequest` field that names each).

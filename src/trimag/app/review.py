@@ -36,13 +36,17 @@ class FlightReview(FlightLog):
     Parameters
     ----------
     path : str or Path
-        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``).
+        A log ``trimag fit`` reads (DataFlash ``.bin``/``.log``, ``.tlog``, ULog, ``.px4log``), or a table (CSV,
+        ...) with its attitude columns: one compass, fitted as ``trimag fit FILE --attitude-columns ...``.
     fmt : str, optional
         The log's format when its extension does not say.
     target : str, optional
         ``"ardupilot"`` or ``"px4"``; default: the log's own firmware.
     igrf_spec : str, optional
         ``LAT,LON,ALT_M,DATE`` for a log without a GPS fix.
+    units, columns, attitude_columns, time_column : str, optional
+        A table's unit and columns (``trimag fit``'s ``--units``, ``--columns``, ``--attitude-columns``; the time
+        column in seconds): by default the usual names (yaw/pitch/roll, time_s/time/t).
     """
 
     def fit(self, start_s: float | None = None, stop_s: float | None = None, level: str = "auto",
@@ -73,6 +77,12 @@ class FlightReview(FlightLog):
                          f"motor {motor})")
             req = self.request(number, start, stop, level, motor, yaw_source)
             result = CompassResult(number, None, rows=str(req.input.rows), command=self.command(req))
+            if not self.target:  # shown, not fitted: the firmware is the user's to name
+                result.error = (f"error: a {self.log.format} names no firmware whose parameters to fit: give --target "
+                                "ardupilot or --target px4")
+                result.exit_code = 2
+                results[number] = result
+                continue
             try:
                 fitted = fit_file(req)
             except IdentifiabilityError as exc:

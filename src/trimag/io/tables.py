@@ -587,6 +587,7 @@ def _read_vehicle_log(p: Path, kind: str, sensor: SensorChoice) -> pd.DataFrame:
         "vehicle": log.vehicle,
         "parameters": dict(log.parameters),
         "yaw_sources": [c for c in ("yaw_gps_deg", "yaw_gsf_deg") if c in df.columns],
+        "attitude_sources": {name: ch.source for name, ch in log.attitudes.items() if "yaw_dcm_deg" in df.columns},
         # the gyroscope (read again for the gyro-aided fit: a DataFlash log's IMU only then, docs/method-gyro.md)
         "gyro": log.gyro.source if log.gyro is not None else ("IMU (read on request)" if kind == "dataflash" else None),
     }

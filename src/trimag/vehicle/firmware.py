@@ -99,6 +99,7 @@ __all__ = [
     "ORIENTATION_TOLERANCE_DEG",
     "FirmwareFit",
     "KeepTheLogs",
+    "candidate_field",
     "firmware_calibration",
     "fit_firmware",
     "level_table",
@@ -137,7 +138,8 @@ class FirmwareFit:
         The level chosen (or asked for).
     table : list of dict
         One row per level tried: ``level``, ``motor``, ``n_params``, ``rms``, ``heldout_rms``, ``identified``,
-        ``within_limits``, ``at_limit`` (parameter names), ``chosen``, ``note``.
+        ``within_limits``, ``at_limit`` (parameter names), ``chosen``, ``note``, ``compass`` (the level's
+        candidate parameters, :meth:`~trimag.models.firmware.FirmwareCompass.as_dict`: :func:`candidate_field`).
     param_std : dict
         Standard deviation of each fitted firmware parameter (by the compass's own name: ``instance``), firmware
         unit.
@@ -1034,7 +1036,7 @@ def _run_levels(
                           "n_identified": cand.n_identified,
                           "not_identified": cand.weak, "within_limits": not cand.violations,
                           "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False,
-                          **_excitation_row(cand)})
+                          **_excitation_row(cand), "compass": cand.compass.as_dict()})
     return table, candidates
 
 
@@ -1264,6 +1266,44 @@ def level_table(table: list[dict[str, Any]], unit: str) -> str:
                  f"a direction below {DIRECTION_EXCITATION_MIN:g} is not identified, offsets below {EXCITATION_MIN:g} "
                  "are not written, whatever the residual)")
     return "\n".join(lines)
+
+
+def candidate_field(compass: Mapping[str, Any], raw: ArrayLike, units: str, *,
+                    motor_values: ArrayLike | None = None, input_orientation: int | None = None) -> NDArray[np.float64]:
+    """The field a level's candidate (a row's ``compass`` of the level table) makes of the raw readings, as the
+    calibration of the chosen one does (:func:`firmware_calibration`: ``W (v - b) + m x``).
+
+    Parameters
+    ----------
+    compass : mapping
+        A candidate's parameters (:meth:`~trimag.models.firmware.FirmwareCompass.as_dict`).
+    raw : array_like, shape (N, 3)
+        The raw readings (the log's calibration undone), in ``units``.
+    units : str
+        The readings' unit; the field is given in it too.
+    motor_values : array_like, shape (N,), optional
+        The motor channel of the candidate's ``motor_type`` (A for current, 0..1 for throttle); NaN where missing.
+    input_orientation : int, optional
+        The rotation already applied to the raw input (the calibration's ``firmware["input_orientation"]``).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        The corrected body field, ``units``.
+    """
+    from ..models.firmware import FirmwareCompass
+
+    fc = FirmwareCompass.from_dict(compass)
+    factor = convert(1.0, fc.unit, units)
+    fr = _frame(fc.target, int(fc.orientation), input_orientation)
+    A, o, m = fc.algebra()
+    v = np.asarray(raw, dtype=np.float64) / factor
+    out = (v @ fr.P_u.T + o) @ A.T
+    if fc.motor_type is not None:
+        if motor_values is None:
+            raise TrimagInputError(f"the candidate has a {fc.motor_type} term: give its motor channel")
+        out = out + np.asarray(motor_values, dtype=np.float64)[:, None] * m
+    return np.asarray(out @ fr.P_h * factor, dtype=np.float64)
 
 
 def firmware_calibration(

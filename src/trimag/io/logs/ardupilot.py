@@ -34,10 +34,10 @@ __all__ = ["onboard_matrix", "read_ardupilot", "undo_ardupilot"]
 _SCALE_MAX = 1.5  # COMPASS_MAX_SCALE_FACTOR (AP_Compass.h)
 
 _DF_TYPES = ["MAG", "MAG2", "MAG3", "ATT", "BAT", "CURR", "RCOU", "GPS", "PARM", "CTUN", "FMTU", "UNIT", "MULT", "MSG",
-             "XKY0"]
+             "XKY0", "AHR2", "BARO"]
 _TLOG_TYPES = ["RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "BATTERY_STATUS", "SYS_STATUS",
                "GLOBAL_POSITION_INT", "GPS_RAW_INT", "PARAM_VALUE", "SERVO_OUTPUT_RAW", "VFR_HUD",
-               "SCALED_PRESSURE"]
+               "SCALED_PRESSURE", "AHRS2"]
 
 
 def _suffix(instance: int) -> str:
@@ -307,6 +307,20 @@ def _dataflash_channels(log: VehicleLog, rows: Columns, meta: Meta) -> None:
     if _n(att):
         assert att is not None
         log.attitude = Channel(_time_s(att), _array(att, ["Yaw", "Pitch", "Roll"]), "deg", "ATT")
+    dcm = rows.get("AHR2")  # the DCM's attitude (AP_AHRS_DCM; its yaw fuses the primary compass)
+    if _n(dcm) and dcm is not None and {"Yaw", "Pitch", "Roll"} <= set(dcm):
+        log.attitudes["AHR2"] = Channel(_time_s(dcm), _array(dcm, ["Yaw", "Pitch", "Roll"]), "deg", "AHR2 (DCM)")
+    baro = rows.get("BARO")
+    if _n(baro) and baro is not None and "Alt" in baro:
+        first = _take(baro, np.asarray(baro["I"]).astype(int) == 0) if "I" in baro else baro
+        if _n(first):
+            log.altitude = Channel(_time_s(first), _array(first, ["Alt"])[:, 0], "m",
+                                   "BARO.Alt (m above the barometer's ground reading)")
+    gps = rows.get("GPS")
+    if log.altitude is None and _n(gps) and gps is not None and {"Alt", "Status"} <= set(gps):
+        fixed = _take(gps, np.asarray(gps["Status"]) >= 3)
+        if _n(fixed):
+            log.altitude = Channel(_time_s(fixed), _array(fixed, ["Alt"])[:, 0], "m", "GPS.Alt (m above sea level)")
     bat_name = "BAT" if _n(rows.get("BAT")) else "CURR"
     bat = rows.get(bat_name)
     if _n(bat):
@@ -381,7 +395,14 @@ def _tlog(path: Path, rows: Columns, params: dict[str, float]) -> VehicleLog:
     if _n(hud) and hud is not None:
         log.channels["throttle"] = Channel(_time_s(hud, receipt=True), _array(hud, ["throttle"])[:, 0], "%",
                                            "VFR_HUD.throttle")
+    dcm = rows.get("AHRS2")  # ArduPilot's DCM (the secondary attitude), radians
+    if _n(dcm) and dcm is not None:
+        log.attitudes["AHR2"] = Channel(_time_s(dcm, receipt=True), np.degrees(_array(dcm, ["yaw", "pitch", "roll"])),
+                                        "deg", "AHRS2 (DCM)")
     pos = rows.get("GLOBAL_POSITION_INT")
+    if _n(pos) and pos is not None and "relative_alt" in pos:
+        log.altitude = Channel(_time_s(pos, receipt=True), _array(pos, ["relative_alt"])[:, 0] * 1e-3, "m",
+                               "GLOBAL_POSITION_INT.relative_alt (m above home)")
     if _n(pos) and pos is not None:
         good = np.flatnonzero(np.asarray(pos["lat"]) != 0)
         if len(good):

@@ -195,6 +195,11 @@ class VehicleLog:
     vehicle: str | None = None
     #: other yaw sources than the attitude's (``"XKY0.YC"``: EKF-GSF yaw; ``"GPS.Yaw"``: a GPS heading), degrees
     yaw_sources: dict[str, Channel] = field(default_factory=dict)
+    #: other whole attitude estimates than :attr:`attitude` (``"AHR2"``: ArduPilot's DCM), yaw, pitch, roll in
+    #: degrees; :meth:`table` gives each as columns (:data:`ATTITUDE_COLUMNS`)
+    attitudes: dict[str, Channel] = field(default_factory=dict)
+    #: the vehicle's altitude, m (shown with the flight; not a regressor): its ``source`` says above what
+    altitude: Channel | None = None
 
     def choose(self, sensor: SensorChoice = None) -> MagnetometerStream:
         """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.
@@ -280,23 +285,27 @@ class VehicleLog:
         for k, a in enumerate("xyz"):
             cols[f"mag_logged_{a}"] = mag.logged[:, k]
         outside: dict[str, int] = {}
-        at = self.attitude
-        ta = np.zeros(0)
-        if at is not None:
+        estimates = [("attitude", self.attitude, ("yaw_deg", "pitch_deg", "roll_deg"))]
+        estimates += [(name, ch, ATTITUDE_COLUMNS[name]) for name, ch in self.attitudes.items()
+                      if name in ATTITUDE_COLUMNS]
+        for label, at, names in estimates:
+            if at is None:
+                continue
             good = np.isfinite(at.time_s) & np.isfinite(at.values).all(axis=1)
             order = np.argsort(at.time_s[good], kind="stable")
             ta, keep = np.unique(at.time_s[good][order], return_index=True)
-            ang = at.values[good][order][keep]
-        if at is not None and len(ta) >= 2:
-            rot = Rotation.from_euler("ZYX", ang, degrees=True)
+            if len(ta) < 2:
+                continue
+            rot = Rotation.from_euler("ZYX", at.values[good][order][keep], degrees=True)
             inside = (t >= ta[0]) & (t <= ta[-1])
             ypr = np.full((len(t), 3), np.nan)
             if inside.any():
                 ypr[inside] = Slerp(ta, rot)(t[inside]).as_euler("ZYX", degrees=True)
             ypr[:, 0] = np.mod(ypr[:, 0], 360.0)
-            cols["yaw_deg"], cols["pitch_deg"], cols["roll_deg"] = ypr[:, 0], ypr[:, 1], ypr[:, 2]
+            for k, name in enumerate(names):
+                cols[name] = ypr[:, k]
             if (~inside).sum():
-                outside["attitude"] = int((~inside).sum())
+                outside[label] = int((~inside).sum())
         outside.update(_yaw_columns(self.yaw_sources, t, cols))
         for name, ch in self.channels.items():
             if len(ch.time_s) < 2:
@@ -335,6 +344,8 @@ class VehicleLog:
         return lines
 
 
+#: The table's columns (yaw, pitch, roll) of each attitude estimate of :attr:`VehicleLog.attitudes`.
+ATTITUDE_COLUMNS = {"AHR2": ("yaw_dcm_deg", "pitch_dcm_deg", "roll_dcm_deg")}
 #: The table's column of each yaw source of :attr:`VehicleLog.yaw_sources` (a second value column: its sigma).
 YAW_COLUMNS = {"XKY0.YC": ("yaw_gsf_deg", "yaw_gsf_sigma_deg"), "GPS.Yaw": ("yaw_gps_deg", None)}
 

@@ -294,6 +294,14 @@ def _ulog_channels(log: VehicleLog, data: _Topics) -> None:
         ok = np.linalg.norm(q, axis=1) > 0.5
         ypr = Rotation.from_quat(q[ok][:, [1, 2, 3, 0]]).as_euler("ZYX", degrees=True)
         log.attitude = Channel(att["timestamp"][ok] * 1e-6, ypr, "deg", "vehicle_attitude.q")
+    for topic, key, sign, what in (("vehicle_global_position", "alt", 1.0, "m above sea level"),
+                                   ("vehicle_local_position", "z", -1.0, "m above the origin"),
+                                   ("vehicle_air_data", "baro_alt_meter", 1.0, "m, barometric")):
+        pos = data.get((topic, 0))
+        if pos is not None and key in pos:
+            log.altitude = Channel(pos["timestamp"] * 1e-6, sign * pos[key].astype(np.float64), "m",
+                                   f"{topic}.{key} ({what})")
+            break
     bat = data.get(("battery_status", 0))
     if bat is not None:
         log.channels["current_A"] = Channel(bat["timestamp"] * 1e-6, bat["current_a"].astype(np.float64), "A",
@@ -337,7 +345,7 @@ def read_px4log(path: Path) -> VehicleLog:
     rows: dict[str, list[dict[str, Any]]] = {}
     params: dict[str, float] = {}
     now_s = float("nan")
-    for msg in mavlink_messages(path, ["TIME", "IMU", "IMU1", "IMU2", "ATT", "BATT", "GPS", "PARM", "OUT0"]):
+    for msg in mavlink_messages(path, ["TIME", "IMU", "IMU1", "IMU2", "ATT", "BATT", "GPS", "PARM", "OUT0", "GPOS"]):
         name = msg.get_type()
         if name == "PARM":
             params.setdefault(str(msg.Name), float(msg.Value))
@@ -376,6 +384,9 @@ def read_px4log(path: Path) -> VehicleLog:
     if rows.get("ATT"):
         att = rows["ATT"]
         log.attitude = Channel(arr(att, ["_t"])[:, 0], np.degrees(arr(att, ["Yaw", "Pitch", "Roll"])), "deg", "ATT")
+    if rows.get("GPOS") and "Alt" in rows["GPOS"][0]:
+        log.altitude = Channel(arr(rows["GPOS"], ["_t"])[:, 0], arr(rows["GPOS"], ["Alt"])[:, 0], "m",
+                               "GPOS.Alt (m, the position estimate)")
     if rows.get("BATT"):
         b = rows["BATT"]
         log.channels["current_A"] = Channel(arr(b, ["_t"])[:, 0], arr(b, ["C"])[:, 0], "A", "BATT.C")

@@ -60,14 +60,21 @@ function compassTable(results) {
     "</table>";
 }
 
-function levelsTable(levels) {
+function levelsTable(levels, stats) {
   if (!levels) return "";
-  const rows = levels.map((l) => `<tr${l.chosen ? ' style="font-weight:600"' : ""}><td>${text(l.level)}</td>` +
-    `<td>${text(l.motor || "-")}</td><td class="num">${l.n_params}</td><td class="num">${num(l.rms)}</td>` +
-    `<td class="num">${num(l.heldout_rms)}</td><td>${l.identified ? "all" : `${l.n_identified} of ${l.n_params}`}</td>` +
-    `<td>${l.within_limits ? "ok" : "outside"}</td><td>${l.chosen ? "&larr; chosen" : ""}</td></tr>`).join("");
+  // each candidate's vector RMS against the expected field (the server's statistics), by its label
+  const vector = Object.fromEntries(((stats && stats.levels) || []).map((v) => [v.label, v]));
+  const rows = levels.map((l) => {
+    const v = vector[l.level + (l.motor ? ` + ${l.motor}` : "")] || {};
+    return `<tr${l.chosen ? ' style="font-weight:600"' : ""}><td>${text(l.level)}</td>` +
+      `<td>${text(l.motor || "-")}</td><td class="num">${l.n_params}</td><td class="num">${num(l.rms)}</td>` +
+      `<td class="num">${num(l.heldout_rms)}</td><td>${l.identified ? "all" : `${l.n_identified} of ${l.n_params}`}</td>` +
+      `<td>${l.within_limits ? "ok" : "outside"}</td>` +
+      `<td class="num">${num(v.fitted_rms)} / ${num(v.held_out_rms)}</td><td>${l.chosen ? "&larr;" : ""}</td></tr>`;
+  }).join("");
   return "<table><tr><th>level</th><th>motor</th><th>params</th><th>rms</th><th>held-out</th><th>identified</th>" +
-    `<th>limits</th><th></th></tr>${rows}</table>`;
+    `<th>limits</th><th title="against the expected field (IGRF rotated by the attitude): on the fitted rows / on ` +
+    `the held-out rows">vs expected</th><th>chosen</th></tr>${rows}</table>`;
 }
 
 function checks(r) {
@@ -97,7 +104,7 @@ function render(results) {
   const holder = $("per-compass");
   holder.style.gridTemplateColumns = `repeat(${Math.max(1, results.compasses.length)}, minmax(0, 1fr))`;
   holder.innerHTML = results.compasses.map((r) => `<section id="compass-${r.number}"><h2>compass ${r.number}</h2>` +
-    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>${checks(r)}${levelsTable(r.levels)}` +
+    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>${checks(r)}${levelsTable(r.levels, r.statistics)}` +
     `<h3>the same fit on the command line</h3><pre>${text(r.command)}</pre>` +
     `<h3>what the fit said</h3><pre>${text((r.messages || []).join("\n") || r.error || "")}</pre>` +
     Object.keys(r.figures).map((name) => `<div class="fig" id="fig-${r.number}-${name}"></div>`).join("") +
@@ -151,14 +158,29 @@ async function fit() {
 }
 
 async function init() {
-  overview = await ask("overview");
+  for (;;) {  // the server reads the log first: the page says how far it is (GET /overview answers 503 meanwhile)
+    const r = await fetch("overview", { cache: "no-store" });
+    const body = await r.json().catch(() => ({}));
+    if (r.ok) { overview = body; break; }
+    if (r.status !== 503) throw new Error(body.error || `HTTP ${r.status}`);
+    document.body.dataset.reading = "1";
+    $("progress").textContent = body.progress || "reading the log";
+    await new Promise((resolve) => setTimeout(resolve, 300));
+  }
+  document.body.dataset.reading = "0";
   $("log").textContent = `${overview.path}: ${overview.format}${overview.vehicle ? ", " + overview.vehicle : ""}; ` +
     `parameters for ${overview.target}; ${overview.compasses.length} compass(es)`;
   $("level").innerHTML = overview.levels.map((l) => `<option>${text(l)}</option>`).join("");
   $("motor").innerHTML = overview.motors.map((m) => `<option>${text(m)}</option>`).join("");
-  $("yaw").innerHTML = overview.yaw_choices.map((y) => `<option>${text(y)}</option>`).join("");
+  const yawLabels = { auto: "auto", attitude: `EKF (${overview.attitude_source})`, gsf: "EKF-GSF yaw (XKY0)",
+                      gps: "GPS heading", dcm: `DCM (${(overview.attitude_sources || {}).AHR2 || "AHR2"})` };
+  $("yaw").innerHTML = overview.yaw_choices.map((y) => `<option value="${text(y)}">${text(yawLabels[y] || y)}</option>`)
+    .join("");
   $("attitude").textContent = `(attitude: ${overview.attitude_source || "none"}` +
-    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")})` : ")");
+    Object.values(overview.attitude_sources || {}).map((s) => `; also ${s}`).join("") +
+    (overview.yaw_sources.length ? `; yaw also from ${overview.yaw_sources.join(", ")}` : "") +
+    (overview.altitude_source ? `; altitude: ${overview.altitude_source})` : ")");
+  $("unavailable").innerHTML = (overview.unavailable || []).map((line) => `<div>${text(line)}</div>`).join("");
   $("start").value = overview.span_s[0].toFixed(1);
   $("stop").value = overview.span_s[1].toFixed(1);
   $("compasses").innerHTML = compassTable([]);
