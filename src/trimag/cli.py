@@ -292,8 +292,11 @@ def _add_gyro_options(p: argparse.ArgumentParser) -> None:
                    help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
     g.add_argument("--gyro-file", metavar="FILE",
                    help="the gyroscope in a file of its own, with its own clock: the lag between the two is fitted "
-                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0)")
-    g.add_argument("--gyro-time-column", metavar="NAME", help="time column (s) of --gyro-file (default: --time-column)")
+                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0); of an NPZ "
+                        "or MAT file, --gyro-columns names its variable")
+    g.add_argument("--gyro-time-column", metavar="NAME",
+                   help="time column (s) of --gyro-file (default: --time-column); of an NPZ or MAT file, its time "
+                        "variable (default: its sampling_rate variable, from 0 s)")
 
 
 def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
@@ -455,6 +458,7 @@ def _add_batch(sub: Any) -> None:
     _add_attitude_options(p)
     _add_time_options(p.add_argument_group("time (eddy-current terms, attitudes from a second file)"))
     _add_fit_steps(p)
+    _add_gyro_options(p)
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits for every file (as fit --policy); a rejected calibration exits 4")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -484,6 +488,7 @@ def _add_live(sub: Any) -> None:
     g = p.add_argument_group("data")
     g.add_argument("--format", dest="fmt", help="replay: the log's format (default: from the extension)")
     g.add_argument("--columns", help="x,y,z column names (replay: also 0-based indices)")
+    g.add_argument("--var", help="replay of an NPZ or MAT file: the variable holding the field")
     g.add_argument("--sensor", metavar="N|NAME", help="replay of an autopilot log: which magnetometer")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (default: the source's own, or unknown)")
     g.add_argument("--reference", type=float, metavar="F", help="field magnitude in the data's unit, when known")
@@ -792,6 +797,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
                                     units=src.units)
+        _say_sensor(r, args)
         return _print_applied(r, args, "compensated", "nT", "could not be compensated (missing values or a segment of "
                               "one row); their compensated cells are empty")
 
@@ -826,6 +832,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
 
 
 def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
+    _say_sensor(r, args)
     _say(f"{r['n_samples']} samples, {r['n_segments']} segment(s), band {r['band_hz'][0]:g}-{r['band_hz'][1]:g} Hz "
          f"at {r['rate_hz']:g} Hz; scalar {r['scalar_column']}", args)
     _say(f"{'segment':>8}{'t0 [s]':>10}{'t1 [s]':>10}{'std before':>12}{'std after':>12}{'ratio':>9}   [nT]", args)
@@ -1084,6 +1091,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     _register_flags(parser)
     args, unknown = parser.parse_known_args(argv)
+    if args.command in ("live", "batch") and getattr(args, "model", None) == "tolles-lawson":
+        from .app.tolles_lawson import not_fitted_by
+
+        _err(f"error: {not_fitted_by(args.command)}")  # before its flags, which these commands do not have
+        return EXIT_INPUT
     if unknown and args.command != "reproduce":
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.extra_args = unknown
