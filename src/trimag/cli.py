@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import re
 import sys
@@ -140,8 +141,20 @@ def _short(text: str) -> str:
     return f"{text[:head]} ... [{len(text) - head - tail} more characters] ... {text[-tail:]}"
 
 
-def _err(msg: str) -> None:
-    sys.stderr.write(f"trimag: {_short(_printable(_as_flags(msg), lines=False))}\n")
+#: the longest line of a refusal's detail (docs/cli.md, "Errors"); a longer one is wrapped
+MAX_DETAIL_CHARS = 120
+
+
+def _err(msg: str, details: Sequence[str] = ()) -> None:
+    """``msg`` as one line (``trimag: ...``), then each of ``details`` indented by two spaces, wrapped within
+    :data:`MAX_DETAIL_CHARS` (its continuation lines by four)."""
+    import textwrap
+
+    lines = [f"trimag: {_short(_printable(_as_flags(msg), lines=False))}"]
+    for detail in details:
+        lines += textwrap.wrap(_short(_printable(_as_flags(detail), lines=False)), width=MAX_DETAIL_CHARS,
+                               initial_indent="  ", subsequent_indent="    ", break_on_hyphens=False)
+    sys.stderr.write("\n".join(lines) + "\n")
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
@@ -756,8 +769,12 @@ def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
         _say(f"compasses fitted: {', '.join(map(str, result.fits))}", args)
         for line in comparison_lines(result, first.calibration.units):
             _say(line, args)
-    for msg in result.messages:
-        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    for k, msg in enumerate(result.messages):
+        if msg.startswith("warning:"):  # with the detail lines that follow it
+            details = [d[2:] for d in itertools.takewhile(lambda m: m.startswith("  "), result.messages[k + 1:])]
+            _err(msg, details)
+        elif not msg.startswith("  "):
+            _say(msg, args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
     return EXIT_POLICY if result.rejected else EXIT_OK
@@ -1142,13 +1159,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err(f"error: cannot read or write{where}: {exc.strerror or exc}")
         return EXIT_INPUT
     except IdentifiabilityError as exc:
-        _err(f"cannot identify the model: {exc}")
+        _err(f"cannot identify the model: {exc}", exc.details)
         return EXIT_IDENTIFIABILITY
     except TrimagInputError as exc:
-        _err(f"error: {exc}")
+        _err(f"error: {exc}", exc.details)
         return EXIT_INPUT
     except TrimagError as exc:
-        _err(f"error: {exc}")
+        _err(f"error: {exc}", exc.details)
         return exc.exit_code
     except KeyboardInterrupt:
         _err("interrupted")
