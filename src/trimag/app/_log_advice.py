@@ -14,11 +14,8 @@ from numpy.typing import NDArray
 
 from ..errors import IdentifiabilityError
 from ..io.logs.base import compass_labels
+from ..quality.diagnostics import PARAMETER_WORDS
 
-#: the ellipsoid model's parameter names, as a user reads them
-_WORDS = {"w11": "the x scale", "w22": "the y scale", "w33": "the vertical (z) scale", "w12": "the x-y coupling",
-          "w13": "the x-z coupling", "w23": "the y-z coupling", "hard_iron_x": "the x offset",
-          "hard_iron_y": "the y offset", "hard_iron_z": "the vertical (z) offset"}
 _CONDITION = re.compile(r"condition number|e\+\d\d")
 _WEAK = re.compile(r"poorly determined: ([a-z0-9_, ]+)")
 #: the field direction within this cone (degrees) of its mean: the vehicle stood still
@@ -41,7 +38,7 @@ def _reason(message: str, name: str, field: NDArray[np.float64]) -> str:
         return text
     weak = _WEAK.search(text)
     names = [n.strip() for n in weak.group(1).split(",")] if weak else []
-    words = [_WORDS.get(n, n) for n in names if n]
+    words = [PARAMETER_WORDS.get(n, n) for n in names if n]
     lo, hi = direction_spread_deg(field)
     return (f"the field directions stay {lo:.0f}..{hi:.0f} deg from their mean direction: the vehicle turned mostly "
             "about one axis, so a 3-D calibration cannot be identified from this log"
