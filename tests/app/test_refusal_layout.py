@@ -26,6 +26,7 @@ def _said_once(stderr: str, *phrases: str) -> None:
     ("ardusub_small.BIN", []),  # static
     ("ardusub_small.BIN", ["--sensor", "2", "--target", "ardupilot", "--igrf", SITE]),  # offsets not excited
     ("ardusub_small.BIN", ["--sensor", "all", "--target", "ardupilot", "--igrf", SITE]),  # both compasses
+    ("ardusub_small.BIN", ["--sensor", "all", "--target", "ardupilot"]),  # no GPS fix (246 characters before)
     ("pyulog_sample_log_small.ulg", ["--sensor", "all", "--target", "px4"]),  # three refusals (2 109 characters)
 ], ids=lambda v: v if isinstance(v, str) else " ".join(v))
 def test_a_log_refusal_is_one_verdict_then_short_indented_lines(log: str, more: list[str], tmp_path: Path) -> None:
