@@ -110,8 +110,8 @@ def verdict_and_details(reason: str) -> tuple[str, list[str]]:
         what = top_level_split(what, ": ")[0]
     if len(what) > _WHAT_CHARS:  # its parentheses are in the details
         what = re.sub(r"\s+", " ", _without_parentheses(what)).strip()
-    do = next((c for part in parts[1:] for c in [part, *top_level_split(part, ": ")[1:]]
-               if _IMPERATIVE.match(c) and len(c) <= _DO_CHARS), None)
+    do = next((short for part in parts[1:] for c in [part, *top_level_split(part, ": ")[1:]] if _IMPERATIVE.match(c)
+               for short in (c, top_level_split(c, ", ")[0]) if len(short) <= _DO_CHARS), None)
     if do is None and len(parts[0]) > len(what):  # "X: give Y" in the first clause
         tail = top_level_split(parts[0], ": ")[-1]
         do = tail if _IMPERATIVE.match(tail) and len(tail) <= _DO_CHARS else None
