@@ -118,3 +118,18 @@ def test_the_gyroscope_may_be_a_variable_of_another_mat_file(mat_file: tuple[Pat
                  "imu_gyr"]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "none.mat: no such file" in err, err
+
+
+def test_the_export_of_a_gyro_fit_does_not_call_it_magnitude_only(mat_file: tuple[Path, object], tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """`trimag export` of the .mat's gyro-aided calibration said "a magnitude-only calibration does not determine
+    [the orientation]": the gyro fit did find it (its nearest board rotation is printed by fit); the note says that
+    it is not exported and where it is."""
+    path, _ = mat_file
+    cal = tmp_path / "cal.json"
+    assert main(["fit", str(path), "--units", "uT", "--gyro-columns", "imu_gyr", "-q", "-o", str(cal)]) == 0
+    capsys.readouterr()
+    assert main(["export", str(cal), "--to", "ardupilot", "-o", str(tmp_path / "gyro.param")]) == 0
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert "magnitude-only" not in text and "gyro_alignment" in text, text
