@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -159,3 +160,39 @@ def heading_rms_deg(field: np.ndarray, ypr: np.ndarray, declination_deg: float) 
     down = Rotation.from_euler("ZYX", ypr, degrees=True).inv().apply([0.0, 0.0, 1.0])
     heading = tilt_compensated_heading(field, -down, declination_deg=declination_deg)
     return float(np.sqrt(np.mean(heading_difference(heading, ypr[:, 0]) ** 2)))
+
+
+#: a refusal's layout (docs/cli.md, "Errors"): its verdict line and each detail line at most this long
+MAX_VERDICT_CHARS, MAX_DETAIL_CHARS = 200, 120
+
+
+def refusal(stderr: str, *, ignore: Callable[[str], bool] = lambda line: False,
+            max_verdict: int | None = MAX_VERDICT_CHARS) -> tuple[str, list[str]]:
+    """The one refusal in ``stderr``: ``(its verdict line, the detail lines under it)``, after checking the layout
+    every refusal keeps: each line a ``trimag: `` verdict (a warning's or the refusal's, <= 200 characters) or a
+    detail under one (indented by two spaces, <= 120 characters); exactly one verdict that is not a warning; no
+    traceback. ``ignore``: lines that are not trimag's (a library's own prints); ``max_verdict=None``: a verdict of
+    any length (one that quotes a long path)."""
+    assert "Traceback" not in stderr, stderr
+    verdict, details, under = "", [], False
+    for line in stderr.rstrip("\n").split("\n"):
+        if ignore(line):
+            continue
+        if line.startswith("trimag: "):
+            assert max_verdict is None or len(line) <= max_verdict, (len(line), line)
+            under = not line.startswith("trimag: warning")
+            if under:
+                assert not verdict, stderr  # one refusal
+                verdict = line
+            continue
+        assert line.startswith("  ") and len(line) <= MAX_DETAIL_CHARS, (len(line), line, stderr)
+        if under:
+            details.append(line)
+    assert verdict, stderr
+    return verdict, details
+
+
+def refusal_text(stderr: str, max_verdict: int | None = MAX_VERDICT_CHARS) -> str:
+    """The refusal's verdict and details (:func:`refusal`) as one text, the details' wrapped lines joined."""
+    verdict, details = refusal(stderr, max_verdict=max_verdict)
+    return " ".join([verdict, *(d.strip() for d in details)])

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import re
 import sys
@@ -140,8 +141,20 @@ def _short(text: str) -> str:
     return f"{text[:head]} ... [{len(text) - head - tail} more characters] ... {text[-tail:]}"
 
 
-def _err(msg: str) -> None:
-    sys.stderr.write(f"trimag: {_short(_printable(_as_flags(msg), lines=False))}\n")
+#: the longest line of a refusal's detail (docs/cli.md, "Errors"); a longer one is wrapped
+MAX_DETAIL_CHARS = 120
+
+
+def _err(msg: str, details: Sequence[str] = ()) -> None:
+    """``msg`` as one line (``trimag: ...``), then each of ``details`` indented by two spaces, wrapped within
+    :data:`MAX_DETAIL_CHARS` (its continuation lines by four)."""
+    import textwrap
+
+    lines = [f"trimag: {_short(_printable(_as_flags(msg), lines=False))}"]
+    for detail in details:
+        lines += textwrap.wrap(_short(_printable(_as_flags(detail), lines=False)), width=MAX_DETAIL_CHARS,
+                               initial_indent="  ", subsequent_indent="    ", break_on_hyphens=False)
+    sys.stderr.write("\n".join(lines) + "\n")
 
 
 def _say(msg: str, args: argparse.Namespace) -> None:
@@ -293,8 +306,11 @@ def _add_gyro_options(p: argparse.ArgumentParser) -> None:
                    help="unit of the rate (default: deg/s when the column names say deg or dps, else rad/s)")
     g.add_argument("--gyro-file", metavar="FILE",
                    help="the gyroscope in a file of its own, with its own clock: the lag between the two is fitted "
-                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0)")
-    g.add_argument("--gyro-time-column", metavar="NAME", help="time column (s) of --gyro-file (default: --time-column)")
+                        "(--option max_lag=S, default 0.5; --option estimate_lag=false to hold it at 0); of an NPZ "
+                        "or MAT file, --gyro-columns names its variable")
+    g.add_argument("--gyro-time-column", metavar="NAME",
+                   help="time column (s) of --gyro-file (default: --time-column); of an NPZ or MAT file, its time "
+                        "variable (default: its sampling_rate variable, from 0 s)")
 
 
 def _add_model_options(p: argparse.ArgumentParser, model_help: str) -> None:
@@ -456,6 +472,7 @@ def _add_batch(sub: Any) -> None:
     _add_attitude_options(p)
     _add_time_options(p.add_argument_group("time (eddy-current terms, attitudes from a second file)"))
     _add_fit_steps(p)
+    _add_gyro_options(p)
     p.add_argument("--policy", metavar="FILE.toml|default",
                    help="acceptance limits for every file (as fit --policy); a rejected calibration exits 4")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -485,6 +502,7 @@ def _add_live(sub: Any) -> None:
     g = p.add_argument_group("data")
     g.add_argument("--format", dest="fmt", help="replay: the log's format (default: from the extension)")
     g.add_argument("--columns", help="x,y,z column names (replay: also 0-based indices)")
+    g.add_argument("--var", help="replay of an NPZ or MAT file: the variable holding the field")
     g.add_argument("--sensor", metavar="N|NAME", help="replay of an autopilot log: which magnetometer")
     g.add_argument("--units", help="unit of the data: nT, uT, G, mG, counts (default: the source's own, or unknown)")
     g.add_argument("--reference", type=float, metavar="F", help="field magnitude in the data's unit, when known")
@@ -760,8 +778,12 @@ def _cmd_fit_all(request: Any, args: argparse.Namespace) -> int:
         _say(f"compasses fitted: {', '.join(map(str, result.fits))}", args)
         for line in comparison_lines(result, first.calibration.units):
             _say(line, args)
-    for msg in result.messages:
-        _err(msg) if msg.startswith("warning:") else _say(msg, args)
+    for k, msg in enumerate(result.messages):
+        if msg.startswith("warning:"):  # with the detail lines that follow it
+            details = [d[2:] for d in itertools.takewhile(lambda m: m.startswith("  "), result.messages[k + 1:])]
+            _err(msg, details)
+        elif not msg.startswith("  "):
+            _say(msg, args)
     for what, path in result.written.items():
         _say(f"wrote {what}: {path}", args)
     return EXIT_POLICY if result.rejected else EXIT_OK
@@ -801,6 +823,7 @@ def _cmd_apply(args: argparse.Namespace) -> int:
         r = apply_compensation_file(req.calibration, src.path, req.out, fmt=src.fmt, var=src.var,
                                     columns=_split_list(src.columns), scalar_column=req.scalar_column,
                                     units=src.units)
+        _say_sensor(r, args)
         return _print_applied(r, args, "compensated", "nT", "could not be compensated (missing values or a segment of "
                               "one row); their compensated cells are empty")
 
@@ -835,6 +858,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
 
 
 def _print_tl_evaluation(r: dict[str, Any], args: argparse.Namespace) -> None:
+    _say_sensor(r, args)
     _say(f"{r['n_samples']} samples, {r['n_segments']} segment(s), band {r['band_hz'][0]:g}-{r['band_hz'][1]:g} Hz "
          f"at {r['rate_hz']:g} Hz; scalar {r['scalar_column']}", args)
     _say(f"{'segment':>8}{'t0 [s]':>10}{'t1 [s]':>10}{'std before':>12}{'std after':>12}{'ratio':>9}   [nT]", args)
@@ -1093,6 +1117,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     _register_flags(parser)
     args, unknown = parser.parse_known_args(argv)
+    if args.command in ("live", "batch") and getattr(args, "model", None) == "tolles-lawson":
+        from .app.tolles_lawson import not_fitted_by
+
+        _err(f"error: {not_fitted_by(args.command)}")  # before its flags, which these commands do not have
+        return EXIT_INPUT
     if unknown and args.command != "reproduce":
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.extra_args = unknown
@@ -1139,13 +1168,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err(f"error: cannot read or write{where}: {exc.strerror or exc}")
         return EXIT_INPUT
     except IdentifiabilityError as exc:
-        _err(f"cannot identify the model: {exc}")
+        _err(f"cannot identify the model: {exc}", exc.details)
         return EXIT_IDENTIFIABILITY
     except TrimagInputError as exc:
-        _err(f"error: {exc}")
+        _err(f"error: {exc}", exc.details)
         return EXIT_INPUT
     except TrimagError as exc:
-        _err(f"error: {exc}")
+        _err(f"error: {exc}", exc.details)
         return exc.exit_code
     except KeyboardInterrupt:
         _err("interrupted")

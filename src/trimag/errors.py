@@ -14,6 +14,8 @@ anything else              1           internal error (a bug: please report it)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 __all__ = [
     "CalibrationFormatError",
     "IdentifiabilityError",
@@ -28,9 +30,21 @@ __all__ = [
 
 
 class TrimagError(Exception):
-    """Base class of all trimag errors."""
+    """Base class of all trimag errors.
+
+    The message (``str(exc)``) is the whole verdict in one short line: what is wrong and what to do. ``details``
+    are the figures behind it, one short line each, which the ``trimag`` command prints indented under the verdict
+    (docs/cli.md, "Errors"); :func:`full_message` joins both into one line (a JSON field, a batch summary cell).
+    """
 
     exit_code = 1
+    #: the figures behind the verdict, one short line each (empty when the verdict says it all)
+    details: tuple[str, ...] = ()
+
+    def __init__(self, *args: object, details: Sequence[str] = ()) -> None:
+        super().__init__(*args)
+        if details:
+            self.details = tuple(str(line) for line in details)
 
 
 class TrimagInputError(TrimagError, ValueError):
@@ -71,6 +85,12 @@ class TrimagWarning(UserWarning):
 
 class IdentifiabilityWarning(TrimagWarning):
     """The model is identifiable, but poorly: a large condition number or a weakly covered sphere."""
+
+
+def full_message(exc: BaseException) -> str:
+    """``exc``'s verdict and its details (:attr:`TrimagError.details`) in one line, joined by "; "."""
+    details = getattr(exc, "details", ())
+    return "; ".join([str(exc), *details]) if details else str(exc)
 
 
 def out_of_memory_message(what: str = "the data") -> str:

@@ -23,7 +23,7 @@ from trimag.fields.attitude import body_field
 from trimag.fields.reference import igrf
 from trimag.models.firmware import ArduPilotCompass
 
-from _helpers import SHARED_DATA, TESTS_DIR, requires_shared, run_trimag
+from _helpers import SHARED_DATA, TESTS_DIR, refusal_text, requires_shared, run_trimag
 
 pytest.importorskip("pymavlink")
 
@@ -64,7 +64,7 @@ def _write_static_log(path: Path, n: int = 400, seed: int = 3, yaw_deg: float = 
 
 def _assert_not_identified_refusal(r, out: Path) -> None:
     assert r.returncode == 3, (r.returncode, r.stderr[-600:])
-    line = r.stderr.strip().splitlines()[-1]
+    line = refusal_text(r.stderr)  # the verdict and its detail lines
     assert "do not identify the offsets" in line and "--heading" in line and "--level-turn" in line, line
     assert "two equations for three offsets" in line, line
     assert not out.exists()
@@ -113,7 +113,7 @@ def test_parameters_worse_than_the_logs_calibration_on_the_rows_left_out_are_ref
     out = tmp_path / "cal.json"
     r = run_trimag("fit", log, "--target", "ardupilot", "--rows", "0:600", "-o", out)
     assert r.returncode == 3, (r.returncode, r.stderr[-800:])
-    line = r.stderr.strip().splitlines()[-1]
+    line = refusal_text(r.stderr)  # the verdict and its detail lines
     assert "keep the log's calibration" in line and "rows the fit did not see" in line and "--rows 0:600" in line
     rms_fit, rms_log = map(float, re.search(r"leaves ([\d.]+) mG RMS against the log's calibration's ([\d.]+)",
                                             line).groups())

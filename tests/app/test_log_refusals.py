@@ -16,7 +16,7 @@ from trimag.errors import TrimagInputError
 from trimag.io import read_samples
 from trimag.io.logs import read_log
 
-from _helpers import TESTS_DIR, run_trimag
+from _helpers import TESTS_DIR, refusal_text, run_trimag
 
 LOGS = TESTS_DIR / "data" / "logs"
 PX4 = LOGS / "px4tools_01_07_59.px4log"  # two magnetometers, IMU.Mag and IMU1.Mag; barely turned
@@ -24,10 +24,8 @@ SUB = LOGS / "ardusub_small.BIN"  # two compasses, MAG[0] and MAG[1]; static
 
 
 def _one_line(stderr: str) -> str:
-    assert "Traceback" not in stderr
-    lines = [line for line in stderr.strip().splitlines() if not line.startswith("trimag: warning")]
-    assert len(lines) == 1, stderr
-    return lines[0]
+    """The refusal: one verdict line, then its detail lines (indented; docs/cli.md, "Errors"), as one text."""
+    return refusal_text(stderr, max_verdict=None)  # (some quote the log's path; test_refusal_layout measures)
 
 
 @pytest.mark.parametrize("sensor", [None, "2"])

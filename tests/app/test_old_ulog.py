@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from _helpers import TESTS_DIR, run_trimag
+from _helpers import TESTS_DIR, refusal_text, run_trimag
 
 HEAD = TESTS_DIR / "data" / "logs" / "pyulog_sample_head.ulg"
 #: somewhere the user says they flew (the log has no fix): Zurich, the log's year
@@ -15,10 +15,13 @@ IGRF = "47.4,8.5,500,2016-06-01"
 
 
 def _error_lines(stderr: str) -> list[str]:
-    """The lines of stderr that are not warnings (a refusal is one line)."""
+    """The refusal in stderr, if any: its verdict line and the indented detail lines under it, as one text
+    (docs/cli.md, "Errors"); warnings left out."""
     assert "Traceback" not in stderr
     assert "no sensor_mag or vehicle_magnetometer" not in stderr and "no magnetometer" not in stderr, stderr
-    return [line for line in stderr.strip().splitlines() if not line.startswith("trimag: warning")]
+    if not any(line.startswith("trimag: ") and not line.startswith("trimag: warning") for line in stderr.splitlines()):
+        return []
+    return [refusal_text(stderr, max_verdict=None)]
 
 
 def test_fit_refuses_with_what_to_record_and_names_the_compass(tmp_path: Path) -> None:

@@ -2,9 +2,12 @@
 -> export -> live replay -> batch, each naming and using the same sensor and unit.
 
 One :class:`Case` per kind of source: a lab table with two magnetometers (the second one's columns), the second
-compass of a DataFlash log, and a PX4 ULog whose compass's device id is in two calibration slots (``CAL_MAG1_ID``
-and a stale ``CAL_MAG2_ID``: the compass is number 2, slot 1). A new kind (a ``.mat`` with a gyroscope, a
-Tolles-Lawson file) is one more ``Case`` in :func:`cases`.
+compass of a DataFlash log, a PX4 ULog whose compass's device id is in two calibration slots (``CAL_MAG1_ID``
+and a stale ``CAL_MAG2_ID``: the compass is number 2, slot 1), and a MATLAB file with a gyroscope (BROAD's layout:
+the magnetometer is the variable ``imu_mag``, the gyro-aided fit reads the variable ``imu_gyr``). A Tolles-Lawson
+compensation (:func:`test_a_tolles_lawson_compensation_through_every_command`) goes through the same commands: those
+that take it name its vector and scalar columns, the others (export, live, batch) refuse it in one line that says
+which command does take it.
 """
 
 from __future__ import annotations
@@ -77,6 +80,25 @@ def _duplicate_slot_ulog(folder: Path) -> Path:
     return write_duplicate_slot_ulog(folder / "dup.ulg")
 
 
+def _mat_with_gyroscope(folder: Path) -> Path:
+    """A phone-like magnetometer (uT) and its gyroscope (rad/s) turning together at 100 Hz, in BROAD's layout."""
+    import scipy.io
+
+    from trimag.simulate import simulate_gyro
+
+    sim = simulate_gyro(3000, 7, motion="cone")
+    path = folder / "trial.mat"
+    scipy.io.savemat(path, {"imu_gyr": sim.rate, "imu_mag": sim.raw, "sampling_rate": np.array([[100.0]])})
+    return path
+
+
+def _mat_raw(path: Path, record: SensorRecord) -> np.ndarray:
+    import scipy.io
+
+    assert record.variable is not None
+    return np.asarray(scipy.io.loadmat(path)[record.variable], dtype=float)
+
+
 def cases() -> list[Case]:
     from _two_compass_flight import DEVICE_ID_2, SITE
 
@@ -97,12 +119,17 @@ def cases() -> list[Case]:
              "sensor: compass 2 of dup.ulg (sensor_mag[1], device id 592905), G: the calibration's", _log_raw,
              ("px4", ["CAL_MAG1_XOFF"], ["CAL_MAG2_", "CAL_MAG0_"]),
              {"kind": "log", "compass": 2, "slot": 1, "device_id": 592905, "stale_slots": (2,)}),
+        Case("MATLAB file with a gyroscope", _mat_with_gyroscope, ["--units", "uT", "--gyro-columns", "imu_gyr"],
+             ["--var", "imu_mag", "--units", "uT"], "uT",
+             "sensor: columns col0, col1, col2 (variable imu_mag) of trial.mat: the calibration's", _mat_raw,
+             ("json", ['"unit": "uT"'], []),
+             {"kind": "table", "variable": "imu_mag", "columns": ("col0", "col1", "col2"), "format": "mat"}),
     ]
 
 
 def _same_sensor(record: SensorRecord | None, fitted: SensorRecord) -> None:
     assert record is not None
-    for name in ("kind", "unit", "compass", "name", "device_id", "slot", "columns", "source"):
+    for name in ("kind", "unit", "compass", "name", "device_id", "slot", "columns", "variable", "source"):
         assert getattr(record, name) == getattr(fitted, name), name
 
 
@@ -125,6 +152,8 @@ def test_every_command_names_and_uses_the_calibrations_sensor(case: Case, tmp_pa
     r = run_trimag("fit", data, *case.fit, "-o", cal_path, timeout=600)
     assert r.returncode == 0, r.stderr
     cal = Calibration.from_file(cal_path)
+    if "--gyro-columns" in case.fit:
+        assert cal.method == "gyro"
     fitted = cal.sensor
     assert fitted is not None and cal.units == case.unit and fitted.unit == case.unit
     for name, value in case.record.items():
@@ -166,6 +195,74 @@ def test_every_command_names_and_uses_the_calibrations_sensor(case: Case, tmp_pa
     assert b.returncode == 0, b.stderr
     batch_cal = Calibration.from_file(folder / f"{Path(data).stem}.json")
     _same_sensor(batch_cal.sensor, fitted)
+    assert batch_cal.method == cal.method
     summary = pd.read_csv(folder / "summary.csv")
     assert summary["sensor"].tolist() == [fitted.describe()]
     assert json.loads(cal_path.read_text())["sensor"]["unit"] == case.unit
+
+
+def _box(folder: Path) -> Path:
+    """A simulated calibration box (60 s legs) of an aircraft's vector and scalar magnetometers, in nT."""
+    from trimag.simulate import simulate_aircraft
+
+    sim = simulate_aircraft(60.0, seed=0, terms="p,i5,e8")
+    path = folder / "box.csv"
+    np.savetxt(path, np.column_stack([sim.time_s, sim.vector_nT, sim.scalar_nT]), delimiter=",",
+               header="time,fx,fy,fz,mag", comments="", fmt="%.6f")
+    return path
+
+
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_a_tolles_lawson_compensation_through_every_command(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """fit -> evaluate -> apply name the vector and scalar columns, the source and the unit; export, live and batch
+    (which do not take a compensation) refuse it in one line that points to the commands that do."""
+    from trimag.aircraft.compensation import ScalarCompensation
+
+    data = _box(tmp_path)
+    fit = ["--model", "tolles-lawson", "--columns", "fx,fy,fz", "--scalar-column", "mag", "--time-column", "time",
+           "--option", "terms=p,i5,e8"]
+    comp_path = tmp_path / "tl.json"
+    assert main(["fit", str(data), *fit, "-q", "-o", str(comp_path)]) == 0
+    comp = ScalarCompensation.from_file(comp_path)
+    assert comp.sensors["vector_columns"] == ["fx", "fy", "fz"] and comp.sensors["scalar_column"] == "mag"
+    assert Path(comp.sensors["source"]).name == "box.csv" and comp.sensors["units"] == "nT"
+    capsys.readouterr()
+    said = "sensor: vector fx, fy, fz and scalar mag of box.csv, nT: the compensation's"
+    assert main(["evaluate", str(comp_path), str(data)]) == 0
+    assert said in capsys.readouterr().out
+    out = tmp_path / "compensated.csv"
+    assert main(["apply", str(comp_path), str(data), "-o", str(out)]) == 0
+    assert said in capsys.readouterr().out
+    applied, raw = pd.read_csv(out), pd.read_csv(data)
+    np.testing.assert_allclose(applied[["fx", "fy", "fz", "mag"]].to_numpy(), raw[["fx", "fy", "fz", "mag"]].to_numpy())
+    assert np.isfinite(applied["mag_compensated"]).all()
+    assert applied["mag_compensated"].std() < raw["mag"].std()
+    # another file's columns are said as the ones read, with the compensation's own beside them
+    renamed = tmp_path / "other.csv"
+    raw.rename(columns={"fx": "bx", "fy": "by", "fz": "bz"}).to_csv(renamed, index=False)
+    assert main(["evaluate", str(comp_path), str(renamed), "--columns", "bx,by,bz"]) == 0
+    assert ("sensor: vector bx, by, bz and scalar mag of other.csv, nT (the compensation was fitted to vector fx, fy, "
+            "fz and scalar mag of box.csv)") in capsys.readouterr().out
+    # the commands that do not take a compensation: one line each, pointing to those that do; nothing written
+    exported = tmp_path / "x.param"
+    assert main(["export", str(comp_path), "--to", "ardupilot", "-o", str(exported)]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "Tolles-Lawson" in line and "trimag apply" in line and not exported.exists()
+    live_out = tmp_path / "live.json"
+    assert main(["live", "--replay", str(data), "--model", "tolles-lawson", "--columns", "fx,fy,fz",
+                 "--scalar-column", "mag", "--rate", "1e6", "--exit-at-end", "--no-browser", "--port", "0", "-o",
+                 str(live_out)]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "Tolles-Lawson" in line and "trimag fit" in line and "--model tolles-lawson" in line, line
+    assert not live_out.exists()
+    folder = tmp_path / "batch"
+    assert main(["batch", str(data), *fit, "--out", str(folder)]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "Tolles-Lawson" in line and "trimag fit" in line and "--model tolles-lawson" in line, line
+    assert not folder.exists()

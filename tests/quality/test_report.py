@@ -52,3 +52,27 @@ def test_the_after_histogram_shows_its_shape_beside_a_far_wider_before():
             xy = shape.get_xy()
             filled = len(np.unique(xy[xy[:, 1] > 0, 0])) - 1
         assert filled >= 20, (label, filled)
+
+
+def test_before_and_after_histograms_are_on_axes_of_their_own():
+    """The demo's after-histogram was a sliver at one end of axes that spanned the before's range (a 100x wider
+    distribution; issue 42, item 6): each histogram gets axes of its own whose x range is its own distribution's,
+    so that the after's shape fills its axes as the before's does."""
+    from pathlib import Path
+
+    raw = np.loadtxt(Path(trimag.__file__).parent / "data" / "qmc5883l_noisy_raw_data.csv", delimiter=",",
+                     skiprows=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = trimag.fit(raw, model="ellipsoid", units="counts")
+    fig = fit_report(raw, cal)
+    F = float(cal.reference["value"])
+    errors = {"before": np.linalg.norm(raw, axis=1) - F, "after": np.linalg.norm(cal.apply(raw), axis=1) - F}
+    holders = {}
+    for label, err in errors.items():
+        holders[label] = [a for a in fig.axes if any(p.get_label().startswith(label) for p in a.patches)]
+        assert len(holders[label]) == 1, (label, len(holders[label]))
+        lo, hi = holders[label][0].get_xlim()
+        spread = np.percentile(err, 99.5) - np.percentile(err, 0.5)
+        assert spread > 0.5 * (hi - lo), (label, spread, hi - lo)
+    assert holders["before"][0] is not holders["after"][0]

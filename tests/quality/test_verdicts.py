@@ -18,7 +18,7 @@ from trimag.errors import TrimagError
 from trimag.estimators import available_methods
 from trimag.quality.diagnostics import sphere_coverage
 
-from _helpers import run_trimag
+from _helpers import refusal_text, run_trimag
 
 FIELD_NED_mG = 500.0 * np.array([np.cos(np.radians(60.0)), 0.0, np.sin(np.radians(60.0))])
 HARD_IRON_mG = np.array([-30.0, 120.0, -200.0])
@@ -89,6 +89,8 @@ def write_tlog(path: Path, field_mG: np.ndarray, rate_hz: float = 10.0) -> Path:
 
 def _verdict(*args: object) -> tuple[int, str]:
     r = run_trimag("fit", *args)
+    if r.returncode != 0:  # the refusal: its verdict line and the detail lines under it
+        return r.returncode, refusal_text(r.stderr, max_verdict=None)
     return r.returncode, r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
 
 

@@ -345,9 +345,10 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
         F = float(given.reference) * convert(1.0, normalise_unit(req.input.units), unit_fw)
         return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages
     raise TrimagInputError(
-        f"`target={target}` needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` (with "
-        "attitudes: the vector, rotated into the body frame) or `reference=F` (the magnitude, in the data's unit)"
-    )
+        f"`target={target}` needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` or "
+        "`reference=F`",
+        details=["`igrf_spec`: the site's field (with attitudes: the vector, rotated into the body frame)",
+                 "`reference=F`: the field's magnitude, in the data's unit"])
 
 
 def _attitudes(samples: Samples, att: Any, yaw_column: str | None) -> tuple[Samples, Any, list[str]]:

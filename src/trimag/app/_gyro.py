@@ -201,6 +201,8 @@ def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple
         if log.gyro is None:
             raise TrimagInputError(f"{req.input.path}: the log has no gyroscope (IMU messages); give `gyro_file`")
         tg, rate, source = log.gyro.time_s, log.gyro.values, f"{log.gyro.source} (rad/s, the log's own)"
+    elif _is_variable_file(req):
+        tg, rate, source = _variable_stream(req, messages)
     else:
         from ..io.tables import read_table
         from ..vehicle.timesync import time_values
@@ -228,6 +230,60 @@ def _own_stream(req: FitRequest, samples: Samples, messages: list[str]) -> tuple
     if dropped:
         messages.append(f"warning: gyroscope rows dropped: {'; '.join(dropped)}")
     return tg, rate, source
+
+
+def _is_variable_file(req: FitRequest) -> bool:
+    """Whether ``gyro_file`` is an NPZ or MAT file and ``gyro_columns`` one name (a variable of it)."""
+    from ..io.tables import guess_format
+
+    spec = (req.gyro_columns or "").strip()
+    return bool(spec) and "," not in spec and guess_format(Path(str(req.gyro_file))) in ("mat", "npz")
+
+
+def _variable_stream(req: FitRequest, messages: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """The gyroscope as a variable of another NPZ or MAT file (``gyro_file=other.mat gyro_columns=imu_gyr``) on
+    its own clock: the variable ``gyro_time_column`` names (s), else the row number over that file's own sample
+    rate variable (:data:`RATE_VARIABLES`), from 0 s; (time s (M,), rate rad/s (M, 3), where it came from)."""
+    from ..io.tables import file_variables
+
+    path = Path(str(req.gyro_file))
+    name = str(req.gyro_columns).strip()
+    if not path.is_file():
+        raise TrimagInputError(f"{path}: no such file (named by `gyro_file`)")
+    variables = file_variables(path)
+    listed = ", ".join(sorted(variables)) or "none"
+    if name not in variables:
+        raise TrimagInputError(f"{path}: no variable {name!r} (named by `gyro_columns`); its variables are {listed}")
+    values = np.squeeze(variables[name])
+    if values.ndim == 2 and values.shape[0] == 3 and values.shape[1] != 3:
+        values = values.T
+    if values.ndim != 2 or values.shape[1] != 3:
+        raise TrimagInputError(f"{path}: variable {name!r} has shape {variables[name].shape}; a gyroscope is N x 3")
+    unit = _unit(req, [name], messages)
+    if req.gyro_time_column is not None:
+        column = req.gyro_time_column
+        if column not in variables:
+            raise TrimagInputError(f"{path}: no variable {column!r} (named by `gyro_time_column`); its variables "
+                                   f"are {listed}")
+        tg = np.asarray(np.ravel(variables[column]), dtype=np.float64)
+        if len(tg) != len(values):
+            raise TrimagInputError(f"{path}: time variable {column!r} has {len(tg)} values and {name!r} "
+                                   f"{len(values)} rows: give the gyroscope's own time stamps (s)")
+        clock = f"time {column}"
+    else:
+        stored = {k: v for k, v in variables.items() if k.lower() in RATE_VARIABLES and v.size == 1}
+        if not stored:
+            raise TrimagInputError(f"{path}: the gyroscope {name!r} has no clock: name its time stamps (s) with "
+                                   f"`gyro_time_column=VARIABLE`, or store its sample rate as a variable "
+                                   f"sampling_rate (its variables are {listed})")
+        rate_name, value = next(iter(stored.items()))
+        rate_hz = float(value.ravel()[0])
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise TrimagInputError(f"{path}: its sample rate {rate_name} = {rate_hz:g} is no rate; name its time "
+                                   "stamps with `gyro_time_column=VARIABLE`")
+        tg = np.arange(len(values), dtype=np.float64) / rate_hz
+        clock = f"{rate_hz:g} Hz from its {rate_name}, from 0 s"
+    return tg, rate_in_rad_s(np.asarray(values, dtype=np.float64), unit), f"{path}: variable {name} ({unit}), {clock}"
 
 
 def _in_gyro_gaps(t: np.ndarray, tg: np.ndarray) -> np.ndarray:

@@ -85,7 +85,8 @@ def sensor_record(samples: Samples, src: InputSpec, unit: str) -> SensorRecord:
                             stale_slots=stale, absent_parameters=absent, **common)
     kind = log_format(path, src.fmt)
     table_fmt = src.fmt or (path.suffix.lower().lstrip(".") or None)
-    return SensorRecord("log" if kind else "table", format=table_fmt, variable=src.var, **common)
+    return SensorRecord("log" if kind else "table", format=table_fmt, variable=src.var or samples.variable or None,
+                        **common)
 
 
 def input_for(cal: Calibration, src: InputSpec) -> tuple[InputSpec, Any]:
@@ -116,9 +117,10 @@ def _has_columns(src: InputSpec, record: SensorRecord) -> bool:
 
 
 def sensor_line(cal: Calibration, src: InputSpec, log_info: dict[str, Any] | None,
-                columns: Any = None) -> str:
-    """What was read for ``cal``, in one line (``sensor: ...``); a log's unit that is not the calibration's is
-    refused (:class:`~trimag.errors.UnitMismatchError`, exit 2)."""
+                columns: Any = None, variable: str | None = None) -> str:
+    """What was read for ``cal``, in one line (``sensor: ...``; ``variable``: the variable of an NPZ or MAT file
+    read); a log's unit that is not the calibration's is refused (:class:`~trimag.errors.UnitMismatchError`,
+    exit 2)."""
     record = cal.sensor
     if log_info is not None:
         unit = str(log_info.get("unit") or "unknown")
@@ -139,9 +141,11 @@ def sensor_line(cal: Calibration, src: InputSpec, log_info: dict[str, Any] | Non
         return f"sensor: {read}" + (f"; the calibration's: {record.describe()}" if record.kind == "log" else
                                     f" (the calibration was fitted to {record.describe()})")
     cols = ", ".join(str(c) for c in (columns or ()))
-    read = f"columns {cols} of {Path(src.path).name}" if cols else Path(src.path).name
+    var = f" (variable {variable})" if variable else ""
+    read = f"columns {cols}{var} of {Path(src.path).name}" if cols else f"{Path(src.path).name}{var}"
     if record is None:
         return f"sensor: {read}"
-    same = record.kind == "table" and tuple(record.columns or ()) == tuple(str(c) for c in (columns or ()))
+    same = (record.kind == "table" and tuple(record.columns or ()) == tuple(str(c) for c in (columns or ()))
+            and (record.variable or None) == (variable or None))
     return f"sensor: {read}" + (": the calibration's" if same else f" (the calibration was fitted to "
                                                                      f"{record.describe()})")

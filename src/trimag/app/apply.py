@@ -55,7 +55,8 @@ def apply_to_file(
 
     result = _to_standard_output(write) if str(req.out) == "-" else write(req.out)
     result["units"] = cal.units
-    result["sensor"] = sensor_line(cal, req.input, result.pop("log_info", None), result.get("columns"))
+    result["sensor"] = sensor_line(cal, req.input, result.pop("log_info", None), result.get("columns"),
+                                   result.pop("variable", None))
     return result
 
 

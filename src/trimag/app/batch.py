@@ -33,7 +33,7 @@ from typing import Any
 
 import pandas as pd
 
-from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, out_of_memory_message
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, full_message, out_of_memory_message
 from ..io.atomic import atomic_path, atomic_write_text, check_distinct_outputs
 from ..io.limits import InputLimits, current_limits, input_limits
 from .requests import FitRequest
@@ -155,9 +155,9 @@ def _failure(exc: BaseException) -> tuple[str, str]:
     """The row's ``error`` and ``error_type`` of a file that failed: what ``trimag fit`` would say and its exit
     code's kind (an unreadable file, an unwritable output, not enough memory: the user's input, exit 2)."""
     if isinstance(exc, IdentifiabilityError):
-        return str(exc), "identifiability"
+        return full_message(exc), "identifiability"
     if isinstance(exc, TrimagError):
-        return str(exc), "input" if isinstance(exc, TrimagInputError) else "internal"
+        return full_message(exc), "input" if isinstance(exc, TrimagInputError) else "internal"
     if isinstance(exc, UnicodeDecodeError):
         return "the file is not UTF-8 text; save it as UTF-8", "input"
     if isinstance(exc, OSError):

@@ -44,7 +44,7 @@ def evaluate_file(
     src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     columns, chunks = open_chunks(src.path, fmt=src.fmt, columns=src.columns, var=src.var, chunk_rows=req.chunk_rows,
                                   sensor=sensor)
-    sensor_read = sensor_line(cal, req.input, columns.log_info, columns.columns)
+    sensor_read = sensor_line(cal, req.input, columns.log_info, columns.columns, columns.variable)
     rows = _parse_rows(src.rows)
     regressor_names = tuple(cal.regressors["names"]) if cal.regressors is not None else ()
     spec = cal.regressors.get("eddy") if cal.regressors is not None else None

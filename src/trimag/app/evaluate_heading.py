@@ -57,7 +57,7 @@ def evaluate_heading_file(
     src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=sensor)
-    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns)
+    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns, samples.variable)
     reference, accel = _reference_and_accel(req, samples)
     u = None
     if cal.regressors is not None:

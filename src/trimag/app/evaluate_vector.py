@@ -56,7 +56,7 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=sensor)
-    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns)
+    sensor_read = sensor_line(cal, req.input, samples.log_info, samples.columns, samples.variable)
     samples, att, lag = _attitudes(req, samples, cal)
     samples, _ = drop_rows_without_attitude(samples, att.attitude_columns, att.quaternion_columns, strict=src.strict)
     samples, _ = drop_rows_without_background(samples, given.background_columns, given.igrf_columns,

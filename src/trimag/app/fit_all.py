@@ -12,6 +12,7 @@ A compass that cannot be fitted is named with its reason; the others are still w
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import IdentifiabilityError, TrimagError, TrimagInputError
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, full_message
 from .requests import FitRequest
 
 __all__ = ["AllSensorsResult", "fit_all_sensors"]
@@ -103,8 +104,8 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         messages.append(channel["message"])
     if not fits:
         kind = IdentifiabilityError if any(isinstance(e, IdentifiabilityError) for e in errors) else TrimagInputError
-        raise kind("no compass of this log could be fitted: " + "; ".join(
-            f"compass {n}: {why}" for n, why in refused.items()))
+        verdict, details = _none_fitted(dict(zip(refused, errors, strict=True)))
+        raise kind(verdict, details=details)
     comparison = compare_compasses(fits)
     written = {f"calibration {n}": r.written["calibration"] for n, r in fits.items() if "calibration" in r.written}
     if req.export_to is not None and req.export_out is not None:
@@ -124,9 +125,33 @@ def fit_all_sensors(req: FitRequest) -> AllSensorsResult:
         messages += [f"warning: outside the firmware's limits: {v}" for v in exp.violations]
     for n, r in fits.items():
         messages += compass_warnings(n, r)
-    for n, why in refused.items():
-        messages.append(f"warning: compass {n} not calibrated (its parameters are not written): {why}")
+    for n, exc in zip(refused, errors, strict=True):
+        messages.append(f"warning: compass {n} not calibrated (its parameters are not written): {_said(exc)}")
+        messages += [f"  {line}" for line in exc.details]  # (details of the warning above: docs/cli.md, "Errors")
     return AllSensorsResult(fits, refused, comparison, messages, written)
+
+
+#: the head of a compass's refusal (:func:`trimag.app._log_advice.log_refusal`): ``compass 2 (MAG[1]): ``
+_HEAD = re.compile(r"^compass \d+ \([^)]*\): ")
+
+
+def _none_fitted(refusals: dict[int, TrimagError]) -> tuple[str, list[str]]:
+    """The refusal of a log none of whose compasses could be fitted: one verdict (the compasses' own when they
+    all say the same, else the first's what-to-do), then each compass's verdict and its own details, and the
+    details all of them share, once."""
+    bodies = {n: _HEAD.sub("", str(e)) for n, e in refusals.items()}
+    numbers = ", ".join(map(str, refusals))
+    common = [d for d in next(iter(refusals.values())).details if all(d in e.details for e in refusals.values())]
+    if len(set(bodies.values())) == 1:
+        own = [f"compass {n}: {d}" for n, e in refusals.items() for d in e.details if d not in common]
+        return f"every compass ({numbers}): {next(iter(bodies.values()))}", own + common
+    first = next(iter(bodies.values()))
+    do = first.rsplit("; ", 1)[-1] if "; " in first else "see each compass below"
+    details: list[str] = []
+    for n, e in refusals.items():
+        details.append(str(e) if _HEAD.match(str(e)) else f"compass {n}: {e}")
+        details += [f"  {d}" for d in e.details if d not in common]
+    return f"no compass could be fitted ({numbers}; each below); {do}", details + common
 
 
 def _fit_each(req: FitRequest, compasses: list[tuple[int, str]], fit_file: Any, *, outputs: bool = True
@@ -145,9 +170,15 @@ def _fit_each(req: FitRequest, compasses: list[tuple[int, str]], fit_file: Any, 
         try:
             fits[number] = fit_file(one)
         except TrimagError as exc:
-            refused[number] = f"{'cannot identify the model: ' if isinstance(exc, IdentifiabilityError) else ''}{exc}"
+            refused[number] = _said(exc, details=True)
             errors.append(exc)
     return fits, refused, errors
+
+
+def _said(exc: TrimagError, *, details: bool = False) -> str:
+    """A compass's refusal as the command says it (its verdict; with ``details``, its details too, in one line)."""
+    return (f"{'cannot identify the model: ' if isinstance(exc, IdentifiabilityError) else ''}"
+            f"{full_message(exc) if details else exc}")
 
 
 def _motor_type(fit: Any) -> str | None:

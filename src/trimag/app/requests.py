@@ -315,6 +315,7 @@ class LiveRequest:
     mavlink: str | None = None
     fmt: str | None = None
     columns: str | None = None
+    var: str | None = None
     sensor: str | None = None
     units: str | None = None
     model: str = "ellipsoid"

@@ -218,6 +218,14 @@ def fit_compensation_file(request: TollesLawsonFitRequest) -> tuple[ScalarCompen
     return comp, messages
 
 
+def not_fitted_by(command: str) -> str:
+    """The one line that says ``trimag command`` (live, batch) does not fit a Tolles-Lawson compensation, and
+    which commands do (issue 39: they said "unknown model" or refused its flags one by one)."""
+    return (f"trimag {command} does not fit a Tolles-Lawson compensation (an aircraft's scalar magnetometer, fitted "
+            "on a whole calibration flight): fit each flight with `trimag fit FILE --model tolles-lawson --columns "
+            "VX,VY,VZ --scalar-column S`, then run `trimag apply` or `trimag evaluate` with it")
+
+
 def is_compensation_file(path: str | Path) -> bool:
     """True when ``path`` is a trimag compensation (Tolles–Lawson) JSON file."""
     p = Path(path)
@@ -240,6 +248,7 @@ class _Compensated:
     scalar: NDArray[np.float64]
     compensated: NDArray[np.float64]
     scalar_column: str
+    vector_columns: list[str]
     time_s: NDArray[np.float64]
     rate_hz: float
     ok: NDArray[np.bool_]
@@ -263,7 +272,24 @@ def _compensate(comp: ScalarCompensation, data: Path, fmt: str | None, var: str 
     t, rate = _time_axis(df, time_column, rate_hz or (None if time_column else comp.bandpass.rate_hz))
     ok = np.isfinite(vector).all(axis=1) & np.isfinite(scalar)
     compensated = comp.apply(vector, scalar, split_segments(ok, t, None, max_gap_s=1.5 / rate))
-    return _Compensated(df, vector, scalar, compensated, str(s_col), t, rate, ok)
+    return _Compensated(df, vector, scalar, compensated, str(s_col), [str(c) for c in vec_cols], t, rate, ok)
+
+
+def _sensor_line(comp: ScalarCompensation, data: Path, c: _Compensated) -> str:
+    """Which magnetometers were read for ``comp`` and whether they are the ones it was fitted to, in one line:
+    ``sensor: vector fx, fy, fz and scalar mag of box.csv, nT: the compensation's``."""
+
+    def said(vector: Sequence[Any], scalar: Any, source: Any) -> str:
+        return f"vector {', '.join(map(str, vector))} and scalar {scalar} of {Path(str(source)).name}"
+
+    read = said(c.vector_columns, c.scalar_column, data)
+    fitted = comp.sensors
+    if not fitted.get("vector_columns") or not fitted.get("scalar_column"):
+        return f"sensor: {read}, nT"
+    own = said(fitted["vector_columns"], fitted["scalar_column"], fitted.get("source") or "?")
+    same = (list(map(str, fitted["vector_columns"])) == c.vector_columns
+            and str(fitted["scalar_column"]) == c.scalar_column)
+    return f"sensor: {read}, nT" + (": the compensation's" if same else f" (the compensation was fitted to {own})")
 
 
 def apply_compensation_file(
@@ -281,6 +307,7 @@ def apply_compensation_file(
         require("pyarrow.parquet", "writing Parquet files")
     c = _compensate(comp, data_p, fmt, var, columns, scalar_column, units)
     df, compensated, name = c.df, c.compensated, f"{c.scalar_column}_compensated"
+    sensor = _sensor_line(comp, data_p, c)
     n_bad = int((~np.isfinite(compensated)).sum())
     if out_kind in ("csv", "txt") and guess_format(data_p, fmt) in ("csv", "txt"):
         _write_text_with_column(data_p, out_p, df, name, compensated)
@@ -305,7 +332,7 @@ def apply_compensation_file(
     else:
         raise TrimagInputError(f"cannot write {out_p.suffix!r} files; use .csv, .parquet or .npz")
     return {"n_rows": len(df), "n_uncorrected": n_bad, "units": "nT", "output_columns": [name],
-            "out": str(out_p), "column_note": "", "columns": list(comp.sensors.get("vector_columns") or [])}
+            "out": str(out_p), "column_note": "", "columns": c.vector_columns, "sensor": sensor}
 
 
 def _write_text_with_column(src: Path, out: Path, df: pd.DataFrame, name: str, values: NDArray[np.float64]) -> None:
@@ -366,7 +393,7 @@ def evaluate_compensation_file(
     pooled_a = float(np.sqrt(sum(r["n"] * r["std_after_nT"] ** 2 for r in used) / n_tot))
     return {
         "calibration": str(comp_path), "data": str(data_p), "model": comp.model, "method": comp.method,
-        "units": "nT", "scalar_column": s_col, "columns": list(comp.sensors.get("vector_columns") or []),
+        "units": "nT", "scalar_column": s_col, "columns": c.vector_columns, "sensor": _sensor_line(comp, data_p, c),
         "rate_hz": rate, "band_hz": [bp.low_hz, bp.high_hz], "n_samples": len(df), "n_dropped": int((~ok).sum()),
         "n_segments": len(segs), "n_segments_too_short": len(rows) - len(used),
         "segments": rows, "std_before_nT": pooled_b, "std_after_nT": pooled_a,

@@ -331,6 +331,10 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
         if compass.motor_type is not None:
             notes.append(f"{global_name} = {p[global_name]:g} applies to every magnetometer: the others keep their "
                          "motor terms, now read as " + compass.motor_type)
+        elif not write_orientation and cal.method == "gyro":  # (its alignment is the gyroscope's, not the matrix's)
+            notes.append("the orientation is not written (the gyro-aided fit's rotation to the gyroscope, "
+                         "diagnostics.gyro_alignment, with its nearest board rotation printed by trimag fit, is not "
+                         "exported): the firmware keeps its own")
         elif not write_orientation:
             notes.append("the orientation is not written (a magnitude-only calibration does not determine it): "
                          "the firmware keeps its own")

@@ -116,6 +116,8 @@ class ChunkSource:
     n_fields: int = 0
     #: an autopilot log: what it told of the magnetometer read (``Samples.log_info``), else None
     log_info: dict[str, Any] | None = None
+    #: the variable of an NPZ or MAT file the samples are read from (``imu_mag``), empty for other files
+    variable: str = ""
 
 
 def _parse_rows(rows: str | None) -> tuple[int, int | None]:
@@ -216,7 +218,8 @@ def open_chunks(
         return _open_parquet(p, str(path), columns, chunk_rows)
     df = read_table(p, fmt=kind, var=var, sensor=sensor)
     cols, note = resolve_columns(df, columns, str(path))
-    source = ChunkSource(kind, cols, note, all_columns=list(df.columns), log_info=df.attrs.get("trimag_log"))
+    source = ChunkSource(kind, cols, note, all_columns=list(df.columns), log_info=df.attrs.get("trimag_log"),
+                         variable=str(df.attrs.get("trimag_variable", "")))
     return source, iter([Chunk(df, np.column_stack([_numeric(df[c]) for c in cols]), 0)])
 
 
@@ -419,6 +422,7 @@ def apply_file(
         "output_columns": new_cols,
         "out": str(out),
         "log_info": source.log_info,
+        "variable": source.variable,
     }
 
 

@@ -64,13 +64,14 @@ def _open(request: LiveRequest) -> tuple[Iterator[Batch], str, str | None, list[
         if rate is not None and not rate > 0:
             raise TrimagInputError(f"`rate` must be a positive number of samples per second; got {rate}")
         # read now: a missing file or a contradicting unit fails here, before the session starts
-        samples = read_samples(request.replay, fmt=request.fmt, columns=request.columns, sensor=request.sensor)
+        samples = read_samples(request.replay, fmt=request.fmt, columns=request.columns, var=request.var,
+                               sensor=request.sensor)
         units, messages = replay_units(samples, request)
         from ..app._sensor import sensor_record
         from ..app.requests import InputSpec
 
         record = sensor_record(samples, InputSpec(request.replay, fmt=request.fmt, columns=request.columns,
-                                                  sensor=request.sensor), units or "unknown")
+                                                  var=request.var, sensor=request.sensor), units or "unknown")
         return (_play(samples.field, samples.n_dropped, units, rate, time.sleep),
                 f"replay of {request.replay} at {rate:g} samples/s" if rate else f"replay of {request.replay}",
                 units, [f"sensor: {record.describe()}", *messages], record)

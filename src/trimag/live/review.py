@@ -29,7 +29,7 @@ from urllib.parse import parse_qs, quote
 
 from ..app.requests import ReviewRequest
 from ..app.review import FlightReview, plotly_js
-from ..errors import TrimagError, TrimagInputError
+from ..errors import TrimagError, TrimagInputError, full_message
 from .server import Answer, LocalServer, _json_answer
 
 __all__ = ["ReviewResult", "ReviewServer", "run_review"]
@@ -112,7 +112,7 @@ class ReviewServer(LocalServer):
                 self._state.update(fits=self._state["fits"] + 1, choice=self.review.choice)
         except TrimagError as exc:
             with self._lock:
-                self._state["error"] = str(exc)
+                self._state["error"] = full_message(exc)
         except Exception as exc:  # a bug: shown on the page and on the terminal, the server goes on
             with self._lock:
                 self._state["error"] = f"internal error (a bug in trimag): {type(exc).__name__}: {exc}"

@@ -425,6 +425,19 @@ def weak_directions(
     return weak
 
 
+#: the parameters of the models as a user reads them (the ellipsoid's; others keep their names)
+PARAMETER_WORDS = {"w11": "the x scale", "w22": "the y scale", "w33": "the vertical (z) scale",
+                   "w12": "the x-y coupling", "w13": "the x-z coupling", "w23": "the y-z coupling",
+                   "hard_iron_x": "the x offset", "hard_iron_y": "the y offset",
+                   "hard_iron_z": "the vertical (z) offset"}
+
+
+def parameter_words(names: Sequence[str]) -> str:
+    """``["hard_iron_x", "w33"]`` -> ``"the x offset and the vertical (z) scale"``, offsets first."""
+    said = sorted((PARAMETER_WORDS.get(n, n) for n in names), key=lambda w: "offset" not in w)
+    return said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}"
+
+
 def condition_words(cond: float) -> str:
     """A condition number as the user reads it: ``"condition number 3.2e+08"``, or for a singular design (infinite
     or NaN) what it means (issue 41, item 17: "condition number inf")."""
@@ -442,13 +455,20 @@ def check_condition(
     warn: float = CONDITION_WARN,
     error: float = CONDITION_ERROR,
 ) -> None:
-    """Raise :class:`IdentifiabilityError` above ``error``; warn above ``warn``."""
+    """Raise :class:`IdentifiabilityError` above ``error``; warn above ``warn``. Both say what the data do not
+    determine in words (:func:`parameter_words` of ``weak``), never the condition number itself: the refusal keeps
+    it as a detail (issue 42, item 6: "condition number 4.7e+17" reached the live page)."""
     weak_txt = f" (poorly determined: {', '.join(weak)})" if weak else ""
     if not np.isfinite(cond) or cond > error:
-        raise IdentifiabilityError(f"the data cannot identify {what}: {condition_words(cond)}{weak_txt}; {hint}")
+        free = (f"they do not determine {parameter_words(weak)}" if weak else
+                "they leave a combination of its parameters undetermined")
+        raise IdentifiabilityError(f"the data cannot identify {what}: {free}{weak_txt}; {hint}",
+                                   details=[f"{condition_words(cond)} (refused above {error:.0e})"])
     if cond > warn:
+        barely = (f"the data barely determine {parameter_words(weak)}" if weak else
+                  "the data barely determine a combination of its parameters")
         warnings.warn(
-            f"{what} is poorly identified: condition number {cond:.3g}{weak_txt}; {hint}",
+            f"{what} is poorly identified: {barely}{weak_txt}; {hint}",
             IdentifiabilityWarning,
             stacklevel=3,
         )

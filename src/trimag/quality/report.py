@@ -179,21 +179,29 @@ def _magnitude_panel(ax: Any, n_before: NDArray[np.float64], n_after: NDArray[np
 
 
 def _error_panel(ax: Any, err_b: NDArray[np.float64], err_a: NDArray[np.float64], cal: Calibration) -> None:
-    """Histograms of |B| - F before and after (0.5-99.5 percentile range), with the calibration's RMS, on one bin
-    width that shows both: 80 bins over both ranges, or narrower when the after's range is narrower (at least 30 bins
-    across it, at most 1500 in all): on 80 shared bins the demo's after sat in 6 of them (issue 42)."""
+    """Histograms of |B| - F before (top) and after (bottom), each on axes of its own over its own 0.5-99.5
+    percentile range with 60 bins, with the calibration's RMS: on one axis the demo's after, 100x narrower than the
+    before, was a sliver at one end of it (issue 42, item 6). ``ax``'s place is split in two."""
     rms_b, rms_a = cal.stats.get("rms_before", np.nan), cal.stats.get("rms_after", np.nan)
-    ranges = [(float(np.percentile(e, 0.5)), float(np.percentile(e, 99.5))) for e in (err_b, err_a)]
-    lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
-    bins: Any = 40
-    if hi > lo:
-        width = min((hi - lo) / 80, max((ranges[1][1] - ranges[1][0]) / 30, (hi - lo) / 1500))
-        bins = np.arange(lo, hi + width, width)
-    # stepfilled: one outline per histogram (hundreds of bars would double the report's drawing time)
-    ax.hist(err_b, bins=bins, color="tab:red", alpha=0.5, histtype="stepfilled", label=f"before: RMS {rms_b:.3g}")
-    ax.hist(err_a, bins=bins, color="tab:blue", alpha=0.6, histtype="stepfilled", label=f"after: RMS {rms_a:.3g}")
-    ax.set(xlabel=f"|B| - F [{cal.units}]", ylabel="samples", title="magnitude error")
-    ax.legend(fontsize=8)
+    spec = ax.get_subplotspec()
+    fig = ax.figure
+    ax.remove()
+    top, bottom = spec.subgridspec(2, 1)
+    for k, (err, rms, colour, label) in enumerate(((err_b, rms_b, "tab:red", "before"),
+                                                    (err_a, rms_a, "tab:blue", "after"))):
+        axis = fig.add_subplot(top if k == 0 else bottom)
+        finite = err[np.isfinite(err)]
+        lo, hi = ((float(np.percentile(finite, 0.5)), float(np.percentile(finite, 99.5))) if len(finite)
+                  else (0.0, 1.0))
+        if not hi > lo:
+            lo, hi = lo - 0.5, hi + 0.5
+        # stepfilled: one outline per histogram (hundreds of bars would double the report's drawing time)
+        axis.hist(finite, bins=np.linspace(lo, hi, 61), color=colour, alpha=0.6, histtype="stepfilled",
+                  label=f"{label}: RMS {rms:.3g}")
+        axis.set_xlim(lo, hi)
+        axis.set(xlabel=f"|B| - F [{cal.units}]", ylabel="samples")
+        axis.set_title(f"magnitude error {label} (0.5-99.5 % of samples)", fontsize=10)
+        axis.legend(fontsize=8)
 
 
 #: Colours of the coverage panel's cells: covered (as on the live page) and not.
