@@ -53,6 +53,22 @@ def _log_firmware(log_info: dict[str, Any] | None) -> str | None:
     return None
 
 
+_FIRMWARE_NAMES = {"ardupilot": "ArduPilot", "px4": "PX4"}
+
+
+def _check_log_firmware(target: str, log_info: dict[str, Any] | None) -> None:
+    """Refuse (exit 2) a log of one firmware fitted for the other's parameters: the vehicle that wrote it loads its
+    own firmware's parameters, so the file would name parameters it does not have."""
+    firmware = _log_firmware(log_info)
+    if firmware is None or firmware == target:
+        return
+    raise TrimagInputError(
+        f"this log is {_FIRMWARE_NAMES[firmware]}'s ({(log_info or {}).get('format', firmware)}): its vehicle loads "
+        f"{_FIRMWARE_NAMES[firmware]}'s parameters, not {_FIRMWARE_NAMES.get(target, target)}'s: give "
+        f"`--target {firmware}`"
+    )
+
+
 def _instance(target: str, log_info: dict[str, Any] | None) -> int:
     """The 0-based instance whose parameter names the fit uses: the log's compass of ``target``'s firmware (its
     slot), else 0 (a table, or another firmware's log: ``export --instance`` names it later)."""
@@ -384,6 +400,7 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     if unit in ("unknown", "counts"):
         raise TrimagInputError(f"`target={target}` needs the data's unit (`units=mG`, G, uT or nT); got {unit!r}")
     info = samples.log_info
+    _check_log_firmware(target, info)
     held, applied, external, offsets_max, messages = _held(target, info)
     absent, more = _absent(target, info)
     messages += more
