@@ -1120,8 +1120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err("terminated")
         return 143
     except UnicodeDecodeError as exc:
-        _err(f"error: the file is not UTF-8 text (byte {exc.object[exc.start:exc.start + 1]!r} at position "
-             f"{exc.start}); save it as UTF-8")
+        from .io.tables import not_utf8
+
+        _err(f"error: an input file is {not_utf8(exc)}")
         return EXIT_INPUT
     except BrokenPipeError:  # an OSError: `trimag fit ... | head` closed the pipe
         return EXIT_OK

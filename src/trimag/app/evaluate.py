@@ -16,7 +16,7 @@ from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
 from ..units import convert, normalise_unit
-from ._inputs import refuse_background_vector
+from ._inputs import calibration_for, refuse_background_vector
 from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
 
@@ -36,7 +36,7 @@ def evaluate_file(
     """
     req = as_request(EvaluateRequest, request, paths, arguments)
     src, given = req.input, req.reference
-    cal = Calibration.from_file(req.calibration)
+    cal = calibration_for(req.calibration, src.path, "evaluate")
     unit = cal.units if src.units is None else normalise_unit(src.units)
     if src.units is not None:
         cal.check_units(unit)

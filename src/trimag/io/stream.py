@@ -236,6 +236,10 @@ def _open_text(
         head = pd.read_csv(p, nrows=2000, **kwargs)
     except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
         raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
+    except UnicodeDecodeError as exc:
+        from .tables import not_utf8
+
+        raise TrimagInputError(f"{name}: {not_utf8(exc)}") from None
     if not layout.has_header:
         head.columns = [f"col{i}" for i in range(head.shape[1])]
     head.columns = [str(c).strip() for c in head.columns]

@@ -293,6 +293,14 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     raise TrimagInputError(f"{where}: no rows of numbers found; expected columns of x, y, z field values")
 
 
+def not_utf8(exc: UnicodeDecodeError) -> str:
+    """What a text file that is not UTF-8 is, in the user's words (the byte, not Python's codec message)."""
+    bad = exc.object[exc.start:exc.start + 1]
+    byte = f"byte 0x{bad[0]:02x}" if isinstance(bad, bytes | bytearray) and bad else "a byte"
+    return (f"not UTF-8 text ({byte}, as a spreadsheet's Latin-1 or UTF-16 export writes): save it as UTF-8 "
+            "text (in a spreadsheet: CSV UTF-8)")
+
+
 def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
     layout = detect_csv_layout(path, fmt=fmt)
     kwargs: dict[str, Any] = {
@@ -311,7 +319,11 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
             else None
         if df is None:
             df = pd.read_csv(path, **kwargs)
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        from .normalise import source_name
+
+        raise TrimagInputError(f"{source_name(path)}: {not_utf8(exc)}") from None
+    except pd.errors.ParserError as exc:
         from .normalise import source_name
 
         raise TrimagInputError(f"{source_name(path)}: cannot parse as delimited text: {str(exc).splitlines()[0]}") \
