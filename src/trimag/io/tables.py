@@ -732,6 +732,10 @@ def resolve_columns(
                 raise TrimagInputError(
                     f"`columns`: no column {item!r}; the columns are {', '.join(names)}"
                 )
+        twice = sorted({c for c in chosen if chosen.count(c) > 1})
+        if twice:  # the same column as two axes: the samples would lie on a line, refused as a sensor that never turned
+            raise TrimagInputError(f"`columns` names the column {twice[0]!r} for more than one axis ({', '.join(items)}"
+                                   f"): give the x, y and z columns, three different ones")
         return (chosen[0], chosen[1], chosen[2]), ""
     by_axis: dict[str, list[str]] = {"x": [], "y": [], "z": []}
     for name in names:
