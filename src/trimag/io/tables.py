@@ -734,8 +734,9 @@ def resolve_columns(
                 )
         twice = sorted({c for c in chosen if chosen.count(c) > 1})
         if twice:  # the same column as two axes: the samples would lie on a line, refused as a sensor that never turned
-            raise TrimagInputError(f"`columns` names the column {twice[0]!r} for more than one axis ({', '.join(items)}"
-                                   f"): give the x, y and z columns, three different ones")
+            given = ", ".join(map(str, items))
+            raise TrimagInputError(f"`columns` names the column {twice[0]!r} for more than one axis ({given}): give "
+                                   "the x, y and z columns, three different ones")
         return (chosen[0], chosen[1], chosen[2]), ""
     by_axis: dict[str, list[str]] = {"x": [], "y": [], "z": []}
     for name in names:
