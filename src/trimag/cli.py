@@ -994,8 +994,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
-        if error:
-            _err(f"{file}: {error}")
+        if error:  # named once: most messages already start with the file's name
+            _err(error if str(error).startswith(f"{file}:") else f"{file}: {error}")
     if args.json:
         print(json.dumps(result.summary(), allow_nan=False))
     else:
