@@ -415,6 +415,10 @@ def apply_file(
             _write_parquet(tmp, corrected, new_cols, tally)
         else:  # npz: arrays in memory by nature
             _write_npz(tmp, corrected, tally)
+        if tally.n_rows and tally.n_bad == tally.n_rows:  # nothing corrected: no output (removed, not renamed)
+            raise TrimagInputError(
+                f"{in_path}: none of the {tally.n_rows} rows has three numeric, finite values in columns "
+                f"{', '.join(map(str, source.columns))}: nothing to correct; check `columns` and the file")
     return {
         "n_rows": tally.n_rows,
         "n_uncorrected": tally.n_bad,
