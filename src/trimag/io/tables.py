@@ -315,8 +315,12 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
     else:
         kwargs["sep"] = layout.delimiter
     try:  # pyarrow's reader when the `parquet` extra is installed; pandas' otherwise (same rows and cells)
-        df = _arrow_system_pool(_read_delimited_arrow, path, layout, kwargs) \
-            if layout.delimiter is not None and available("pyarrow") else None
+        if layout.delimiter is None or not available("pyarrow"):
+            df = None
+        elif layout.n_fields <= NARROW_ROW_FIELDS:  # short rows: the reader's memory would outweigh the data
+            df = _arrow_system_pool(_read_delimited_arrow, path, layout, kwargs)
+        else:
+            df = _read_delimited_arrow(path, layout, kwargs)
         if df is None:
             df = pd.read_csv(path, **kwargs)
     except UnicodeDecodeError as exc:
@@ -334,19 +338,43 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
     return df, layout
 
 
+#: Fields per row up to which a CSV is read by :func:`_arrow_system_pool`: for rows of a few short numbers Arrow's
+#: retained blocks were most of the peak (50 of 100 bytes per row of `1,2,3`) and the read is faster too; for
+#: long rows they are a small share (2.6 -> 2.2 bytes per byte) and returning them cost 10-20 % of the read's CPU
+NARROW_ROW_FIELDS = 6
+
+
 def _arrow_system_pool(read: Callable[..., pd.DataFrame | None], *args: Any) -> pd.DataFrame | None:
     """``read(*args)`` with the C library's allocator as Arrow's memory pool, not Arrow's default (mimalloc): what
     Arrow frees (the parser's blocks, a column once copied into the samples) goes back to the process for numpy
     instead of staying in Arrow's pool (on a log of short rows the peak was 50 bytes per row higher). The default
-    pool is restored after the read (buffers remember their pool)."""
+    pool is restored after the read (buffers remember their pool); after a large read the freed memory is
+    returned to the system (:func:`_return_freed_memory`)."""
     import pyarrow as pa
 
     before = pa.default_memory_pool()
     pa.set_memory_pool(pa.system_memory_pool())
     try:
-        return read(*args)
+        df = read(*args)
     finally:
         pa.set_memory_pool(before)
+    if df is not None and len(df) >= SHARED_XYZ_ROWS:  # (1 ms a call: not for a small log)
+        _return_freed_memory()
+    return df
+
+
+def _return_freed_memory() -> None:
+    """Give the C library's freed memory back to the system (glibc's ``malloc_trim``): the parser's blocks, freed
+    after the read, stay in the heap otherwise, under the arrays allocated next (30-40 bytes per row of a short-row
+    log). Nothing where the C library has no such call."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
