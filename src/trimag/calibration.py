@@ -747,7 +747,11 @@ class Calibration:
             raise TrimagInputError(f"{p} is a folder; give a calibration file (.json)")
         if not p.is_file():
             raise TrimagInputError(f"calibration file {str(p)!r} does not exist")
-        return cls.from_json(p.read_text(encoding="utf-8"))
+        text = p.read_text(encoding="utf-8")
+        try:
+            return cls.from_json(text)
+        except CalibrationFormatError as exc:  # named: a command may read two calibrations, or a calibration and a log
+            raise CalibrationFormatError(f"{p}: {exc}") from None
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:

@@ -1027,8 +1027,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
-        if error:
-            _err(f"{file}: {error}")
+        if error:  # named once: most messages already start with the file's name
+            _err(error if str(error).startswith(f"{file}:") else f"{file}: {error}")
     if args.json:
         print(json.dumps(result.summary(), allow_nan=False))
     else:
@@ -1158,8 +1158,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err("terminated")
         return 143
     except UnicodeDecodeError as exc:
-        _err(f"error: the file is not UTF-8 text (byte {exc.object[exc.start:exc.start + 1]!r} at position "
-             f"{exc.start}); save it as UTF-8")
+        from .io.tables import not_utf8
+
+        _err(f"error: an input file is {not_utf8(exc)}")
         return EXIT_INPUT
     except BrokenPipeError:  # an OSError: `trimag fit ... | head` closed the pipe
         return EXIT_OK

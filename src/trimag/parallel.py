@@ -219,6 +219,21 @@ def _auto_chunksize(n: int, slots: int) -> int:
     return max(1, math.ceil(n / (8 * max(slots, 1))))
 
 
+#: Most local worker processes :func:`map_trials` starts (each imports numpy and trimag: ~100 MB, ~1 s)
+MAX_LOCAL_WORKERS = 256
+
+
+def check_workers(workers: Any, scheduler: Any = None) -> None:
+    """Refuse a number of local worker processes that is not a whole number of 1 or more, or beyond
+    :data:`MAX_LOCAL_WORKERS` (without a ``scheduler``, whose cluster has its own)."""
+    if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
+        raise TrimagInputError(f"`workers` must be a whole number of 1 or more; got {workers!r}")
+    if workers > MAX_LOCAL_WORKERS and scheduler is None:
+        raise TrimagInputError(f"`workers` {workers} is more processes than a machine runs usefully (this one has "
+                               f"{os.cpu_count() or 1} cores); give at most {MAX_LOCAL_WORKERS}, about the number of "
+                               "cores")
+
+
 def map_trials(
     fn: Callable[[T], R],
     items: Iterable[T],
@@ -274,8 +289,7 @@ def map_trials(
         The first exception raised by ``fn`` is re-raised (catch errors inside ``fn`` to keep going, as
         :mod:`trimag.app.batch` does for bad files).
     """
-    if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
-        raise TrimagInputError(f"workers must be an integer >= 1; got {workers!r}")
+    check_workers(workers, scheduler)
     if chunksize is not None and chunksize < 1:
         raise TrimagInputError(f"chunksize must be >= 1; got {chunksize!r}")
     backend = backend or DEFAULT_LOCAL_BACKEND
@@ -288,6 +302,7 @@ def map_trials(
             return []
         if scheduler is not None:
             return _run_distributed(fn, items, scheduler, chunksize, bar)
+        workers = min(int(workers), len(items))  # no process without an item to run: 3 files need 3 at most
         if workers == 1:
             out = []
             with one_blas_thread():  # as in the worker processes (trimag._core.threads)

@@ -52,7 +52,8 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
                second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0,
-               parameters: dict[str, float] | None = None, dcm: bool = False) -> Path:
+               parameters: dict[str, float] | None = None, dcm: bool = False,
+               retuned: tuple[int, ArduPilotCompass] | None = None) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -61,7 +62,16 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
     true, logged, amps, raw = _flight(n, seed, tilt)
     t_us = 10_000_000 + np.arange(n) * 100_000  # 10 Hz
     mag = np.trunc(ONBOARD.correct(raw))  # the firmware logs its corrected field as int16
-    rows = [(int(t), 0, *map(int, m), 10, 5, -3, 0, 0, 0, 1, int(t)) for t, m in zip(t_us, mag, strict=True)]
+    ofs = np.tile(ONBOARD.offsets, (n, 1))
+    later: list[tuple[int, str, float]] = []
+    if retuned is not None:  # from sample k on the firmware corrects with another calibration (set in flight)
+        k, compass = retuned
+        mag[k:] = np.trunc(compass.correct(raw[k:]))
+        ofs[k:] = compass.offsets
+        later = [(int(t_us[k]) - 1000, name, v) for name, v in compass.parameters(0).items()
+                 if name.startswith("COMPASS_OFS")]
+    rows = [(int(t), 0, *map(int, m), *map(int, o), 0, 0, 0, 1, int(t))
+            for t, m, o in zip(t_us, mag, ofs, strict=True)]
     for k in range(n // 2, n // 2 + early_mag):  # MAG rows stamped 50 s early (a clock that jumped back)
         rows[k] = (rows[k][0] - 50_000_000, *rows[k][1:])
     if second:  # compass 2 sees the same flight through its own errors; the log holds no calibration for it
@@ -89,7 +99,7 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
     return write_dataflash(path, {
         **extra,
         "MSG": ("QZ", "TimeUS,Message", [(1000, "ArduCopter V4.3.6 (simulated)")]),
-        "PARM": ("QNf", "TimeUS,Name,Value", [(1000, k, v) for k, v in params.items()]),
+        "PARM": ("QNf", "TimeUS,Name,Value", [(1000, k, v) for k, v in params.items()] + later),
         "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
                 rows),
         "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF",

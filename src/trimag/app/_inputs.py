@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -279,3 +280,31 @@ def truthy(value: Any) -> bool:
         return value.strip().lower() in ("1", "true", "yes", "on")
     return bool(value)
 
+
+
+def calibration_for(calibration_path: str | Path, data_path: str | Path | None, command: str) -> Calibration:
+    """The calibration file a command (``apply``, ``evaluate``; ``fit --prior`` with ``data_path`` None) was given;
+    a data file in its place (not JSON text) is named as such, and two arguments given in the wrong order are said
+    to be swapped."""
+    from ..errors import CalibrationFormatError
+
+    try:
+        return Calibration.from_file(calibration_path)
+    except (CalibrationFormatError, UnicodeDecodeError) as exc:
+        if isinstance(exc, CalibrationFormatError) and "not valid JSON" not in str(exc):
+            raise
+        swapped = False
+        if data_path is not None:
+            try:
+                Calibration.from_file(data_path)
+                swapped = True
+            except (TrimagInputError, UnicodeDecodeError, OSError):
+                pass
+        if swapped:
+            raise TrimagInputError(f"{calibration_path} is a log and {data_path} a calibration: the calibration comes "
+                                   f"first: `trimag {command} {data_path} {calibration_path}`") from None
+        takes = (f"`trimag {command}` takes the JSON calibration that `trimag fit LOG -o cal.json` writes, then the "
+                 "log" if data_path is not None else
+                 f"{command} takes the JSON calibration that an earlier `trimag fit LOG -o cal.json` wrote")
+        raise TrimagInputError(f"{calibration_path} is not a calibration file (it is not JSON text): {takes}") \
+            from None

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..calibration import Calibration
 from ..io import apply_file
 from ..io.atomic import check_distinct_outputs
+from ._inputs import calibration_for
 from ._sensor import input_for, sensor_line
 from .requests import ApplyRequest, as_request
 
@@ -33,7 +33,7 @@ def apply_to_file(
     req = as_request(ApplyRequest, request, paths, arguments)
     src = req.input
     check_distinct_outputs({"the calibration": req.calibration, "the input": src.path}, {"out": req.out})
-    cal = Calibration.from_file(req.calibration)
+    cal = calibration_for(req.calibration, src.path, "apply")
     if src.units is not None:
         cal.check_units(src.units)
     src, sensor = input_for(cal, src)  # the calibration's sensor by default (issue 39)

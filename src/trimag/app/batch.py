@@ -127,6 +127,9 @@ def expand_inputs(patterns: str | Sequence[str]) -> list[Path]:
         pattern = os.fspath(pattern)
         matches = sorted(glob.glob(pattern, recursive=True)) if glob.has_magic(pattern) else [pattern]
         matches = [m for m in matches if Path(m).is_file()]
+        if not matches and Path(pattern).is_dir():
+            raise TrimagInputError(f"{pattern} is a folder: give the logs in it as a quoted pattern, e.g. "
+                                   f"'{os.path.join(pattern, '*.csv')}'")
         if not matches:
             raise TrimagInputError(
                 f"{pattern!r} matches no file; quote the pattern (e.g. 'logs/*.csv') so trimag expands it, "
@@ -328,7 +331,7 @@ def fit_batch(
         ``request`` and fit arguments (checked once, before any work).
     """
     from ..estimators import make_estimator
-    from ..parallel import map_trials
+    from ..parallel import check_workers, map_trials
 
     request = _batch_request(request, model=model, method=method, options=options, **fit_options)
     # unknown model, method or option: fail once, up front (``eddy`` is the application's, not the estimator's)
@@ -343,6 +346,10 @@ def fit_batch(
     check_distinct_outputs({f"the input file {k + 1}": f for k, f in enumerate(files)},
                            {**{f"calibration of {f}": o for f, o in jobs}, "summary.csv": out / "summary.csv",
                             "summary.parquet": out / "summary.parquet"})
+    check_workers(workers, scheduler)  # before anything is written
+    if out.exists() and not out.is_dir():
+        raise TrimagInputError(f"`out` {out} is a file; batch writes a folder (one calibration per log and the "
+                               "summary): give a folder's name")
     out.mkdir(parents=True, exist_ok=True)
     scratch = tempfile.mkdtemp(prefix="trimag-batch-")  # this process's: removed even when a worker is killed
     task = partial(fit_one, request=request, limits=current_limits(), scratch=scratch)

@@ -10,13 +10,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import TrimagInputError
+from ..errors import TrimagError, TrimagInputError
 from ..fields.reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
 from ..units import convert, normalise_unit
-from ._inputs import refuse_background_vector
+from ._inputs import calibration_for, refuse_background_vector
 from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
 
@@ -36,7 +36,7 @@ def evaluate_file(
     """
     req = as_request(EvaluateRequest, request, paths, arguments)
     src, given = req.input, req.reference
-    cal = Calibration.from_file(req.calibration)
+    cal = calibration_for(req.calibration, src.path, "evaluate")
     unit = cal.units if src.units is None else normalise_unit(src.units)
     if src.units is not None:
         cal.check_units(unit)
@@ -80,6 +80,12 @@ def evaluate_file(
                              "reference) values", f"data row {first_bad}")
     if after.n == 0:
         raise TrimagInputError(f"{src.path}: no rows with finite x, y, z values to evaluate")
+    if F is None and not given.reference_column and after.n < MIN_ROWS_AGAINST_OWN_MEAN:
+        raise TooFewRowsError(
+            f"{src.path}: {after.n} row{'s' if after.n != 1 else ''} with x, y, z: without a reference the field F "
+            f"is the corrected rows' own mean, so the RMS after correction says nothing about the calibration (one "
+            f"row's is 0); evaluate at least {MIN_ROWS_AGAINST_OWN_MEAN} rows, or give the field: `reference=F` (or "
+            "`igrf_spec=LAT,LON,ALT_M,DATE`)")
     stats_after = after.result()
     F_used = F if F is not None else (None if given.reference_column else stats_after["mean_norm"])
     stats_before = before.result(F_used)
@@ -115,6 +121,16 @@ def evaluate_file(
         + ([fitted_warning] if fitted_warning else []),
     }
 
+
+class TooFewRowsError(TrimagError, ValueError):
+    """An evaluation the rows cannot support (exit 3, as a fit the data cannot support)."""
+
+    exit_code = 3
+
+
+#: Fewest rows an evaluation against the corrected rows' own mean |B| accepts: one row's RMS(|B| - F) is 0 and two
+#: rows' is half their difference, whatever the calibration
+MIN_ROWS_AGAINST_OWN_MEAN = 3
 
 #: Share by which the relative spread of |B| may grow before an evaluation without a reference calls the calibration
 #: worse than the raw data: on a static pose the raw spread is the noise, which a gain scales with the field, and the

@@ -113,7 +113,8 @@ def _read_calibration(path: Any, target: str) -> Calibration:
         raise TrimagInputError(f"{path} is not a calibration file (it is not JSON text): export takes the JSON "
                                f"calibration that `trimag fit` writes; {make}") from None
     except TrimagInputError as exc:
-        if "JSON" in str(exc) or "not a trimag calibration" in str(exc):
-            raise TrimagInputError(f"{path} is not a calibration file ({exc}): export takes the JSON calibration that "
+        said = str(exc).removeprefix(f"{path}: ")  # Calibration.from_file names the file; said once here
+        if "JSON" in said or "not a trimag calibration" in said:
+            raise TrimagInputError(f"{path} is not a calibration file ({said}): export takes the JSON calibration that "
                                    f"`trimag fit` writes; {make}") from None
         raise

@@ -36,6 +36,7 @@ from ._inputs import (
     accel_values,
     attitudes_of,
     background_field,
+    calibration_for,
     drop_rows_without_attitude,
     drop_rows_without_background,
     magnitude_reference,
@@ -157,7 +158,7 @@ def fit_file(request: FitRequest | str | Path, **arguments: Any) -> FitResult:
                                                    if not (_phone_export(req) and k in _GYRO_OPTIONS)})
     src, sensor = req.input, req.input.sensor
     if req.prior is not None:  # a quick recalibration reads the prior's sensor by default (issue 39)
-        src, sensor = input_for(Calibration.from_file(req.prior), src)
+        src, sensor = input_for(calibration_for(req.prior, None, "`prior`"), src)
     samples = read_samples(src.path, fmt=src.fmt, columns=src.columns, var=src.var, rows=src.rows, where=src.where,
                            strict=src.strict, sensor=sensor)
     estimator, gyro_messages = _gyro_estimator(req, samples, estimator, options)
@@ -232,7 +233,7 @@ def _fit_samples(
         if regressor_names is not None:
             raise TrimagInputError("`regressors` cannot be fitted in a quick recalibration (`prior`): it keeps the "
                                    "prior's regressor terms and refits only the offset; drop `regressors`")
-        prior = Calibration.from_file(req.prior)
+        prior = calibration_for(req.prior, None, "`prior`")
         req, prior_messages = prior_units(req, prior, log_unit)
         messages += prior_messages
     units, unit_messages = check_unit(samples, req.input.units, req.reference.reference, req.reference.igrf_spec)

@@ -43,12 +43,31 @@ def simulate_to_file(request: SimulateRequest | None = None, **arguments: Any) -
         raise TrimagInputError(f"`n` must be a positive number of samples; got {n}")
     if noise < 0 or not np.isfinite(noise):
         raise TrimagInputError(f"`noise` must be a non-negative standard deviation; got {noise}")
+    if not (np.isfinite(field) and field > 0):
+        raise TrimagInputError(f"`field` must be a positive field magnitude; got {field}")
+    if seed < 0:
+        raise TrimagInputError(f"`seed` must be a whole number of 0 or more; got {seed}")
     unit = normalise_unit(units)  # before anything is written
     if not isinstance(params, dict):
         raise TrimagInputError(f"{p}: expected a JSON object {{name: value}} of model parameters")
+    bad = {k: v for k, v in params.items()
+           if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(float(v))}
+    if bad:
+        raise TrimagInputError(f"{p}: every parameter must be a finite number; got "
+                               f"{', '.join(f'{k} = {v!r}' for k, v in list(bad.items())[:3])}")
     params, defaulted = _with_identity_defaults(get_model(model), params)
     truth_model = get_model(model).from_dict(params)
-    sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes, seed=seed)
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):  # values too large are refused below, not warned about
+                sim = simulate(truth_model, n=n, field_nav=(field, 0.0, 0.0), noise=noise, attitudes=attitudes,
+                           seed=seed)
+    except np.linalg.LinAlgError:
+        sim = None
+    if sim is None or not np.isfinite(sim.raw).all() or np.abs(sim.raw).max() > 1e12 * field:
+        raise TrimagInputError(f"{p}: these parameters give no finite readings (a soft-iron matrix that cannot be "
+                               "inverted, such as all zeros, or readings beyond 1e12 times the field): give a matrix "
+                               "with a non-zero determinant (identity, w11 = w22 = w33 = 1, is no error) and offsets "
+                               "of the field's size")
     q = sim.attitude.as_quat(scalar_first=True)
     table = np.column_stack([sim.raw, q])
     header = "x,y,z,qw,qx,qy,qz"

@@ -239,6 +239,10 @@ def _open_text(
         head = pd.read_csv(p, nrows=2000, **kwargs)
     except (pd.errors.EmptyDataError, pd.errors.ParserError) as exc:  # e.g. a quoted cell with a line break
         raise TrimagInputError(f"{p}: cannot parse as delimited text: {str(exc).splitlines()[0]}") from None
+    except UnicodeDecodeError as exc:
+        from .tables import not_utf8
+
+        raise TrimagInputError(f"{name}: {not_utf8(exc)}") from None
     if not layout.has_header:
         head.columns = [f"col{i}" for i in range(head.shape[1])]
     head.columns = [str(c).strip() for c in head.columns]
@@ -414,6 +418,10 @@ def apply_file(
             _write_parquet(tmp, corrected, new_cols, tally)
         else:  # npz: arrays in memory by nature
             _write_npz(tmp, corrected, tally)
+        if tally.n_rows and tally.n_bad == tally.n_rows:  # nothing corrected: no output (removed, not renamed)
+            raise TrimagInputError(
+                f"{in_path}: none of the {tally.n_rows} rows has three numeric, finite values in columns "
+                f"{', '.join(map(str, source.columns))}: nothing to correct; check `columns` and the file")
     return {
         "n_rows": tally.n_rows,
         "n_uncorrected": tally.n_bad,

@@ -13,7 +13,7 @@ import io as _stdio
 import math
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -293,6 +293,14 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     raise TrimagInputError(f"{where}: no rows of numbers found; expected columns of x, y, z field values")
 
 
+def not_utf8(exc: UnicodeDecodeError) -> str:
+    """What a text file that is not UTF-8 is, in the user's words (the byte, not Python's codec message)."""
+    bad = exc.object[exc.start:exc.start + 1]
+    byte = f"byte 0x{bad[0]:02x}" if isinstance(bad, bytes | bytearray) and bad else "a byte"
+    return (f"not UTF-8 text ({byte}, as a spreadsheet's Latin-1 or UTF-16 export writes): save it as UTF-8 "
+            "text (in a spreadsheet: CSV UTF-8)")
+
+
 def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
     layout = detect_csv_layout(path, fmt=fmt)
     kwargs: dict[str, Any] = {
@@ -307,11 +315,19 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
     else:
         kwargs["sep"] = layout.delimiter
     try:  # pyarrow's reader when the `parquet` extra is installed; pandas' otherwise (same rows and cells)
-        df = _read_delimited_arrow(path, layout, kwargs) if layout.delimiter is not None and available("pyarrow") \
-            else None
+        if layout.delimiter is None or not available("pyarrow"):
+            df = None
+        elif layout.n_fields <= NARROW_ROW_FIELDS:  # short rows: the reader's memory would outweigh the data
+            df = _arrow_system_pool(_read_delimited_arrow, path, layout, kwargs)
+        else:
+            df = _read_delimited_arrow(path, layout, kwargs)
         if df is None:
             df = pd.read_csv(path, **kwargs)
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        from .normalise import source_name
+
+        raise TrimagInputError(f"{source_name(path)}: {not_utf8(exc)}") from None
+    except pd.errors.ParserError as exc:
         from .normalise import source_name
 
         raise TrimagInputError(f"{source_name(path)}: cannot parse as delimited text: {str(exc).splitlines()[0]}") \
@@ -320,6 +336,45 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
         df.columns = [f"col{i}" for i in range(df.shape[1])]
     df.columns = [str(c).strip() for c in df.columns]
     return df, layout
+
+
+#: Fields per row up to which a CSV is read by :func:`_arrow_system_pool`: for rows of a few short numbers Arrow's
+#: retained blocks were most of the peak (50 of 100 bytes per row of `1,2,3`) and the read is faster too; for
+#: long rows they are a small share (2.6 -> 2.2 bytes per byte) and returning them cost 10-20 % of the read's CPU
+NARROW_ROW_FIELDS = 6
+
+
+def _arrow_system_pool(read: Callable[..., pd.DataFrame | None], *args: Any) -> pd.DataFrame | None:
+    """``read(*args)`` with the C library's allocator as Arrow's memory pool, not Arrow's default (mimalloc): what
+    Arrow frees (the parser's blocks, a column once copied into the samples) goes back to the process for numpy
+    instead of staying in Arrow's pool (on a log of short rows the peak was 50 bytes per row higher). The default
+    pool is restored after the read (buffers remember their pool); after a large read the freed memory is
+    returned to the system (:func:`_return_freed_memory`)."""
+    import pyarrow as pa
+
+    before = pa.default_memory_pool()
+    pa.set_memory_pool(pa.system_memory_pool())
+    try:
+        df = read(*args)
+    finally:
+        pa.set_memory_pool(before)
+    if df is not None and len(df) >= SHARED_XYZ_ROWS:  # (1 ms a call: not for a small log)
+        _return_freed_memory()
+    return df
+
+
+def _return_freed_memory() -> None:
+    """Give the C library's freed memory back to the system (glibc's ``malloc_trim``): the parser's blocks, freed
+    after the read, stay in the heap otherwise, under the arrays allocated next (30-40 bytes per row of a short-row
+    log). Nothing where the C library has no such call."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
@@ -342,6 +397,7 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
         names = [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]
     read_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names)
     parse_options = pacsv.ParseOptions(delimiter=layout.delimiter)
+    pool = pa.default_memory_pool()  # the system's: _arrow_system_pool
     table = None
     if layout.all_numeric:
         try:
@@ -349,7 +405,7 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
                 path, read_options=read_options, parse_options=parse_options,
                 convert_options=pacsv.ConvertOptions(
                     column_types=dict.fromkeys(names, pa.float64()), null_values=[""], strings_can_be_null=False,
-                ),
+                ), memory_pool=pool,
             )
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
             table = None
@@ -360,14 +416,14 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
                 convert_options=pacsv.ConvertOptions(
                     column_types=dict.fromkeys(names, pa.string()), strings_can_be_null=False,
                     quoted_strings_can_be_null=False,
-                ),
+                ), memory_pool=pool,
             )
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
             return None
     if table.num_rows == 0:
         return None  # header only: pandas gives the same empty frame and the caller's message
     # one block per column and Arrow's buffers freed as they are converted: no second copy of the log
-    df = table.to_pandas(split_blocks=True, self_destruct=True)
+    df = table.to_pandas(memory_pool=pool, split_blocks=True, self_destruct=True)
     del table
     if not all(dtype == np.float64 or pd.api.types.is_string_dtype(dtype) for dtype in df.dtypes):
         return None
@@ -721,6 +777,11 @@ def resolve_columns(
                 raise TrimagInputError(
                     f"`columns`: no column {item!r}; the columns are {', '.join(names)}"
                 )
+        twice = sorted({c for c in chosen if chosen.count(c) > 1})
+        if twice:  # the same column as two axes: the samples would lie on a line, refused as a sensor that never turned
+            given = ", ".join(map(str, items))
+            raise TrimagInputError(f"`columns` names the column {twice[0]!r} for more than one axis ({given}): give "
+                                   "the x, y and z columns, three different ones")
         return (chosen[0], chosen[1], chosen[2]), ""
     by_axis: dict[str, list[str]] = {"x": [], "y": [], "z": []}
     for name in names:
@@ -890,11 +951,11 @@ def read_samples(
     if variable:  # the variable of the file, as well as its columns
         note = f"variable {variable}: {note}" if note else f"variable {variable}: columns {', '.join(cols)}"
     df, selection = select_rows(df, rows, where)
-    xyz = np.column_stack([_numeric(df[c]) for c in cols])
+    format_note = _xyz_note(df, cols, n_total) if "trimag_xyz" in df.attrs else ""
+    xyz, df, order = _take_xyz(df, cols)
     ok = np.isfinite(xyz).all(axis=1)
     n_bad = int((~ok).sum())
     positions = np.nonzero(~ok)[0]
-    format_note = _xyz_note(df, cols, n_total) if "trimag_xyz" in df.attrs else ""
     if n_bad and strict:
         raise strict_refusal(f"{p}: ", n_bad, "missing, non-numeric, NaN or inf field values",
                              f"data row {int(df.index[positions[0]])}")
@@ -906,9 +967,10 @@ def read_samples(
     field_arr = xyz[ok] if n_bad else xyz
     kept, field_arr, wild_index, wild_note = _drop_wild_rows(pd.DataFrame(kept), field_arr, strict, p)
     n_dup = count_duplicate_rows(field_arr)
+    field_arr = np.ascontiguousarray(field_arr)
     return Samples(
-        field=np.ascontiguousarray(field_arr),
-        table=pd.DataFrame(kept),  # the index: the kept rows' 0-based data-row numbers
+        field=field_arr,
+        table=_with_xyz(pd.DataFrame(kept), field_arr, cols, order),  # the index: the kept rows' data-row numbers
         columns=cols,
         column_note=note,
         n_rows=len(df),
@@ -926,6 +988,39 @@ def read_samples(
         variable=variable,
         stated_unit=stated_unit,
     )
+
+
+#: Rows from which the table's x, y, z columns are views of the samples (below, the 1 ms of rebuilding the table
+#: costs more than the memory saved: a batch of 5000-row logs read 25 % slower)
+SHARED_XYZ_ROWS = 100_000
+
+
+def _take_xyz(df: pd.DataFrame, cols: tuple[str, str, str]
+              ) -> tuple[NDArray[np.float64], pd.DataFrame, list[Any] | None]:
+    """The x, y, z columns of ``df`` as one (N, 3) float64 array, each column dropped from ``df`` as soon as it is
+    copied (the log is never held twice: 24 bytes per row less at the peak), and ``df``'s column order for
+    :func:`_with_xyz`; ``order`` None (the columns kept) for a log of fewer than :data:`SHARED_XYZ_ROWS` rows or
+    when ``df``'s names are not distinct."""
+    if len(df) < SHARED_XYZ_ROWS or not df.columns.is_unique or len(set(cols)) < 3:
+        return np.column_stack([_numeric(df[c]) for c in cols]), df, None
+    xyz = np.empty((len(df), 3))
+    order = list(df.columns)
+    for k, c in enumerate(cols):
+        xyz[:, k] = _numeric(df[c])
+        df = df.drop(columns=[c])
+    return xyz, df, order
+
+
+def _with_xyz(table: pd.DataFrame, field: NDArray[np.float64], cols: tuple[str, str, str],
+              order: list[Any] | None) -> pd.DataFrame:
+    """``table`` (without its x, y, z columns, :func:`_take_xyz`) with them back in their places as views of
+    ``field`` (N, 3): one copy of the samples, not two."""
+    if order is None:
+        return table
+    views = {c: field[:, k] for k, c in enumerate(cols)}
+    out = pd.DataFrame({c: views[c] if c in views else table[c] for c in order}, index=table.index, copy=False)
+    out.attrs = dict(table.attrs)
+    return out
 
 
 def _drop_wild_rows(

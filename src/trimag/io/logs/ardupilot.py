@@ -110,7 +110,7 @@ def _collect(path: Path, kind: str, gyro: bool = False, progress: Callable[[floa
             formats: dict[str, tuple[int, str, list[str]]] = {}
             cols = read_dataflash(path, types, formats, progress)
             params: dict[str, float] = {}
-            parm = cols.pop("PARM", None)
+            parm = cols.get("PARM")  # kept: a calibration set in flight is undone where it was in force
             if parm is not None:
                 for name, value in zip(parm["Name"].tolist(), parm["Value"].tolist(), strict=True):
                     params.setdefault(str(name), float(value))
@@ -132,6 +132,7 @@ def _collect(path: Path, kind: str, gyro: bool = False, progress: Callable[[floa
         name = msg.get_type()
         if name == "PARM":
             params.setdefault(str(msg.Name), float(msg.Value))
+            rows[name].append({"TimeUS": getattr(msg, "TimeUS", 0), "Name": str(msg.Name), "Value": float(msg.Value)})
         elif name == "PARAM_VALUE":
             params[str(msg.param_id).rstrip("\x00")] = float(msg.param_value)
         else:
@@ -266,6 +267,50 @@ def gps_course(course_deg: NDArray[np.float64], speed_mps: NDArray[np.float64], 
     return out
 
 
+def _calibration_segments(parm: dict[str, NDArray[Any]] | None, params: dict[str, float], instance: int,
+                          t_s: NDArray[np.float64]) -> tuple[list[tuple[dict[str, float], NDArray[np.intp]]], str]:
+    """The compass's onboard calibration in force at each sample: ``[(parameters, sample indices)]`` in time order,
+    one entry unless a ``PARM`` message changed ``COMPASS_OFSn``/``DIAn``/``ODIn``/``SCALEn`` while the compass was
+    logged (a calibration set in flight); and a sentence saying so ("" when it did not change)."""
+    every = np.arange(len(t_s))
+    if not _n(parm) or parm is None or "TimeUS" not in parm:
+        return [(params, every)], ""
+    n = _suffix(instance)
+    names = {f"COMPASS_{kind}{n}_{a}" for kind in ("OFS", "DIA", "ODI") for a in "XYZ"} | {f"COMPASS_SCALE{n}"}
+    which = np.array([str(name) in names for name in parm["Name"].tolist()], dtype=bool)
+    if not which.any():
+        return [(params, every)], ""
+    p_time = np.asarray(parm["TimeUS"], dtype=np.float64)[which] * 1e-6
+    p_name = [str(v) for v in np.asarray(parm["Name"])[which].tolist()]
+    p_value = np.asarray(parm["Value"], dtype=np.float64)[which]
+    order = np.argsort(p_time, kind="stable")
+    t_first = float(t_s.min()) if len(t_s) else 0.0
+    current = dict(params)
+    for k in order[p_time[order] <= t_first]:  # the values in force when the compass's first sample was logged
+        current[p_name[k]] = float(p_value[k])
+    sets, starts = [dict(current)], [-np.inf]
+    for k in order[p_time[order] > t_first]:
+        if current.get(p_name[k]) != float(p_value[k]):
+            current[p_name[k]] = float(p_value[k])
+            if p_time[k] == starts[-1]:
+                sets[-1] = dict(current)
+            else:
+                sets.append(dict(current))
+                starts.append(float(p_time[k]))
+    segment = np.searchsorted(np.asarray(starts), t_s, side="right") - 1
+    used = [k for k in range(len(sets)) if np.any(segment == k)]
+    out = [(sets[k], np.flatnonzero(segment == k)) for k in used]
+    if len(out) < 2:
+        return [(out[0][0] if out else params, every)], ""
+    first, last = onboard_matrix(out[0][0], instance), onboard_matrix(out[-1][0], instance)
+    what = (f"offsets COMPASS_OFS{n}_X..Z {np.round(first[0], 1).tolist()} -> {np.round(last[0], 1).tolist()} mG"
+            if not np.allclose(first[0], last[0]) else f"soft iron / scale (COMPASS_DIA{n}, ODI{n}, SCALE{n})")
+    when = ", ".join(f"{starts[k]:.1f} s" for k in used[1:])
+    return out, (f"the onboard calibration was changed during the log ({what}; at {when}, a calibration set in "
+                 f"flight): each sample's was undone with the parameters in force when it was logged, and the "
+                 f"log's calibration compared below is the last one; to fit one period only, cut the log there")
+
+
 def _dataflash_magnetometers(rows: Columns, params: dict[str, float]) -> list[MagnetometerStream]:
     """Every compass of ``MAG``/``MAG2``/``MAG3`` (or ``MAG`` by instance ``I``), onboard calibration undone."""
     mags: list[MagnetometerStream] = []
@@ -284,18 +329,37 @@ def _dataflash_magnetometers(rows: Columns, params: dict[str, float]) -> list[Ma
         logged = _array(rs, ["MagX", "MagY", "MagZ"])
         mot_keys = ["MOX", "MOY", "MOZ"] if "MOX" in rs else ["MOfsX", "MOfsY", "MOfsZ"]
         mot = np.nan_to_num(_array(rs, mot_keys)) if mot_keys[0] in rs else None
-        raw, undone, onboard = undo_ardupilot(logged, params, inst, mot, motor_before_matrix=mot_keys[0] == "MOfsX")
+        t_s = _time_s(rs)
+        segments, changed = _calibration_segments(rows.get("PARM"), params, inst, t_s)
+        raw = np.empty_like(logged)
+        undone: list[str] = []
+        onboard: dict[str, float] = {}
+        for seg_params, rows_in in segments:
+            raw[rows_in], undone, onboard = undo_ardupilot(
+                logged[rows_in], seg_params, inst, None if mot is None else mot[rows_in],
+                motor_before_matrix=mot_keys[0] == "MOfsX")
+        if changed:
+            params.update(segments[-1][0])  # the log's own calibration: the one in force at its end
+            undone.insert(0, changed)
         if "OfsX" in rs and params:
             ofs_logged = _array(rs, ["OfsX", "OfsY", "OfsZ"])
-            if np.abs(ofs_logged - onboard_matrix(params, inst)[0]).max() > 1.0:
-                undone.append("warning: the logged offsets OfsX..Z change during the log or differ from "
-                              "COMPASS_OFS*: the parameters at the start of the log were used")
+            ofs_param = np.empty_like(ofs_logged)
+            for seg_params, rows_in in segments:
+                ofs_param[rows_in] = onboard_matrix(seg_params, inst)[0]
+            gap = np.abs(ofs_logged - ofs_param).max(axis=1)
+            if gap.max() > 1.0:
+                n = _suffix(inst)
+                undone.append(f"warning: the offsets logged with each sample (OfsX..Z) differ from the parameters "
+                              f"COMPASS_OFS{n}_X..Z in {int(np.count_nonzero(gap > 1.0))} of {len(gap)} samples "
+                              f"(by up to {gap.max():.0f} mG; first at {t_s[int(np.argmax(gap > 1.0))]:.1f} s): the "
+                              "parameters were used; if the compass was recalibrated in flight without a PARM "
+                              "message, fit only the samples before or after the change")
         if not params:
             undone = ["warning: the log has no PARM messages: the onboard calibration cannot be undone; the "
                       "logged (corrected) reading is used"]
             raw = logged
         dev = params.get(f"COMPASS_DEV_ID{_suffix(inst)}")
-        mags.append(MagnetometerStream(label, inst, _time_s(rs), raw, logged, "mG", undone,
+        mags.append(MagnetometerStream(label, inst, t_s, raw, logged, "mG", undone,
                                        int(dev) if dev else None, onboard))
     return mags
 
