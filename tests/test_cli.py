@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -182,6 +183,7 @@ def test_calibration_of_other_format_version_exit_2(ellipsoid_log: Path, tmp_pat
 def test_fit_and_apply_geosoft_xyz(tmp_path: Path) -> None:
     """`trimag fit data.xyz --columns FLUX_X,FLUX_Y,FLUX_Z --units nT` works; `apply` writes a CSV with the header
     (the names of the `/` record, then the line column) and every row, `*` rows kept with empty corrected cells."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "io"))  # run alone too, not only after tests/io
     from test_io import _geosoft_xyz
 
     path, _ = _geosoft_xyz(tmp_path / "survey.xyz")
