@@ -91,7 +91,7 @@ def _drag_across_flight(driver, start: float, stop: float) -> None:  # type: ign
 
     area = driver.find_elements("css selector", "#flight .nsewdrag")[0]
     width = area.size["width"]
-    chain = ActionChains(driver)
+    chain = ActionChains(driver, duration=20)  # Selenium's default is 250 ms per pointer move: 3 s for this drag
     chain.move_to_element_with_offset(area, int(-width / 2 + start * width), 0).click_and_hold()
     for _k in range(1, 11):
         chain.move_by_offset(int((stop - start) * width / 10), 0)
