@@ -67,9 +67,6 @@ def warm_up():
 
 
 warm_up()
-import gc
-gc.collect()
-gc.freeze()  # what every child shares is never traversed by a child's collector (nor copied by it on write)
 requests, replies = sys.stdin, sys.stdout
 for line in iter(requests.readline, ""):
     job = json.loads(line)
