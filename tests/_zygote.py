@@ -152,7 +152,13 @@ def run_forked(argv: list[str], *, cwd: Path | None, env: dict[str, str], timeou
         try:
             status = _reply(proc, timeout)["status"]
         except TimeoutError:
-            os.killpg(pid, 9)
+            try:
+                os.killpg(pid, 9)
+            except ProcessLookupError:  # no group yet: the child is still between its fork and its setpgid
+                try:
+                    os.kill(pid, 9)
+                except ProcessLookupError:  # it has ended since: its status is on its way
+                    pass
             _reply(proc, 60)
             raise subprocess.TimeoutExpired(["trimag", *argv], timeout or 0.0,
                                             out.read_text(errors="replace"), err.read_text(errors="replace")) from None
