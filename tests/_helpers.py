@@ -69,8 +69,10 @@ def trimag_command() -> list[str]:
     return [exe]
 
 
-def run_trimag(*args: str, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    """Run the command as a process of its own; returns the completed process (text mode).
+def run_trimag(*args: str, cwd: Path | None = None, timeout: float = 120,
+               input: str | None = None) -> subprocess.CompletedProcess[str]:
+    """Run the command as a process of its own; returns the completed process (text mode). ``input``: the text
+    on its standard input.
 
     The process is forked from one that has already imported trimag and its dependencies (``_zygote.py``: the same
     ``trimag.cli.main`` with its own exit code, folder, environment and streams, without the 1.6 s of imports of
@@ -79,10 +81,11 @@ def run_trimag(*args: str, cwd: Path | None = None, timeout: float = 120) -> sub
     env = {**os.environ, "MPLBACKEND": "Agg"}
     argv = [str(a) for a in args]
     if os.environ.get("TRIMAG_TEST_FRESH_PROCESS") or not hasattr(os, "fork"):
-        return subprocess.run([*command, *argv], capture_output=True, text=True, cwd=cwd, timeout=timeout, env=env)
+        return subprocess.run([*command, *argv], capture_output=True, text=True, cwd=cwd, timeout=timeout, env=env,
+                              input=input)
     from _zygote import run_forked
 
-    return run_forked(argv, cwd=cwd, env=env, timeout=timeout)
+    return run_forked(argv, cwd=cwd, env=env, timeout=timeout, input=input)
 
 
 def ellipsoid_truth() -> tuple[np.ndarray, np.ndarray]:

@@ -77,7 +77,7 @@ for line in iter(requests.readline, ""):
         code = 1
         try:
             os.setpgid(0, 0)
-            for fd, path, flags in ((0, os.devnull, os.O_RDONLY), (1, job["stdout"], os.O_WRONLY),
+            for fd, path, flags in ((0, job.get("stdin") or os.devnull, os.O_RDONLY), (1, job["stdout"], os.O_WRONLY),
                                     (2, job["stderr"], os.O_WRONLY)):
                 opened = os.open(path, flags)
                 os.dup2(opened, fd)
@@ -131,24 +131,34 @@ def _reply(proc: subprocess.Popen[str], timeout: float | None) -> dict:
     return json.loads(line)
 
 
-def run_forked(argv: list[str], *, cwd: Path | None, env: dict[str, str],
-               timeout: float | None) -> subprocess.CompletedProcess[str]:
+def run_forked(argv: list[str], *, cwd: Path | None, env: dict[str, str], timeout: float | None,
+               input: str | None = None) -> subprocess.CompletedProcess[str]:
     """``trimag ARGV`` in a child forked from the zygote; as ``subprocess.run(..., capture_output=True, text=True)``
-    (``subprocess.TimeoutExpired`` after ``timeout`` s, the child killed)."""
+    (``subprocess.TimeoutExpired`` after ``timeout`` s, the child killed); ``input`` is the child's standard input
+    (a file it reads to its end; else the null device)."""
     proc = _start()
     assert proc.stdin is not None
     with tempfile.TemporaryDirectory(prefix="trimag-zygote-") as tmp:
-        out, err = Path(tmp) / "stdout", Path(tmp) / "stderr"
+        out, err, given = Path(tmp) / "stdout", Path(tmp) / "stderr", Path(tmp) / "stdin"
         out.touch()
         err.touch()
+        if input is not None:
+            given.write_text(input)
         proc.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd or Path.cwd()), "env": env,
-                                     "stdout": str(out), "stderr": str(err)}) + "\n")
+                                     "stdout": str(out), "stderr": str(err),
+                                     "stdin": str(given) if input is not None else None}) + "\n")
         proc.stdin.flush()
         pid = _reply(proc, 60)["pid"]
         try:
             status = _reply(proc, timeout)["status"]
         except TimeoutError:
-            os.killpg(pid, 9)
+            try:
+                os.killpg(pid, 9)
+            except ProcessLookupError:  # no group yet: the child is still between its fork and its setpgid
+                try:
+                    os.kill(pid, 9)
+                except ProcessLookupError:  # it has ended since: its status is on its way
+                    pass
             _reply(proc, 60)
             raise subprocess.TimeoutExpired(["trimag", *argv], timeout or 0.0,
                                             out.read_text(errors="replace"), err.read_text(errors="replace")) from None

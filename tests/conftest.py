@@ -39,6 +39,16 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         raise pytest.UsageError(reason)
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """After the imports of collection (numpy, scipy, pandas, trimag, every test module): those objects live as long
+    as the process, so the garbage collector is told to stop traversing them (``gc.freeze``); each later collection
+    then walks only what the tests allocate (~10 % of the CPU time of in-process tests such as the fuzzing)."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
 @pytest.fixture
 def ellipsoid_log(tmp_path: Path) -> Path:
     """A CSV log (header bx,by,bz plus a time column) of a simulated sensor, 600 rows."""

@@ -228,6 +228,21 @@ def test_each_command_builds_its_request_from_its_flags() -> None:
                                                                                   seed=4)
 
 
+def test_one_parser_serves_every_call_of_main_and_keeps_nothing_from_the_last() -> None:
+    """main() builds the parser once per process (cli._command_parser): a repeated flag, a sub-command's defaults
+    and an unknown flag of one call do not reach the next, and the flags are registered for the messages."""
+    from trimag.cli import _FLAGS, _command_parser
+
+    parser = _command_parser()
+    assert _command_parser() is parser and _FLAGS.get("units") == "--units"
+    first, _ = parser.parse_known_args(["fit", "a.csv", "--option", "k=1", "--option", "j=2", "--units", "uT"])
+    again, _ = parser.parse_known_args(["fit", "a.csv", "--option", "m=3"])
+    assert first.option == ["k=1", "j=2"] and again.option == ["m=3"] and again.units is None
+    other, unknown = parser.parse_known_args(["apply", "c.json", "d.csv", "--nonsense"])
+    assert other.command == "apply" and unknown == ["--nonsense"] and not hasattr(other, "option")
+    assert parser.parse_known_args(["fit", "b.csv"])[0].option is None
+
+
 # ------------------------------------------------ flags every reading command honours (found in the app-layer split)
 LOG = Path(__file__).parent / "data" / "logs" / "ardusub_small.BIN"
 CALIBRATIONS = Path(__file__).parent / "data" / "calibrations"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import itertools
 import json
 import re
@@ -574,6 +575,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@functools.lru_cache(maxsize=1)
+def _command_parser() -> argparse.ArgumentParser:
+    """:func:`build_parser`, built once per process with its flags registered: parsing leaves a parser as it was
+    (every parse fills a new namespace), and building one takes ~10 ms of argparse (a program calling :func:`main`
+    many times, e.g. the suite's fuzz tests, spent a third of a short fit there)."""
+    parser = build_parser()
+    _register_flags(parser)
+    return parser
+
+
 def _print_fit(result: Any, args: argparse.Namespace) -> None:
     from .quality.report import params_table, summary_table
 
@@ -1114,8 +1125,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trimag`` command; returns the exit code."""
-    parser = build_parser()
-    _register_flags(parser)
+    parser = _command_parser()
     args, unknown = parser.parse_known_args(argv)
     if args.command in ("live", "batch") and getattr(args, "model", None) == "tolles-lawson":
         from .app.tolles_lawson import not_fitted_by

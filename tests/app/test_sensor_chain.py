@@ -133,12 +133,6 @@ def _same_sensor(record: SensorRecord | None, fitted: SensorRecord) -> None:
         assert getattr(record, name) == getattr(fitted, name), name
 
 
-@pytest.fixture(autouse=True)
-def _fresh_processes(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each command in a process of its own (these fits take long on a loaded machine)."""
-    monkeypatch.setenv("TRIMAG_TEST_FRESH_PROCESS", "1")
-
-
 @pytest.mark.parametrize("case", cases(), ids=lambda c: c.name)
 def test_every_command_names_and_uses_the_calibrations_sensor(case: Case, tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:

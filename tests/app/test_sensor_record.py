@@ -165,12 +165,11 @@ def test_export_never_writes_over_the_calibration_it_exports(compass2: Path, tmp
     assert copy.read_bytes() == compass2.read_bytes()
 
 
-def test_a_quick_recalibration_reads_the_prior_s_compass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_quick_recalibration_reads_the_prior_s_compass(tmp_path: Path) -> None:
     """``fit --prior`` (and ``batch --prior``) reads the compass the prior belongs to: the PX4 log's second
     magnetometer, where the log's default is the first (as many samples: the first)."""
     from trimag.io.logs import read_log
 
-    monkeypatch.setenv("TRIMAG_TEST_FRESH_PROCESS", "1")  # a long fit on a loaded machine
     log = TESTS_DIR / "data" / "logs" / "px4tools_01_07_59.px4log"
     second = read_log(log).choose("2")
     record = SensorRecord("log", unit="G", compass=2, name=second.name, device_id=second.device_id)

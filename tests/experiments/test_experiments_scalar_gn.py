@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,13 +16,13 @@ from trimag.experiments import get_experiment
 from trimag.experiments import scalar_gn as sgn
 from trimag.parallel import trial_seeds
 
+from _helpers import run_trimag
+
 BROAD = sgn.BROAD_TRIAL
 
 
 def _trimag(*args: str) -> subprocess.CompletedProcess[str]:
-    exe = shutil.which("trimag")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "trimag.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    return run_trimag(*args, timeout=240)
 
 
 def test_registered() -> None:

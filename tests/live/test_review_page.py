@@ -91,9 +91,12 @@ def _download(driver, link_id: str, folder: Path, suffix: str) -> Path:  # type:
     driver.find_element("id", link_id).click()
     for _ in range(300):
         new = [p for p in set(folder.glob(f"*{suffix}")) - before if p.stat().st_size > 0]
-        if new:
-            time.sleep(0.3)  # Chromium renames the .crdownload when it is complete
-            return new[0]
+        if new:  # Chromium writes NAME.crdownload and renames it when it is complete: NAME is the whole file
+            size = new[0].stat().st_size
+            time.sleep(0.05)
+            if new[0].stat().st_size == size:
+                return new[0]
+            continue
         time.sleep(0.1)
     raise AssertionError(f"{link_id} downloaded nothing into {folder}")
 
@@ -104,7 +107,7 @@ def _drag_across_flight(driver, start: float, stop: float) -> None:  # type: ign
 
     area = driver.find_elements("css selector", "#flight .nsewdrag")[0]
     width = area.size["width"]
-    chain = ActionChains(driver)
+    chain = ActionChains(driver, duration=20)  # Selenium's default is 250 ms per pointer move: 3 s for this drag
     chain.move_to_element_with_offset(area, int(-width / 2 + start * width), 0).click_and_hold()
     for _k in range(1, 11):
         chain.move_by_offset(int((stop - start) * width / 10), 0)

@@ -25,6 +25,8 @@ from trimag.live import LiveServer, LiveSession, run_live
 from trimag.live.sources import Batch
 from trimag.simulate import uniform_directions
 
+from _helpers import run_trimag
+
 
 def _assert_saved_pair(written: dict[str, str], units: str = "counts") -> int:
     """The calibration written is the fit of exactly the samples written; returns their number."""
@@ -154,17 +156,12 @@ def test_the_header_unit_is_checked_as_fit_checks_it(tmp_path, capsys):
 def test_a_unit_in_the_header_of_standard_input_is_checked_too(tmp_path):
     """A header naming its unit (x_uT,y_uT,z_uT) is the unit of the samples: taken without --units, and a --units
     that contradicts it ends the source with fit's message (no samples recorded in the wrong unit)."""
-    import subprocess
-    import sys
-
     raw = sensor(uniform_directions(300, seed=16)) / 10.0
     text = "x_uT,y_uT,z_uT\n" + "\n".join(f"{x:.4f},{y:.4f},{z:.4f}" for x, y, z in raw) + "\n"
     runs = {}
     for name, flags in (("taken", []), ("contradicted", ["--units", "nT"])):
-        runs[name] = subprocess.run(
-            [sys.executable, "-m", "trimag", "live", "--stdin", "--no-browser", "--port", "0", "--exit-at-end",
-             "--json", "-o", str(tmp_path / f"{name}.json"), *flags],
-            input=text, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        runs[name] = run_trimag("live", "--stdin", "--no-browser", "--port", "0", "--exit-at-end", "--json", "-o",
+                                tmp_path / f"{name}.json", *flags, input=text, cwd=tmp_path)
     taken = json.loads(runs["taken"].stdout.strip().splitlines()[-1])
     assert runs["taken"].returncode == 0 and taken["units"] == "uT" and taken["n_samples"] == 300
     assert trimag.Calibration.from_file(tmp_path / "taken.json").units == "uT"
