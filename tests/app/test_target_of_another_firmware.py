@@ -13,9 +13,10 @@ from pathlib import Path
 TESTS_DIR = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS_DIR))
 
-from _helpers import refusal, run_trimag  # noqa: E402
 from _px4_ulog import write_duplicate_slot_ulog  # noqa: E402
 from _two_compass_flight import write_two_compass_flight  # noqa: E402
+
+from _helpers import refusal, run_trimag  # noqa: E402
 
 
 def test_an_ardupilot_log_fitted_for_px4_is_refused_naming_the_log_s_own_target(tmp_path: Path) -> None:
