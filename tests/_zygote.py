@@ -108,6 +108,11 @@ for line in iter(requests.readline, ""):
     replies.flush()
 """
 
+#: pyarrow's jemalloc starts a background thread (``jemalloc_bg_thd``) that wakes to purge memory, taking the
+#: allocator's locks: a fork while it holds one leaves the child waiting forever (one run in four of a few test files
+#: saw a forked command never answer). Without it the zygote has only idle pool threads when it forks.
+_NO_BACKGROUND_THREADS = {"JE_ARROW_MALLOC_CONF": "background_thread:false"}
+
 _zygote: subprocess.Popen[str] | None = None
 
 
@@ -115,7 +120,7 @@ def _start() -> subprocess.Popen[str]:
     global _zygote
     if _zygote is None or _zygote.poll() is not None:
         _zygote = subprocess.Popen([sys.executable, "-c", _SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                   text=True, env={**os.environ, "MPLBACKEND": "Agg"})
+                                   text=True, env={**os.environ, "MPLBACKEND": "Agg", **_NO_BACKGROUND_THREADS})
         atexit.register(_zygote.kill)
     return _zygote
 
