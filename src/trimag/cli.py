@@ -405,8 +405,9 @@ _EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "qgc": "-qgc.params
 
 
 def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:
-    """Without ``-o``: the output beside ``source``, named from it (``source``'s stem + ``tail``), said on stderr;
-    an existing file of that name is never replaced (exit 2)."""
+    """Without ``-o``: the output beside ``source``, named from it (``source``'s stem + ``tail``), said on stderr
+    once it is written (:func:`main`; a refusal names no file it never wrote); an existing file of that name is never
+    replaced (exit 2)."""
     if args.out is not None:
         return
     target = Path(source).with_name(Path(source).stem + tail)
@@ -414,7 +415,7 @@ def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:
         raise TrimagInputError(f"no -o given and {target} (the default name) already exists: name the output with "
                                "-o FILE, or -o - for standard output")
     args.out = str(target)
-    _err(f"no -o given: writing {target}")
+    args.default_out = str(target)
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -1153,7 +1154,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .io.limits import input_limits
 
         with input_limits(getattr(args, "max_fields", None), getattr(args, "max_decompressed_mb", None)):
-            return handlers[args.command](args)
+            code = handlers[args.command](args)
+        if code == EXIT_OK and getattr(args, "default_out", None):
+            _err(f"no -o given: wrote {args.default_out}")
+        return code
     except _Terminated:
         _err("terminated")
         return 143
