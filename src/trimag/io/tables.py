@@ -857,6 +857,15 @@ def _columns_by_content(
     )
 
 
+def check_row_range(rows: str, start: int | None, stop: int | None) -> None:
+    """Refuse (:class:`TrimagInputError`) a ``rows`` range ``START:STOP`` that is empty whatever the file holds: START
+    at or after STOP, both counted from the same end (both >= 0, or both < 0)."""
+    if start is not None and stop is not None and (start >= 0) == (stop >= 0) and start >= stop:
+        hint = f", e.g. {stop}:{start}" if stop < start else ""
+        raise TrimagInputError(f"`rows` {rows.strip()} is empty: START ({start}) must be before STOP ({stop}; 0-based, "
+                               f"STOP excluded){hint}")
+
+
 def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = None) -> tuple[pd.DataFrame, str]:
     """Select data rows by a 0-based half-open range ``"START:STOP"`` and/or ``"COLUMN==VALUE"`` (or ``!=``)."""
     notes = []
@@ -866,6 +875,7 @@ def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = N
             raise TrimagInputError(f"`rows` takes START:STOP (0-based, STOP excluded), e.g. 0:5000; got {rows!r}")
         start = int(m.group(1)) if m.group(1) else None
         stop = int(m.group(2)) if m.group(2) else None
+        check_row_range(rows, start, stop)
         df = df.iloc[slice(start, stop)]
         notes.append(f"rows {rows}")
     if where:
