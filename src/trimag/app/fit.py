@@ -19,6 +19,7 @@ from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
 from ..io.atomic import check_distinct_outputs
 from ..units import normalise_unit
+from ..validation import check_reference_magnitude
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
     check_fitted_field,
@@ -663,11 +664,10 @@ def _check_reference_number(reference: Any) -> None:
     if isinstance(reference, bool) or not isinstance(reference, str | int | float):
         return
     try:
-        value = float(reference)
+        float(reference)
     except ValueError:
         return
-    if not (np.isfinite(value) and value > 0):
-        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {reference!r}")
+    check_reference_magnitude(reference)
 
 
 def _background_scale(given: Any) -> float | None:
@@ -678,12 +678,10 @@ def _background_scale(given: Any) -> float | None:
     if given.reference is None or str(given.reference).strip().lower() == "mean":
         return None
     try:
-        value = float(given.reference)
+        float(given.reference)
     except ValueError:
         raise TrimagInputError(f"`reference` takes a number or 'mean'; got {given.reference!r}") from None
-    if not (np.isfinite(value) and value > 0):
-        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {given.reference!r}")
-    return value
+    return check_reference_magnitude(given.reference)
 
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:
