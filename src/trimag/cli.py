@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from ._core.chunks import DEFAULT_CHUNK_ROWS
 from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
+from .units import unit_words
 
 if TYPE_CHECKING:
     from .app.requests import EvaluateRequest
@@ -590,6 +591,9 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          args)
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
+    if cal.units == "unknown":
+        _say("note: the data's unit is not given: F and the offsets are in the data's own unit; give --units (nT, uT, "
+             "G, mG or counts) to record it (the firmware and the unit checks need it)", args)
     if cal.regressors is not None and "regressors" in cal.diagnostics:
         from .vehicle.regressors import ranking_table
 
@@ -853,7 +857,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
     if args.json:
         print(json.dumps(r))
     else:
-        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
+        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit_words(unit)}); appended "
              f"{', '.join(r['output_columns'])}; wrote {_where(r['out'])}", args)
     return EXIT_OK
 
@@ -914,8 +918,10 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
         return EXIT_OK
     ref = r["reference"]
     _say(f"{r['n_used']} samples; reference F = {ref['value']:.6g} {r['units']} ({ref['source']})"
+         if ref["value"] is not None and r["units"] != "unknown" else
+         f"{r['n_used']} samples; reference F = {ref['value']:.6g} ({ref['source']}; unit not given)"
          if ref["value"] is not None else f"{r['n_used']} samples; reference per sample ({ref['source']})", args)
-    _say(f"{'':16}{'before':>14}{'after':>14}   [{r['units']}]", args)
+    _say(f"{'':16}{'before':>14}{'after':>14}   [{unit_words(r['units'])}]", args)
     for label, key in (("|B| mean", "mean_norm"), ("|B| std", "std_norm"), ("RMS(|B| - F)", "rms"),
                        ("max ||B| - F|", "max_abs"), ("peak-to-peak", "p2p")):
         k_b = f"{key}_before"
@@ -939,7 +945,7 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     mean = "mean " if v["background"]["per_sample"] else ""
     _say(f"{v['n_used']} samples; background NED {mean}{np.round(v['background']['ned'], 3).tolist()} {v['units']} "
          f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
-    _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
+    _say(f"{'':22}{'before':>14}{'after':>14}   [{unit_words(v['units'])}, deg]", args)
     for k, axis in enumerate("xyz"):
         _say(f"{'RMS error ' + axis:22}{v['before']['rms_axis'][k]:14.6g}{v['after']['rms_axis'][k]:14.6g}", args)
     for label, key in (("RMS vector error", "rms_vector"), ("angular error RMS", "angular_error_rms_deg"),

@@ -14,7 +14,7 @@ from ..errors import TrimagError, TrimagInputError
 from ..estimators import make_estimator
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..units import normalise_unit, plausible_units
+from ..units import normalise_unit, plausible_units, unit_after
 
 
 def check_unit(
@@ -266,8 +266,8 @@ def refuse_impossible_vector_fit(
     if not (worse_than_raw(cal) or det <= 0):
         return
     before, after = float(cal.stats["rms_before"]), float(cal.stats["rms_after"])
-    what = f"RMS {after:.4g} {unit} after against {before:.4g} before" + ("; det(K) < 0, a reflection" if det <= 0
-                                                                         else "")
+    what = f"RMS {after:.4g} {unit_after(unit)} after against {before:.4g} before" + (
+        "; det(K) < 0, a reflection" if det <= 0 else "")
     best: tuple[float, str] | None = None
     for label, rot in _attitude_alternatives(samples, attitude_columns, quaternion_columns, quaternion_order,
                                              quaternion_frame):

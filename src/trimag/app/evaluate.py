@@ -15,7 +15,7 @@ from ..fields.reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
-from ..units import convert, normalise_unit
+from ..units import convert, normalise_unit, unit_after
 from ._inputs import calibration_for, refuse_background_vector
 from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
@@ -173,7 +173,7 @@ def _against_fitted_reference(cal: Calibration, after: Any, before: Any) -> tupl
 
 def worse_than_raw_warning(what: str, after: float, before: float, unit: str) -> str:
     """The warning of an evaluation in which the calibration makes the data worse than the raw data (issue 32)."""
-    sep = "" if unit == "%" else " "
+    sep, unit = ("", unit) if unit == "%" else (" ", unit_after(unit))
     return (f"the calibration makes these data worse than the raw data ({what} {after:.4g}{sep}{unit} after against "
             f"{before:.4g}{sep}{unit} before): it does not hold for this log (fitted on too little rotation, on "
             "another sensor or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")
