@@ -167,8 +167,7 @@ def _say(msg: str, args: argparse.Namespace) -> None:
 
 def _say_sensor(result: dict[str, Any], args: argparse.Namespace) -> None:
     """The sensor a command read for its calibration (``sensor: ...``; a warning when it is another compass's)."""
-    line = result.get("sensor")
-    if line:
+    for line in (result.get("sensor") or "").splitlines():
         _err(line) if line.startswith("warning:") else _say(line, args)
 
 
