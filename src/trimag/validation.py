@@ -25,6 +25,10 @@ MAX_READING = 1e150
 #: The field magnitudes a reference may take, in any unit (nT, uT, G, mG, counts, a normalised field of 1): below
 #: 1e-9 (1e-4 nT given in G) or above 1e12 (1000 T in nT; no ADC counts so far) no field is calibrated against.
 REFERENCE_RANGE = (1e-9, 1e12)
+#: Residuals below this fraction of the field are round-off (double precision leaves ~1e-16 of it; no sensor
+#: resolves 1e-9 of the field): checks that compare residuals (worse than raw, halves that disagree) find nothing
+#: in them (noise-free simulated data were "changed during the log (8.9 sigma)" and "worse than raw").
+ROUNDOFF_FRACTION = 1e-9
 #: Deepest nesting of lists and tables accepted in a JSON or TOML input (trimag's own files nest 5 deep); a deeper
 #: document is refused before Python's parsers recurse past their limit (a RecursionError was exit 1).
 MAX_NESTING = 64

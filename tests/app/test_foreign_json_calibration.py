@@ -24,7 +24,7 @@ def test_a_json_that_is_not_a_calibration_is_named_so(command: str, tmp_path: Pa
     r = run_trimag(*args, cwd=tmp_path)
     assert r.returncode == 2, r.stderr
     verdict, _ = refusal(r.stderr)
-    assert "settings.json" in verdict and "not a trimag calibration" in verdict or \
-        "settings.json is not a calibration file" in verdict and "trimag fit LOG -o cal.json" in verdict, verdict
+    assert ("settings.json" in verdict and "not a trimag calibration" in verdict) or \
+        ("settings.json is not a calibration file" in verdict and "trimag fit LOG -o cal.json" in verdict), verdict
     assert "fit settings.json" not in verdict, verdict
     assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv", "settings.json"]

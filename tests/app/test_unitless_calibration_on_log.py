@@ -25,7 +25,8 @@ def test_a_calibration_without_a_unit_on_a_mg_log_is_flagged(command: str, units
     out = ("-o", tmp_path / "out.csv") if command == "apply" else ()
     r = run_trimag(command, cal, LOG, *out)
     assert r.returncode == 0, r.stderr
-    warned = [line for line in r.stderr.splitlines() if line.startswith("trimag: warning:") and "unit is not known" in line]
+    warned = [line for line in r.stderr.splitlines()
+              if line.startswith("trimag: warning:") and "unit is not known" in line]
     if units is None:
         assert len(warned) == 1 and "mG" in warned[0], r.stderr
         assert len(warned[0]) <= 200

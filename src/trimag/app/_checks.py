@@ -215,8 +215,14 @@ def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_sp
 
 
 def worse_than_raw(cal: Calibration) -> bool:
+    """Whether the fit's corrected data miss the reference by more than the raw data, beyond round-off
+    (:data:`~trimag.validation.ROUNDOFF_FRACTION` of the field)."""
+    from ..validation import ROUNDOFF_FRACTION
+
     before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
-    return before is not None and after is not None and float(after) > float(before)
+    field = (cal.reference or {}).get("value") or cal.stats.get("mean_norm_after") or 0.0
+    return before is not None and after is not None and float(after) > float(before) and \
+        float(after) > ROUNDOFF_FRACTION * abs(float(field))
 
 
 def _attitude_alternatives(

@@ -16,6 +16,7 @@ from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
 from ..units import convert, normalise_unit, unit_after
+from ..validation import ROUNDOFF_FRACTION
 from ._inputs import calibration_for, refuse_background_vector
 from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
@@ -101,8 +102,9 @@ def evaluate_file(
         judged_before = 100.0 * stats_before["std_norm"] / stats_before["mean_norm"] \
             if stats_before["mean_norm"] > 0 else np.inf
         what, unit = "spread of |B| relative to the field (std / |B|)", "%"
+    roundoff = ROUNDOFF_FRACTION * (100.0 if unit == "%" else abs(F if F is not None else stats_after["mean_norm"]))
     worse = bool(judged_after > judged_before * (1.0 + RELATIVE_SPREAD_TOLERANCE)
-                 if unit == "%" else judged_after > judged_before)
+                 if unit == "%" else judged_after > judged_before) and bool(judged_after > roundoff)
     fitted, fitted_warning = (None, None) if F is not None or given.reference_column else \
         _against_fitted_reference(cal, after, before)
     return {
