@@ -34,7 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from ._core.rowwise import affine
 from ._version import __version__
 from .errors import CalibrationFormatError, TrimagInputError, UnitMismatchError
-from .units import normalise_unit
+from .units import normalise_unit, unit_words
 
 __all__ = ["FORMAT_VERSION", "UNCERTAINTY_FIELDS", "Calibration", "SensorRecord", "Uncertainty", "jsonable",
            "make_uncertainty"]
@@ -161,12 +161,12 @@ class SensorRecord:
                 what.append(f"{self.offset_parameters[0][:-1]}X..Z" if self.firmware == "ardupilot" else
                             f"{self.offset_parameters[0].rsplit('_', 1)[0]}_*")
             number = f"compass {self.compass}" if self.compass is not None else "the magnetometer"
-            return f"{number}{where} ({', '.join(what)}), {self.unit}"
+            return f"{number}{where} ({', '.join(what)}), {unit_words(self.unit)}"
         if self.kind == "table":
             cols = f"columns {', '.join(self.columns)}" if self.columns else "the columns"
             var = f" (variable {self.variable})" if self.variable else ""
-            return f"{cols}{var}{where}, {self.unit}"
-        return f"{self.format or 'a live stream'}{where}, {self.unit}"
+            return f"{cols}{var}{where}, {unit_words(self.unit)}"
+        return f"{self.format or 'a live stream'}{where}, {unit_words(self.unit)}"
 
 
 def file_major_version(data: Any, kind: str, current: str) -> int:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from ._core.chunks import DEFAULT_CHUNK_ROWS
 from ._version import __version__
 from .errors import IdentifiabilityError, TrimagError, TrimagInputError
+from .units import unit_words
 
 if TYPE_CHECKING:
     from .app.requests import EvaluateRequest
@@ -167,8 +168,7 @@ def _say(msg: str, args: argparse.Namespace) -> None:
 
 def _say_sensor(result: dict[str, Any], args: argparse.Namespace) -> None:
     """The sensor a command read for its calibration (``sensor: ...``; a warning when it is another compass's)."""
-    line = result.get("sensor")
-    if line:
+    for line in (result.get("sensor") or "").splitlines():
         _err(line) if line.startswith("warning:") else _say(line, args)
 
 
@@ -406,8 +406,9 @@ _EXPORT_SUFFIXES = {"ardupilot": ".param", "px4": ".params", "qgc": "-qgc.params
 
 
 def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:
-    """Without ``-o``: the output beside ``source``, named from it (``source``'s stem + ``tail``), said on stderr;
-    an existing file of that name is never replaced (exit 2)."""
+    """Without ``-o``: the output beside ``source``, named from it (``source``'s stem + ``tail``), said on stderr
+    once it is written (:func:`main`; a refusal names no file it never wrote); an existing file of that name is never
+    replaced (exit 2)."""
     if args.out is not None:
         return
     target = Path(source).with_name(Path(source).stem + tail)
@@ -415,7 +416,7 @@ def _default_out(args: argparse.Namespace, source: str, tail: str) -> None:
         raise TrimagInputError(f"no -o given and {target} (the default name) already exists: name the output with "
                                "-o FILE, or -o - for standard output")
     args.out = str(target)
-    _err(f"no -o given: writing {target}")
+    args.default_out = str(target)
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -600,6 +601,9 @@ def _print_fit(result: Any, args: argparse.Namespace) -> None:
          args)
     _say(summary_table(cal), args)
     _say(params_table(cal), args)
+    if cal.units == "unknown":
+        _say("note: the data's unit is not given: F and the offsets are in the data's own unit; give --units (nT, uT, "
+             "G, mG or counts) to record it (the firmware and the unit checks need it)", args)
     if cal.regressors is not None and "regressors" in cal.diagnostics:
         from .vehicle.regressors import ranking_table
 
@@ -863,7 +867,7 @@ def _print_applied(r: dict[str, Any], args: argparse.Namespace, verb: str, unit:
     if args.json:
         print(json.dumps(r))
     else:
-        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit}); appended "
+        _say(f"{verb} {r['n_rows'] - r['n_uncorrected']} of {r['n_rows']} rows ({unit_words(unit)}); appended "
              f"{', '.join(r['output_columns'])}; wrote {_where(r['out'])}", args)
     return EXIT_OK
 
@@ -924,8 +928,10 @@ def _cmd_evaluate_scalar(req: EvaluateRequest, args: argparse.Namespace) -> int:
         return EXIT_OK
     ref = r["reference"]
     _say(f"{r['n_used']} samples; reference F = {ref['value']:.6g} {r['units']} ({ref['source']})"
+         if ref["value"] is not None and r["units"] != "unknown" else
+         f"{r['n_used']} samples; reference F = {ref['value']:.6g} ({ref['source']}; unit not given)"
          if ref["value"] is not None else f"{r['n_used']} samples; reference per sample ({ref['source']})", args)
-    _say(f"{'':16}{'before':>14}{'after':>14}   [{r['units']}]", args)
+    _say(f"{'':16}{'before':>14}{'after':>14}   [{unit_words(r['units'])}]", args)
     for label, key in (("|B| mean", "mean_norm"), ("|B| std", "std_norm"), ("RMS(|B| - F)", "rms"),
                        ("max ||B| - F|", "max_abs"), ("peak-to-peak", "p2p")):
         k_b = f"{key}_before"
@@ -949,7 +955,7 @@ def _cmd_evaluate_vector(req: EvaluateRequest, args: argparse.Namespace) -> int:
     mean = "mean " if v["background"]["per_sample"] else ""
     _say(f"{v['n_used']} samples; background NED {mean}{np.round(v['background']['ned'], 3).tolist()} {v['units']} "
          f"({v['background']['source']}); columns {', '.join(v['columns'])}", args)
-    _say(f"{'':22}{'before':>14}{'after':>14}   [{v['units']}, deg]", args)
+    _say(f"{'':22}{'before':>14}{'after':>14}   [{unit_words(v['units'])}, deg]", args)
     for k, axis in enumerate("xyz"):
         _say(f"{'RMS error ' + axis:22}{v['before']['rms_axis'][k]:14.6g}{v['after']['rms_axis'][k]:14.6g}", args)
     for label, key in (("RMS vector error", "rms_vector"), ("angular error RMS", "angular_error_rms_deg"),
@@ -1163,7 +1169,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .io.limits import input_limits
 
         with input_limits(getattr(args, "max_fields", None), getattr(args, "max_decompressed_mb", None)):
-            return handlers[args.command](args)
+            code = handlers[args.command](args)
+        if code == EXIT_OK and getattr(args, "default_out", None):
+            _err(f"no -o given: wrote {args.default_out}")
+        return code
     except _Terminated:
         _err("terminated")
         return 143

@@ -70,6 +70,19 @@ def normalise_unit(unit: str | None) -> str:
     return canonical
 
 
+def unit_words(unit: str | None) -> str:
+    """``unit`` as a reader names it: ``"unit not given"`` for ``unknown`` (a fit without ``units``), else the unit
+    (``"nT"``, ``"counts"``); e.g. a table's heading ``[unit not given]``."""
+    return "unit not given" if unit is None or unit == "unknown" else str(unit)
+
+
+def unit_after(unit: str | None) -> str:
+    """``unit`` written after a number: ``"nT"``, or ``"(unit not given)"`` for ``unknown`` (never ``"37 unknown"``,
+    as if "unknown" were a unit)."""
+    words = unit_words(unit)
+    return f"({words})" if words == "unit not given" else words
+
+
 def nT_per_unit(unit: str) -> float:
     """Nanotesla per one ``unit``; raises for ``counts`` and ``unknown``, which have no physical scale."""
     canonical = normalise_unit(unit)

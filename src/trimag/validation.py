@@ -22,6 +22,13 @@ WILD_FACTOR = 10.0
 #: Largest value taken as a reading: beyond it, squares of magnitudes approach overflow (no sensor reads 1e150 in
 #: any unit).
 MAX_READING = 1e150
+#: The field magnitudes a reference may take, in any unit (nT, uT, G, mG, counts, a normalised field of 1): below
+#: 1e-9 (1e-4 nT given in G) or above 1e12 (1000 T in nT; no ADC counts so far) no field is calibrated against.
+REFERENCE_RANGE = (1e-9, 1e12)
+#: Residuals below this fraction of the field are round-off (double precision leaves ~1e-16 of it; no sensor
+#: resolves 1e-9 of the field): checks that compare residuals (worse than raw, halves that disagree) find nothing
+#: in them (noise-free simulated data were "changed during the log (8.9 sigma)" and "worse than raw").
+ROUNDOFF_FRACTION = 1e-9
 #: Deepest nesting of lists and tables accepted in a JSON or TOML input (trimag's own files nest 5 deep); a deeper
 #: document is refused before Python's parsers recurse past their limit (a RecursionError was exit 1).
 MAX_NESTING = 64
@@ -115,7 +122,24 @@ def check_reference_values(values: Any, n: int, *, name: str = "reference") -> N
         raise TrimagInputError(f"`{name}` must be a scalar or have shape ({n},); got {arr.shape}")
     if not np.isfinite(arr).all() or (arr <= 0).any():
         raise TrimagInputError(f"`{name}` must be finite and positive (a field magnitude)")
+    low, high = REFERENCE_RANGE
+    if arr.size and not (low <= arr.min() and arr.max() <= high):
+        bad = float(arr.min() if arr.min() < low else arr.max())
+        raise TrimagInputError(f"`{name}` {bad:.6g} is not a field magnitude in any unit (one is {low:g} to "
+                               f"{high:g}); give the field in the data's unit, e.g. 48193 (nT) or 0.48 (G)")
     return arr
+
+
+def check_reference_magnitude(value: Any, *, name: str = "reference") -> float:
+    """The one field magnitude ``value`` (a number, or a string of one) as a float; refused
+    (:class:`TrimagInputError`) unless finite, positive and within :data:`REFERENCE_RANGE`."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise TrimagInputError(f"`{name}` takes a field magnitude (a number); got {value!r}") from None
+    if not (np.isfinite(number) and number > 0):
+        raise TrimagInputError(f"`{name}` must be a finite positive field magnitude; got {value!r}")
+    return float(check_reference_values(number, 1, name=name)[0])
 
 
 def _norms(B: NDArray[np.float64], huge: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:

@@ -14,7 +14,7 @@ from ..errors import TrimagError, TrimagInputError
 from ..estimators import make_estimator
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..units import normalise_unit, plausible_units
+from ..units import normalise_unit, plausible_units, unit_after
 
 
 def check_unit(
@@ -215,8 +215,14 @@ def policy_verdict(cal: Calibration, limits: dict[str, float], ref: Any, igrf_sp
 
 
 def worse_than_raw(cal: Calibration) -> bool:
+    """Whether the fit's corrected data miss the reference by more than the raw data, beyond round-off
+    (:data:`~trimag.validation.ROUNDOFF_FRACTION` of the field)."""
+    from ..validation import ROUNDOFF_FRACTION
+
     before, after = cal.stats.get("rms_before"), cal.stats.get("rms_after")
-    return before is not None and after is not None and float(after) > float(before)
+    field = (cal.reference or {}).get("value") or cal.stats.get("mean_norm_after") or 0.0
+    return before is not None and after is not None and float(after) > float(before) and \
+        float(after) > ROUNDOFF_FRACTION * abs(float(field))
 
 
 def _attitude_alternatives(
@@ -266,8 +272,8 @@ def refuse_impossible_vector_fit(
     if not (worse_than_raw(cal) or det <= 0):
         return
     before, after = float(cal.stats["rms_before"]), float(cal.stats["rms_after"])
-    what = f"RMS {after:.4g} {unit} after against {before:.4g} before" + ("; det(K) < 0, a reflection" if det <= 0
-                                                                         else "")
+    what = f"RMS {after:.4g} {unit_after(unit)} after against {before:.4g} before" + (
+        "; det(K) < 0, a reflection" if det <= 0 else "")
     best: tuple[float, str] | None = None
     for label, rot in _attitude_alternatives(samples, attitude_columns, quaternion_columns, quaternion_order,
                                              quaternion_frame):

@@ -12,7 +12,7 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
-from ..units import normalise_unit
+from ..units import normalise_unit, unit_after
 from ._inputs import (
     attitudes_of,
     calibration_regressors,
@@ -78,9 +78,9 @@ def refit_prior(
             raise TrimagInputError("a quick recalibration (`prior`) needs the field magnitude: give `reference=F`, "
                                    "`igrf_spec=LAT,LON,ALT_M,DATE` or `reference_column=NAME` (the prior states none)")
         F = float(value)
-        messages.append(f"field magnitude F = {F:.6g} {unit} (the prior calibration's reference)")
+        messages.append(f"field magnitude F = {F:.6g} {unit_after(unit)} (the prior calibration's reference)")
     elif ref.source.startswith("igrf"):
-        messages.append(f"reference from {ref.source}: F = {float(np.asarray(F).ravel()[0]):.6g} {unit}")
+        messages.append(f"reference from {ref.source}: F = {float(np.asarray(F).ravel()[0]):.6g} {unit_after(unit)}")
     inclination = options.get("inclination_deg")
     inclination = float(inclination) if inclination is not None else _inclination(given.igrf_spec)
     if attitude is not None and inclination is None:
@@ -127,8 +127,8 @@ def refit_prior(
                      + f"from the data {c['std_from_data']:.3g})")
         else:
             state = "NOT identified by these data (value and sigma from the priors)"
-        messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit} (prior {c['prior_value']:.6g}): "
-                        f"{state}")
+        messages.append(f"  {name} = {c['value']:.6g} +- {c['std']:.3g} {unit_after(unit)} "
+                        f"(prior {c['prior_value']:.6g}): {state}")
     if by_reference:
         scale = d["field_scale"]["prior_std"]
         messages.append(f"{', '.join(by_reference)}: the data alone cannot tell it from the field's magnitude (the "

@@ -120,7 +120,17 @@ def sensor_line(cal: Calibration, src: InputSpec, log_info: dict[str, Any] | Non
                 columns: Any = None, variable: str | None = None) -> str:
     """What was read for ``cal``, in one line (``sensor: ...``; ``variable``: the variable of an NPZ or MAT file
     read); a log's unit that is not the calibration's is refused (:class:`~trimag.errors.UnitMismatchError`,
-    exit 2)."""
+    exit 2), a log's known unit against a calibration without one is a second line, a warning."""
+    line = _sensor_line(cal, src, log_info, columns, variable)
+    unit = str((log_info or {}).get("unit") or "unknown")
+    if cal.units == "unknown" and unit != "unknown" and src.units is None:
+        line += (f"\nwarning: the calibration's unit is not known (it was fitted without --units); this log's is "
+                 f"{unit}: its numbers hold here only if it was fitted to {unit} data")
+    return line
+
+
+def _sensor_line(cal: Calibration, src: InputSpec, log_info: dict[str, Any] | None,
+                 columns: Any = None, variable: str | None = None) -> str:
     record = cal.sensor
     if log_info is not None:
         unit = str(log_info.get("unit") or "unknown")

@@ -15,7 +15,8 @@ from ..fields.reference import as_scalar_reference, igrf, parse_igrf_spec
 from ..io import MagnitudeAccumulator, open_chunks
 from ..io.stream import Chunk, _parse_rows, chunk_columns
 from ..io.tables import strict_refusal, where_mask
-from ..units import convert, normalise_unit
+from ..units import convert, normalise_unit, unit_after
+from ..validation import ROUNDOFF_FRACTION
 from ._inputs import calibration_for, refuse_background_vector
 from ._sensor import input_for, sensor_line
 from .requests import EvaluateRequest, as_request
@@ -101,8 +102,9 @@ def evaluate_file(
         judged_before = 100.0 * stats_before["std_norm"] / stats_before["mean_norm"] \
             if stats_before["mean_norm"] > 0 else np.inf
         what, unit = "spread of |B| relative to the field (std / |B|)", "%"
+    roundoff = ROUNDOFF_FRACTION * (100.0 if unit == "%" else abs(F if F is not None else stats_after["mean_norm"]))
     worse = bool(judged_after > judged_before * (1.0 + RELATIVE_SPREAD_TOLERANCE)
-                 if unit == "%" else judged_after > judged_before)
+                 if unit == "%" else judged_after > judged_before) and bool(judged_after > roundoff)
     fitted, fitted_warning = (None, None) if F is not None or given.reference_column else \
         _against_fitted_reference(cal, after, before)
     return {
@@ -173,7 +175,7 @@ def _against_fitted_reference(cal: Calibration, after: Any, before: Any) -> tupl
 
 def worse_than_raw_warning(what: str, after: float, before: float, unit: str) -> str:
     """The warning of an evaluation in which the calibration makes the data worse than the raw data (issue 32)."""
-    sep = "" if unit == "%" else " "
+    sep, unit = ("", unit) if unit == "%" else (" ", unit_after(unit))
     return (f"the calibration makes these data worse than the raw data ({what} {after:.4g}{sep}{unit} after against "
             f"{before:.4g}{sep}{unit} before): it does not hold for this log (fitted on too little rotation, on "
             "another sensor or mounting, or the vehicle changed); fit this log, or check the calibration and the unit")

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..io import Samples, read_samples
+from ..validation import ROUNDOFF_FRACTION
 from ._inputs import (
     attitudes_of,
     background_field,
@@ -71,6 +72,8 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
     raw, corrected = samples.field, cal.apply(samples.field, regressors=u)
     before, after = _vector_errors(raw, expected), _vector_errors(corrected, expected)
     attitude_file = req.attitude.attitude_file
+    field = float(np.mean(np.linalg.norm(np.atleast_2d(expected), axis=1)))
+    worse = bool(after["rms_vector"] > before["rms_vector"] and after["rms_vector"] > ROUNDOFF_FRACTION * field)
     return {
         "calibration": str(req.calibration), "data": str(src.path), "model": cal.model, "method": cal.method,
         "sensor": sensor_read,
@@ -82,9 +85,9 @@ def evaluate_vector_file(request: EvaluateRequest | str | Path, *paths: str | Pa
         "before": before, "after": after,
         "rms_before": before["rms_vector"], "rms_after": after["rms_vector"],
         "angular_error_rms_deg": after["angular_error_rms_deg"],
-        "worse_than_raw": bool(after["rms_vector"] > before["rms_vector"]),
+        "worse_than_raw": worse,
         "warnings": [worse_than_raw_warning("RMS vector error", after["rms_vector"], before["rms_vector"], cal.units)]
-        if after["rms_vector"] > before["rms_vector"] else [],
+        if worse else [],
     }
 
 

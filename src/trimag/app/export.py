@@ -114,7 +114,11 @@ def _read_calibration(path: Any, target: str) -> Calibration:
                                f"calibration that `trimag fit` writes; {make}") from None
     except TrimagInputError as exc:
         said = str(exc).removeprefix(f"{path}: ")  # Calibration.from_file names the file; said once here
-        if "JSON" in said or "not a trimag calibration" in said:
+        if "not a trimag calibration" in said:  # JSON, but another program's (settings, a parameter dump): no data
+            raise TrimagInputError(f"{path} is not a calibration file (a JSON file without \"format\": \"trimag-"
+                                   f"calibration\"): export takes the JSON calibration that `trimag fit LOG -o "
+                                   "cal.json` writes") from None
+        if "JSON" in said:
             raise TrimagInputError(f"{path} is not a calibration file ({said}): export takes the JSON calibration that "
                                    f"`trimag fit` writes; {make}") from None
         raise

@@ -18,7 +18,8 @@ from ..estimators import make_estimator
 from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples, column_values, read_samples
 from ..io.atomic import check_distinct_outputs
-from ..units import normalise_unit
+from ..units import normalise_unit, unit_after
+from ..validation import check_reference_magnitude
 from ._alignment import alignment_lines, dip_check
 from ._checks import (
     check_fitted_field,
@@ -422,8 +423,8 @@ def _fit_model(
                                       att.quaternion_frame)
     elif worse_than_raw(cal):
         messages.append(f"warning: the corrected data fit the reference worse than the raw data (RMS "
-                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit}): check the "
-                        "reference and the unit")
+                        f"{cal.stats['rms_after']:.4g} against {cal.stats['rms_before']:.4g} {unit_after(unit)}): "
+                        "check the reference and the unit")
     free, record = None, None
     if eddy_terms is not None:
         from ..vehicle.eddy import fit_values, free_mask
@@ -572,7 +573,7 @@ def _fit_reference(
         ref = magnitude_reference(samples, given, unit)
         if ref.source.startswith("igrf"):
             assert ref.values is not None
-            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit}")
+            messages.append(f"reference from {ref.source}: F = {float(ref.values[0]):.6g} {unit_after(unit)}")
         if estimator.requires_reference and not ref.known:
             raise TrimagInputError(
                 f"method {estimator.name!r} needs a known field magnitude: give `reference=F`, "
@@ -599,7 +600,8 @@ def _fit_reference(
     if _fits_background(estimator) and not _names_background(given):
         scale = _background_scale(given)  # a magnitude, or None: det(K) = 1
         messages.append("background field: fitted (`estimate_background`), |H_n| " + (
-            f"= {scale:.6g} {unit} (given)" if scale is not None else "from det(K) = 1 (the mean corrected magnitude)"))
+            f"= {scale:.6g} {unit_after(unit)} (given)" if scale is not None
+            else "from det(K) = 1 (the mean corrected magnitude)"))
         return samples, scale, attitude, messages
     background, source = background_field(
         given, unit, samples, fmt=src.fmt, columns=src.columns, var=src.var,
@@ -663,11 +665,10 @@ def _check_reference_number(reference: Any) -> None:
     if isinstance(reference, bool) or not isinstance(reference, str | int | float):
         return
     try:
-        value = float(reference)
+        float(reference)
     except ValueError:
         return
-    if not (np.isfinite(value) and value > 0):
-        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {reference!r}")
+    check_reference_magnitude(reference)
 
 
 def _background_scale(given: Any) -> float | None:
@@ -678,12 +679,10 @@ def _background_scale(given: Any) -> float | None:
     if given.reference is None or str(given.reference).strip().lower() == "mean":
         return None
     try:
-        value = float(given.reference)
+        float(given.reference)
     except ValueError:
         raise TrimagInputError(f"`reference` takes a number or 'mean'; got {given.reference!r}") from None
-    if not (np.isfinite(value) and value > 0):
-        raise TrimagInputError(f"`reference` must be a positive field magnitude; got {given.reference!r}")
-    return value
+    return check_reference_magnitude(given.reference)
 
 
 def _heading_message(cal: Calibration, igrf_spec: str, summary: dict[str, Any]) -> str:

@@ -124,8 +124,9 @@ def _comment_lines(lines: Sequence[str], mark: str) -> str:
 # ------------------------------------------------------------------ the autopilots
 def _unit_factor(cal: Calibration, unit: str) -> float:
     if cal.units in ("unknown", "counts"):
+        held = "is in counts" if cal.units == "counts" else "has no unit (it was fitted without `units`)"
         raise TrimagInputError(
-            f"this calibration is in {cal.units!r}; the firmware needs {unit}: refit with the data's unit "
+            f"this calibration {held}; the firmware needs {unit}: refit with the data's unit "
             "(`units=nT`, uT, G or mG)"
         )
     return float(convert(1.0, cal.units, unit))

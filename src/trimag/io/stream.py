@@ -34,7 +34,16 @@ from .._core.extras import available, require
 from .._core.stats import StreamingMoments
 from ..errors import TrimagInputError
 from .atomic import atomic_path
-from .tables import _numeric, check_sensor, detect_csv_layout, detect_format, guess_format, read_table, resolve_columns
+from .tables import (
+    _numeric,
+    check_row_range,
+    check_sensor,
+    detect_csv_layout,
+    detect_format,
+    guess_format,
+    read_table,
+    resolve_columns,
+)
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -126,7 +135,9 @@ def _parse_rows(rows: str | None) -> tuple[int, int | None]:
     m = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*", rows)
     if not m:
         raise TrimagInputError(f"`rows` takes START:STOP with non-negative integers, e.g. 0:5000; got {rows!r}")
-    return (int(m.group(1)) if m.group(1) else 0), (int(m.group(2)) if m.group(2) else None)
+    start, stop = (int(m.group(1)) if m.group(1) else 0), (int(m.group(2)) if m.group(2) else None)
+    check_row_range(rows, start, stop)
+    return start, stop
 
 
 def _arrow_numeric(col: pa.ChunkedArray | pa.Array) -> NDArray[np.float64]:

@@ -222,8 +222,30 @@ def detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     """Find the delimiter, any preamble lines (e.g. ``Fs,50.00``) and whether a header row names the columns.
 
     The data block starts at the first line with >= 3 fields that is followed by a line with the same number of
-    fields, mostly numeric; the line before the numbers is a header if it is not numeric itself.
+    fields, mostly numeric; the line before the numbers is a header if it is not numeric itself. The preamble and
+    the header must be UTF-8, as the rows must (every reader skips them undecoded: ``fit`` took a header that
+    ``apply`` and ``evaluate`` refused, issue 41 item 17).
     """
+    layout = _detect_csv_layout(path, fmt=fmt)
+    _check_utf8_head(Path(path), layout.skip + int(layout.has_header))
+    return layout
+
+
+def _check_utf8_head(path: Path, n_lines: int) -> None:
+    """Refuse (:class:`TrimagInputError`, :func:`not_utf8`) a file whose first ``n_lines`` lines are not UTF-8."""
+    from .limits import current_limits
+    from .normalise import source_name
+
+    cap = current_limits().max_line_bytes
+    with path.open("rb") as fh:
+        for _ in range(n_lines):
+            try:
+                fh.readline(cap + 1).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise TrimagInputError(f"{source_name(path)}: {not_utf8(exc)}") from None
+
+
+def _detect_csv_layout(path: str | Path, *, fmt: str = "csv") -> CsvLayout:
     from .limits import current_limits, read_head_lines
     from .normalise import source_name
 
@@ -857,6 +879,15 @@ def _columns_by_content(
     )
 
 
+def check_row_range(rows: str, start: int | None, stop: int | None) -> None:
+    """Refuse (:class:`TrimagInputError`) a ``rows`` range ``START:STOP`` that is empty whatever the file holds: START
+    at or after STOP, both counted from the same end (both >= 0, or both < 0)."""
+    if start is not None and stop is not None and (start >= 0) == (stop >= 0) and start >= stop:
+        hint = f", e.g. {stop}:{start}" if stop < start else ""
+        raise TrimagInputError(f"`rows` {rows.strip()} is empty: START ({start}) must be before STOP ({stop}; 0-based, "
+                               f"STOP excluded){hint}")
+
+
 def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = None) -> tuple[pd.DataFrame, str]:
     """Select data rows by a 0-based half-open range ``"START:STOP"`` and/or ``"COLUMN==VALUE"`` (or ``!=``)."""
     notes = []
@@ -866,6 +897,7 @@ def select_rows(df: pd.DataFrame, rows: str | None = None, where: str | None = N
             raise TrimagInputError(f"`rows` takes START:STOP (0-based, STOP excluded), e.g. 0:5000; got {rows!r}")
         start = int(m.group(1)) if m.group(1) else None
         stop = int(m.group(2)) if m.group(2) else None
+        check_row_range(rows, start, stop)
         df = df.iloc[slice(start, stop)]
         notes.append(f"rows {rows}")
     if where:

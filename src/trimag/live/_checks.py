@@ -21,6 +21,7 @@ from ..errors import TrimagInputError
 from ..io import Samples
 from ..io.atomic import same_file
 from ..units import normalise_unit
+from ..validation import check_reference_magnitude
 from .server import check_port
 from .session import samples_path
 
@@ -71,8 +72,8 @@ def _check_numbers(request: LiveRequest) -> None:
     if not (math.isfinite(request.interval) and 0 <= request.interval <= MAX_INTERVAL_S):
         raise TrimagInputError(f"`interval` must be 0-{MAX_INTERVAL_S:g} seconds between refits; got "
                                f"{request.interval}")
-    if request.reference is not None and not (math.isfinite(request.reference) and request.reference > 0):
-        raise TrimagInputError(f"`reference` must be a finite positive field magnitude; got {request.reference}")
+    if request.reference is not None:
+        check_reference_magnitude(request.reference)
     if request.serial is not None and request.baud <= 0:
         raise TrimagInputError(f"`baud` must be positive; got {request.baud}")
     check_port(request.port)

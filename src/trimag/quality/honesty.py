@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..validation import ROUNDOFF_FRACTION
 
 __all__ = ["DRIFT_ALPHA", "DRIFT_Z", "chi2_tail", "correlation_time", "count_repeated_rows", "drift_check",
            "honest_uncertainty"]
@@ -226,7 +227,8 @@ def drift_check(cal: Calibration, X: NDArray[np.float64], reference: Any = None)
     dict or None
         ``offset_change`` (second - first, data unit), ``change`` and ``z`` (per parameter), ``moved`` (the
         parameters beyond :data:`DRIFT_Z`), ``drift`` (any moved), ``chi2``, ``dof``, ``p_value``, ``inflation``;
-        None for fewer than 100 samples or a vector model; ``undetermined_halves`` (``"first"``, ``"second"``)
+        None for fewer than 100 samples, a vector model or residuals of round-off (at most
+        :data:`~trimag.validation.ROUNDOFF_FRACTION` of the field); ``undetermined_halves`` (``"first"``, ``"second"``)
         instead of the comparison when a half does not determine the nine parameters on its own.
     """
     n = len(X)
@@ -237,6 +239,9 @@ def drift_check(cal: Calibration, X: NDArray[np.float64], reference: Any = None)
     per_sample = isinstance(ref, np.ndarray) and ref.shape == (n,)
     F_whole = float((cal.reference or {}).get("value") or np.mean(np.linalg.norm(cal.apply(X[:: max(1, n // 2000)]),
                                                                                 axis=1)))
+    rms = cal.stats.get("rms_after")
+    if rms is not None and float(rms) <= ROUNDOFF_FRACTION * abs(F_whole):
+        return None  # residuals of round-off (noise-free data): the halves' sigmas measure nothing
     fits = []
     for start, stop in ((0, n // 2), (n // 2, n)):  # evenly spread rows of each half, without indexing all of them
         idx = start + np.linspace(0, stop - start - 1, min(stop - start, _HALF_SAMPLES)).astype(np.int64)

@@ -53,11 +53,14 @@ def summary_rows(cal: Calibration) -> list[tuple[str, float, float]]:
 
 def summary_table(cal: Calibration) -> str:
     """A small plain-text before/after table."""
-    unit = cal.units
+    from ..units import unit_words
+
     ref = cal.reference or {}
     value = ref.get("value")
-    head = f"reference F = {value:.6g} {unit} ({ref.get('source', '?')})" if value is not None else ""
-    lines = [head, f"{'':16}{'before':>14}{'after':>14}   [{unit}]"]
+    source = ref.get("source", "?")
+    head = "" if value is None else f"reference F = {value:.6g} {cal.units} ({source})" if unit_words(cal.units) == \
+        cal.units else f"reference F = {value:.6g} ({source}; unit not given)"
+    lines = [head, f"{'':16}{'before':>14}{'after':>14}   [{unit_words(cal.units)}]"]
     for name, before, after in summary_rows(cal):
         lines.append(f"{name:16}{before:14.6g}{after:14.6g}")
     return "\n".join(line for line in lines if line)
@@ -76,8 +79,10 @@ def params_table(cal: Calibration) -> str:
     iteration history when the method recorded one."""
     import math
 
+    from ..units import unit_after, unit_words
+
     std = (cal.uncertainty or {}).get("param_std", {}) or {}
-    unit = cal.units
+    unit = unit_after(cal.units)
     lines = [f"{cal.model} parameters (value +- 1 sigma):"]
     kinds = _param_kinds(cal.model)
     firmware = (cal.diagnostics or {}).get("firmware")
@@ -98,7 +103,7 @@ def params_table(cal: Calibration) -> str:
     hist = (cal.diagnostics or {}).get("history") or []
     if hist and isinstance(hist, list) and isinstance(hist[0], dict) and "rms" in hist[0]:
         steps = ", ".join(f"{h.get('iteration', i)}: {h['rms']:.4g}" for i, h in enumerate(hist))
-        lines.append(f"iteration history, RMS(|B| - F) [{unit}]: {steps}")
+        lines.append(f"iteration history, RMS(|B| - F) [{unit_words(cal.units)}]: {steps}")
     if (cal.diagnostics or {}).get("fallback"):
         info = cal.diagnostics.get("fallback_info") or {}
         lines.append(f"note: Levenberg-Marquardt fallback ({info.get('reason', 'see diagnostics')})")
