@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import signal
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -234,7 +235,7 @@ def test_a_second_session_with_the_same_output_is_refused(tmp_path, small_log, c
     log = write_log(tmp_path / "slow.csv", sensor(uniform_directions(5000, seed=16)))
     out = tmp_path / "out" / "cal.json"
     out.parent.mkdir()
-    proc, _ = start_live("--replay", str(log), "--rate", "50", "--units", "counts", "-o", str(out), cwd=tmp_path)
+    proc, url = start_live("--replay", str(log), "--rate", "50", "--units", "counts", "-o", str(out), cwd=tmp_path)
     try:
         for samples_out in (None, str(out.with_name("cal-samples.csv"))):  # the same calibration; the same samples
             argv = ["live", "--replay", str(small_log), "--rate", "1e6", "--exit-at-end", "--no-browser", "--port",
@@ -244,6 +245,9 @@ def test_a_second_session_with_the_same_output_is_refused(tmp_path, small_log, c
             assert code == 2, captured.err
             assert len(captured.err.strip().splitlines()) == 1 and "another" in captured.err, captured.err
             assert "the page is at" not in captured.out
+        deadline = time.monotonic() + 60  # the first session has what a calibration needs (30 samples) when stopped
+        while get(url + "status?points=0")["n_samples"] < 60 and time.monotonic() < deadline:
+            time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
     except BaseException:
