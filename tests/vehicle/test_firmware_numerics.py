@@ -85,3 +85,32 @@ def test_the_scale_fit_of_every_rotation_from_one_pass_is_the_regression() -> No
         rms, scale = fit.rms(P_u, P_h)
         assert scale == pytest.approx(X[0], rel=1e-9)
         assert rms == pytest.approx(np.sqrt(np.mean(r**2) * 3), rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["vector", "heading-free"])
+def test_the_verdict_s_folds_from_the_refit_are_those_of_fresh_solves(kind: str) -> None:
+    """The verdict's held-out folds through the firmware's formula (``fold_rms``) start each fold from the whole
+    log's solution (the fold refit) instead of a fresh solve on the training rows: the same RMS to 1e-6."""
+    from trimag.models.firmware import ArduPilotCompass
+    from trimag.vehicle._firmware_trust import fold_rms
+
+    problem, theta = _problem("full", True, kind, n=600)
+    whole = problem.solve(theta)
+    rng = np.random.default_rng(3)
+    attitude = Rotation.random(600, random_state=3)
+    h = attitude.inv().apply([190.0, -3.0, 455.0])
+    x = rng.uniform(0.0, 30.0, 600)
+    tilt = Rotation.from_euler("ZYX", np.column_stack([np.zeros(600), attitude.as_euler("ZYX")[:, 1:]])).as_matrix()
+
+    def to_compass(sol):  # type: ignore[no-untyped-def]
+        return ArduPilotCompass.from_algebra(sol.A, sol.o, sol.m, orientation=0, motor_type="current")
+
+    def folds(p: LevelProblem) -> float:
+        return fold_rms(p, whole, None, 5, to_compass, problem.u, h, {"current": x},
+                        None if kind == "vector" else tilt)[0]
+
+    assert problem.fold_refitter(whole)(0, 120) is not None  # the refit is what the fast side takes
+    fast = folds(problem)
+    problem.fold_refitter = lambda sol, **_: (lambda a, b: None)  # type: ignore[method-assign]
+    fresh = folds(problem)
+    assert abs(fast / fresh - 1.0) < 1e-6, (fast, fresh)

@@ -30,6 +30,7 @@ is refused (``level="auto"``: keep the log's calibration, exit 3) or warned of (
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -300,10 +301,15 @@ def fold_rms(problem: LevelProblem, sol: LevelSolution, bounds: Any, n_folds: in
     n = len(raw_sensor)
     edges = np.linspace(0, n, n_folds + 1).astype(int)
     total, count = 0.0, 0
+    refit = problem.fold_refitter(sol) if bounds is None else None  # Gauss-Newton from the whole log's solution
     for k in range(n_folds):
         fold = np.arange(edges[k], edges[k + 1])
         train = np.setdiff1d(np.arange(n), fold)
-        if sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
+        theta = refit(int(edges[k]), int(edges[k + 1])) if refit is not None and len(fold) else None
+        if theta is not None:
+            A_k, o_k, m_k = problem.unpack(theta)
+            part = dataclasses.replace(sol, A=A_k, o=o_k.copy(), m=m_k.copy(), theta=theta)
+        elif sol.basis is not None and sol.theta_ref is not None and sol.scales is not None:
             part = problem.solve_in(sol.theta_ref, sol.basis, sol.scales, rows=train)
         else:
             part = problem.solve(sol.theta, rows=train, bounds=bounds)

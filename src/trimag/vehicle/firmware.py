@@ -115,6 +115,10 @@ MAX_UNEXPLAINED = 0.2
 POOR_UNEXPLAINED = 0.1
 #: Contiguous folds of the held-out RMS.
 N_FOLDS = 5
+#: auto on a longer log compares the levels on evenly spread samples, at most this many, and fits and judges only the
+#: chosen level on every sample (issue 40 item 3: a 5 h log at 10 Hz is 180 000 samples; the held-out RMS of 30 000
+#: spread over the flight differs in its third digit at most).
+LEVEL_CHOICE_MAX_ROWS = 30_000
 #: auto: the simplest level whose held-out RMS is within this fraction of the best.
 AUTO_TOLERANCE = 0.02
 #: A direction of a level's parameters is identified when one standard deviation along it moves the corrected field
@@ -923,6 +927,63 @@ def _levels(
     omax: float, same_frame: bool, tilt: NDArray[np.float64] | None, vector: bool, F: float, messages: list[str],
     absent: tuple[str, ...] = (),
 ) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
+    """The levels' table and candidates and the one chosen (:func:`_levels_on`); a log of more than
+    :data:`LEVEL_CHOICE_MAX_ROWS` samples under ``level="auto"`` has its levels compared on evenly spread rows and only
+    the chosen one fitted and judged on every row (its row of the table then holds the figures of every row)."""
+    n = len(u)
+    if level != "auto" or n <= LEVEL_CHOICE_MAX_ROWS:
+        return _levels_on(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr, held_frame, omax,
+                          same_frame, tilt, vector, F, messages, absent)
+    step = -(-n // LEVEL_CHOICE_MAX_ROWS)
+    rows = np.arange(0, n, step)
+    said: list[str] = []
+    table, candidates, chosen, sub_tilt = _levels_on(
+        level, motor, {k: x[rows] for k, x in motors.items()}, u[rows], hh[rows], h[rows], v[rows], klass, held,
+        A_held, o_held, fr, held_frame, omax, same_frame, None if tilt is None else tilt[rows], vector, F, said,
+        absent)
+    tilt_given, tilt = tilt, (None if sub_tilt is None else tilt)
+    below = [c for c in candidates if c.motor == chosen.motor and LEVELS.index(c.level) < LEVELS.index(chosen.level)]
+    start: Any = None  # the level below's (A, o, m): the start, and what the level holds where it identifies nothing
+    if below:
+        sol = max(below, key=lambda c: LEVELS.index(c.level)).solution
+        start = (sol.A, sol.o, sol.m)
+    target = hh
+    if tilt is not None:  # the heading-free target on every row, as _levels_on makes it
+        level_field = np.einsum("nij,nj->ni", tilt, h)
+        target = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
+    try:
+        whole = _fit_level(chosen.level, chosen.motor, u, target, motors, klass, held, A_held, o_held, start,
+                           fr.orientation, omax, v, same_frame, None if tilt is None else tilt @ fr.P_h)
+    except (IdentifiabilityError, np.linalg.LinAlgError):
+        whole = None
+    if whole is None or whole.violations or (whole.at_limit and not chosen.at_limit):
+        return _levels_on(level, motor, motors, u, hh, h, v, klass, held, A_held, o_held, fr, held_frame, omax,
+                          same_frame, tilt_given, vector, F, messages, absent)
+    k = next(i for i, c in enumerate(candidates) if c is chosen)
+    candidates[k] = whole
+    table[k] = {**table[k], **_level_row(whole), "rows": n}
+    messages += said
+    messages.append(f"levels compared on every {step}th sample ({len(rows)} of {n}: the table's figures but the "
+                    f"chosen level's); the chosen level fitted and judged on all {n}")
+    return table, candidates, whole, tilt
+
+
+def _level_row(cand: _Candidate) -> dict[str, Any]:
+    """A candidate's figures in the levels' table (:func:`_run_levels`)."""
+    sol = cand.solution
+    return {"n_params": cand.problem.n_params, "rms": float(np.sqrt(np.mean(sol.residual**2) * cand.problem.width)),
+            "heldout_rms": cand.heldout_rms, "identified": cand.identified, "n_identified": cand.n_identified,
+            "not_identified": cand.weak, "within_limits": not cand.violations, "violations": cand.violations,
+            "at_limit": cand.at_limit, **_excitation_row(cand), "compass": cand.compass.as_dict()}
+
+
+def _levels_on(
+    level: str, motor: str, motors: Mapping[str, NDArray[np.float64]], u: NDArray[np.float64],
+    hh: NDArray[np.float64], h: NDArray[np.float64], v: NDArray[np.float64], klass: type[FirmwareCompass],
+    held: FirmwareCompass, A_held: NDArray[np.float64], o_held: NDArray[np.float64], fr: _Frame, held_frame: _Frame,
+    omax: float, same_frame: bool, tilt: NDArray[np.float64] | None, vector: bool, F: float, messages: list[str],
+    absent: tuple[str, ...] = (),
+) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
     """The levels' table and candidates and the one chosen, heading-free first where asked (module docstring)."""
     if tilt is not None:  # heading-free first; the vector (the untrusted yaw) only where it identifies nothing
         level_field = np.einsum("nij,nj->ni", tilt, h)
@@ -1028,15 +1089,8 @@ def _run_levels(
                 continue
             previous[mk] = (cand.solution.A, cand.solution.o, cand.solution.m)
             candidates.append(cand)
-            sol = cand.solution
-            rms = float(np.sqrt(np.mean(sol.residual**2) * cand.problem.width))
             held_motor = "held" if cand.held_motor else None
-            table.append({"level": lv, "motor": mk or held_motor, "n_params": cand.problem.n_params, "rms": rms,
-                          "heldout_rms": cand.heldout_rms, "identified": cand.identified,
-                          "n_identified": cand.n_identified,
-                          "not_identified": cand.weak, "within_limits": not cand.violations,
-                          "violations": cand.violations, "at_limit": cand.at_limit, "chosen": False,
-                          **_excitation_row(cand), "compass": cand.compass.as_dict()})
+            table.append({"level": lv, "motor": mk or held_motor, **_level_row(cand), "chosen": False})
     return table, candidates
 
 
