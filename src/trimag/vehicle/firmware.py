@@ -963,7 +963,9 @@ def _levels(
     candidates[k] = whole
     table[k] = {**table[k], **_level_row(whole), "rows": n}
     messages += said
-    messages.append(f"levels compared on every {step}th sample ({len(rows)} of {n}: the table's figures but the "
+    suffix = {2: "nd", 3: "rd"}.get(step % 10, "th") if step % 100 not in (12, 13) else "th"
+    nth = f"{step}{suffix}"
+    messages.append(f"levels compared on every {nth} sample ({len(rows)} of {n}: the table's figures but the "
                     f"chosen level's); the chosen level fitted and judged on all {n}")
     return table, candidates, whole, tilt
 
