@@ -95,6 +95,16 @@ def ellipsoid_truth() -> tuple[np.ndarray, np.ndarray]:
     return W, b
 
 
+def write_sphere_csv(path: Path, n: int = 300, seed: int = 0, header: str = "x,y,z") -> Path:
+    """A CSV log of ``n`` readings on a sphere of radius 500 (uniform directions) with noise 2, under ``header``:
+    a small log every command fits; returns ``path``."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    np.savetxt(path, u * 500 + rng.normal(0, 2, (n, 3)), delimiter=",", header=header, comments="")
+    return path
+
+
 def simulate_ellipsoid(n: int = 2000, noise: float = 0.0, seed: int = 0, F: float = 48000.0) -> np.ndarray:
     """Raw samples of a sensor with :func:`ellipsoid_truth` errors in a field of magnitude F (uniform sphere)."""
     rng = np.random.default_rng(seed)

@@ -7,13 +7,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from trimag.calibration import Calibration
 from trimag.errors import CalibrationFormatError
 
-from _helpers import run_trimag
+from _helpers import run_trimag, write_sphere_csv
 
 
 def test_from_file_names_the_file(tmp_path: Path) -> None:
@@ -25,11 +24,7 @@ def test_from_file_names_the_file(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("command", ["apply", "evaluate", "prior"])
 def test_each_command_names_the_calibration_it_could_not_use(tmp_path: Path, command: str) -> None:
-    rng = np.random.default_rng(10)
-    u = rng.normal(size=(200, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    log = tmp_path / "log.csv"
-    np.savetxt(log, u * 500 + rng.normal(0, 2, (200, 3)), delimiter=",", header="x,y,z", comments="")
+    log = write_sphere_csv(tmp_path / "log.csv", n=200, seed=10)
     other = tmp_path / "settings.json"
     other.write_text(json.dumps({"model": "ellipsoid", "offset": [0, 0, 0]}))
     args = {"apply": ["apply", other, log, "-o", tmp_path / "out.csv"], "evaluate": ["evaluate", other, log],

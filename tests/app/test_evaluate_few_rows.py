@@ -7,17 +7,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from _helpers import run_trimag
+from _helpers import run_trimag, write_sphere_csv
 
 
 def test_one_row_against_its_own_mean_is_refused_and_with_a_reference_evaluated(tmp_path: Path) -> None:
-    rng = np.random.default_rng(6)
-    u = rng.normal(size=(300, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    log = tmp_path / "log.csv"
-    np.savetxt(log, u * 500 + rng.normal(0, 2, (300, 3)), delimiter=",", header="x,y,z", comments="")
+    log = write_sphere_csv(tmp_path / "log.csv", seed=6)
     cal = tmp_path / "cal.json"
     assert run_trimag("fit", log, "-o", cal, "-q").returncode == 0
     one = tmp_path / "one.csv"

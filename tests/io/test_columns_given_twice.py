@@ -7,19 +7,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from _helpers import run_trimag
+from _helpers import run_trimag, write_sphere_csv
 
 
 @pytest.mark.parametrize("command", ["fit", "apply", "evaluate"])
 def test_a_column_named_for_two_axes_is_refused(tmp_path: Path, command: str) -> None:
-    rng = np.random.default_rng(5)
-    u = rng.normal(size=(300, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    log = tmp_path / "log.csv"
-    np.savetxt(log, u * 500 + rng.normal(0, 2, (300, 3)), delimiter=",", header="mx,my,mz", comments="")
+    log = write_sphere_csv(tmp_path / "log.csv", seed=5, header="mx,my,mz")
     cal = tmp_path / "cal.json"
     assert run_trimag("fit", log, "-o", cal, "-q").returncode == 0
     out = tmp_path / "out.csv"

@@ -8,19 +8,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from _helpers import run_trimag
+from _helpers import run_trimag, write_sphere_csv
 
 
 @pytest.mark.parametrize("command", ["fit", "apply", "evaluate"])
 def test_a_latin1_log_is_named_with_its_byte_and_what_to_do(tmp_path: Path, command: str) -> None:
-    rng = np.random.default_rng(4)
-    u = rng.normal(size=(300, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    good = tmp_path / "good.csv"
-    np.savetxt(good, u * 500 + rng.normal(0, 2, (300, 3)), delimiter=",", header="x,y,z", comments="")
+    good = write_sphere_csv(tmp_path / "good.csv", seed=4)
     cal = tmp_path / "cal.json"
     assert run_trimag("fit", good, "-o", cal, "-q").returncode == 0
     latin = tmp_path / "latin.csv"
