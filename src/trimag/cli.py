@@ -1044,8 +1044,11 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     result = fit_batch(args.inputs, args.out, request=request, workers=args.workers, scheduler=args.scheduler,
                        progress=not args.quiet)
     for file, error in zip(result.table["file"], result.table["error"], strict=True):
-        if error:  # named once: most messages already start with the file's name
+        if error:  # named once: most messages already start with the file's name; the verdict only
             _err(error if str(error).startswith(f"{file}:") else f"{file}: {error}")
+    if result.table["error_details"].astype(bool).any() and "summary_csv" in result.written:
+        summary = result.written["summary_csv"]
+        _err(f"the figures behind each failed file's verdict: the error_details column of {summary}")
     if args.json:
         print(json.dumps(result.summary(), allow_nan=False))
     else:

@@ -33,7 +33,7 @@ from typing import Any
 
 import pandas as pd
 
-from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, full_message, out_of_memory_message
+from ..errors import IdentifiabilityError, TrimagError, TrimagInputError, out_of_memory_message
 from ..io.atomic import atomic_path, atomic_write_text, check_distinct_outputs
 from ..io.limits import InputLimits, current_limits, input_limits
 from .requests import FitRequest
@@ -42,8 +42,8 @@ __all__ = ["SUMMARY_COLUMNS", "BatchResult", "calibration_names", "expand_inputs
 
 #: Columns of the summary table, in order.
 SUMMARY_COLUMNS = (
-    "file", "n", "n_used", "rms_before", "rms_after", "units", "converged", "warnings", "error", "error_type",
-    "calibration", "seconds", "accepted", "rejected_by", "sensor",
+    "file", "n", "n_used", "rms_before", "rms_after", "units", "converged", "warnings", "error", "error_details",
+    "error_type", "calibration", "seconds", "accepted", "rejected_by", "sensor",
 )
 
 
@@ -55,7 +55,8 @@ class BatchResult:
     ----------
     table : pandas.DataFrame
         One row per input file, columns :data:`SUMMARY_COLUMNS` (``rms_*`` in each file's unit, which ``units``
-        says; empty when the file failed; ``error`` holds the message, ``error_type`` ``"input"``,
+        says; empty when the file failed; ``error`` holds the verdict (what ``trimag fit`` says on its first
+        line), ``error_details`` the figures behind it (its indented lines, joined by "; "), ``error_type`` ``"input"``,
         ``"identifiability"`` or ``"internal"``; ``accepted`` the acceptance policy's verdict, empty without a
         policy, and ``rejected_by`` the rules that failed, as ``trimag fit --policy`` gives them; ``sensor`` the
         sensor each calibration belongs to, :meth:`SensorRecord.describe <trimag.calibration.SensorRecord.describe>`).
@@ -107,7 +108,8 @@ class BatchResult:
             "n_rejected": self.n_rejected,
             "seconds": self.seconds,
             "files_per_second": self.files_per_second,
-            "failed": [{"file": f, "error": e} for f, e in zip(failed["file"], failed["error"], strict=True)],
+            "failed": [{"file": f, "error": e, "details": d}
+                       for f, e, d in zip(failed["file"], failed["error"], failed["error_details"], strict=True)],
             "outputs": dict(self.written),
         }
 
@@ -155,12 +157,13 @@ def calibration_names(files: Sequence[Path]) -> list[str]:
 
 
 def _failure(exc: BaseException) -> tuple[str, str]:
-    """The row's ``error`` and ``error_type`` of a file that failed: what ``trimag fit`` would say and its exit
-    code's kind (an unreadable file, an unwritable output, not enough memory: the user's input, exit 2)."""
+    """The row's ``error`` and ``error_type`` of a file that failed: what ``trimag fit`` would say (its verdict; the
+    details are :func:`_details`) and its exit code's kind (an unreadable file, an unwritable output, not enough
+    memory: the user's input, exit 2)."""
     if isinstance(exc, IdentifiabilityError):
-        return full_message(exc), "identifiability"
+        return str(exc), "identifiability"
     if isinstance(exc, TrimagError):
-        return full_message(exc), "input" if isinstance(exc, TrimagInputError) else "internal"
+        return str(exc), "input" if isinstance(exc, TrimagInputError) else "internal"
     if isinstance(exc, UnicodeDecodeError):
         return "the file is not UTF-8 text; save it as UTF-8", "input"
     if isinstance(exc, OSError):
@@ -174,7 +177,7 @@ def _failure(exc: BaseException) -> tuple[str, str]:
 def _worker_died(job: tuple[str, str]) -> dict[str, Any]:
     """The row of a file whose worker process died while fitting it alone (``map_trials``' ``worker_died``)."""
     row: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS)
-    row.update(file=job[0], warnings="", error_type="input", seconds=float("nan"), error=(
+    row.update(file=job[0], warnings="", error_type="input", error_details="", seconds=float("nan"), error=(
         "the worker process fitting this file died (killed by the system, most often for lack of memory): fit it "
         "alone with `trimag fit` to see what it needs, or lower the input limits (--max-fields, "
         "--max-decompressed-mb)"))
@@ -218,7 +221,7 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
     path, out = job
     t0 = time.perf_counter()
     row: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS)
-    row.update(file=path, warnings="", error="", error_type="")
+    row.update(file=path, warnings="", error="", error_details="", error_type="")
     limits = limits or current_limits()
     try:
         from ..io.normalise import scratch_folder
@@ -245,7 +248,8 @@ def fit_one(job: tuple[str, str], request: FitRequest | None = None, *, limits: 
             row.update(accepted=bool(verdict["accepted"]), rejected_by="; ".join(failed_rules(verdict, digits=3)))
     except Exception as exc:
         message, kind = _failure(exc)
-        row.update(error=message or type(exc).__name__, error_type=kind)
+        row.update(error=message or type(exc).__name__, error_type=kind,
+                   error_details="; ".join(getattr(exc, "details", ())))
         _remove_stale(out)
     row["seconds"] = time.perf_counter() - t0
     return row
@@ -259,7 +263,8 @@ def _table(rows: list[dict[str, Any]]) -> pd.DataFrame:
     df["rms_after"] = pd.to_numeric(df["rms_after"]).astype("float64")
     df["converged"] = df["converged"].astype("boolean")
     df["accepted"] = df["accepted"].astype("boolean")
-    for col in ("file", "units", "warnings", "error", "error_type", "calibration", "rejected_by", "sensor"):
+    for col in ("file", "units", "warnings", "error", "error_details", "error_type", "calibration", "rejected_by",
+                "sensor"):
         df[col] = df[col].astype("string")
     df["seconds"] = df["seconds"].astype("float64")
     return df
