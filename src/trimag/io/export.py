@@ -330,8 +330,12 @@ def export_calibrations(items: Sequence[tuple[Calibration, int]], target: str) -
         notes += [f"instance {instance + 1}: {n}" if len(items) > 1 else n for n in more]
         header += [_provenance(cal), _formula_line(compass, instance)]
         if compass.motor_type is not None:
-            notes.append(f"{global_name} = {p[global_name]:g} applies to every magnetometer: the others keep their "
-                         "motor terms, now read as " + compass.motor_type)
+            note = (f"{global_name} = {p[global_name]:g} applies to every magnetometer: the others keep their motor "
+                    f"terms, now read as {compass.motor_type}" if len(items) == 1 else
+                    f"{global_name} = {p[global_name]:g} applies to every magnetometer: each motor term in this file "
+                    f"is per {compass.motor_type}, and any magnetometer not in it keeps its own, now read so")
+            if note not in notes:
+                notes.append(note)
         elif not write_orientation and cal.method == "gyro":  # (its alignment is the gyroscope's, not the matrix's)
             notes.append("the orientation is not written (the gyro-aided fit's rotation to the gyroscope, "
                          "diagnostics.gyro_alignment, with its nearest board rotation printed by trimag fit, is not "
