@@ -159,6 +159,8 @@ def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # 
         assert first["error"] is None and first["level"] == "offsets", first["verdict"]
         assert first["statistics"]["held_out_rows"] > 0  # the rows outside the range are judged
         assert "level offsets" in driver.find_element("id", "compass-1").text
+        said = driver.find_element("css selector", "#compass-1 .figure-attitude").text  # the figures' attitude
+        assert said == f"attitude of the figures (the fit's): {first['attitude']}" and first["attitude"], said
         for name in ("field", "magnitude", "heading"):
             assert driver.execute_script(f"return document.querySelectorAll('#fig-1-{name} .main-svg').length") > 0
         legend = driver.execute_script(
