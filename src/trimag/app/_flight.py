@@ -384,11 +384,11 @@ class FlightLog:
             if "motor" not in out and name in table.columns:
                 out["motor"] = (name, table[name].to_numpy(dtype=float))
         ned = self._ned(unit)
-        if ned is not None and samples.log_info.get("has_attitude"):
+        yaw_source = self.figure_yaw_source(cal)
+        if ned is not None and (samples.log_info.get("has_attitude") or yaw_source == "dcm"):
             try:  # the attitude the fit took (its yaw source, ``auto`` resolved), over the whole log
                 chosen = flight_attitude(dataclasses.replace(samples, table=table.reset_index(drop=True)),
-                                         AttitudeSpec(attitude_columns="yaw_deg,pitch_deg,roll_deg"),
-                                         self.figure_yaw_source(cal))
+                                         AttitudeSpec(attitude_columns="yaw_deg,pitch_deg,roll_deg"), yaw_source)
             except TrimagInputError as exc:
                 out["attitude_note"] = f"no expected field: {exc}"
             else:
