@@ -53,7 +53,7 @@ SECOND = ArduPilotCompass(orientation=0, offsets=[-60.0, 90.0, -25.0], scale=0.9
 def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf: bool = False,
                second: bool = False, late_battery: int = 0, drop: tuple[str, ...] = (), early_mag: int = 0,
                parameters: dict[str, float] | None = None, dcm: bool = False,
-               retuned: tuple[int, ArduPilotCompass] | None = None) -> Path:
+               retuned: tuple[int, ArduPilotCompass] | None = None, gps_yaw: bool = False) -> Path:
     import sys
 
     sys.path.insert(0, str(TESTS_DIR / "io"))
@@ -96,6 +96,10 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
                           for t, (y, p, r) in zip(t_us, noisy, strict=True)])
         extra["BARO"] = ("QBff", "TimeUS,I,Alt,Press", [(int(t), 0, 20.0 + 10.0 * np.sin(k / 100.0), 101000.0)
                                                          for k, t in enumerate(t_us)])
+    gps_deg, every = np.zeros(n), 10  # the GPS at 1 Hz, no heading
+    if gps_yaw:  # a moving-baseline GPS heading (GPS.Yaw) at 10 Hz: the true yaw with 1.5 deg of noise
+        gps_deg = (true.as_euler("ZYX", degrees=True)[:, 0] + np.random.default_rng(seed + 11).normal(0, 1.5, n)) % 360
+        every = 1
     return write_dataflash(path, {
         **extra,
         "MSG": ("QZ", "TimeUS,Message", [(1000, "ArduCopter V4.3.6 (simulated)")]),
@@ -109,7 +113,8 @@ def _write_log(path: Path, n: int = 2500, seed: int = 1, tilt: float = 35.0, gsf
                 [(int(t), 0, 16.0, 16.0, float(a), 0.0, 0.0, 25.0, 0.0, 80)
                  for t, a in zip(t_us, amps, strict=True)][late_battery:]),
         "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
-                [(int(t), 0, 3, MS, WEEK, 12, 0.8, LAT, LON, ALT, 0.0, 0.0, 0.0, 0.0, 1) for t in t_us[::10]]),
+                [(int(t), 0, 3, MS, WEEK, 12, 0.8, LAT, LON, ALT, 0.0, 0.0, 0.0, float(y), 1)
+                 for t, y in zip(t_us[::every], gps_deg[::every], strict=True)]),
     })
 
 

@@ -118,14 +118,15 @@ def _parameter_lines(text: str) -> list[str]:
     return [line for line in text.splitlines() if line and not line.startswith("#")]
 
 
-def serve_review(log: Path):  # type: ignore[no-untyped-def]
-    """The review server of ``log`` in this process, as ``run_review`` serves it (read with the page's progress, then
-    the whole flight fitted): no second Python to start (the command itself: the static log's test)."""
+def serve_review(log: Path, **options: Any):  # type: ignore[no-untyped-def]
+    """The review server of ``log`` (``options``: :class:`~trimag.app.review.FlightReview`'s) in this process, as
+    ``run_review`` serves it (read with the page's progress, then the whole flight fitted): no second Python to start
+    (the command itself: the static log's test)."""
     from trimag.app.review import FlightReview
     from trimag.live.review import ReviewServer
 
     server = ReviewServer(None, 0).start()
-    server.read(lambda progress: FlightReview(log, progress=progress))
+    server.read(lambda progress: FlightReview(log, progress=progress, **options))
     server.start_fit({})
     return server
 
@@ -159,6 +160,8 @@ def _review_fit_and_download(driver, tmp_path: Path, log: Path, target: str,  # 
         assert first["error"] is None and first["level"] == "offsets", first["verdict"]
         assert first["statistics"]["held_out_rows"] > 0  # the rows outside the range are judged
         assert "level offsets" in driver.find_element("id", "compass-1").text
+        said = driver.find_element("css selector", "#compass-1 .figure-attitude").text  # the figures' attitude
+        assert said == f"attitude of the figures (the fit's): {first['attitude']}" and first["attitude"], said
         for name in ("field", "magnitude", "heading"):
             assert driver.execute_script(f"return document.querySelectorAll('#fig-1-{name} .main-svg').length") > 0
         legend = driver.execute_script(
@@ -217,6 +220,49 @@ def test_the_review_page_of_a_px4_ulog_flight_in_a_real_browser(browser, tmp_pat
     assert np.allclose(chosen["field"], judged["candidate"], rtol=0, atol=1e-12)
     qgc = next((tmp_path / "downloads").glob("*.params")).read_text()
     assert f"1\t1\tCAL_MAG0_ID\t{DEVICE_ID}\t6" in qgc.splitlines()
+
+
+def test_the_review_page_of_a_table_with_attitudes_in_a_real_browser(browser, flight_log: Path,  # type: ignore[no-untyped-def]
+                                                                      tmp_path: Path) -> None:
+    """Issue 40: "any log trimag reads: ... CSV with attitudes". Compass 1 of the flight as a CSV (time, the field,
+    yaw/pitch/roll, current): the page draws the flight of its columns and one compass, fitted as the command line it
+    shows fits it, the expected field rotated by the table's attitude."""
+    import pandas as pd
+
+    from trimag.io import read_samples
+    from trimag.io.logs import read_log
+
+    s = read_samples(flight_log, sensor="1")
+    t = s.table
+    csv = tmp_path / "flight.csv"
+    pd.DataFrame({"time_s": t["time_s"], "x": s.field[:, 0], "y": s.field[:, 1], "z": s.field[:, 2],
+                  "yaw": t["yaw_deg"], "pitch": t["pitch_deg"], "roll": t["roll_deg"],
+                  "current": t["current_A"]}).iloc[::2].to_csv(csv, index=False)  # 5 Hz: a quicker fit
+    gps = read_log(flight_log).gps
+    assert gps is not None
+    site = f"{gps['lat_deg']:.6f},{gps['lon_deg']:.6f},{gps['alt_m']:.1f},{gps['date']}"
+    server = serve_review(csv, target="ardupilot", units="mG", igrf_spec=site)
+    try:
+        browser.get(server.url)
+        _wait_fits(browser, 1)
+        flight = browser.execute_script(
+            "return [...document.querySelectorAll('#flight .legendtext')].map((e) => e.textContent)")
+        assert any("the table's yaw,pitch,roll" in n for n in flight), flight
+        assert browser.find_elements("css selector", "#per-compass section") and \
+            not browser.find_elements("id", "compass-2")  # one compass
+        for name in ("field", "magnitude", "heading"):
+            assert browser.execute_script(f"return document.querySelectorAll('#fig-1-{name} .main-svg').length") > 0
+        legend = browser.execute_script(
+            "return [...document.querySelectorAll('#fig-1-field .legendtext')].map((e) => e.textContent)")
+        assert any(n.startswith("expected") for n in legend) and "the readings as recorded" in legend, legend
+        said = browser.find_element("css selector", "#compass-1 .figure-attitude").text
+        assert "the table's yaw,pitch,roll" in said, said
+        page = browser.find_element("id", "compass-1").text
+        command = f"trimag fit {csv} --units mG --attitude-columns yaw,pitch,roll --target ardupilot --rows 0:400"
+        assert command in page and f"--igrf {site}" in page, page
+        assert browser.find_elements("id", "dl-ardupilot-1")  # the parameters offered
+    finally:
+        server.shutdown()
 
 
 def test_the_html_report_opens_offline_and_holds_every_figure(browser, flight_log: Path,  # type: ignore[no-untyped-def]

@@ -185,6 +185,57 @@ def _keep(samples: Samples, ok: NDArray[np.bool_]) -> Samples:
                                n_dropped=samples.n_dropped + int((~ok).sum()))
 
 
+@dataclasses.dataclass(frozen=True)
+class FlightAttitude:
+    """The attitude a firmware fit takes of a log or table (:func:`flight_attitude`): the one the fit's expected
+    field is rotated by, and the review's figures too (:mod:`trimag.app._flight`)."""
+
+    #: the rows that have it (a table's index keeps the rows' labels), their ``yaw_deg``/``pitch_deg``/``roll_deg``
+    #: the DCM's where it is chosen
+    samples: Samples
+    #: body -> NED of each row: the chosen yaw with the logged roll and pitch, an ArduPilot log's board trim added back
+    rotation: Any
+    #: the yaw source taken (``"attitude"``, ``"dcm"``, ``"gsf"`` or ``"gps"``; ``auto`` resolved), what
+    #: ``yaw_source`` names to take it again on other rows
+    yaw_source: str
+    #: a compass-free yaw's name (``"XKY0.YC"``, ``"GPS.Yaw"``) or None
+    yaw_name: str | None
+    #: the attitude in words (the page and the report say it)
+    source: str
+    #: whether the attitude is a log's own (its ``yaw_deg,pitch_deg,roll_deg``), not columns the user named
+    from_log: bool
+    #: the yaw source's lines and the board trim's
+    messages: list[str]
+    notes: list[str]
+
+
+def flight_attitude(samples: Samples, att: Any, yaw_source: str | None = None) -> FlightAttitude:
+    """The attitude of the rows of ``samples`` a firmware fit takes (``att``: the
+    :class:`~trimag.app.requests.AttitudeSpec`): for a log's own attitude columns, the yaw of ``yaw_source``
+    (:data:`YAW_SOURCES`; :func:`_yaw_source`) with the logged roll and pitch and the board trim (:func:`_attitudes`);
+    else the columns ``att`` names. Raises :class:`~trimag.errors.TrimagInputError` where the log has no such yaw."""
+    info = samples.log_info or {}
+    from_log = bool(info) and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg"
+    yaw_column: str | None = None
+    yaw_name: str | None = None
+    messages: list[str] = []
+    if from_log:
+        samples, yaw_column, yaw_name, messages = _yaw_source(samples, yaw_source)
+    samples, rotation, notes = _attitudes(samples, att, yaw_column)
+    attitude = (samples.log_info or {}).get("attitude_source") or "the attitude columns"
+    if not from_log:
+        source, resolved = f"the columns {att.attitude_columns or att.quaternion_columns}", "attitude"
+    elif yaw_name == "XKY0.YC":
+        source, resolved = f"roll and pitch from {attitude}, yaw from the EKF-GSF estimator (XKY0.YC)", "gsf"
+    elif yaw_name == "GPS.Yaw":
+        source, resolved = f"roll and pitch from {attitude}, yaw from the GPS heading (GPS.Yaw)", "gps"
+    else:
+        source, resolved = str(attitude), "dcm" if yaw_source == "dcm" else "attitude"
+    if notes:
+        source += ", the board trim AHRS_TRIM added back"
+    return FlightAttitude(samples, rotation, resolved, yaw_name, source, from_log, messages, notes)
+
+
 def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
     """Whether the log's EKF yaw used this compass, and what that means, in one line."""
     params = info.get("parameters") or {}
@@ -316,9 +367,10 @@ def _motor_channels(target: str, samples: Samples, info: dict[str, Any] | None,
 
 
 def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: str
-                     ) -> tuple[Samples, Any, Any, Any, dict[str, Any], list[str]]:
-    """``(samples, field_body or None, magnitude or None, heading-free tilts or None, reference info, messages)`` in
-    the firmware's unit: a log whose only yaw is an EKF's that fused this compass is fitted heading-free."""
+                     ) -> tuple[Samples, Any, Any, Any, dict[str, Any], list[str], FlightAttitude | None]:
+    """``(samples, field_body or None, magnitude or None, heading-free tilts or None, reference info, messages,
+    the attitude or None)`` in the firmware's unit: a log whose only yaw is an EKF's that fused this compass is fitted
+    heading-free."""
     given = req.reference
     messages: list[str] = []
     ned = None
@@ -336,30 +388,29 @@ def _field_reference(req: FitRequest, samples: Samples, unit_fw: str, target: st
     has_attitude = att.attitude_columns is not None or att.quaternion_columns is not None
     if ned is not None and has_attitude:
         info = samples.log_info or {}
-        yaw_column = None
+        chosen = flight_attitude(samples, att, req.yaw_source)
+        samples, rotation = chosen.samples, chosen.rotation
+        messages = list(chosen.messages)
         circular = False
-        if info and att.attitude_columns == "yaw_deg,pitch_deg,roll_deg":
-            samples, yaw_column, yaw_name, messages = _yaw_source(samples, req.yaw_source)
-            if yaw_name is None:
-                circular, line = _circularity(target, samples.log_info or info)
-                messages.append(line)
-        samples, rotation, trim_note = _attitudes(samples, att, yaw_column)
-        messages += trim_note
+        if chosen.from_log and chosen.yaw_name is None:
+            circular, line = _circularity(target, samples.log_info or info)
+            messages.append(line)
+        messages += chosen.notes
         tilt = None
         if circular:
             euler = rotation.as_euler("ZYX", degrees=True)
             tilt = from_euler(np.zeros(len(euler)), euler[:, 1], euler[:, 2]).as_matrix()
         reference = {"value": float(np.linalg.norm(ned)), "source": f"{what}: vector NED {np.round(ned, 4).tolist()} "
                      f"{unit_fw}, rotated into the body frame", "unit": unit_fw}
-        return samples, body_field(rotation, ned), None, tilt, reference, messages
+        return samples, body_field(rotation, ned), None, tilt, reference, messages, chosen
     if ned is not None:
         F = float(np.linalg.norm(ned))
         messages.append(f"no attitudes: the fit uses the field's magnitude {F:.6g} {unit_fw} ({what}) and keeps the "
                         "orientation (a magnitude cannot see it)")
-        return samples, None, F, None, {"value": F, "source": what, "unit": unit_fw}, messages
+        return samples, None, F, None, {"value": F, "source": what, "unit": unit_fw}, messages, None
     if given.reference is not None and str(given.reference).strip().lower() != "mean":
         F = float(given.reference) * convert(1.0, normalise_unit(req.input.units), unit_fw)
-        return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages
+        return samples, None, F, None, {"value": F, "source": "reference", "unit": unit_fw}, messages, None
     raise TrimagInputError(
         f"`target={target}` needs the Earth's field: the log has no GPS fix; give `igrf_spec=LAT,LON,ALT_M,DATE` or "
         "`reference=F`",
@@ -407,7 +458,8 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
     named = parse_motor(req.motor)
     samples, _, columns, more = _motor_channels(target, samples, info, named)  # first: the rows a channel leaves empty
     messages += more
-    samples, field_body, magnitude, tilt, reference, more = _field_reference(req, samples, klass.unit, target)
+    samples, field_body, magnitude, tilt, reference, more, attitude = _field_reference(req, samples, klass.unit,
+                                                                                        target)
     messages += more
     motors = {kind: pd.to_numeric(samples.table[column], errors="coerce").to_numpy(dtype=float)
               for kind, column in columns.items()}
@@ -433,6 +485,9 @@ def fit_target(req: FitRequest, samples: Samples, unit: str
                     f"{fit.compass.rotation_name} ({fit.compass.orientation}); field RMS {fit.rms_before:.4g} -> "
                     f"{fit.rms_after:.4g} {klass.unit}")
     regressor_values = {channel: motors[kind]} if channel and kind else None
+    if attitude is not None:  # the attitude the figures draw the expected field with (trimag review, --report)
+        cal = cal.with_diagnostics(firmware={**cal.diagnostics["firmware"], "attitude": {
+            "yaw_source": attitude.yaw_source, "source": attitude.source}})
     old = _old_px4_rotation(info, applied)
     if old is not None:
         messages.append(f"warning: {old}")
@@ -464,7 +519,7 @@ def _unfitted_rows(req: FitRequest, samples: Samples, target: str, factor: float
             return None
         rest = _keep(full, left)
         rest, _, columns, _ = _motor_channels(target, rest, rest.log_info)
-        rest, field_body, magnitude, tilt, _, _ = _field_reference(req, rest, firmware_class(target).unit, target)
+        rest, field_body, magnitude, tilt, _, _, _ = _field_reference(req, rest, firmware_class(target).unit, target)
     except TrimagError:
         return None
     if len(rest.field) < UNFITTED_MIN_ROWS:

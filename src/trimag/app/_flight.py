@@ -337,6 +337,12 @@ class FlightLog:
         return " ".join([*words, "-o", f"compass{req.input.sensor or 1}.json"])
 
     # ------------------------------------------------------------------ what is judged and drawn
+    def figure_yaw_source(self, cal: Calibration | None) -> str:
+        """The yaw source the figures take: the one the fit took (recorded in its calibration, ``auto`` resolved on
+        the fitted rows), else the user's choice."""
+        fw = (cal.diagnostics.get("firmware") or {}) if cal is not None else {}
+        return str((fw.get("attitude") or {}).get("yaw_source") or self.choice.get("yaw_source") or "auto")
+
     def _ned(self, unit: str) -> NDArray[np.float64] | None:
         """The Earth's field (NED) at the log's GPS fix (or ``igrf_spec``), in ``unit``; None without either."""
         from ..fields.reference import igrf, parse_igrf_spec
@@ -355,17 +361,10 @@ class FlightLog:
         expected body field, the log's calibration, the candidate; field length; heading."""
         from ..fields.attitude import body_field
         from ..vehicle.heading import heading_difference, tilt_compensated_heading
-        from ._firmware import _attitudes
+        from ._firmware import flight_attitude
 
         samples = self._table(number)
         table = samples.table
-        dcm = ["yaw_dcm_deg", "pitch_dcm_deg", "roll_dcm_deg"]
-        if self.choice.get("yaw_source") == "dcm" and set(dcm) <= set(table.columns):  # judged by the fit's attitude
-            table = table.drop(columns=["yaw_deg", "pitch_deg", "roll_deg"], errors="ignore").rename(
-                columns=dict(zip(dcm, ["yaw_deg", "pitch_deg", "roll_deg"], strict=True)))
-            name = (samples.log_info.get("attitude_sources") or {}).get("AHR2", "AHR2 (DCM)")
-            samples = dataclasses.replace(samples, table=table, log_info={**samples.log_info, "attitude_source": name,
-                                                                          "has_attitude": True})
         unit = samples.log_info["unit"]
         t = table["time_s"].to_numpy(dtype=float)
         logged = table[["mag_logged_x", "mag_logged_y", "mag_logged_z"]].to_numpy(dtype=float)
@@ -385,29 +384,35 @@ class FlightLog:
             if "motor" not in out and name in table.columns:
                 out["motor"] = (name, table[name].to_numpy(dtype=float))
         ned = self._ned(unit)
-        if ned is not None and samples.log_info.get("has_attitude"):
-            att = AttitudeSpec(attitude_columns="yaw_deg,pitch_deg,roll_deg")
-            finite = np.isfinite(table[["yaw_deg", "pitch_deg", "roll_deg"]].to_numpy(dtype=float)).all(axis=1)
-            expected = np.full_like(logged, np.nan)
-            kept = dataclasses.replace(samples, field=samples.field[finite], table=table[finite])
-            _, rotation, _ = _attitudes(kept, att, None)
-            expected[finite] = body_field(rotation, ned)
-            out["expected"] = expected
-            down = np.full_like(logged, np.nan)
-            down[finite] = body_field(rotation, np.array([0.0, 0.0, -1.0]))  # the specific force at rest
-            decl = float(np.degrees(np.arctan2(ned[1], ned[0])))
-            yaw = table["yaw_deg"].to_numpy(dtype=float)
-            def heading_of(field_body: NDArray[np.float64]) -> NDArray[np.float64]:
-                heading = np.full(len(t), np.nan)
-                heading[finite] = tilt_compensated_heading(field_body[finite], down[finite], declination_deg=decl)
-                return np.asarray(heading_difference(heading, yaw), dtype=np.float64)
+        yaw_source = self.figure_yaw_source(cal)
+        if ned is not None and (samples.log_info.get("has_attitude") or yaw_source == "dcm"):
+            try:  # the attitude the fit took (its yaw source, ``auto`` resolved), over the whole log
+                chosen = flight_attitude(dataclasses.replace(samples, table=table.reset_index(drop=True)),
+                                         AttitudeSpec(attitude_columns="yaw_deg,pitch_deg,roll_deg"), yaw_source)
+            except TrimagInputError as exc:
+                out["attitude_note"] = f"no expected field: {exc}"
+            else:
+                rows = chosen.samples.table.index.to_numpy()  # the rows with the chosen attitude
+                expected = np.full_like(logged, np.nan)
+                expected[rows] = body_field(chosen.rotation, ned)
+                out["expected"] = expected
+                down = np.full_like(logged, np.nan)
+                down[rows] = body_field(chosen.rotation, np.array([0.0, 0.0, -1.0]))  # the specific force at rest
+                yaw = np.full(len(t), np.nan)
+                yaw[rows] = chosen.rotation.as_euler("ZYX", degrees=True)[:, 0]  # the attitude's yaw, as rotated
+                decl = float(np.degrees(np.arctan2(ned[1], ned[0])))
 
-            for key in ("logged", "candidate"):
-                if key in out:
-                    out[f"heading_{key}"] = heading_of(out[key])
-            for level in out.get("levels", []):
-                level["heading"] = heading_of(level["field"])
-            out["yaw_source"] = samples.log_info.get("attitude_source")
+                def heading_of(field_body: NDArray[np.float64]) -> NDArray[np.float64]:
+                    heading = np.full(len(t), np.nan)
+                    heading[rows] = tilt_compensated_heading(field_body[rows], down[rows], declination_deg=decl)
+                    return np.asarray(heading_difference(heading, yaw), dtype=np.float64)
+
+                for key in ("logged", "candidate"):
+                    if key in out:
+                        out[f"heading_{key}"] = heading_of(out[key])
+                for level in out.get("levels", []):
+                    level["heading"] = heading_of(level["field"])
+                out["yaw_source"] = chosen.source
         if result is not None and result.rows:
             a, b = (int(x) for x in result.rows.split(":"))
             if self.table_input is not None:  # `--rows` counts the file's data rows: the kept rows' positions
@@ -470,7 +475,8 @@ class FlightLog:
                                           yaxis=f"y{axis + 1 if axis else ''}", legendgroup=f"level{i}",
                                           showlegend=axis == 0, visible="legendonly",
                                           line={"width": 1, "color": _LEVEL_COLOURS[i % len(_LEVEL_COLOURS)]}))
-        field_fig = _figure(field_traces, f"compass {number}: body field X / Y / Z ({unit})", height=520,
+        said = f"<br>expected: IGRF rotated by {j['yaw_source']}" if "yaw_source" in j else ""
+        field_fig = _figure(field_traces, f"compass {number}: body field X / Y / Z ({unit}){said}", height=520,
                             grid={"rows": 3, "columns": 1, "pattern": "coupled"},
                             yaxis={"title": {"text": f"X ({unit})"}}, yaxis2={"title": {"text": f"Y ({unit})"}},
                             yaxis3={"title": {"text": f"Z ({unit})"}}, xaxis={"title": {"text": "time (s)"}})
@@ -533,6 +539,7 @@ class FlightLog:
                            rms_after=fw.get("rms_after"), warnings=cal.diagnostics.get("warnings", []),
                            parameters=_parameters(cal, self.target, number))
         judged = self.judged(number)
+        out["attitude"] = judged.get("yaw_source") or judged.get("attitude_note")
         out["statistics"] = self.statistics(judged)
         out["verdict"] = _verdict(result, out["statistics"])
         out["figures"] = self.compass_figures(number)
@@ -754,7 +761,9 @@ def report_html(review: FlightLog, numbers: Sequence[int] | None = None, title: 
                  f"<th>identified</th><th>limits</th><th>vector RMS, fitted rows</th><th>held-out rows</th>"
                  f"<th>chosen</th></tr>{rows}</table>" if rows else "")
         sections.append(
-            f"<h2>compass {n}</h2><p class='verdict'>{_html.escape(str(r['verdict']))}</p>{table}"
+            f"<h2>compass {n}</h2><p class='verdict'>{_html.escape(str(r['verdict']))}</p>"
+            + (f"<p class='attitude'>attitude of the figures (the fit's): {_html.escape(str(r['attitude']))}</p>"
+               if r.get("attitude") else "") + f"{table}"
             f"<pre>{_html.escape(chr(10).join(r.get('messages') or []))}</pre>"
             + "".join(f"<div class='fig' id='compass{n}-{name}'></div>" for name in r["figures"]))
     specs = json.dumps({name: _finite_or_none(fig) for name, fig in figures}, allow_nan=False).replace("</", "<\\/")
@@ -772,7 +781,7 @@ pre{{white-space:pre-wrap;font-size:85%}}</style>
 <h1>{heading}</h1>
 <p>{_html.escape(str(overview['format']))} {_html.escape(str(overview['vehicle'] or ''))}; target {review.target};
 fitted {choice.get('start_s', 0):.1f}..{choice.get('stop_s', 0):.1f} s, level {choice.get('level')}, motor
-{choice.get('motor')}</p>
+{choice.get('motor')}, yaw source {choice.get('yaw_source') or 'auto'}</p>
 {''.join(f"<p class='unavailable'>{_html.escape(line)}</p>" for line in overview['unavailable'])}
 <table><tr><th>compass</th><th>name</th><th>device id</th><th>samples</th><th>rate (Hz)</th><th>gaps</th>
 <th>unit</th></tr>{compass_rows}</table>

@@ -89,7 +89,7 @@ def _html_report(cal: Calibration, samples: Samples, req: FitRequest) -> Path:
     fw = cal.diagnostics.get("firmware") or {}
     review.results[number] = CompassResult(number, cal, rows=fitted, command="")
     review.choice = {"start_s": start_s, "stop_s": stop_s, "level": fw.get("level", req.level or "auto"),
-                     "motor": fw.get("motor_type") or req.motor or "auto"}
+                     "motor": fw.get("motor_type") or req.motor or "auto", "yaw_source": req.yaw_source or "auto"}
     title = f"trimag fit of {Path(req.input.path).name}: compass {number}, {req.target} level {fw.get('level')}"
     assert req.report is not None
     return atomic_write_text(req.report, report_html(review, [number], title=title))

@@ -104,7 +104,9 @@ function render(results) {
   const holder = $("per-compass");
   holder.style.gridTemplateColumns = `repeat(${Math.max(1, results.compasses.length)}, minmax(0, 1fr))`;
   holder.innerHTML = results.compasses.map((r) => `<section id="compass-${r.number}"><h2>compass ${r.number}</h2>` +
-    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>${checks(r)}${levelsTable(r.levels, r.statistics)}` +
+    `<div class="verdict ${r.error ? "refused" : ""}">${text(r.verdict)}</div>` +
+    (r.attitude ? `<div class="figure-attitude">attitude of the figures (the fit's): ${text(r.attitude)}</div>` : "") +
+    `${checks(r)}${levelsTable(r.levels, r.statistics)}` +
     `<h3>the same fit on the command line</h3><pre>${text(r.command)}</pre>` +
     `<h3>what the fit said</h3><pre>${text((r.messages || []).join("\n") || r.error || "")}</pre>` +
     Object.keys(r.figures).map((name) => `<div class="fig" id="fig-${r.number}-${name}"></div>`).join("") +
