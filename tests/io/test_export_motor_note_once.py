@@ -13,8 +13,9 @@ TESTS_DIR = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS_DIR))
 pytest.importorskip("pymavlink")
 
-from _helpers import run_trimag  # noqa: E402
 from _two_compass_flight import write_two_compass_flight  # noqa: E402
+
+from _helpers import run_trimag  # noqa: E402
 
 
 def test_the_one_motor_channel_is_said_once_for_a_file_of_every_compass(tmp_path: Path) -> None:
