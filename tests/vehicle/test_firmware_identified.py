@@ -9,19 +9,19 @@ The two tests marked ``xfail(strict=True)`` reproduce that fault on the current 
 effects, ``cov * outer(scales, scales)``, its identified directions mapped back to parameters over scales) was A/B'd
 on the held-out real logs (``benchmarks/heldout_logs.py``, docs/autopilot.md "Held-out real logs") and made two of
 the nine fitted compasses worse on their unfitted half (the directions it newly holds, held at the level below's
-solution, predicted worse than their noisy fit): it is not landed; when it is, these tests pass and strict xfail
-fails, to be removed with the fix.
+solution, predicted worse than their noisy fit): it is not landed. A second attempt, the fix with each hold decided
+by the level's held-out folds (commit ``ea0bc94`` of the ``identified`` branch), predicted simulated second flights
+10 % worse than the current rule (``benchmarks/firmware_identified_sweep.py``) and was not landed either
+(docs/autopilot.md). When a fix lands, these tests pass and strict xfail fails, to be removed with the fix.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_firmware import simulate
 
-from trimag.models.firmware import ArduPilotCompass
 from trimag.vehicle._firmware_levels import LevelProblem
-from trimag.vehicle.firmware import FirmwareFit, _effect_scales, _identified, fit_firmware
+from trimag.vehicle.firmware import _effect_scales, _identified
 
 KNOWN = pytest.mark.xfail(strict=True, reason="the noise rule divides by the effect scales (docs/autopilot.md, "
                            "'Held-out real logs': the fix is not landed, it made held-out results worse)")
@@ -43,6 +43,7 @@ def _status(problem: LevelProblem, sigma: dict[str, float], x_range: float = 1.0
     return _identified(problem, cov, scales, F_mG, NOISE_mG, np.zeros(len(names)))
 
 
+@KNOWN
 def test_a_scale_whose_sigma_moves_the_field_by_ten_times_the_noise_is_not_identified():
     problem = _problem("scale")
     scale = next(n for n in problem.names() if not n.startswith("o_"))
@@ -60,6 +61,7 @@ def test_a_scale_known_to_a_thousandth_is_identified():
     assert weak == [] and basis.shape[1] == 4
 
 
+@KNOWN
 def test_a_motor_term_is_judged_by_its_effect_over_the_channel_s_range():
     problem = _problem("offsets", motor=True)
     motor = [n for n in problem.names() if n.startswith("m_")]
@@ -67,36 +69,3 @@ def test_a_motor_term_is_judged_by_its_effect_over_the_channel_s_range():
     assert sorted(weak) == sorted(motor) and basis.shape[1] == 3
     basis, weak = _status(problem, {m: 0.05 for m in motor}, x_range=30.0)  # 0.75 mG
     assert weak == [] and basis.shape[1] == 6
-
-
-# ---------------------------------------------------------------- what holding a weak direction costs on held-out folds
-def _few_sample_flight(n: int, seed: int, max_tilt_deg: float) -> FirmwareFit:
-    """A short flight of a compass whose matrix is far from the log's (identity): few samples, so the noise rule
-    marks directions of the matrix levels weak; whether holding them at the level below's values predicts better
-    depends on the flight."""
-    truth = ArduPilotCompass(orientation=0, offsets=[120.0, -80.0, 40.0], scale=1.0, diagonal=[1.1, 0.9, 1.2],
-                             offdiagonal=[0.05, 0.0, 0.0])
-    held = ArduPilotCompass(orientation=0, offsets=[0.0, 0.0, 0.0])
-    raw, h, _ = simulate(truth, n, seed=seed, max_tilt_deg=max_tilt_deg, yaw_step_deg=8.0)
-    return fit_firmware("ardupilot", raw, field_body=h, held=held, applied_orientation=0, motor="none")
-
-
-@pytest.mark.parametrize(("n", "seed", "max_tilt_deg"), [(40, 1, 15.0), (60, 2, 10.0)])
-def test_a_weak_direction_is_held_only_where_holding_it_predicts_the_held_out_folds_no_worse(n, seed, max_tilt_deg):
-    fit = _few_sample_flight(n, seed, max_tilt_deg)
-    checked = [row for row in fit.table if row["hold_check"] is not None]
-    assert checked  # the noise rule marked something on these short flights
-    for row in checked:
-        hc = row["hold_check"]
-        held_rms, fitted_rms = hc["heldout_rms_held"], hc["heldout_rms_fitted"]
-        assert hc["kept"] == ("held" if held_rms <= fitted_rms * (1 + 1e-6) else "fitted")
-        assert row["heldout_rms"] == pytest.approx(min(held_rms, fitted_rms), rel=1e-6)
-        if hc["kept"] == "fitted":  # only the excitation floor's directions stay unidentified
-            assert not set(hc["directions"]) & set(row["not_identified"]) - set(row["unexcited"])
-    kinds = {row["hold_check"]["kept"] for row in checked}
-    # the 60-sample flight fits the scale level's weak z offset: holding it at the offsets level's value leaves 13.4
-    # mG on the folds against 10.7 fitted
-    assert kinds == ({"held", "fitted"} if seed == 1 else {"fitted"})
-    said = [m for m in fit.messages if m.startswith("the noise rule does not identify")]
-    chosen = next(row for row in fit.table if row["chosen"])
-    assert bool(said) == (chosen["hold_check"] is not None)

@@ -22,13 +22,11 @@ The parameters and each firmware's formula are :mod:`trimag.models.firmware` (Ar
    is kept and a better one reported.
 2. **Levels** (:data:`~trimag.vehicle._firmware_levels.LEVELS`, nested, each without and with each logged motor
    channel): the directions of a level's parameters that the data do not identify (one standard deviation moving
-   the field by more than :data:`IDENTIFIED` allows, the covariance of the parameters' effects ``p * s``) are held
-   at the level below's solution (the log's values for the first) and the others fitted, where holding them
-   predicts the level's held-out folds no worse (:data:`HOLD_TIE`) than fitting them; otherwise they are fitted
-   all the same, and the fit says which (``hold_check`` of the levels' table); each level is judged by its RMS on
-   :data:`N_FOLDS` contiguous folds, each fitted on the others (held-out RMS); ``level="auto"`` picks the simplest
-   level within the firmware's limits whose held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says
-   what it held; a level asked for must be identified whole. Identification also needs the data's own **excitation**
+   the field by more than :data:`IDENTIFIED` allows) are held at the level below's solution (the log's values for
+   the first) and the others fitted; each level is judged by its RMS on :data:`N_FOLDS` contiguous folds, each
+   fitted on the others (held-out RMS); ``level="auto"`` picks the simplest level within the firmware's limits whose
+   held-out RMS is within :data:`AUTO_TOLERANCE` of the best, and says what it held; a level asked for must be
+   identified whole. Identification also needs the data's own **excitation**
    (:mod:`trimag.vehicle._firmware_trust`): a direction the fitted rows barely move is not identified whatever the
    noise, and offsets that are not all excited (a heading-free fit of a log that never turned: two equations for
    three offsets) are refused before any level (:class:`~trimag.vehicle._firmware_trust.NotExcited`, exit 3).
@@ -95,7 +93,6 @@ from ._firmware_trust import (
 
 __all__ = [
     "AUTO_TOLERANCE",
-    "HOLD_TIE",
     "IDENTIFIED",
     "LEVELS",
     "N_FOLDS",
@@ -128,9 +125,6 @@ AUTO_TOLERANCE = 0.02
 #: by less than ``noise_factor`` times the residual noise per axis (or ``fraction`` of the field, if larger)
 #: (:func:`_identified`).
 IDENTIFIED = {"fraction": 0.005, "noise_factor": 2.0}
-#: The noise rule's weak directions of a level are fitted after all only when that lowers the level's held-out RMS by
-#: more than this fraction (a confounded direction, e.g. a z scale and offset under small tilts, ties to rounding).
-HOLD_TIE = 1e-6
 #: A fitted scale beyond this factor (either way) of the reference contradicts it: refused before any limit.
 SCALE_CONTRADICTION = 2.0
 _MOTOR_KINDS = ("current", "throttle")
@@ -420,11 +414,9 @@ def _identified(problem: LevelProblem, cov: NDArray[np.float64], scales: NDArray
     """The directions of the level's parameters that the data identify, and the names of those they do not.
 
     Parameters are compared by their effect on the corrected field (:func:`_effect_scales`). A direction (an
-    eigenvector of the effects' covariance ``cov * outer(scales, scales)``) is identified when one standard
-    deviation along it moves the field by less than ``IDENTIFIED["noise_factor"]`` times the fit's residual noise
-    ``noise`` (or ``IDENTIFIED["fraction"]`` of the field ``F``, if larger). ``change`` (the solution minus the
-    held values) is not used. Whether a weak direction is then held is decided by the held-out folds
-    (:func:`_fit_level`).
+    eigenvector of the scaled covariance) is identified when one standard deviation along it moves the field by
+    less than ``IDENTIFIED["noise_factor"]`` times the fit's residual noise ``noise`` (or ``IDENTIFIED["fraction"]``
+    of the field ``F``, if larger). ``change`` (the solution minus the held values) is not used.
 
     Returns
     -------
@@ -434,8 +426,8 @@ def _identified(problem: LevelProblem, cov: NDArray[np.float64], scales: NDArray
         For each direction not identified, the parameter that dominates it (a parameter named once).
     """
     limit = max(noise, IDENTIFIED["fraction"] * F)
-    effects = cov * np.outer(scales, scales)  # the covariance of the parameters' effects on the field, p * s
-    eigval, eigvec = np.linalg.eigh((effects + effects.T) / 2.0)
+    scaled = cov / np.outer(scales, scales)
+    eigval, eigvec = np.linalg.eigh((scaled + scaled.T) / 2.0)
     good = np.sqrt(np.clip(eigval, 0, None)) <= IDENTIFIED["noise_factor"] * limit
     del change
     names = problem.names()
@@ -444,11 +436,7 @@ def _identified(problem: LevelProblem, cov: NDArray[np.float64], scales: NDArray
         name = names[int(np.argmax(np.abs(eigvec[:, k])))]
         if name not in weak:
             weak.append(name)
-    if not np.any(good):
-        return np.zeros((len(names), 0)), weak
-    # an identified subspace of effects e maps to parameters e / s, in parameters over scales e / s^2
-    q, _ = np.linalg.qr(eigvec[:, good] / (scales**2)[:, None])
-    return np.asarray(q, dtype=np.float64), weak
+    return eigvec[:, good], weak
 
 
 # ------------------------------------------------------------------ one level: fit, limits, held-out RMS
@@ -472,9 +460,6 @@ class _Candidate:
     bounds: Any = None
     #: the data's excitation of the level's directions (:mod:`trimag.vehicle._firmware_trust`)
     excitation: Excitation | None = None
-    #: the noise rule's weak directions, held or fitted by the held-out RMS (``directions``, ``heldout_rms_held``,
-    #: ``heldout_rms_fitted``, ``kept``: "held" or "fitted"); None when the rule marked none
-    hold_check: dict[str, Any] | None = None
 
 
 def _bounds(problem: LevelProblem, klass: type[FirmwareCompass], held_scale: float,
@@ -595,29 +580,10 @@ def _fit_level(
                               sol.theta - reference)
     exc = excitation(problem, sol.jacobian, F)  # what the rows move at all, whatever the noise (issue 38)
     basis = restrict_basis(basis, scales, exc)
-    hold_check: dict[str, Any] | None = None
-    heldout: float | None = None
-    if weak and basis.shape[1] and bounds is None:
-        # the noise rule's weak directions are held only where holding them predicts the held-out folds no worse
-        # than fitting them (module docstring, step 2)
-        held_sol = problem.solve_in(reference, basis, scales)
-        held_rms = _heldout(problem, held_sol, None)
-        whole_basis = restrict_basis(np.eye(problem.n_params), scales, exc)  # only the excitation floor holds
-        whole_sol = sol if whole_basis.shape[1] == problem.n_params else problem.solve_in(reference, whole_basis,
-                                                                                           scales)
-        whole_rms = _heldout(problem, whole_sol, None)
-        keep_held = not held_rms > whole_rms * (1.0 + HOLD_TIE)  # a tie (or no folds) holds: the simpler claim
-        hold_check = {"directions": list(weak), "heldout_rms_held": held_rms, "heldout_rms_fitted": whole_rms,
-                      "kept": "held" if keep_held else "fitted"}
-        sol, heldout = (held_sol, held_rms) if keep_held else (whole_sol, whole_rms)
-        if not keep_held:
-            weak, basis = [], whole_basis
-        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
     weak = weak + [n for n in exc.unexcited if n not in weak]
     if weak and basis.shape[1] and bounds is None:  # fit what is identified; hold the rest at the log's values
-        if hold_check is None:
-            sol = problem.solve_in(reference, basis, scales)
-            compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
+        sol = problem.solve_in(reference, basis, scales)
+        compass = _compass(klass, sol, level, orientation, motor, held_for_params, fixed is not None)
         J = (sol.jacobian * scales) @ basis
         s2 = float(sol.residual @ sol.residual) / max(len(sol.residual) - basis.shape[1], 1)
         cov = (scales[:, None] * basis) @ np.linalg.pinv(J.T @ J) @ (scales[:, None] * basis).T * s2 \
@@ -625,8 +591,8 @@ def _fit_level(
     names = problem.names()
     return _Candidate(level, motor, problem, sol, compass, cov, noise, inflation, not weak, weak,
                       [str(v) for v in compass.violations(offsets_max=offsets_max)],
-                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds) if heldout is None else heldout,
-                      fixed is not None, basis.shape[1], bounds, exc, hold_check)
+                      [names[k] for k in sol.at_bound], _heldout(problem, sol, bounds), fixed is not None,
+                      basis.shape[1], bounds, exc)
 
 
 # ------------------------------------------------------------------ the fit
@@ -1010,8 +976,7 @@ def _level_row(cand: _Candidate) -> dict[str, Any]:
     return {"n_params": cand.problem.n_params, "rms": float(np.sqrt(np.mean(sol.residual**2) * cand.problem.width)),
             "heldout_rms": cand.heldout_rms, "identified": cand.identified, "n_identified": cand.n_identified,
             "not_identified": cand.weak, "within_limits": not cand.violations, "violations": cand.violations,
-            "at_limit": cand.at_limit, **_excitation_row(cand), "hold_check": cand.hold_check,
-            "compass": cand.compass.as_dict()}
+            "at_limit": cand.at_limit, **_excitation_row(cand), "compass": cand.compass.as_dict()}
 
 
 def _levels_on(
@@ -1279,14 +1244,6 @@ def _result(
         fw = _firmware_name(klass, name)
         held_values[fw] = {"value": float(fitted.get(fw, 0.0)),
                            "why": "not identified alone: moved only with the identified directions"}
-    if chosen.hold_check is not None:
-        hc = chosen.hold_check
-        dirs = ", ".join(_firmware_name(klass, n) for n in hc["directions"])
-        what = ("held at the level below's values" if hc["kept"] == "held" else
-                "fitted all the same")
-        messages.append(f"the noise rule does not identify {dirs} (one sigma moves the field by more than "
-                        f"{IDENTIFIED['noise_factor']:g}x the noise): {what}, the better on held-out folds "
-                        f"(held-out RMS {hc['heldout_rms_held']:.4g} held, {hc['heldout_rms_fitted']:.4g} fitted)")
     if chosen.at_limit:
         messages.append(f"warning: the fit holds {', '.join(chosen.at_limit)} at the firmware's limit: the firmware "
                         "cannot represent what the data ask for there")
