@@ -28,7 +28,16 @@ def rms(x: ArrayLike) -> float:
 def row_norms(B: ArrayLike) -> NDArray[np.float64]:
     """Magnitudes ``|B_i|`` of field samples ``B`` (N, 3) -> (N,)."""
     a = np.asarray(B, dtype=np.float64)
-    return np.sqrt(row_dot(a, a))
+    if a.ndim != 2 or len(a) <= chunk_rows():
+        squares = row_dot(a, a)
+        return np.sqrt(squares, out=squares)
+    out = np.empty(len(a))  # block by block: one array of N, no temporaries of N (issue 41, item 10)
+    block = chunk_rows()
+    for start in range(0, len(a), block):
+        rows = a[start : start + block]
+        squares = row_dot(rows, rows)
+        np.sqrt(squares, out=out[start : start + len(rows)])
+    return out
 
 
 def magnitude_error(B: ArrayLike, reference: ArrayLike) -> NDArray[np.float64]:
