@@ -1100,8 +1100,8 @@ def _take_xyz(df: pd.DataFrame, cols: tuple[str, str, str]
     if len(df) < SHARED_XYZ_ROWS or not df.columns.is_unique or len(set(cols)) < 3:
         return np.column_stack([_numeric(df[c]) for c in cols]), df, None
     held = _held_xyz(df, cols)
-    if held is not None:
-        return held, df, None
+    if held is not None:  # the table's columns are views of it: kept as the samples, the table rebuilt on them
+        return held, df.drop(columns=list(cols)), list(df.columns)
     xyz = np.empty((len(df), 3))
     order = list(df.columns)
     for k, c in enumerate(cols):
