@@ -403,6 +403,11 @@ def _return_freed_memory() -> None:
 NARROW_STREAM_BYTES = 2_000_000
 
 
+#: Bytes of text per block of :func:`_read_numeric_blocks` (Arrow's streaming reader holds some 20-30 blocks
+#: ahead, parsed: the larger the block, the higher the peak)
+NARROW_BLOCK_BYTES = 1 << 18
+
+
 def _read_narrow_rows(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
     """A CSV of at most :data:`NARROW_ROW_FIELDS` fields per row: a large one of plain numbers parsed block by
     block into one float64 array (:func:`_read_numeric_blocks`), any other by :func:`_read_delimited_arrow`."""
@@ -443,7 +448,7 @@ def _read_numeric_blocks(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) 
 
     names = _column_names(path, layout, kwargs)
     reader_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names,
-                                       block_size=1 << 20)
+                                       block_size=NARROW_BLOCK_BYTES)
     convert = pacsv.ConvertOptions(column_types=dict.fromkeys(names, pa.float64()), null_values=[""],
                                    strings_can_be_null=False)
     capacity = _line_count(path)
