@@ -193,8 +193,8 @@ def test_a_quoted_cell_longer_than_the_csv_module_s_limit_is_input_not_a_bug(
 #: peaked at 3.8 GB, 38 bytes per byte; measured 28.7 before the first fix and 16 after on 30 MB; on these 12 MB logs
 #: 22.0 and 9.9 before the second (x, y, z held once, Arrow's freed memory returned to the system) and 10.2 and 4.5
 #: after; 10.9 and 4.6 before the third (parsed block by block into one array, 8-byte duplicate keys, magnitudes
-#: without (N, 3) temporaries) and 6.6 and 3.4 after, benchmarks/fit_memory.py --mb 12)
-MAX_BYTES_PER_INPUT_BYTE = {"ones": 8.0, "short": 4.1}
+#: without (N, 3) temporaries) and 5.7 and 2.7 after, benchmarks/fit_memory.py --mb 12)
+MAX_BYTES_PER_INPUT_BYTE = {"ones": 7.0, "short": 3.5}
 
 
 @pytest.mark.parametrize("kind", ["ones", "short"])
