@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import trimag.io.tables as tables
+from trimag._core.chunks import working_memory_limit
 from trimag.errors import TrimagInputError
 from trimag.io import read_samples
 
@@ -39,9 +40,9 @@ def _both(path: Path, monkeypatch: pytest.MonkeyPatch, *, by_blocks: bool = True
 
     with monkeypatch.context() as m:
         m.setattr(tables, "NARROW_STREAM_BYTES", 0)
-        m.setattr(tables, "NARROW_BLOCK_BYTES", 4096)
         m.setattr(tables, "_read_numeric_blocks", spy)
-        blocks = read_samples(path)
+        with working_memory_limit(6144):  # blocks of 4 KiB of text
+            blocks = read_samples(path)
     assert taken == [by_blocks]
     with monkeypatch.context() as m:
         m.setattr(tables, "NARROW_STREAM_BYTES", 1 << 62)

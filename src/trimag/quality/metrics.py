@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._core import rowwise as _rowwise
-from .._core.chunks import chunk_rows
+from .._core.chunks import chunk_rows, row_blocks
 from .._core.rowwise import row_dot
 from .._core.stats import StreamingMoments as _Moments
 from .crlb import crlb
@@ -28,15 +28,11 @@ def rms(x: ArrayLike) -> float:
 def row_norms(B: ArrayLike) -> NDArray[np.float64]:
     """Magnitudes ``|B_i|`` of field samples ``B`` (N, 3) -> (N,)."""
     a = np.asarray(B, dtype=np.float64)
-    if a.ndim != 2 or len(a) <= chunk_rows():
-        squares = row_dot(a, a)
-        return np.sqrt(squares, out=squares)
+    if a.ndim != 2:
+        return np.sqrt(row_dot(a, a))
     out = np.empty(len(a))  # block by block: one array of N, no temporaries of N (issue 41, item 10)
-    block = chunk_rows()
-    for start in range(0, len(a), block):
-        rows = a[start : start + block]
-        squares = row_dot(rows, rows)
-        np.sqrt(squares, out=out[start : start + len(rows)])
+    for rows in row_blocks(len(a)):
+        np.sqrt(row_dot(a[rows], a[rows]), out=out[rows])
     return out
 
 
