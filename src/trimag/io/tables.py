@@ -411,6 +411,9 @@ def _read_narrow_rows(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> 
         df = _read_numeric_blocks(path, layout, kwargs)
         if df is not None:
             return df
+        # a cell that is not a number, or a row of another width: the whole file as text (a typed read of it
+        # would fail the same way, a third pass)
+        layout = dataclasses.replace(layout, all_numeric=False)
     return _read_delimited_arrow(path, layout, kwargs)
 
 
@@ -449,11 +452,15 @@ def _read_numeric_blocks(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) 
                                        block_size=read_block_bytes(1 << 18))
     convert = pacsv.ConvertOptions(column_types=dict.fromkeys(names, pa.float64()), null_values=[""],
                                    strings_can_be_null=False)
-    capacity = _line_count(path)
+    # at most a row per newline, and per n_fields bytes (`,,` and its newline)
+    capacity = min(_line_count(path), path.stat().st_size // len(names) + 1)
     # three columns: one (N, 3) array, the samples themselves when they are x, y, z in order (_held_xyz); more: an
     # array per column, so that x, y, z are each freed once copied into the samples (_take_xyz)
-    values = np.empty((capacity, 3)) if len(names) == 3 else None
-    columns = [] if values is not None else [np.empty(capacity) for _ in names]
+    try:
+        values = np.empty((capacity, 3)) if len(names) == 3 else None
+        columns = [] if values is not None else [np.empty(capacity) for _ in names]
+    except MemoryError:  # (address space refused: the whole-file reader says what it can)
+        return None
     n = 0
     try:
         reader = pacsv.open_csv(path, read_options=reader_options,
