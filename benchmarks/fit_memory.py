@@ -4,8 +4,9 @@
 
 Writes, in a temporary folder, CSV logs of about the sizes given (MB): "short" rows of three integers (a sensor's
 counts on a sphere of radius 500, many rows repeated: 10-13 bytes per row), "ones" rows that are all `1,2,3` (the
-issue's case: 6 bytes per row, every row a duplicate; the fit refuses it, exit 3, after reading), and "long" rows of
-twelve columns with six decimals (a lab log with time, temperature, accelerometer...: about 110 bytes per row).
+issue's case: 6 bytes per row, every row a duplicate; the fit refuses it, exit 3, after reading), "timed" rows of a
+sample number and the three integers (``t,x,y,z``: about 20 bytes per row) and "long" rows of twelve columns with
+six decimals (a lab log with time, temperature, accelerometer...: about 110 bytes per row).
 Each log is fitted by `trimag fit LOG -q` in a fresh process; its peak resident memory is read with os.wait4 (that
 process alone). The baseline is the same command on a 400-row log (the interpreter and its libraries). Printed
 and written per file: size, rows, peak MB, and (peak - baseline) / size, the bytes of memory per byte of input.
@@ -33,12 +34,14 @@ def _sphere_counts(n: int, seed: int) -> np.ndarray:
 
 
 def write_log(path: Path, kind: str, mb: float, seed: int = 0) -> int:
-    """A CSV log of ``kind`` (``short``, ``ones``, ``long``) of about ``mb`` megabytes; returns its rows."""
+    """A CSV log of ``kind`` (``short``, ``ones``, ``timed``, ``long``) of about ``mb`` megabytes; returns its rows."""
     target = int(mb * 1e6)
     rows = 0
     with path.open("w") as fh:
         if kind == "long":
             fh.write("t,x,y,z,temp,ax,ay,az,gx,gy,gz,current\n")
+        elif kind == "timed":
+            fh.write("t,x,y,z\n")
         else:
             fh.write("x,y,z\n")
         block = 200_000
@@ -47,6 +50,9 @@ def write_log(path: Path, kind: str, mb: float, seed: int = 0) -> int:
                 fh.write("1,2,3\n" * block)
             elif kind == "short":
                 np.savetxt(fh, _sphere_counts(block, seed + rows), fmt="%d", delimiter=",")
+            elif kind == "timed":
+                counts = _sphere_counts(block, seed + rows)
+                np.savetxt(fh, np.column_stack([rows + np.arange(block), counts]), fmt="%d", delimiter=",")
             else:
                 rng = np.random.default_rng(seed + rows)
                 xyz = _sphere_counts(block, seed + rows).astype(float) + rng.normal(0, 0.5, (block, 3))
@@ -70,7 +76,7 @@ def peak_mb(path: Path) -> tuple[float, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mb", default="30,100", help="sizes of the logs, MB (comma-separated)")
-    parser.add_argument("--kinds", default="short,ones,long")
+    parser.add_argument("--kinds", default="short,ones,timed,long")
     parser.add_argument("--out", help="also write the table as CSV")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:

@@ -192,8 +192,9 @@ def test_a_quoted_cell_longer_than_the_csv_module_s_limit_is_input_not_a_bug(
 #: bytes of peak memory per byte of a CSV log, above a small log's fit (issue 41, item 10: 100 MB of `1,2,3` lines
 #: peaked at 3.8 GB, 38 bytes per byte; measured 28.7 before the first fix and 16 after on 30 MB; on these 12 MB logs
 #: 22.0 and 9.9 before the second (x, y, z held once, Arrow's freed memory returned to the system) and 10.2 and 4.5
-#: after, benchmarks/fit_memory.py --mb 12)
-MAX_BYTES_PER_INPUT_BYTE = {"ones": 14.0, "short": 7.0}
+#: after; 10.9 and 4.6 before the third (parsed block by block into one array, 8-byte duplicate keys, magnitudes
+#: without (N, 3) temporaries) and 5.7 and 2.7 after, benchmarks/fit_memory.py --mb 12)
+MAX_BYTES_PER_INPUT_BYTE = {"ones": 7.0, "short": 3.5}
 
 
 @pytest.mark.parametrize("kind", ["ones", "short"])

@@ -14,6 +14,7 @@ from ..errors import TrimagError, TrimagInputError
 from ..estimators import make_estimator
 from ..fields.reference import igrf, parse_igrf_spec
 from ..io import Samples
+from ..quality.metrics import row_norms
 from ..units import normalise_unit, plausible_units, unit_after
 
 
@@ -40,7 +41,9 @@ def check_unit(
             where = "the column headers" if said.startswith("the column") else "the file's first line"
             messages.append(f"unit {in_header} (from {where})")
     if len(samples.field):  # raw magnitudes never fall far below the field, hard iron or not (issue 33)
-        median = float(np.median(np.linalg.norm(samples.field, axis=1)))
+        # one array of N magnitudes, partitioned in place (norm's (N, 3) squares and median's copy were the peak of
+        # a short-row log's fit: issue 41, item 10)
+        median = float(np.median(row_norms(samples.field), overwrite_input=True))
         refuse_below_reference(median, normalise_unit(units), reference, igrf_spec, field=samples.field)
     return units, messages
 

@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from .._core.chunks import read_block_bytes
 from .._core.extras import available, require
 from .._core.rowwise import count_duplicate_rows
 from ..errors import TrimagInputError
@@ -340,7 +341,7 @@ def _read_delimited(path: Path, fmt: str) -> tuple[pd.DataFrame, CsvLayout]:
         if layout.delimiter is None or not available("pyarrow"):
             df = None
         elif layout.n_fields <= NARROW_ROW_FIELDS:  # short rows: the reader's memory would outweigh the data
-            df = _arrow_system_pool(_read_delimited_arrow, path, layout, kwargs)
+            df = _arrow_system_pool(_read_narrow_rows, path, layout, kwargs)
         else:
             df = _read_delimited_arrow(path, layout, kwargs)
         if df is None:
@@ -390,13 +391,99 @@ def _return_freed_memory() -> None:
     after the read, stay in the heap otherwise, under the arrays allocated next (30-40 bytes per row of a short-row
     log). Nothing where the C library has no such call."""
     import ctypes
-    import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc = ctypes.CDLL(None)  # the process' own C library (find_library ran `ldconfig -p` on every call)
         libc.malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+#: Bytes from which a CSV of short plain-number rows is parsed block by block into one preallocated array
+#: (:func:`_read_numeric_blocks`); smaller files are read whole (a batch of 5000-row logs)
+NARROW_STREAM_BYTES = 2_000_000
+
+
+def _read_narrow_rows(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
+    """A CSV of at most :data:`NARROW_ROW_FIELDS` fields per row: a large one of plain numbers parsed block by
+    block into one float64 array (:func:`_read_numeric_blocks`), any other by :func:`_read_delimited_arrow`."""
+    if layout.all_numeric and path.stat().st_size >= NARROW_STREAM_BYTES:
+        df = _read_numeric_blocks(path, layout, kwargs)
+        if df is not None:
+            return df
+        # a cell that is not a number, or a row of another width: the whole file as text (a typed read of it
+        # would fail the same way, a third pass)
+        layout = dataclasses.replace(layout, all_numeric=False)
+    return _read_delimited_arrow(path, layout, kwargs)
+
+
+def _column_names(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> list[str]:
+    """The names pandas gives the columns of a delimited file (``0, 1, ...`` without a header)."""
+    if layout.header is not None:  # distinct, non-empty names: pandas would keep them as they are
+        return list(layout.header)
+    if not layout.has_header:
+        return [str(k) for k in range(layout.n_fields)]
+    return [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]  # pandas' renaming ("x.1", "Unnamed: 2")
+
+
+def _line_count(path: Path) -> int:
+    """Newlines in the file, plus one: at least its rows (1 GB/s; a block of 1 MB at a time)."""
+    count = 1
+    with path.open("rb") as fh:
+        while block := fh.read(1 << 20):
+            count += block.count(b"\n")
+    return count
+
+
+def _read_numeric_blocks(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
+    """Every column of the file as float64 (empty cells NaN), parsed by Arrow's streaming reader block by block
+    into one preallocated (N, fields) array; the table's columns are views of it (issue 41, item 10: Arrow's
+    whole-file table and its conversion to pandas held 2-3 copies of the numbers at the peak, 40-50 bytes per row
+    of `1,2,3`; here the numbers are held once, plus one block). The array is sized by the file's newlines (pages
+    never written cost no memory) and shrunk to the rows read. None when a cell is not a plain number (the caller
+    then reads the file whole, as strings where needed)."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    names = _column_names(path, layout, kwargs)
+    # 256 KiB of text a block at the default working memory (Arrow's streaming reader holds some 20-30 parsed blocks
+    # ahead: 1 MiB blocks took 44 MB on 12 MB of `1,2,3` rows, 256 KiB ones 19 MB, and read as fast)
+    reader_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names,
+                                       block_size=read_block_bytes(1 << 18))
+    convert = pacsv.ConvertOptions(column_types=dict.fromkeys(names, pa.float64()), null_values=[""],
+                                   strings_can_be_null=False)
+    # at most a row per newline, and per n_fields bytes (`,,` and its newline)
+    capacity = min(_line_count(path), path.stat().st_size // len(names) + 1)
+    # three columns: one (N, 3) array, the samples themselves when they are x, y, z in order (_held_xyz); more: an
+    # array per column, so that x, y, z are each freed once copied into the samples (_take_xyz)
+    try:
+        values = np.empty((capacity, 3)) if len(names) == 3 else None
+        columns = [] if values is not None else [np.empty(capacity) for _ in names]
+    except MemoryError:  # (address space refused: the whole-file reader says what it can)
+        return None
+    n = 0
+    try:
+        reader = pacsv.open_csv(path, read_options=reader_options,
+                                parse_options=pacsv.ParseOptions(delimiter=layout.delimiter),
+                                convert_options=convert, memory_pool=pa.default_memory_pool())  # (the system's)
+        for batch in reader:
+            m = batch.num_rows
+            if n + m > capacity:  # (never: a row ends at a newline or at the file's end)
+                return None
+            for k, column in enumerate(batch.columns):
+                (values[:, k] if values is not None else columns[k])[n : n + m] = column.to_numpy(
+                    zero_copy_only=False)
+            n += m
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+        return None
+    if n == 0:
+        return None  # header only: pandas gives the same empty frame and the caller's message
+    if values is not None:  # (no view of it is left: resized in place, the unused pages given back)
+        values.resize((n, 3), refcheck=False)
+        return pd.DataFrame(values, columns=names, copy=False)
+    for array in columns:
+        array.resize(n, refcheck=False)
+    return pd.DataFrame(dict(zip(names, columns, strict=True)), copy=False)
 
 
 def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any]) -> pd.DataFrame | None:
@@ -411,12 +498,7 @@ def _read_delimited_arrow(path: Path, layout: CsvLayout, kwargs: dict[str, Any])
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    if layout.header is not None:  # distinct, non-empty names: pandas would keep them as they are
-        names = list(layout.header)
-    elif not layout.has_header:
-        names = [str(k) for k in range(layout.n_fields)]
-    else:  # duplicate or empty names: pandas' renaming ("x.1", "Unnamed: 2")
-        names = [str(c) for c in pd.read_csv(path, nrows=0, **kwargs).columns]
+    names = _column_names(path, layout, kwargs)
     read_options = pacsv.ReadOptions(skip_rows=layout.skip + int(layout.has_header), column_names=names)
     parse_options = pacsv.ParseOptions(delimiter=layout.delimiter)
     pool = pa.default_memory_pool()  # the system's: _arrow_system_pool
@@ -1035,12 +1117,33 @@ def _take_xyz(df: pd.DataFrame, cols: tuple[str, str, str]
     when ``df``'s names are not distinct."""
     if len(df) < SHARED_XYZ_ROWS or not df.columns.is_unique or len(set(cols)) < 3:
         return np.column_stack([_numeric(df[c]) for c in cols]), df, None
+    held = _held_xyz(df, cols)
+    if held is not None:  # the table's columns are views of it: kept as the samples, the table rebuilt on them
+        return held, df.drop(columns=list(cols)), list(df.columns)
     xyz = np.empty((len(df), 3))
     order = list(df.columns)
     for k, c in enumerate(cols):
         xyz[:, k] = _numeric(df[c])
         df = df.drop(columns=[c])
     return xyz, df, order
+
+
+def _held_xyz(df: pd.DataFrame, cols: tuple[str, str, str]) -> NDArray[np.float64] | None:
+    """The (N, 3) array ``df``'s float64 columns ``cols`` (all its columns, in that order) are views of
+    (:func:`_read_numeric_blocks`), writable, or None when they are not one such array."""
+    if list(df.columns) != list(cols) or not all(dtype == np.float64 for dtype in df.dtypes):
+        return None
+    first = df[cols[0]].to_numpy()
+    if not all(np.may_share_memory(first, df[c].to_numpy()) for c in cols[1:]):
+        return None  # separate columns: df.to_numpy would copy them
+    held = df.to_numpy(dtype=np.float64, copy=False)
+    if not (held.flags.c_contiguous and np.may_share_memory(held, first)):
+        return None
+    try:
+        held.flags.writeable = True  # (pandas' read-only view of the reader's array: the samples own it now)
+    except ValueError:
+        return None
+    return held
 
 
 def _with_xyz(table: pd.DataFrame, field: NDArray[np.float64], cols: tuple[str, str, str],
