@@ -13,7 +13,7 @@ from ..calibration import Calibration
 from ..errors import TrimagInputError
 from ..fields.reference import ScalarReference, igrf, parse_igrf_spec
 from ..io import Samples
-from ..units import convert
+from ..units import convert, unit_after
 from ._inputs import attitudes_of, drop_rows_without_attitude, magnitude_reference
 from .requests import FitRequest
 
@@ -119,7 +119,7 @@ def fit_level_turn_file(req: FitRequest, samples: Samples, unit: str, options: d
     cal = fit_level_turn(samples.field, ref.values, inclination_deg=inclination, attitude=rotation, units=unit,
                          vertical_scale_sigma=s["vertical_scale_sigma"], gain_sigma=s["gain_sigma"],
                          scale_sigma=s["scale_sigma"], inclination_sigma_deg=s["inclination_sigma_deg"])
-    messages.insert(0, f"level turn: reference F = {float(np.mean(ref.values)):.6g} {unit} ({ref.source})"
+    messages.insert(0, f"level turn: reference F = {float(np.mean(ref.values)):.6g} {unit_after(unit)} ({ref.source})"
                     + (f", inclination {inclination:.3f} deg ({source})" if inclination is not None else
                        ", inclination unknown (the horizontal gain held at the data's unit)"))
     declination = _declination(req)
@@ -140,7 +140,7 @@ def level_turn_lines(cal: Calibration) -> list[str]:
     """What a level turn fitted and held, for the user."""
     d = cal.diagnostics["level_turn"]
     std = (cal.uncertainty or {})["param_std"]
-    unit = cal.units
+    unit = unit_after(cal.units)  # after a number: "(unit not given)" for a fit without a unit
     parts = d["offset_z_sigma_parts"]
     lines = [f"  turned through {d['turn_covered_deg']:.0f} deg of heading; tilt {d['tilt_rms_deg']:.2g} deg RMS"]
     for k, axis in enumerate("xyz"):
@@ -202,13 +202,14 @@ def fit_fixed_heading_file(req: FitRequest, samples: Samples, unit: str, prior: 
     cal = fit_fixed_heading(samples.field, (F, incl, decl), yaw, pitch_deg=pitch, roll_deg=roll, matrix=matrix,
                             units=unit, sigmas=sigmas, model="ellipsoid" if prior is None else prior.model)
     std = (cal.uncertainty or {})["param_std"]
-    messages.insert(0, f"fixed heading (as ArduPilot's MAG_CAL_YAW): field {F:.6g} {unit}, inclination {incl:.3f} "
+    shown = unit_after(unit)  # after a number: "(unit not given)" for a fit without a unit
+    messages.insert(0, f"fixed heading (as ArduPilot's MAG_CAL_YAW): field {F:.6g} {shown}, inclination {incl:.3f} "
                        f"deg, declination {decl:.3f} deg ({source}); true heading "
                        + (f"{float(req.heading):.2f} deg" if req.heading is not None else
                           f"from column {req.heading_column}")
                        + f"; matrix held: {cal.diagnostics['fixed_heading']['matrix_held']}")
     for k, axis in enumerate("xyz"):
-        messages.append(f"  offset_{axis} = {cal.offset[k]:.6g} +- {std[f'hard_iron_{axis}']:.3g} {unit}")
+        messages.append(f"  offset_{axis} = {cal.offset[k]:.6g} +- {std[f'hard_iron_{axis}']:.3g} {shown}")
     misfit = heading_misfit_message(cal)
     if misfit:
         messages.append(f"warning: {misfit}")

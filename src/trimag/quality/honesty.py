@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..units import unit_after
 from ..validation import ROUNDOFF_FRACTION
 
 __all__ = ["DRIFT_ALPHA", "DRIFT_Z", "chi2_tail", "correlation_time", "count_repeated_rows", "drift_check",
@@ -272,6 +273,7 @@ def drift_check(cal: Calibration, X: NDArray[np.float64], reference: Any = None)
 def _drift_warning(drift: dict[str, Any], unit: str) -> str:
     """The warning of halves that disagree: the parameters that moved, by how much and how many sigmas."""
     z, change = drift["z"], drift["change"]
+    unit = unit_after(unit)  # "(unit not given)" for a fit without a unit
     named = sorted(drift["moved"], key=lambda k: -abs(z[k]))
     parts = [f"{k} by {change[k]:.4g}{' ' + unit if k.startswith('hard_iron') else ''} ({abs(z[k]):.1f} sigma)"
              for k in named[:4]]
