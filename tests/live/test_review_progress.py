@@ -83,3 +83,28 @@ def test_the_page_says_how_far_the_reading_and_the_fit_are(tmp_path: Path) -> No
         assert state["error"] == "bad.bin: not a readable log" and not state["busy"] and not state["reading"]
     finally:
         failing.shutdown()
+
+
+def test_ctrl_c_while_the_log_is_read_stops_the_reading(tmp_path: Path) -> None:
+    """A SIGINT during the reading stops it at its next progress report (it waited for the whole log, minutes for a
+    large one, before the command ended); the compasses are then never fitted nor said."""
+    import os
+    import signal
+
+    sys.path.insert(0, str(TESTS_DIR / "app"))
+    from test_firmware_fit import _write_log
+
+    from trimag.app.requests import ReviewRequest
+    from trimag.live.review import run_review
+
+    log = _write_log(tmp_path / "flight.bin", n=600, seed=4)
+    said: list[str] = []
+
+    def say(line: str) -> None:
+        said.append(line)
+        if len(said) == 1:  # the page's address: the reading starts next
+            os.kill(os.getpid(), signal.SIGINT)
+
+    result = run_review(ReviewRequest(log=str(log), port=0, open_browser=False), say)
+    assert result.reason == "interrupted", (result.reason, said)
+    assert not any("compasses" in line for line in said), said

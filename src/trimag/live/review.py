@@ -199,10 +199,18 @@ def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
             say(f"trimag review: {request.log}; the page is at {server.url} (reading the log; Ctrl-C stops)")
             if request.open_browser:
                 webbrowser.open(server.url)
-            review = server.read(lambda progress: FlightReview(
-                request.log, fmt=request.fmt, target=request.target, igrf_spec=request.igrf_spec,
-                units=request.units, columns=request.columns, attitude_columns=request.attitude_columns,
-                time_column=request.time_column, progress=progress))
+            def reading(progress: Callable[[float, str], None]) -> FlightReview:
+                def said(fraction: float, what: str) -> None:  # Ctrl-C stops the reading at its next report
+                    if stop.reason:
+                        raise KeyboardInterrupt
+                    progress(fraction, what)
+
+                return FlightReview(request.log, fmt=request.fmt, target=request.target, igrf_spec=request.igrf_spec,
+                                    units=request.units, columns=request.columns,
+                                    attitude_columns=request.attitude_columns, time_column=request.time_column,
+                                    progress=said)
+
+            review = server.read(reading)
             server.start_fit({})
             names = ", ".join(f"{m.number} ({m.name})" for m in review.log.magnetometers)
             say(f"trimag review: read {review.log.format}; compasses {names}; fitting the whole flight")
@@ -214,7 +222,7 @@ def run_review(request: ReviewRequest, say: Callable[[str], None] = print, *,
                 time.sleep(0.1)
             result.reason = stop.reason
         except KeyboardInterrupt:
-            result.reason = "interrupted"
+            result.reason = stop.reason or "interrupted"
         finally:
             server.shutdown()
     return result
