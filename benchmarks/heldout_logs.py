@@ -8,7 +8,8 @@ ArduPilot log is put through :func:`magfit_compare.compare` (``benchmarks/magfit
 (``magfit_WMM.py``, best of its variants) and ``trimag fit LOG --sensor N --target ardupilot --rows 0:HALF`` fitted
 on the first half, each judged on the second half through ArduPilot's formula with the log's ``AHRS_TRIM``, as the
 log's firmware loads them; and trimag's exit code and its own verdict against the log's calibration. A log without a
-GPS fix is run through ``trimag fit`` only (MAGFit and the judge need the Earth's field at the log's site).
+GPS fix is run through ``trimag fit`` only (MAGFit and the judge need the Earth's field at the log's site), and so is
+a PX4 log (``firmware = "px4"`` in the manifest; ``--target px4``): MAGFit and the judge are ArduPilot's.
 """
 
 from __future__ import annotations
@@ -39,17 +40,21 @@ def _compasses(log: Path) -> list[int]:
     return sorted({m.number for m in read_log(log).magnetometers})
 
 
-def _fit_only(log: Path, compass: int) -> dict[str, Any]:
-    """``trimag fit`` on the first half where nothing can be judged (no GPS fix): its exit code and first line."""
+def _fit_only(log: Path, compass: int, target: str = "ardupilot") -> dict[str, Any]:
+    """``trimag fit`` on the first half where nothing else can judge (no GPS fix; a PX4 log: MAGFit and the judge
+    are ArduPilot's): its exit code and its own verdict on the rows left out (or its last line)."""
     from trimag.io.logs import read_log
 
     n = len(read_log(log).table(str(compass))[0])
     with tempfile.TemporaryDirectory() as tmp:
         proc = subprocess.run([sys.executable, "-m", "trimag", "fit", str(log), "--sensor", str(compass), "--target",
-                               "ardupilot", "--rows", f"0:{n // 2}", "-o", str(Path(tmp) / "cal.json")],
+                               target, "--rows", f"0:{n // 2}", "-o", str(Path(tmp) / "cal.json")],
                               capture_output=True, text=True)
+    errors = proc.stderr.strip().splitlines()
+    verdict = ([line for line in proc.stdout.splitlines() if "the fit did not see" in line]
+               or (errors[:1] if proc.returncode else errors[-1:]) or [""])
     return {"log": log.name, "compass": compass, "n_fit": n // 2, "n_heldout": n - n // 2,
-            "trimag_exit": proc.returncode, "trimag": (proc.stderr.strip().splitlines() or [""])[-1]}
+            "trimag_exit": proc.returncode, "trimag": verdict[0]}
 
 
 def _short(text: str, words: int = 12) -> str:
@@ -106,6 +111,11 @@ def main() -> None:
                 print(f"skipped {entry['file']}: absent or not the manifest's sha256", file=sys.stderr)
                 continue
             for compass in _compasses(log):
+                if entry.get("firmware") == "px4":  # trimag's own verdict only (docs/autopilot.md)
+                    row = {"vehicle": "PX4", **_fit_only(log, compass, "px4")}
+                    print(json.dumps(row, default=str), flush=True)
+                    rows.append(row)
+                    continue
                 row = compare(log, Path(tmp), compass, magfit=not args.no_magfit)
                 if "note" in row:  # nothing to judge against: trimag's own answer only
                     row = {**row, **_fit_only(log, compass)}
