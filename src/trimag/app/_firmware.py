@@ -261,7 +261,17 @@ def _circularity(target: str, info: dict[str, Any]) -> tuple[bool, str]:
                            "barely turned they rest on its heading alone")
         why = f"{use_name} = {use:g}" + (f", EK3_SRC1_YAW = {yaw_src:g}" if yaw_src is not None else "")
     else:
-        why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none"
+        fused, device = info.get("ekf_mag_device_ids"), info.get("device_id")
+        if params.get("EKF2_MAG_TYPE") == 5.0:  # PX4's EKF2_MAG_TYPE 5: none
+            return False, f"attitude: {source} (the EKF's yaw used no magnetometer: EKF2_MAG_TYPE = 5, none)"
+        if fused and device is not None and int(device) not in fused:
+            return False, (f"attitude: {source}: the EKF's yaw did not use this compass (its estimators fused "
+                           f"device id {', '.join(map(str, fused))}, estimator_status.mag_device_id; this compass is "
+                           f"{device}) but is another compass's heading, taken here as the truth: this compass's "
+                           "offsets and orientation are only as good as that compass's calibration, and on a log that "
+                           "barely turned they rest on its heading alone")
+        why = "EKF2 fuses the magnetometers unless EKF2_MAG_TYPE is none" + (
+            f"; its estimators fused device id {', '.join(map(str, fused))}" if fused else "")
     advice = ("Log XKY0 (EKF3's GSF yaw, ArduPilot 4.1+) or fly with a GPS heading to fit the full vector"
               if target == "ardupilot" else
               "trimag reads no compass-free yaw from PX4 logs: the full vector needs a calibration turn through all "

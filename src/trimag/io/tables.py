@@ -739,6 +739,7 @@ def _read_vehicle_log(p: Path, kind: str, sensor: SensorChoice) -> pd.DataFrame:
         "compass": mag.number,  # as the user numbers it (`sensor`, export's instance): from 1
         "compasses": [{"number": m.number, "name": m.name, "n_samples": len(m.time_s)} for m in log.magnetometers],
         "device_id": mag.device_id,
+        "ekf_mag_device_ids": None if log.ekf_mag_device_ids is None else list(log.ekf_mag_device_ids),
         "gps": log.gps,
         "messages": log.summary_lines(sensor) + messages,
         "channels": [c for c in df.columns if c not in ("time_s",) and not c.startswith(("mag_", "yaw_g"))],

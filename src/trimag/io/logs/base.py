@@ -200,6 +200,9 @@ class VehicleLog:
     attitudes: dict[str, Channel] = field(default_factory=dict)
     #: the vehicle's altitude, m (shown with the flight; not a regressor): its ``source`` says above what
     altitude: Channel | None = None
+    #: the device ids of the magnetometers the log's EKF instances fused (PX4 ``estimator_status.mag_device_id``,
+    #: v1.12+), or None where the log does not say: a compass not among them gives a yaw independent of it
+    ekf_mag_device_ids: tuple[int, ...] | None = None
 
     def choose(self, sensor: SensorChoice = None) -> MagnetometerStream:
         """The magnetometer named by ``sensor`` (compass number, name or device id), or the best one.

@@ -109,6 +109,18 @@ def _ulog_version_minor(ulog: Any) -> int | None:
     return None
 
 
+def _ekf_mag_device_ids(data: dict[tuple[str, int], dict[str, NDArray[Any]]]) -> tuple[int, ...] | None:
+    """The magnetometers any EKF instance fused over the log (``estimator_status.mag_device_id`` of every instance,
+    PX4 v1.12+; 0, no magnetometer, left out), or None where no ``estimator_status`` records it."""
+    ids: set[int] = set()
+    seen = False
+    for (name, _), d in data.items():
+        if name == "estimator_status" and "mag_device_id" in d:
+            seen = True
+            ids.update(int(x) for x in np.unique(d["mag_device_id"]) if int(x) != 0)
+    return tuple(sorted(ids)) if seen else None
+
+
 def read_ulog(path: Path) -> VehicleLog:
     """Read a PX4 ULog file."""
     pyulog = require("pyulog")
@@ -123,6 +135,7 @@ def read_ulog(path: Path) -> VehicleLog:
     stale = calibration_slots(params)[1]
     _ulog_channels(log, data)
     log.gps = _ulog_gps(data.get(("vehicle_gps_position", 0)) or data.get(("sensor_gps", 0)))
+    log.ekf_mag_device_ids = _ekf_mag_device_ids(data)
     imu = data.get(("sensor_combined", 0))
     if imu is not None and "gyro_rad[0]" in imu:
         log.gyro = Channel(imu["timestamp"].astype(np.float64) * 1e-6,
