@@ -158,8 +158,8 @@ def calibration_names(files: Sequence[Path]) -> list[str]:
 
 def _failure(exc: BaseException) -> tuple[str, str]:
     """The row's ``error`` and ``error_type`` of a file that failed: what ``trimag fit`` would say (its verdict; the
-    details are :func:`_details`) and its exit code's kind (an unreadable file, an unwritable output, not enough
-    memory: the user's input, exit 2)."""
+    details, :attr:`TrimagError.details <trimag.errors.TrimagError.details>`, go to ``error_details``) and its exit
+    code's kind (an unreadable file, an unwritable output, not enough memory: the user's input, exit 2)."""
     if isinstance(exc, IdentifiabilityError):
         return str(exc), "identifiability"
     if isinstance(exc, TrimagError):

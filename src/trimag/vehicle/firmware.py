@@ -947,10 +947,7 @@ def _levels(
     if below:
         sol = max(below, key=lambda c: LEVELS.index(c.level)).solution
         start = (sol.A, sol.o, sol.m)
-    target = hh
-    if tilt is not None:  # the heading-free target on every row, as _levels_on makes it
-        level_field = np.einsum("nij,nj->ni", tilt, h)
-        target = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
+    target = hh if tilt is None else _heading_free_target(tilt, h)
     try:
         whole = _fit_level(chosen.level, chosen.motor, u, target, motors, klass, held, A_held, o_held, start,
                            fr.orientation, omax, v, same_frame, None if tilt is None else tilt @ fr.P_h)
@@ -968,6 +965,13 @@ def _levels(
     messages.append(f"levels compared on every {nth} sample ({len(rows)} of {n}: the table's figures but the "
                     f"chosen level's); the chosen level fitted and judged on all {n}")
     return table, candidates, whole, tilt
+
+
+def _heading_free_target(tilt: NDArray[np.float64], h: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The heading-free residual's target (N, 2): the body field ``h`` (N, 3) under the tilt's roll and pitch
+    (body -> level), as its horizontal length and its vertical component."""
+    level_field = np.einsum("nij,nj->ni", tilt, h)
+    return np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
 
 
 def _level_row(cand: _Candidate) -> dict[str, Any]:
@@ -988,8 +992,7 @@ def _levels_on(
 ) -> tuple[list[dict[str, Any]], list[_Candidate], _Candidate, NDArray[np.float64] | None]:
     """The levels' table and candidates and the one chosen, heading-free first where asked (module docstring)."""
     if tilt is not None:  # heading-free first; the vector (the untrusted yaw) only where it identifies nothing
-        level_field = np.einsum("nij,nj->ni", tilt, h)
-        hz = np.column_stack([np.hypot(level_field[:, 0], level_field[:, 1]), level_field[:, 2]])
+        hz = _heading_free_target(tilt, h)
         table, candidates = _run_levels(level, motor, motors, u, hz, klass, held, A_held, o_held, fr.orientation,
                                         omax, v, same_frame, tilt @ fr.P_h, absent)
         try:
